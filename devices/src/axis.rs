@@ -1,0 +1,70 @@
+//! The axis trait: one motorized stage (rotary or linear).
+//!
+//! Positions are in the axis' own units inside the code: radians for rotary axes,
+//! millimetres for linear ones. A move is split into `start_move` and `wait_idle` so the
+//! engine can start all axes of a transition at once and wait for the slowest.
+
+use crate::{DeviceError, MotionModel};
+use async_trait::async_trait;
+use serde::{Deserialize, Serialize};
+
+/// Soft limits in the axis' units; `min < max`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SoftLimits {
+    pub min: f64,
+    pub max: f64,
+}
+
+impl SoftLimits {
+    pub fn contains(&self, x: f64) -> bool {
+        x >= self.min && x <= self.max
+    }
+}
+
+/// What an axis reports about itself.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AxisStatus {
+    pub homed: bool,
+    pub moving: bool,
+    pub position: f64,
+}
+
+#[async_trait]
+pub trait Axis: Send + Sync {
+    /// The axis name from the rig file (used in every error message).
+    fn name(&self) -> &str;
+    fn limits(&self) -> SoftLimits;
+    fn motion(&self) -> MotionModel;
+    /// Find the reference and set the position to zero.
+    async fn home(&self) -> Result<(), DeviceError>;
+    /// Start a move to an absolute position and return once the controller accepted it.
+    /// Targets outside the soft limits are refused before anything moves.
+    async fn start_move(&self, target: f64) -> Result<(), DeviceError>;
+    /// Wait until the axis is idle and settled; returns the read-back position.
+    async fn wait_idle(&self) -> Result<f64, DeviceError>;
+    /// Stop any motion now.
+    async fn stop(&self) -> Result<(), DeviceError>;
+    /// Read back the current position.
+    async fn position(&self) -> Result<f64, DeviceError>;
+    async fn status(&self) -> Result<AxisStatus, DeviceError>;
+
+    /// Move to `target` and wait until settled; returns the read-back position.
+    async fn move_abs(&self, target: f64) -> Result<f64, DeviceError> {
+        self.start_move(target).await?;
+        self.wait_idle().await
+    }
+}
+
+/// Check a target against limits with the error every backend should give.
+pub fn check_limits(name: &str, limits: SoftLimits, target: f64, command: &str) -> Result<(), DeviceError> {
+    if !target.is_finite() || !limits.contains(target) {
+        return Err(DeviceError::SoftLimit {
+            device: name.to_string(),
+            command: command.to_string(),
+            target,
+            min: limits.min,
+            max: limits.max,
+        });
+    }
+    Ok(())
+}

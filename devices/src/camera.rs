@@ -1,0 +1,74 @@
+//! The camera trait and the frame it returns.
+
+use crate::DeviceError;
+use async_trait::async_trait;
+use serde::{Deserialize, Serialize};
+
+/// Settings a camera is asked for. Real drivers adjust what they are asked (sizes,
+/// exposure steps): `Camera::configure` returns what was actually applied.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraConfig {
+    pub width: usize,
+    pub height: usize,
+    /// Exposure time in seconds.
+    pub exposure: f64,
+    /// Analogue gain (1 = unity).
+    pub gain: f64,
+    /// ADC bit depth of the delivered values (8, 12, 16).
+    pub bit_depth: u32,
+}
+
+/// Pinhole intrinsics in pixels (OpenCV convention: x right, y down, origin at the
+/// top-left pixel's corner, so pixel (i, j) has its centre at (i + ½, j + ½)).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// Pixel coordinates of a camera-frame point (z > 0).
+    pub fn project(&self, x: f64, y: f64, z: f64) -> (f64, f64) {
+        (self.fx * x / z + self.cx, self.fy * y / z + self.cy)
+    }
+}
+
+/// Metadata of one captured frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameMeta {
+    /// Capture time in seconds on the rig's clock (virtual for a simulated rig).
+    pub timestamp: f64,
+    pub exposure: f64,
+    pub gain: f64,
+    /// Increases by one per captured frame, so dropped frames are visible.
+    pub sequence: u64,
+    pub bit_depth: u32,
+}
+
+/// A raw RGB frame of digital numbers (DN), interleaved, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub width: usize,
+    pub height: usize,
+    /// `width * height * 3` values in `0 ..= 2^bit_depth − 1`.
+    pub data: Vec<u16>,
+    pub meta: FrameMeta,
+}
+
+impl Frame {
+    /// The largest value the ADC can deliver.
+    pub fn max_dn(&self) -> u16 {
+        ((1u32 << self.meta.bit_depth.min(16)) - 1) as u16
+    }
+}
+
+#[async_trait]
+pub trait Camera: Send + Sync {
+    fn name(&self) -> &str;
+    /// Apply settings; returns the settings the device actually uses.
+    async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError>;
+    /// Capture one frame with the current settings.
+    async fn capture(&self) -> Result<Frame, DeviceError>;
+}

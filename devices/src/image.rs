@@ -1,0 +1,28 @@
+//! Image buffers shared by devices, the simulator and the processing pipeline.
+
+use serde::{Deserialize, Serialize};
+
+/// An interleaved RGB image of linear `f32` values, row-major, row 0 at the top.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RgbImage {
+    pub width: usize,
+    pub height: usize,
+    /// `width * height * 3` values.
+    pub data: Vec<f32>,
+}
+
+impl RgbImage {
+    pub fn new(width: usize, height: usize) -> Self {
+        RgbImage { width, height, data: vec![0.0; width * height * 3] }
+    }
+    #[inline]
+    pub fn get(&self, x: usize, y: usize) -> [f32; 3] {
+        let i = (y * self.width + x) * 3;
+        [self.data[i], self.data[i + 1], self.data[i + 2]]
+    }
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, c: [f32; 3]) {
+        let i = (y * self.width + x) * 3;
+        self.data[i..i + 3].copy_from_slice(&c);
+    }
+}

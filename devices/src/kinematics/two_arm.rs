@@ -1,0 +1,242 @@
+//! The two-arm goniometer: sample turntable α, camera elevation arc θc (fixed in the world
+//! x-z plane), light azimuth base β and light elevation arc θl.
+//!
+//! World directions: camera `(sin θc, 0, cos θc)`, lamp `(sin θl cos β, sin θl sin β, cos θl)`.
+//! The sample frame is the world rotated by α about z, so a world vector `w` is
+//! `Rz(−α) w` in the sample frame. Negative elevations put a device on the far side of the
+//! pole; that doubles the solutions and lets the planner avoid long turntable moves.
+
+use super::{CameraPose, Infeasibility, Kinematics};
+use crate::geometry::{wrap_pi, Direction, Vec3, POLE_EPS};
+use crate::rig::RigSpec;
+use crate::SoftLimits;
+use std::f64::consts::{PI, TAU};
+
+/// Axis roles this kind needs, in no particular order.
+pub const ROLES: [&str; 4] = ["sample_rotation", "camera_elevation", "light_azimuth", "light_elevation"];
+
+pub struct TwoArm {
+    n: usize,
+    i_turn: usize,
+    i_cam: usize,
+    i_lbase: usize,
+    i_larc: usize,
+    limits: Vec<SoftLimits>,
+    camera_distance: f64,
+    light_distance: f64,
+    block_radius: f64,
+}
+
+impl TwoArm {
+    pub fn new(rig: &RigSpec) -> Self {
+        let idx = |role: &str| rig.axis_by_role(role).map(|(i, _)| i).expect("rig validated: role present");
+        TwoArm {
+            n: rig.axes.len(),
+            i_turn: idx("sample_rotation"),
+            i_cam: idx("camera_elevation"),
+            i_lbase: idx("light_azimuth"),
+            i_larc: idx("light_elevation"),
+            limits: rig.axes.iter().map(|a| a.limits()).collect(),
+            camera_distance: rig.geometry.camera_distance_mm,
+            light_distance: rig.geometry.light_distance_mm,
+            block_radius: rig.geometry.camera_body_radius_mm + rig.geometry.clearance_mm,
+        }
+    }
+
+    /// All values `base + k·2π` inside the limits (the wrap-arounds of a rotary axis).
+    fn wraps(&self, axis: usize, base: f64) -> Vec<f64> {
+        let l = self.limits[axis];
+        let mut out = Vec::new();
+        let mut x = base - TAU * ((base - l.min) / TAU).floor();
+        // x is now the smallest representative ≥ l.min (up to rounding)
+        if x - TAU >= l.min {
+            x -= TAU;
+        }
+        while x <= l.max + 1e-12 {
+            if x >= l.min - 1e-12 {
+                out.push(x.clamp(l.min, l.max));
+            }
+            x += TAU;
+        }
+        out
+    }
+
+    /// Signed elevation / azimuth-offset options for a direction: (elevation, azimuth offset).
+    fn elevation_options(&self, axis: usize, theta: f64) -> Vec<(f64, f64)> {
+        let l = self.limits[axis];
+        [(theta, 0.0), (-theta, PI)].into_iter().filter(|(e, _)| l.contains(*e)).collect()
+    }
+
+    /// Shortest distance (mm) from the camera body centre to the lamp's ray toward the
+    /// sample centre, minus the body radius and clearance: < 0 means blocked.
+    fn light_clearance(&self, light: Vec3, view: Vec3) -> f64 {
+        let c = view * self.camera_distance;
+        let l = light * self.light_distance;
+        // segment from l to the origin: points l·(1−t), t ∈ [0, 1]
+        let t = ((l - c).dot(l) / l.dot(l)).clamp(0.0, 1.0);
+        let closest = l * (1.0 - t);
+        (closest - c).norm() - self.block_radius
+    }
+}
+
+impl Kinematics for TwoArm {
+    fn axis_count(&self) -> usize {
+        self.n
+    }
+
+    fn forward(&self, q: &[f64]) -> (Direction, Direction) {
+        let alpha = q[self.i_turn];
+        let (tc, tl, b) = (q[self.i_cam], q[self.i_larc], q[self.i_lbase]);
+        let view_w = Vec3::new(tc.sin(), 0.0, tc.cos());
+        let light_w = Vec3::new(tl.sin() * b.cos(), tl.sin() * b.sin(), tl.cos());
+        (Direction::from_vector(light_w.rotate_z(-alpha)), Direction::from_vector(view_w.rotate_z(-alpha)))
+    }
+
+    fn camera_pose(&self, q: &[f64]) -> CameraPose {
+        let alpha = q[self.i_turn];
+        let tc = q[self.i_cam];
+        let dir_w = Vec3::new(tc.sin(), 0.0, tc.cos());
+        let position = (dir_w * self.camera_distance).rotate_z(-alpha);
+        let forward = (-dir_w).rotate_z(-alpha);
+        // The camera is fixed to its arm with image x along world +y (the arc's axis).
+        let right = Vec3::new(0.0, 1.0, 0.0).rotate_z(-alpha);
+        let down = forward.cross(right);
+        CameraPose { position, right, down, forward }
+    }
+
+    fn light_position(&self, q: &[f64]) -> Vec3 {
+        let (alpha, tl, b) = (q[self.i_turn], q[self.i_larc], q[self.i_lbase]);
+        Vec3::new(tl.sin() * b.cos(), tl.sin() * b.sin(), tl.cos()).rotate_z(-alpha) * self.light_distance
+    }
+
+    fn inverse(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Result<Vec<Vec<f64>>, Infeasibility> {
+        let clearance = self.light_clearance(light.vector(), view.vector());
+        if clearance <= 0.0 {
+            return Err(Infeasibility::LightBlockedByCamera { clearance_mm: clearance });
+        }
+        // (camera elevation, turntable) candidates
+        let mut view_opts: Vec<(f64, f64)> = Vec::new();
+        if view.theta < POLE_EPS {
+            // Azimuth free: keep the turntable where it is (or at home).
+            let a = prev.map(|p| p[self.i_turn]).unwrap_or(0.0);
+            view_opts.push((0.0, a));
+        } else {
+            for (e, off) in self.elevation_options(self.i_cam, view.theta) {
+                for a in self.wraps(self.i_turn, wrap_pi(off - view.phi)) {
+                    view_opts.push((e, a));
+                }
+            }
+        }
+        let mut out = Vec::new();
+        for (tc, alpha) in view_opts {
+            if light.theta < POLE_EPS {
+                let b = prev.map(|p| p[self.i_lbase]).unwrap_or(0.0);
+                let mut q = vec![0.0; self.n];
+                q[self.i_turn] = alpha;
+                q[self.i_cam] = tc;
+                q[self.i_lbase] = b;
+                q[self.i_larc] = 0.0;
+                out.push(q);
+                continue;
+            }
+            for (tl, off) in self.elevation_options(self.i_larc, light.theta) {
+                for b in self.wraps(self.i_lbase, wrap_pi(light.phi + alpha + off)) {
+                    let mut q = vec![0.0; self.n];
+                    q[self.i_turn] = alpha;
+                    q[self.i_cam] = tc;
+                    q[self.i_lbase] = b;
+                    q[self.i_larc] = tl;
+                    out.push(q);
+                }
+            }
+        }
+        if out.is_empty() {
+            return Err(Infeasibility::OutOfLimits {
+                detail: format!(
+                    "no configuration within the limits reaches light θ={:.2}° φ={:.2}°, view θ={:.2}° φ={:.2}°",
+                    light.theta_deg(),
+                    light.phi_deg(),
+                    view.theta_deg(),
+                    view.phi_deg()
+                ),
+            });
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::for_rig;
+
+    fn bonn() -> Vec<Direction> {
+        let mut v = vec![];
+        for (t, n) in [(0.0, 1), (15.0, 6), (30.0, 12), (45.0, 18), (60.0, 20), (75.0, 24)] {
+            for k in 0..n {
+                v.push(Direction::from_degrees(t, k as f64 * 360.0 / n as f64));
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn fk_ik_round_trip_on_all_bonn_pairs() {
+        let rig = RigSpec::default_rig();
+        let k = for_rig(&rig);
+        let dirs = bonn();
+        let mut blocked = 0;
+        let mut worst: f64 = 0.0;
+        for v in &dirs {
+            for l in &dirs {
+                match k.inverse(*l, *v, None) {
+                    Ok(sols) => {
+                        assert!(!sols.is_empty());
+                        for q in sols {
+                            for (i, a) in rig.axes.iter().enumerate() {
+                                assert!(a.limits().contains(q[i]), "{} out of limits", a.name);
+                            }
+                            let (lf, vf) = k.forward(&q);
+                            worst = worst.max(lf.angle_to(*l)).max(vf.angle_to(*v));
+                        }
+                    }
+                    Err(Infeasibility::LightBlockedByCamera { .. }) => {
+                        blocked += 1;
+                        assert!(l.angle_to(*v) < 1e-9, "only retro pairs are blocked");
+                    }
+                    Err(e) => panic!("unexpected {e}"),
+                }
+            }
+        }
+        assert_eq!(blocked, 81);
+        assert!(worst < 1e-9, "worst round-trip error {worst} rad");
+    }
+
+    #[test]
+    fn pole_keeps_previous_azimuths() {
+        let rig = RigSpec::default_rig();
+        let k = for_rig(&rig);
+        let prev = vec![0.7, 0.2, -1.1, 0.3];
+        let sols = k.inverse(Direction::from_degrees(0.0, 0.0), Direction::from_degrees(0.0, 0.0), Some(&prev));
+        // light == view at the pole: blocked
+        assert!(sols.is_err());
+        let sols = k.inverse(Direction::from_degrees(30.0, 90.0), Direction::from_degrees(0.0, 0.0), Some(&prev)).unwrap();
+        assert!(sols.iter().all(|q| q[0] == 0.7), "turntable stays where it was at θv = 0");
+    }
+
+    #[test]
+    fn camera_looks_at_sample_centre() {
+        let rig = RigSpec::default_rig();
+        let k = for_rig(&rig);
+        let q = vec![0.3, 0.9, 0.1, -0.4];
+        let pose = k.camera_pose(&q);
+        let c = pose.to_camera(Vec3::ZERO);
+        assert!(c.x.abs() < 1e-9 && c.y.abs() < 1e-9 && (c.z - 1000.0).abs() < 1e-9);
+        let (_, v) = k.forward(&q);
+        assert!(angle(pose.position, v.vector()) < 1e-12);
+    }
+
+    fn angle(a: Vec3, b: Vec3) -> f64 {
+        crate::geometry::angle_between(a, b)
+    }
+}

@@ -1,0 +1,24 @@
+//! Hardware side of gonio: the traits every device implements, the rig description
+//! (TOML), rig kinematics and the motion model used to plan and simulate moves.
+//!
+//! The acquisition engine in the `gonio` crate knows only the traits in [`axis`],
+//! [`camera`] and [`light`]; simulated devices (crate `gonio-simulator`) and real
+//! backends implement them. Nothing in this crate renders, stores or plans.
+
+pub mod axis;
+pub mod camera;
+pub mod error;
+pub mod geometry;
+pub mod image;
+pub mod kinematics;
+pub mod light;
+pub mod motion;
+pub mod rig;
+pub mod target;
+
+pub use axis::{Axis, AxisStatus, SoftLimits};
+pub use camera::{Camera, CameraConfig, Frame, FrameMeta, Intrinsics};
+pub use error::DeviceError;
+pub use geometry::{Direction, Vec3};
+pub use light::Light;
+pub use motion::MotionModel;

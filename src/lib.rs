@@ -1,0 +1,1 @@
+//! gonio: plan, drive, rectify, store and compress gonioreflectometer acquisitions.
