@@ -1,1 +1,11 @@
 //! gonio: plan, drive, rectify, store and compress gonioreflectometer acquisitions.
+//!
+//! See ARCHITECTURE.md for the map. Data flows sweep → [`plan`] → engine (drives the
+//! hardware traits of `gonio-devices`) → [`rectify`] → [`store`].
+
+pub mod cli;
+pub mod engine;
+pub mod plan;
+pub mod rectify;
+pub mod store;
+pub mod sweep;

@@ -1,8 +1,22 @@
 //! The simulated gonioreflectometer.
 //!
 //! - [`brdf`]: the material library (analytic BRDF models).
+//! - [`sample`]: synthetic samples (height field, material maps, marker border) from TOML.
+//! - [`render`]: the physically based renderer (raw frames and ground truth).
+//! - [`sensor`]: radiance → digital numbers (noise, saturation, vignetting).
+//! - [`clock`], [`devices`]: simulated axes, lamp and camera on a virtual clock.
 //!
 //! The simulator implements the hardware traits of `gonio-devices`, so the acquisition
 //! engine cannot tell it from a real rig.
 
 pub mod brdf;
+pub mod clock;
+pub mod devices;
+pub mod noise;
+pub mod render;
+pub mod sample;
+pub mod sensor;
+
+pub use devices::{build_sim_rig, SimOptions, SimRig, SimWorld};
+pub use render::{PointLight, RenderQuality, Renderer};
+pub use sample::{Sample, SampleSpec};

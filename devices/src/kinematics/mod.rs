@@ -65,6 +65,11 @@ pub trait Kinematics: Send + Sync {
     /// Every configuration inside the limits that measures the pair. `prev` resolves free
     /// parameters (the azimuth at θ = 0) to "do not move".
     fn inverse(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Result<Vec<Vec<f64>>, Infeasibility>;
+    /// Axes whose position does not matter for this pair (e.g. the turntable when the
+    /// camera looks straight down): the planner lets them stay where they are.
+    fn free_axes(&self, _light: Direction, _view: Direction) -> Vec<usize> {
+        Vec::new()
+    }
     /// The configuration the rig is in after homing.
     fn home(&self) -> Vec<f64> {
         vec![0.0; self.axis_count()]

@@ -109,6 +109,17 @@ impl Kinematics for TwoArm {
         Vec3::new(tl.sin() * b.cos(), tl.sin() * b.sin(), tl.cos()).rotate_z(-alpha) * self.light_distance
     }
 
+    fn free_axes(&self, light: Direction, view: Direction) -> Vec<usize> {
+        let mut v = Vec::new();
+        if view.theta < POLE_EPS {
+            v.push(self.i_turn);
+        }
+        if light.theta < POLE_EPS {
+            v.push(self.i_lbase);
+        }
+        v
+    }
+
     fn inverse(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Result<Vec<Vec<f64>>, Infeasibility> {
         let clearance = self.light_clearance(light.vector(), view.vector());
         if clearance <= 0.0 {

@@ -1,0 +1,405 @@
+//! The physically based renderer of the simulated camera.
+//!
+//! One routine, [`Renderer::radiance_along`], answers "what radiance (W m⁻² sr⁻¹) arrives
+//! at `origin` along a ray": it finds the first visible surface point (parallax on the
+//! height field, so masking toward the camera comes for free), looks up the texel's
+//! material, tests self-shadowing toward the lamp in a per-light-direction shadow map, and
+//! applies the lamp's inverse-square falloff and cosine. Raw frames ([`Renderer::render_raw`])
+//! and the ground-truth BTF in texture space ([`Renderer::render_truth`]) both call it, so
+//! they cannot disagree about the physics.
+//!
+//! What a scene does not need is not computed: a flat sample intersects one plane and builds
+//! no shadow maps; a homogeneous sample does no map look-ups; pixels outside the holder's
+//! projected bounding box are not traced at all.
+
+use crate::sample::{HeightGrid, Sample, Surface};
+use gonio_devices::image::RgbImage;
+use gonio_devices::kinematics::CameraPose;
+use gonio_devices::{Intrinsics, Vec3};
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+/// A point lamp.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointLight {
+    /// Position in the sample frame (mm).
+    pub position: Vec3,
+    /// Radiant intensity (W/sr).
+    pub intensity: f64,
+}
+
+/// Knobs that trade render error for time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderQuality {
+    /// Stratified samples per pixel and axis (1 = pixel centre only).
+    pub supersample: usize,
+    /// Shadow-map resolution relative to the height grid (1 = one shadow texel per height texel).
+    pub shadow_scale: usize,
+}
+
+impl Default for RenderQuality {
+    fn default() -> Self {
+        RenderQuality { supersample: 1, shadow_scale: 1 }
+    }
+}
+
+/// Binary shadow map of the height field for one light position: 1 = lit.
+struct ShadowMap {
+    n: usize,
+    lit: Vec<u8>,
+}
+
+/// Renders a built sample under a point lamp.
+pub struct Renderer {
+    pub sample: Arc<Sample>,
+    pub quality: RenderQuality,
+    /// Shadow maps by quantised light position; built once per light direction.
+    shadows: Mutex<HashMap<[i64; 3], Arc<ShadowMap>>>,
+}
+
+/// Maximum number of cached shadow maps (81 Bonn light directions fit).
+const SHADOW_CACHE: usize = 256;
+
+enum Hit {
+    Sample { p: Vec3, i: usize, j: usize, normal: Vec3 },
+    Frame { p: Vec3, albedo: f64 },
+    Background,
+}
+
+impl Renderer {
+    pub fn new(sample: Arc<Sample>, quality: RenderQuality) -> Self {
+        Renderer { sample, quality, shadows: Mutex::new(HashMap::new()) }
+    }
+
+    /// Number of shadow maps built so far (for the "built once per direction" check).
+    pub fn shadow_maps_built(&self) -> usize {
+        self.shadows.lock().map(|m| m.len()).unwrap_or(0)
+    }
+
+    fn half(&self) -> f64 {
+        self.sample.spec.size_mm / 2.0
+    }
+
+    /// First surface hit along `origin + t·dir` (dir unit, pointing down toward the sample).
+    fn trace(&self, origin: Vec3, dir: Vec3) -> Hit {
+        if dir.z >= 0.0 {
+            return Hit::Background;
+        }
+        let half = self.half();
+        if let Surface::Height(g) = &self.sample.surface {
+            if let Some((p, i, j, normal)) = self.march(g, origin, dir) {
+                return Hit::Sample { p, i, j, normal };
+            }
+        }
+        // The mean plane z = 0: the flat sample, or the holder frame around it.
+        let t = -origin.z / dir.z;
+        let p = origin + dir * t;
+        if p.x.abs() <= half && p.y.abs() <= half {
+            if matches!(self.sample.surface, Surface::Height(_)) {
+                // The march found nothing over the sample: the ray grazes past its edge.
+                return Hit::Background;
+            }
+            let (i, j) = self.sample.texel_of(p.x, p.y);
+            return Hit::Sample { p, i, j, normal: Vec3::Z };
+        }
+        let outer = self.sample.spec.border.outer_half(self.sample.spec.size_mm);
+        if p.x.abs() <= outer && p.y.abs() <= outer {
+            let spec = &self.sample.spec;
+            let albedo =
+                if spec.border.is_marker(spec.size_mm, p.x, p.y) { spec.marker_albedo } else { spec.frame_albedo };
+            return Hit::Frame { p, albedo };
+        }
+        Hit::Background
+    }
+
+    /// Ray-march the height field between its top and bottom planes.
+    fn march(&self, g: &HeightGrid, origin: Vec3, dir: Vec3) -> Option<(Vec3, usize, usize, Vec3)> {
+        let half = self.half();
+        let t0 = ((origin.z - g.max) / -dir.z).max(0.0);
+        let t1 = (origin.z - g.min) / -dir.z;
+        let horiz = (dir.x * dir.x + dir.y * dir.y).sqrt();
+        let step_len = 0.5 * g.texel;
+        let steps = (((t1 - t0) * horiz / step_len).ceil() as usize).clamp(1, 4 * g.n);
+        let dt = (t1 - t0) / steps as f64;
+        let f = |t: f64| {
+            let p = origin + dir * t;
+            if p.x.abs() > half || p.y.abs() > half {
+                None
+            } else {
+                Some(p.z - self.height(g, p.x, p.y))
+            }
+        };
+        let mut ta = t0;
+        let mut fa = f(ta);
+        for k in 1..=steps {
+            let tb = t0 + dt * k as f64;
+            let fb = f(tb);
+            if let (Some(a), Some(b)) = (fa, fb) {
+                if a > 0.0 && b <= 0.0 {
+                    // bisection with a secant start: a few iterations reach ~1e-6 mm
+                    let (mut lo, mut hi, mut flo) = (ta, tb, a);
+                    for _ in 0..12 {
+                        let mid = 0.5 * (lo + hi);
+                        match f(mid) {
+                            Some(m) if m > 0.0 => {
+                                lo = mid;
+                                flo = m;
+                            }
+                            _ => hi = mid,
+                        }
+                    }
+                    let _ = flo;
+                    let p = origin + dir * hi;
+                    let (i, j) = self.sample.texel_of(p.x, p.y);
+                    return Some((p, i, j, self.normal(g, p.x, p.y)));
+                }
+            } else if let (Some(a), None) = (fa, fb) {
+                // leaving the sample area above the surface: no hit on the sample
+                if a > 0.0 {
+                    return None;
+                }
+            }
+            ta = tb;
+            fa = fb;
+        }
+        None
+    }
+
+    /// Bilinear height (mm) at a sample-frame point.
+    #[inline]
+    fn height(&self, g: &HeightGrid, x: f64, y: f64) -> f64 {
+        let (i0, j0, fx, fy) = grid_coords(g, self.half(), x, y);
+        let n = g.n;
+        let h = |i: usize, j: usize| g.heights[j * n + i] as f64;
+        let (i1, j1) = ((i0 + 1).min(n - 1), (j0 + 1).min(n - 1));
+        let top = h(i0, j0) + (h(i1, j0) - h(i0, j0)) * fx;
+        let bot = h(i0, j1) + (h(i1, j1) - h(i0, j1)) * fx;
+        top + (bot - top) * fy
+    }
+
+    /// Bilinear normal at a sample-frame point.
+    #[inline]
+    fn normal(&self, g: &HeightGrid, x: f64, y: f64) -> Vec3 {
+        let (i0, j0, fx, fy) = grid_coords(g, self.half(), x, y);
+        let n = g.n;
+        let (i1, j1) = ((i0 + 1).min(n - 1), (j0 + 1).min(n - 1));
+        let v = |i: usize, j: usize| {
+            let a = g.normals[j * n + i];
+            Vec3::new(a[0] as f64, a[1] as f64, a[2] as f64)
+        };
+        let top = v(i0, j0) * (1.0 - fx) + v(i1, j0) * fx;
+        let bot = v(i0, j1) * (1.0 - fx) + v(i1, j1) * fx;
+        (top * (1.0 - fy) + bot * fy).normalized()
+    }
+
+    /// The shadow map for a light position, built on first use.
+    fn shadow_map(&self, g: &HeightGrid, light: Vec3) -> Arc<ShadowMap> {
+        let key = [(light.x * 1e4).round() as i64, (light.y * 1e4).round() as i64, (light.z * 1e4).round() as i64];
+        if let Some(m) = self.shadows.lock().expect("shadow cache poisoned").get(&key) {
+            return m.clone();
+        }
+        let map = Arc::new(self.build_shadow_map(g, light));
+        let mut cache = self.shadows.lock().expect("shadow cache poisoned");
+        if cache.len() >= SHADOW_CACHE {
+            cache.clear();
+        }
+        cache.insert(key, map.clone());
+        map
+    }
+
+    /// March from every shadow texel toward the lamp; lit if no height rises above the ray.
+    ///
+    /// The lamp is a point, so the direction is taken per texel from the texel to the lamp
+    /// (exact for the finite distance, not a directional approximation).
+    fn build_shadow_map(&self, g: &HeightGrid, light: Vec3) -> ShadowMap {
+        let n = g.n * self.quality.shadow_scale.max(1);
+        let half = self.half();
+        let cell = 2.0 * half / n as f64;
+        let mut lit = vec![1u8; n * n];
+        lit.par_chunks_mut(n).enumerate().for_each(|(j, row)| {
+            for (i, out) in row.iter_mut().enumerate() {
+                let x = (i as f64 + 0.5) * cell - half;
+                let y = half - (j as f64 + 0.5) * cell;
+                let z = self.height(g, x, y) + 1e-4;
+                let d = (light - Vec3::new(x, y, z)).normalized();
+                if d.z <= 0.0 {
+                    *out = 0;
+                    continue;
+                }
+                let horiz = (d.x * d.x + d.y * d.y).sqrt();
+                if horiz < 1e-9 {
+                    continue;
+                }
+                // Walk until the ray is above the highest point of the field.
+                let rise = (g.max - z).max(0.0);
+                let t_max = rise / d.z;
+                let step = 0.5 * g.texel / horiz;
+                let mut t = step;
+                while t <= t_max {
+                    let p = Vec3::new(x, y, z) + d * t;
+                    if p.x.abs() > half || p.y.abs() > half {
+                        break;
+                    }
+                    if self.height(g, p.x, p.y) > p.z {
+                        *out = 0;
+                        break;
+                    }
+                    t += step;
+                }
+            }
+        });
+        ShadowMap { n, lit }
+    }
+
+    /// Radiance (W m⁻² sr⁻¹, RGB) arriving at `origin` along unit `dir`.
+    #[inline]
+    fn radiance_along(&self, origin: Vec3, dir: Vec3, light: &PointLight, shadow: Option<&ShadowMap>) -> [f64; 3] {
+        match self.trace(origin, dir) {
+            Hit::Background => [0.0; 3],
+            Hit::Frame { p, albedo } => {
+                let to_l = light.position - p;
+                let r2 = to_l.dot(to_l);
+                let cos_l = to_l.z / r2.sqrt();
+                if cos_l <= 0.0 {
+                    return [0.0; 3];
+                }
+                let e = light.intensity * cos_l / (r2 * 1e-6);
+                let v = albedo * std::f64::consts::FRAC_1_PI * e;
+                [v, v, v]
+            }
+            Hit::Sample { p, i, j, normal } => {
+                let to_l = light.position - p;
+                let r2 = to_l.dot(to_l);
+                let l = to_l * (1.0 / r2.sqrt());
+                let v = -dir;
+                let cos_l = normal.dot(l);
+                if cos_l <= 0.0 || normal.dot(v) <= 0.0 {
+                    return [0.0; 3];
+                }
+                if let Some(s) = shadow {
+                    let half = self.half();
+                    let si = (((p.x + half) / (2.0 * half)) * s.n as f64).floor().clamp(0.0, (s.n - 1) as f64) as usize;
+                    let sj = (((half - p.y) / (2.0 * half)) * s.n as f64).floor().clamp(0.0, (s.n - 1) as f64) as usize;
+                    if s.lit[sj * s.n + si] == 0 {
+                        return [0.0; 3];
+                    }
+                }
+                // Local shading frame: normal, tangent along texture u (+x) projected.
+                let (l_loc, v_loc) = if normal.z > 1.0 - 1e-12 {
+                    (l, v)
+                } else {
+                    let t = (Vec3::new(1.0, 0.0, 0.0) - normal * normal.x).normalized();
+                    let b = normal.cross(t);
+                    (Vec3::new(l.dot(t), l.dot(b), cos_l), Vec3::new(v.dot(t), v.dot(b), normal.dot(v)))
+                };
+                let (model, tint) = self.sample.material(i, j);
+                let f = model.eval(l_loc, v_loc);
+                let e = light.intensity * cos_l / (r2 * 1e-6);
+                [f[0] * tint[0] * e, f[1] * tint[1] * e, f[2] * tint[2] * e]
+            }
+        }
+    }
+
+    fn shadow_for(&self, light: &PointLight) -> Option<Arc<ShadowMap>> {
+        match &self.sample.surface {
+            Surface::Height(g) => Some(self.shadow_map(g, light.position)),
+            Surface::Flat => None,
+        }
+    }
+
+    /// Radiance image of a raw frame seen by a pinhole camera (no sensor effects).
+    pub fn render_raw(&self, intr: &Intrinsics, pose: &CameraPose, width: usize, height: usize, light: &PointLight) -> RgbImage {
+        let mut img = RgbImage::new(width, height);
+        let shadow = self.shadow_for(light);
+        let (x0, y0, x1, y1) = self.pixel_bounds(intr, pose, width, height);
+        if x0 >= x1 || y0 >= y1 {
+            return img;
+        }
+        let ss = self.quality.supersample.max(1);
+        let w_ss = 1.0 / (ss * ss) as f64;
+        img.data.par_chunks_mut(width * 3).enumerate().for_each(|(row, out)| {
+            if row < y0 || row >= y1 {
+                return;
+            }
+            for col in x0..x1 {
+                let mut acc = [0.0; 3];
+                for sy in 0..ss {
+                    for sx in 0..ss {
+                        let u = col as f64 + (sx as f64 + 0.5) / ss as f64;
+                        let v = row as f64 + (sy as f64 + 0.5) / ss as f64;
+                        let d = (pose.right * ((u - intr.cx) / intr.fx) + pose.down * ((v - intr.cy) / intr.fy) + pose.forward)
+                            .normalized();
+                        let r = self.radiance_along(pose.position, d, light, shadow.as_deref());
+                        acc[0] += r[0];
+                        acc[1] += r[1];
+                        acc[2] += r[2];
+                    }
+                }
+                for c in 0..3 {
+                    out[col * 3 + c] = (acc[c] * w_ss) as f32;
+                }
+            }
+        });
+        img
+    }
+
+    /// Pixel rectangle [x0, x1) × [y0, y1) that can see the holder (its corners at the
+    /// lowest and highest surface heights, projected, plus a margin).
+    fn pixel_bounds(&self, intr: &Intrinsics, pose: &CameraPose, width: usize, height: usize) -> (usize, usize, usize, usize) {
+        let outer = self.sample.spec.border.outer_half(self.sample.spec.size_mm);
+        let (zmin, zmax) = match &self.sample.surface {
+            Surface::Height(g) => (g.min.min(0.0), g.max.max(0.0)),
+            Surface::Flat => (0.0, 0.0),
+        };
+        let (mut a, mut b, mut c, mut d) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for &x in &[-outer, outer] {
+            for &y in &[-outer, outer] {
+                for &z in &[zmin, zmax] {
+                    let pc = pose.to_camera(Vec3::new(x, y, z));
+                    if pc.z <= 1e-9 {
+                        return (0, 0, width, height);
+                    }
+                    let (u, v) = intr.project(pc.x, pc.y, pc.z);
+                    a = a.min(u);
+                    b = b.min(v);
+                    c = c.max(u);
+                    d = d.max(v);
+                }
+            }
+        }
+        let clamp = |v: f64, hi: usize| v.clamp(0.0, hi as f64) as usize;
+        (clamp(a - 2.0, width), clamp(b - 2.0, height), clamp(c + 3.0, width), clamp(d + 3.0, height))
+    }
+
+    /// The exact rectified image in texture space: texel (i, j) shows what the camera at
+    /// `camera` sees through the point of the mean plane at the texel centre (conventions:
+    /// column grows with +x, row with −y). Radiance, no sensor effects.
+    pub fn render_truth(&self, camera: Vec3, width: usize, height: usize, light: &PointLight) -> RgbImage {
+        let mut img = RgbImage::new(width, height);
+        let shadow = self.shadow_for(light);
+        let s = self.sample.spec.size_mm;
+        img.data.par_chunks_mut(width * 3).enumerate().for_each(|(j, out)| {
+            let y = s / 2.0 - (j as f64 + 0.5) / height as f64 * s;
+            for i in 0..width {
+                let x = (i as f64 + 0.5) / width as f64 * s - s / 2.0;
+                let d = (Vec3::new(x, y, 0.0) - camera).normalized();
+                let r = self.radiance_along(camera, d, light, shadow.as_deref());
+                out[i * 3] = r[0] as f32;
+                out[i * 3 + 1] = r[1] as f32;
+                out[i * 3 + 2] = r[2] as f32;
+            }
+        });
+        img
+    }
+}
+
+/// Grid cell and fractions for bilinear interpolation at (x, y).
+#[inline]
+fn grid_coords(g: &HeightGrid, half: f64, x: f64, y: f64) -> (usize, usize, f64, f64) {
+    let n = g.n;
+    let gx = ((x + half) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
+    let gy = ((half - y) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
+    let (i0, j0) = (gx.floor() as usize, gy.floor() as usize);
+    (i0.min(n - 1), j0.min(n - 1), gx - gx.floor(), gy - gy.floor())
+}

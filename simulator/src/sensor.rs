@@ -1,0 +1,153 @@
+//! The camera sensor model: radiance → electrons → digital numbers.
+//!
+//! `e = L · exposure · sensitivity · vignetting + dark_current · exposure`, then photon
+//! shot noise (Poisson; Gaussian above 30 e⁻ where the two agree), read noise (Gaussian),
+//! clipping at the full well, conversion with `gain · (2^bits − 1) / full_well` DN per e⁻,
+//! rounding and clipping to the ADC range.
+//!
+//! A noiseless sensor draws no random numbers at all. Noise is seeded per frame and row
+//! from (seed, frame sequence, row), so a frame is reproducible whatever the thread count.
+
+use crate::noise::mix64;
+use gonio_devices::image::RgbImage;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal, Poisson};
+use rand_pcg::Pcg64Mcg;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SensorModel {
+    pub full_well_e: f64,
+    pub read_noise_e: f64,
+    pub dark_current_e_s: f64,
+    /// Electrons per (W m⁻² sr⁻¹ · s) at a pixel: lens aperture, pixel area and QE in one.
+    pub sensitivity_e_per_radiance_s: f64,
+    /// Relative fall-off at the image corners: factor `1 − v · r²/r_corner²`.
+    pub vignetting: f64,
+    pub bit_depth: u32,
+    pub gain: f64,
+    pub exposure_s: f64,
+    /// Draw shot, read and dark noise; false gives the expected value, rounded.
+    pub noise: bool,
+    pub seed: u64,
+}
+
+impl SensorModel {
+    pub fn max_dn(&self) -> f64 {
+        ((1u64 << self.bit_depth) - 1) as f64
+    }
+
+    /// DN per electron.
+    fn conversion(&self) -> f64 {
+        self.gain * self.max_dn() / self.full_well_e
+    }
+
+    /// Expected normalised signal (DN / max DN, not clipped) for a radiance, without
+    /// vignetting, noise or dark current: the scale of the ground truth.
+    pub fn expected_normalized(&self, radiance: f64) -> f64 {
+        radiance * self.exposure_s * self.sensitivity_e_per_radiance_s * self.gain / self.full_well_e
+    }
+
+    /// Ground-truth image in normalised units from a radiance image.
+    pub fn normalize_truth(&self, radiance: &RgbImage) -> RgbImage {
+        let k = self.expected_normalized(1.0) as f32;
+        RgbImage { width: radiance.width, height: radiance.height, data: radiance.data.iter().map(|v| v * k).collect() }
+    }
+
+    /// Convert a radiance image into a frame of DN values.
+    pub fn expose(&self, radiance: &RgbImage, sequence: u64) -> Vec<u16> {
+        let (w, h) = (radiance.width, radiance.height);
+        let mut out = vec![0u16; w * h * 3];
+        let conv = self.conversion();
+        let max_dn = self.max_dn();
+        let k = self.exposure_s * self.sensitivity_e_per_radiance_s;
+        let dark = self.dark_current_e_s * self.exposure_s;
+        let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+        let r2_corner = cx * cx + cy * cy;
+        let read = Normal::new(0.0, self.read_noise_e.max(0.0)).expect("read noise ≥ 0");
+        out.par_chunks_mut(w * 3).enumerate().for_each(|(row, dst)| {
+            let mut rng = if self.noise {
+                Some(Pcg64Mcg::seed_from_u64(mix64(self.seed ^ mix64(sequence.wrapping_mul(0x9E37) ^ row as u64))))
+            } else {
+                None
+            };
+            let dy = row as f64 + 0.5 - cy;
+            for col in 0..w {
+                let dx = col as f64 + 0.5 - cx;
+                let vig = 1.0 - self.vignetting * (dx * dx + dy * dy) / r2_corner;
+                for c in 0..3 {
+                    let l = radiance.data[(row * w + col) * 3 + c] as f64;
+                    let mean = l * k * vig + dark;
+                    let e = match rng.as_mut() {
+                        None => mean,
+                        Some(rng) => {
+                            let shot = if mean <= 0.0 {
+                                0.0
+                            } else if mean < 30.0 {
+                                Poisson::new(mean).map(|p| p.sample(rng)).unwrap_or(mean)
+                            } else {
+                                mean + mean.sqrt() * rng.sample::<f64, _>(rand_distr::StandardNormal)
+                            };
+                            shot + read.sample(rng)
+                        }
+                    };
+                    let dn = (e.min(self.full_well_e) * conv).round().clamp(0.0, max_dn);
+                    dst[col * 3 + c] = dn as u16;
+                }
+            }
+        });
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn model(noise: bool) -> SensorModel {
+        SensorModel {
+            full_well_e: 20000.0,
+            read_noise_e: 4.0,
+            dark_current_e_s: 0.0,
+            sensitivity_e_per_radiance_s: 1000.0,
+            vignetting: 0.0,
+            bit_depth: 12,
+            gain: 1.0,
+            exposure_s: 1.0,
+            noise,
+            seed: 1,
+        }
+    }
+
+    #[test]
+    fn noiseless_is_expected_value_and_saturates() {
+        let img = RgbImage { width: 2, height: 1, data: vec![5.0, 5.0, 5.0, 1e6, 0.0, 0.0] };
+        let m = model(false);
+        let f = m.expose(&img, 0);
+        let expect = (5.0 * 1000.0 * m.conversion()).round() as u16;
+        assert_eq!(f[0], expect);
+        assert_eq!(f[3], 4095, "saturated at full well");
+        assert_eq!(f[4], 0, "empty stays empty without noise");
+        assert!((m.expected_normalized(5.0) * 4095.0 - expect as f64).abs() < 1.0);
+    }
+
+    #[test]
+    fn shot_noise_has_the_right_variance_and_is_reproducible() {
+        let n = 20000;
+        let img = RgbImage { width: n, height: 1, data: vec![10.0; n * 3] };
+        let m = model(true);
+        let a = m.expose(&img, 7);
+        assert_eq!(a, m.expose(&img, 7), "same seed and sequence, same frame");
+        assert_ne!(a, m.expose(&img, 8));
+        let conv = m.conversion();
+        let e: Vec<f64> = a.iter().map(|&d| d as f64 / conv).collect();
+        let mean = e.iter().sum::<f64>() / e.len() as f64;
+        let var = e.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / e.len() as f64;
+        // mean 10000 e⁻: variance = 10000 (shot) + 16 (read) + quantisation (≈ (1/conv)²/12)
+        let q = (1.0 / conv).powi(2) / 12.0;
+        let want = 10000.0 + 16.0 + q;
+        assert!((mean - 10000.0).abs() < 5.0, "mean {mean}");
+        assert!((var / want - 1.0).abs() < 0.05, "var {var} want {want}");
+    }
+}

@@ -1,0 +1,359 @@
+//! `gonio acquire`: run (or resume) an acquisition and print its summary.
+
+use super::common::{load_sample, RigArgs, SweepArgs};
+use crate::engine::metrics::ErrorFigures;
+use crate::engine::{self, Rig, RunOptions};
+use crate::plan::Plan;
+use crate::store::{self, Dataset, ManifestHeader};
+use anyhow::{bail, Context, Result};
+use gonio_devices::rig::RigSpec;
+use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(clap::Args, Debug)]
+pub struct AcquireArgs {
+    /// Output dataset directory (refused if it exists, unless --force).
+    #[arg(long, default_value = "gonio-dataset", conflicts_with = "resume")]
+    pub out: PathBuf,
+    /// Continue an interrupted acquisition in DIR (rig, sample, sweep and plan come from it).
+    #[arg(long, value_name = "DIR")]
+    pub resume: Option<PathBuf>,
+    /// Replace an existing gonio dataset at --out.
+    #[arg(long)]
+    pub force: bool,
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// Built-in sample name or sample TOML file (simulated rigs).
+    #[arg(long, default_value = gonio_simulator::sample::DEFAULT_SAMPLE)]
+    pub sample: String,
+    #[command(flatten)]
+    pub sweep: SweepArgs,
+    /// Rectified image size in texels (W×H).
+    #[arg(long, default_value = "256x256", value_parser = parse_size)]
+    pub size: (usize, usize),
+    /// Pace the simulated rig in real time instead of on a virtual clock.
+    #[arg(long)]
+    pub realtime: bool,
+    /// Also store the raw frames (16-bit PNG).
+    #[arg(long)]
+    pub raw: bool,
+    /// Simulated sensor without noise.
+    #[arg(long)]
+    pub no_noise: bool,
+    /// Do not compare with the simulator's ground truth (saves its render time).
+    #[arg(long)]
+    pub no_truth: bool,
+    /// Seed of the simulated sensor noise.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Print the summary as JSON on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Stop after this many measurements (the run stays resumable).
+    #[arg(long)]
+    pub limit: Option<usize>,
+}
+
+fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (a, b) = s.split_once(['x', 'X']).ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
+    let w: usize = a.parse().map_err(|_| format!("`{s}`: width is not a number"))?;
+    let h: usize = b.parse().map_err(|_| format!("`{s}`: height is not a number"))?;
+    if !(8..=8192).contains(&w) || !(8..=8192).contains(&h) {
+        return Err(format!("`{s}`: each side must be 8 ..= 8192"));
+    }
+    Ok((w, h))
+}
+
+/// Settings recorded in the manifest so `--resume` rebuilds the same rig.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct RunSettings {
+    width: usize,
+    height: usize,
+    noise: bool,
+    truth: bool,
+    seed: Option<u64>,
+    raw: bool,
+}
+
+/// The summary printed at the end (and with --json).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Summary {
+    pub dataset: String,
+    pub rig: String,
+    pub sample: String,
+    pub sweep: String,
+    pub pairs: usize,
+    pub planned_measurements: usize,
+    pub measured: usize,
+    pub substituted: usize,
+    pub skipped: usize,
+    pub skipped_reasons: BTreeMap<String, usize>,
+    pub stored_this_run: usize,
+    pub already_done: usize,
+    pub remaining: usize,
+    pub complete: bool,
+    pub paused: bool,
+    pub planned_duration_s: f64,
+    pub sweep_duration_s: f64,
+    pub wall_time_s: f64,
+    pub images_per_s: f64,
+    pub truth_error: Option<ErrorFigures>,
+    pub homography_from_markers: usize,
+    pub homography_from_pose: usize,
+    /// Peak resident memory of this process (MiB, from /proc/self/status VmHWM).
+    pub peak_rss_mib: Option<f64>,
+}
+
+/// Peak resident set size of this process in MiB (Linux), for the memory benchmark.
+pub fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+pub fn run(args: AcquireArgs) -> Result<ExitCode> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(run_async(args))
+}
+
+async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
+    let (rig_spec, sample, plan, settings, mut dataset, done) = match &args.resume {
+        Some(dir) => open_resume(dir)?,
+        None => create_new(&args)?,
+    };
+    let sim = SimOptions {
+        realtime: args.realtime,
+        noise: Some(settings.noise),
+        seed: settings.seed,
+        quality: RenderQuality::default(),
+    };
+    let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).context("building the rig")?);
+    // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
+    for s in &plan.skipped {
+        if !done.contains(&s.index) {
+            let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
+            dataset.store(rec, None, None).with_context(|| format!("recording skipped pair {}", s.index))?;
+        }
+    }
+    let pause = Arc::new(AtomicBool::new(false));
+    {
+        let pause = pause.clone();
+        tokio::spawn(async move {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                pause.store(true, Ordering::SeqCst);
+                eprintln!("\nCtrl-C: pausing at the next measurement boundary (press again to abort)…");
+                if tokio::signal::ctrl_c().await.is_ok() {
+                    eprintln!("aborted; stored measurements are safe, resume with `gonio acquire --resume`");
+                    std::process::exit(130);
+                }
+            }
+        });
+    }
+    let mut plan_run = plan.clone();
+    if let Some(limit) = args.limit {
+        let mut left = limit;
+        plan_run.steps.retain(|s| {
+            if done.contains(&s.index) {
+                return true;
+            }
+            if left == 0 {
+                return false;
+            }
+            left -= 1;
+            true
+        });
+    }
+    let plan_run = Arc::new(plan_run);
+    let opts = RunOptions {
+        width: settings.width,
+        height: settings.height,
+        raw_frames: settings.raw,
+        truth: settings.truth,
+        show_progress: !args.json && !args.quiet_progress(),
+        max_supersample: 8,
+    };
+    let dir = dataset.dir().to_path_buf();
+    let result = engine::run(rig.clone(), plan_run.clone(), dataset, done.clone(), opts, pause).await;
+    let (mut dataset, report) = match result {
+        Ok(v) => v,
+        Err((_, e)) => {
+            let hint = format!(
+                "the journal is consistent; fix the cause and run `gonio acquire --resume {}`",
+                dir.display()
+            );
+            return Err(anyhow::Error::new(e).context(hint));
+        }
+    };
+    let counts = plan.counts();
+    let remaining_total = plan.steps.iter().filter(|s| !done.contains(&s.index)).count() - report.stored_this_run;
+    let complete = remaining_total == 0;
+    let summary = Summary {
+        dataset: dir.display().to_string(),
+        rig: rig_spec.name.clone(),
+        sample: sample.name.clone(),
+        sweep: plan.sweep.clone(),
+        pairs: plan.pairs,
+        planned_measurements: plan.steps.len(),
+        measured: counts.feasible,
+        substituted: counts.substituted,
+        skipped: counts.skipped,
+        skipped_reasons: counts.skipped_reasons.clone(),
+        stored_this_run: report.stored_this_run,
+        already_done: report.already_done,
+        remaining: remaining_total,
+        complete,
+        paused: report.paused,
+        planned_duration_s: plan.durations.optimized_s,
+        sweep_duration_s: report.rig_time_s,
+        wall_time_s: report.wall_time_s,
+        images_per_s: report.stored_this_run as f64 / report.wall_time_s.max(1e-9),
+        truth_error: report.truth_error.figures(),
+        homography_from_markers: report.homography_from_markers,
+        homography_from_pose: report.homography_from_pose,
+        peak_rss_mib: peak_rss_mib(),
+    };
+    if complete {
+        dataset.finish(&serde_json::to_value(&summary)?).context("writing the final manifest")?;
+    }
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print_summary(&summary);
+    }
+    Ok(if complete { ExitCode::SUCCESS } else { ExitCode::from(3) })
+}
+
+impl AcquireArgs {
+    fn quiet_progress(&self) -> bool {
+        !std::io::IsTerminal::is_terminal(&std::io::stderr())
+    }
+}
+
+type Opened = (RigSpec, SampleSpec, Plan, RunSettings, Dataset, HashSet<usize>);
+
+fn create_new(args: &AcquireArgs) -> Result<Opened> {
+    let rig = args.rig.load()?;
+    let sample = load_sample(&args.sample)?;
+    let sweep = args.sweep.load()?;
+    let plan = args.sweep.plan(&rig, &sweep).context("planning the sweep")?;
+    let settings = RunSettings {
+        width: args.size.0,
+        height: args.size.1,
+        noise: !args.no_noise,
+        truth: !args.no_truth,
+        seed: args.seed,
+        raw: args.raw,
+    };
+    let header = ManifestHeader {
+        format: store::FORMAT.into(),
+        version: store::FORMAT_VERSION,
+        gonio_version: env!("CARGO_PKG_VERSION").into(),
+        created_unix: std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs_f64())
+            .unwrap_or(0.0),
+        rig: serde_json::to_value(&rig)?,
+        sample: serde_json::to_value(&sample)?,
+        sweep: serde_json::json!({
+            "name": sweep.name,
+            "lights_deg": sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
+            "views_deg": sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
+            "policy": plan.policy,
+        }),
+        image_width: settings.width,
+        image_height: settings.height,
+        values: "linear normalised sensor signal (DN / max DN), radiometrically uncalibrated".into(),
+        seed: settings.seed.unwrap_or(1),
+        raw_frames: settings.raw,
+        calibration: None,
+        extra: serde_json::json!({ "run_settings": settings }),
+    };
+    let dataset = Dataset::create(&args.out, &header, args.force)
+        .with_context(|| format!("creating dataset {} (use --force to replace a dataset, --resume to continue one)", args.out.display()))?;
+    write_plan(&args.out, &plan)?;
+    Ok((rig, sample, plan, settings, dataset, HashSet::new()))
+}
+
+fn plan_path(dir: &Path) -> PathBuf {
+    dir.join("plan.json")
+}
+
+/// The executed plan is stored with the dataset, so a resume follows the same order.
+fn write_plan(dir: &Path, plan: &Plan) -> Result<()> {
+    let bytes = serde_json::to_vec(plan)?;
+    store::atomic::write_atomic(&plan_path(dir), &bytes, Some(dir)).context("writing plan.json")?;
+    Ok(())
+}
+
+fn open_resume(dir: &Path) -> Result<Opened> {
+    let (dataset, header, records) =
+        Dataset::resume(dir).with_context(|| format!("resuming dataset {}", dir.display()))?;
+    let rig: RigSpec = serde_json::from_value(header.rig.clone()).context("reading the rig snapshot from the manifest")?;
+    let sample: SampleSpec =
+        serde_json::from_value(header.sample.clone()).context("reading the sample snapshot from the manifest")?;
+    let plan_file = plan_path(dir);
+    let plan: Plan = serde_json::from_slice(
+        &std::fs::read(&plan_file).with_context(|| format!("reading {}", plan_file.display()))?,
+    )
+    .with_context(|| format!("parsing {}", plan_file.display()))?;
+    let settings: RunSettings = serde_json::from_value(header.extra["run_settings"].clone())
+        .context("reading run settings from the manifest")?;
+    let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
+    if done.len() > plan.pairs {
+        bail!("dataset {} holds {} records but its plan has {} pairs", dir.display(), done.len(), plan.pairs);
+    }
+    Ok((rig, sample, plan, settings, dataset, done))
+}
+
+fn print_summary(s: &Summary) {
+    println!("dataset        {}", s.dataset);
+    println!("rig / sample   {} / {}", s.rig, s.sample);
+    println!("sweep          {} ({} pairs)", s.sweep, s.pairs);
+    println!(
+        "measurements   {} measured, {} substituted, {} skipped{}",
+        s.measured,
+        s.substituted,
+        s.skipped,
+        if s.skipped_reasons.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " ({})",
+                s.skipped_reasons.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", ")
+            )
+        }
+    );
+    println!(
+        "this run       {} stored, {} already done, {} remaining{}",
+        s.stored_this_run,
+        s.already_done,
+        s.remaining,
+        if s.paused { " (paused)" } else { "" }
+    );
+    println!("sweep duration {:.1} h on the rig clock (planned {:.1} h)", s.sweep_duration_s / 3600.0, s.planned_duration_s / 3600.0);
+    println!("wall time      {:.1} s, {:.1} images/s", s.wall_time_s, s.images_per_s);
+    if let Some(e) = &s.truth_error {
+        println!(
+            "vs. truth      RMSE {:.5}, PSNR {:.2} dB, mean abs {:.5}, max abs {:.4} ({} images; linear, DN/max DN)",
+            e.rmse, e.psnr_db, e.mean_abs, e.max_abs, e.images
+        );
+    }
+    println!("rectification  {} from markers, {} from pose", s.homography_from_markers, s.homography_from_pose);
+    if let Some(m) = s.peak_rss_mib {
+        println!("peak memory    {m:.0} MiB");
+    }
+    if !s.complete {
+        println!("resume with    gonio acquire --resume {}", s.dataset);
+    }
+}
+

@@ -1,0 +1,75 @@
+//! Options shared by several subcommands: which rig, which sample, which sweep.
+
+use anyhow::{Context, Result};
+use crate::plan::{Plan, PlanOptions, Policy};
+use crate::sweep::Sweep;
+use gonio_devices::rig::RigSpec;
+use gonio_simulator::SampleSpec;
+use std::path::PathBuf;
+use std::time::Duration;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct RigArgs {
+    /// Rig file (TOML, see devices/rigs/); default: the embedded simulated two-arm rig.
+    #[arg(long)]
+    pub rig: Option<PathBuf>,
+}
+
+impl RigArgs {
+    pub fn load(&self) -> Result<RigSpec> {
+        match &self.rig {
+            None => Ok(RigSpec::default_rig()),
+            Some(p) => RigSpec::load(p).with_context(|| format!("loading rig {}", p.display())),
+        }
+    }
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct SweepArgs {
+    /// `bonn81` (default), `uniform15`, `fibonacci:N`, or a .toml/.csv direction list.
+    #[arg(long, default_value = "bonn81")]
+    pub sweep: String,
+    /// What to do with pairs the rig cannot measure: `skip` or `substitute`.
+    #[arg(long, default_value = "skip")]
+    pub policy: Policy,
+    /// Seconds the order optimizer may spend.
+    #[arg(long, default_value_t = 2.0)]
+    pub plan_time: f64,
+    #[arg(long, default_value_t = 1)]
+    pub plan_seed: u64,
+}
+
+impl SweepArgs {
+    pub fn load(&self) -> Result<Sweep> {
+        Sweep::resolve(&self.sweep).with_context(|| format!("loading sweep `{}`", self.sweep))
+    }
+    pub fn plan(&self, rig: &RigSpec, sweep: &Sweep) -> Result<Plan> {
+        anyhow::ensure!(
+            self.plan_time.is_finite() && self.plan_time >= 0.0 && self.plan_time <= 3600.0,
+            "--plan-time {}: must be between 0 and 3600 seconds",
+            self.plan_time
+        );
+        Ok(Plan::build(
+            rig,
+            sweep,
+            &PlanOptions { policy: self.policy, time_budget: Duration::from_secs_f64(self.plan_time), seed: self.plan_seed },
+        )?)
+    }
+}
+
+pub fn load_sample(name: &str) -> Result<SampleSpec> {
+    SampleSpec::resolve(name).with_context(|| format!("loading sample `{name}`"))
+}
+
+/// Parse `θ,φ` in degrees.
+pub fn parse_angles(s: &str) -> std::result::Result<gonio_devices::Direction, String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let nums: Vec<f64> = parts.iter().filter_map(|p| p.parse().ok()).collect();
+    if parts.len() != 2 || nums.len() != 2 {
+        return Err(format!("`{s}`: expected `theta,phi` in degrees, e.g. `45,90`"));
+    }
+    if !(0.0..90.0).contains(&nums[0]) || !(0.0..360.0).contains(&nums[1]) {
+        return Err(format!("`{s}`: θ must be in [0, 90) and φ in [0, 360) degrees"));
+    }
+    Ok(gonio_devices::Direction::from_degrees(nums[0], nums[1]))
+}

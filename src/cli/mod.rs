@@ -1,0 +1,66 @@
+//! Command-line interface: argument parsing and one module per subcommand.
+//!
+//! Library errors are typed; here they get context (which file, which step) through
+//! `anyhow`. Every command that prints figures has `--json` for scripts.
+
+mod acquire;
+mod common;
+mod export;
+mod plan;
+mod sim;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser, Debug)]
+#[command(name = "gonio", version, about = "Plan, drive, rectify, store and compress gonioreflectometer (BTF) acquisitions")]
+pub struct Cli {
+    /// More log output (-v info, -vv debug); logs go to stderr. RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    pub verbose: u8,
+    /// Only errors on stderr.
+    #[arg(short, long, global = true)]
+    pub quiet: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run an acquisition (default: simulated rig, default sample, Bonn 81 × 81 sweep).
+    Acquire(acquire::AcquireArgs),
+    /// Plan a sweep for a rig without moving anything.
+    Plan(plan::PlanArgs),
+    /// Export a dataset to an interchange format.
+    Export(export::ExportArgs),
+    /// Check every stored image of a dataset against its recorded hash.
+    Verify(export::VerifyArgs),
+    /// The simulator: render single measurements, write ground truth.
+    #[command(subcommand)]
+    Sim(sim::SimCommand),
+}
+
+pub fn init_logging(verbose: u8, quiet: bool) {
+    let default = if quiet {
+        "error"
+    } else {
+        match verbose {
+            0 => "warn",
+            1 => "info",
+            _ => "debug",
+        }
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    match cli.command {
+        Command::Acquire(a) => acquire::run(a),
+        Command::Plan(a) => plan::run(a),
+        Command::Export(a) => export::run(a),
+        Command::Verify(a) => export::verify(a),
+        Command::Sim(c) => sim::run(c),
+    }
+}

@@ -1,0 +1,317 @@
+//! The acquisition engine: executes a [`Plan`] through the hardware traits.
+//!
+//! Two stages run at once so the rig never waits for the disk:
+//! 1. the *drive* loop (async): for each step, start every axis, wait until all are
+//!    settled, read back positions, capture a frame; it checks the pause flag at every
+//!    measurement boundary (Ctrl-C) and stops if the store stage failed;
+//! 2. the *store* thread: converts the frame to linear values, rectifies it, compares it
+//!    with the ground truth when the rig has one, and stores image and journal record.
+//!
+//! A bounded channel between them keeps memory flat however long the sweep (stream, don't
+//! hoard). A measurement is stored only once its image is in place and its journal line
+//! is synced (see `store`), so a crash at any moment loses at most the frame in flight,
+//! which `--resume` measures again.
+
+pub mod metrics;
+pub mod rig;
+
+use crate::plan::{Plan, Step, StepStatus};
+use crate::rectify::{self, HomographySource, RectifyParams};
+use crate::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
+use gonio_devices::image::RgbImage;
+use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
+use metrics::ErrorAccumulator;
+pub use rig::{GroundTruth, Rig};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum EngineError {
+    #[error("device error at measurement {index}: {source}")]
+    Device { index: usize, source: DeviceError },
+    #[error("device error while preparing the rig: {0}")]
+    Setup(DeviceError),
+    #[error("storing measurement {index} failed: {source}")]
+    Store { index: usize, source: StoreError },
+    #[error("rectifying measurement {index} failed: {message}")]
+    Rectify { index: usize, message: String },
+    #[error("the store thread stopped unexpectedly")]
+    StoreThread,
+}
+
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub width: usize,
+    pub height: usize,
+    pub raw_frames: bool,
+    /// Compare with the simulator's ground truth (if the rig has one).
+    pub truth: bool,
+    pub show_progress: bool,
+    /// Supersampling cap of the rectification filter.
+    pub max_supersample: usize,
+}
+
+/// What one run of the engine did.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunReport {
+    pub stored_this_run: usize,
+    pub already_done: usize,
+    pub remaining: usize,
+    pub paused: bool,
+    pub complete: bool,
+    /// Rig-clock seconds this run spent (virtual on a simulated rig).
+    pub rig_time_s: f64,
+    pub wall_time_s: f64,
+    pub truth_error: ErrorAccumulator,
+    pub homography_from_markers: usize,
+    pub homography_from_pose: usize,
+}
+
+/// A captured frame on its way to the store thread.
+struct Job {
+    order: usize,
+    step: Step,
+    frame: Frame,
+    q_cmd: Vec<f64>,
+    q_read: Vec<f64>,
+    rig_time: f64,
+    wall_time: f64,
+}
+
+fn unix_now() -> f64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+}
+
+fn deg2(d: Direction) -> [f64; 2] {
+    [d.theta_deg(), d.phi_deg()]
+}
+
+/// Convert a frame of DN values into linear normalised values (DN / max DN).
+pub fn frame_to_linear(frame: &Frame) -> RgbImage {
+    let k = 1.0 / frame.max_dn() as f32;
+    RgbImage { width: frame.width, height: frame.height, data: frame.data.iter().map(|&v| v as f32 * k).collect() }
+}
+
+/// Record of a skipped pair (no image).
+pub fn skipped_record(index: usize, light_deg: [f64; 2], view_deg: [f64; 2], reason: String) -> MeasurementRecord {
+    let mut r = MeasurementRecord::new(index, usize::MAX, light_deg, view_deg);
+    r.status = MeasurementStatus::Skipped { reason };
+    r.wall_time_unix = unix_now();
+    r
+}
+
+/// Home the rig, switch the light on and configure the camera.
+pub async fn prepare(rig: &Rig) -> Result<CameraConfig, EngineError> {
+    for a in &rig.axes {
+        a.home().await.map_err(EngineError::Setup)?;
+    }
+    rig.light.set(true, 1.0).await.map_err(EngineError::Setup)?;
+    let c = &rig.spec.camera;
+    rig.camera
+        .configure(&CameraConfig {
+            width: c.width,
+            height: c.height,
+            exposure: c.exposure_s,
+            gain: c.gain,
+            bit_depth: c.bit_depth,
+        })
+        .await
+        .map_err(EngineError::Setup)
+}
+
+/// Execute the plan's steps that are not in `done`. Returns the dataset (for `finish`)
+/// and a report; on a store failure the error says which measurement.
+pub async fn run(
+    rig: Arc<Rig>,
+    plan: Arc<Plan>,
+    dataset: Dataset,
+    done: HashSet<usize>,
+    opts: RunOptions,
+    pause: Arc<AtomicBool>,
+) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
+    let t_wall = Instant::now();
+    let rig_t0 = rig.time();
+    let todo: Vec<(usize, &Step)> = plan.steps.iter().enumerate().filter(|(_, s)| !done.contains(&s.index)).collect();
+    let already_done = plan.steps.len() - todo.len();
+    let bar = progress_bar(todo.len() as u64, opts.show_progress);
+    let (tx, rx) = tokio::sync::mpsc::channel::<Job>(2);
+    let failed = Arc::new(AtomicBool::new(false));
+    let store = {
+        let rig = rig.clone();
+        let opts = opts.clone();
+        let failed = failed.clone();
+        std::thread::Builder::new()
+            .name("gonio-store".into())
+            .spawn(move || store_loop(rig, dataset, rx, opts, failed))
+            .map_err(|_| (None, EngineError::StoreThread))?
+    };
+    let mut drive_err = None;
+    let mut paused = false;
+    if let Err(e) = prepare(&rig).await {
+        drive_err = Some(e);
+    }
+    for (order, step) in todo.iter().copied() {
+        if drive_err.is_some() || failed.load(Ordering::SeqCst) {
+            break;
+        }
+        if pause.load(Ordering::SeqCst) {
+            paused = true;
+            break;
+        }
+        match drive_step(&rig, step).await {
+            Ok((frame, q_cmd, q_read)) => {
+                let job = Job { order, step: step.clone(), frame, q_cmd, q_read, rig_time: rig.time(), wall_time: unix_now() };
+                if tx.send(job).await.is_err() {
+                    break; // store thread ended (failed): its error is reported below
+                }
+                bar.inc(1);
+            }
+            Err(e) => drive_err = Some(EngineError::Device { index: step.index, source: e }),
+        }
+    }
+    drop(tx);
+    let stored = store.join();
+    bar.finish_and_clear();
+    let (dataset, stats) = match stored {
+        Ok(Ok(v)) => v,
+        Ok(Err((ds, e))) => return Err((Some(ds), e)),
+        Err(_) => return Err((None, EngineError::StoreThread)),
+    };
+    if let Some(e) = drive_err {
+        return Err((Some(dataset), e));
+    }
+    let remaining = todo.len() - stats.stored;
+    Ok((
+        dataset,
+        RunReport {
+            stored_this_run: stats.stored,
+            already_done,
+            remaining,
+            paused,
+            complete: remaining == 0,
+            rig_time_s: rig.time() - rig_t0,
+            wall_time_s: t_wall.elapsed().as_secs_f64(),
+            truth_error: stats.error,
+            homography_from_markers: stats.markers,
+            homography_from_pose: stats.pose,
+        },
+    ))
+}
+
+/// Move all axes to the step's targets (concurrently), wait until settled, capture.
+async fn drive_step(rig: &Rig, step: &Step) -> Result<(Frame, Vec<f64>, Vec<f64>), DeviceError> {
+    let q: Vec<f64> = step.axes_deg.iter().map(|d| d.to_radians()).collect();
+    for (axis, &target) in rig.axes.iter().zip(&q) {
+        axis.start_move(target).await?;
+    }
+    // Every axis is already moving; waiting one after the other ends with the slowest.
+    let mut read = Vec::with_capacity(q.len());
+    for axis in &rig.axes {
+        read.push(axis.wait_idle().await?);
+    }
+    let frame = rig.camera.capture().await?;
+    Ok((frame, q, read))
+}
+
+struct StoreStats {
+    stored: usize,
+    error: ErrorAccumulator,
+    markers: usize,
+    pose: usize,
+}
+
+type StoreResult = Result<(Dataset, StoreStats), (Dataset, EngineError)>;
+
+fn store_loop(
+    rig: Arc<Rig>,
+    mut dataset: Dataset,
+    mut rx: tokio::sync::mpsc::Receiver<Job>,
+    opts: RunOptions,
+    failed: Arc<AtomicBool>,
+) -> StoreResult {
+    let mut stats = StoreStats { stored: 0, error: ErrorAccumulator::default(), markers: 0, pose: 0 };
+    let params = RectifyParams {
+        width: opts.width,
+        height: opts.height,
+        sample_mm: rig.sample_mm,
+        max_supersample: opts.max_supersample,
+    };
+    let intr = rig.spec.camera.intrinsics();
+    while let Some(job) = rx.blocking_recv() {
+        let index = job.step.index;
+        let raw = frame_to_linear(&job.frame);
+        let pose = rig.kinematics.camera_pose(&job.q_read);
+        let (rect, truth) = rayon::join(
+            || rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
+            || match (&rig.truth, opts.truth) {
+                (Some(t), true) => Some(t.truth(&job.q_read, opts.width, opts.height)),
+                _ => None,
+            },
+        );
+        let rect = match rect {
+            Ok(r) => r,
+            Err(e) => {
+                failed.store(true, Ordering::SeqCst);
+                return Err((dataset, EngineError::Rectify { index, message: e.to_string() }));
+            }
+        };
+        match rect.source {
+            HomographySource::Markers => stats.markers += 1,
+            HomographySource::Pose => stats.pose += 1,
+        }
+        let mut extra = serde_json::json!({
+            "homography": rect.source,
+            "markers_found": rect.markers_found,
+            "marker_rms_px": rect.marker_rms_px,
+        });
+        if let Some(t) = &truth {
+            let e = metrics::image_error(&rect.image, t);
+            extra["truth_rmse"] = serde_json::json!((e.0 / e.3.max(1) as f64).sqrt());
+            stats.error.add(e);
+        }
+        let (l_rb, v_rb) = rig.kinematics.forward(&job.q_read);
+        let mut rec = MeasurementRecord::new(index, job.order, job.step.light_deg, job.step.view_deg);
+        rec.light_read_back_deg = Some(deg2(l_rb));
+        rec.view_read_back_deg = Some(deg2(v_rb));
+        rec.axes_commanded_deg = job.q_cmd.iter().map(|x| x.to_degrees()).collect();
+        rec.axes_read_back_deg = job.q_read.iter().map(|x| x.to_degrees()).collect();
+        rec.exposure_s = job.frame.meta.exposure;
+        rec.gain = job.frame.meta.gain;
+        rec.frame_sequence = Some(job.frame.meta.sequence);
+        rec.rig_time_s = job.rig_time;
+        rec.wall_time_unix = job.wall_time;
+        rec.status = match &job.step.status {
+            StepStatus::Measure => MeasurementStatus::Measured,
+            StepStatus::Substitute { requested_light_deg, reason } => {
+                MeasurementStatus::Substituted { requested_light_deg: *requested_light_deg, reason: reason.to_string() }
+            }
+        };
+        rec.extra = extra;
+        let raw_frame = if opts.raw_frames { Some(&job.frame) } else { None };
+        if let Err(e) = dataset.store(rec, Some(&rect.image), raw_frame) {
+            failed.store(true, Ordering::SeqCst);
+            return Err((dataset, EngineError::Store { index, source: e }));
+        }
+        stats.stored += 1;
+    }
+    Ok((dataset, stats))
+}
+
+fn progress_bar(len: u64, show: bool) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40.cyan/blue}] {pos}/{len} measurements  {per_sec}  ETA {eta}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar
+}

@@ -1,0 +1,748 @@
+//! The native gonio dataset: crash-safe storage of an acquisition, and exports.
+//!
+//! # Format (`"format": "gonio-dataset"`, version 1)
+//!
+//! A dataset is a directory:
+//!
+//! ```text
+//! DIR/
+//!   manifest.json     header; after `finish` also "complete": true, summary, all records
+//!   journal.jsonl     append-only, one line per stored measurement (the source of truth)
+//!   images/NNNNN.exr  rectified image of measurement NNNNN (RGB half float, ZIP)
+//!   raw/NNNNN.png     optional raw frame of measurement NNNNN (16-bit RGB PNG, DN as read)
+//!   truth/            optional ground truth of simulated rigs (not managed here)
+//! ```
+//!
+//! * **`NNNNN`** is the record's canonical `index` (`view_index · 81 + light_index` for
+//!   the Bonn set), zero-padded to five digits (wider if ever needed).
+//! * **`manifest.json`** is a JSON object whose top-level fields are those of
+//!   [`ManifestHeader`] (`format`, `version`, `gonio_version`, `created_unix`, `rig`,
+//!   `sample`, `sweep`, `image_width`, `image_height`, `values`, `seed`, `raw_frames`,
+//!   `calibration`, `extra`), followed by `complete` (bool), `journal`
+//!   (`"journal.jsonl"`), `summary` (the engine's summary, `null` until `finish`) and
+//!   `records` (every [`MeasurementRecord`] sorted by index; empty until `finish`). It is
+//!   only ever replaced atomically. `values` states what the pixel values mean; data
+//!   that are not radiometrically calibrated say so there.
+//! * **`journal.jsonl`**: one line per stored measurement, in the order they were
+//!   stored: `{"crc":"<8 hex digits>","rec":{…record…}}` with the CRC-32 of the exact
+//!   `rec` bytes (details in `journal.rs`). Readers must use the journal, not the
+//!   manifest's `records`, unless `complete` is true.
+//! * **Images** hold linear values (not sRGB), rows top to bottom, in the rectified
+//!   frame of conventions.md; the record's `image_sha256` is the SHA-256 of the file.
+//! * **Raw frames** hold the camera's digital numbers unscaled (a 12-bit camera's
+//!   values stay in 0‥4095); `raw_sha256` is the file's SHA-256.
+//! * Record angles are degrees, (θ, φ), `light_deg` being the light direction actually
+//!   used: a `substituted` record keeps the planned one in its status, a `skipped`
+//!   record has no files and is never exported.
+//!
+//! # Durability
+//!
+//! A measurement counts as stored only when its files are renamed into place **and**
+//! its journal line is fsynced ([`Dataset::store`]): files are written under a
+//! temporary name (`.tmp-…`), fsynced, renamed, and the directory fsynced; then the
+//! journal line is appended and fsynced. So after any crash:
+//!
+//! * a file without a journal line is an orphan (removed by [`Dataset::resume`]);
+//! * only the last journal line can be torn (cut off by [`Dataset::resume`]);
+//! * no file under a final name is ever half-written.
+//!
+//! `resume` also re-hashes every stored file and drops (and deletes) records whose
+//! files are missing or damaged, so that they are measured again. A directory lock
+//! (`flock`) keeps two processes from writing one dataset.
+//!
+//! # Exports
+//!
+//! [`export_ubo2003`] writes the Bonn UBO2003 ZIP of 8-bit sRGB JPEGs read by the public
+//! `btf-extractor` reader; [`export_npy`] writes the exact 8-bit values behind those
+//! JPEGs for interop tests (`tests/interop/check_ubo2003.py`).
+
+pub mod atomic;
+mod error;
+pub mod exr_io;
+mod journal;
+mod manifest;
+pub mod npy;
+pub mod ubo2003;
+pub mod verify;
+
+#[cfg(test)]
+mod tests;
+
+pub use error::StoreError;
+pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
+pub use manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
+pub use npy::{export_npy, npy_sidecar_path};
+pub use ubo2003::{
+    entry_name, export_ubo2003, integer_angles, linear_to_srgb8, ExportReport, JPEG_QUALITY,
+};
+pub use verify::{verify, VerifyReport};
+
+use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};
+use error::IoContext;
+use gonio_devices::image::RgbImage;
+use gonio_devices::Frame;
+use journal::{encode_line, Appender};
+use manifest::{probe_manifest, read_manifest, validate_header, write_manifest, ManifestFile, ManifestProbe};
+use sha2::{Digest, Sha256};
+use std::collections::{HashMap, HashSet};
+use std::fs::{self, OpenOptions};
+use std::path::{Path, PathBuf};
+
+/// Value of the manifest's `format` field.
+pub const FORMAT: &str = "gonio-dataset";
+/// Version of the dataset layout this gonio writes (and the newest it reads).
+pub const FORMAT_VERSION: u32 = 1;
+/// File names inside a dataset directory.
+pub const MANIFEST_FILE: &str = "manifest.json";
+pub const JOURNAL_FILE: &str = "journal.jsonl";
+pub const IMAGES_DIR: &str = "images";
+pub const RAW_DIR: &str = "raw";
+
+/// Relative path of the rectified image of measurement `index`.
+pub fn image_rel_path(index: usize) -> String {
+    format!("{IMAGES_DIR}/{index:05}.exr")
+}
+
+/// Relative path of the raw frame of measurement `index`.
+pub fn raw_rel_path(index: usize) -> String {
+    format!("{RAW_DIR}/{index:05}.png")
+}
+
+/// Lower-case hex SHA-256.
+pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
+    let digest = Sha256::digest(bytes);
+    let mut s = String::with_capacity(64);
+    for b in digest {
+        s.push_str(&format!("{b:02x}"));
+    }
+    s
+}
+
+/// What [`Dataset::resume`] found and repaired (also logged as warnings).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RecoveryReport {
+    /// The journal's last line was torn: (line number, reason). It was cut off.
+    pub torn_line: Option<(usize, String)>,
+    /// The last line was complete but lacked its newline; one was added.
+    pub added_newline: bool,
+    /// Indices that appeared more than once in the journal (the first was kept).
+    pub duplicates: Vec<usize>,
+    /// Records dropped because a file was missing or damaged: (index, problem). Their
+    /// measurements must be redone.
+    pub dropped: Vec<(usize, String)>,
+    /// Files without a journal line, removed.
+    pub orphans_removed: Vec<PathBuf>,
+    /// Leftover temporary files, removed.
+    pub temp_removed: Vec<PathBuf>,
+}
+
+impl RecoveryReport {
+    /// True if resume found nothing to repair.
+    pub fn is_clean(&self) -> bool {
+        *self == RecoveryReport::default()
+    }
+}
+
+/// An open dataset being written. Holds the dataset's lock until dropped.
+pub struct Dataset {
+    dir: PathBuf,
+    header: ManifestHeader,
+    journal: Appender,
+    /// Stored records in journal order.
+    records: Vec<MeasurementRecord>,
+    indices: HashSet<usize>,
+    /// Whether manifest.json currently says "complete": true.
+    manifest_complete: bool,
+    /// Set when a failed journal append could not be rolled back.
+    poisoned: Option<String>,
+    recovery: RecoveryReport,
+    _lock: DirLock,
+}
+
+impl std::fmt::Debug for Dataset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dataset")
+            .field("dir", &self.dir)
+            .field("records", &self.records.len())
+            .field("complete", &self.manifest_complete)
+            .finish()
+    }
+}
+
+impl Dataset {
+    /// Create a new dataset in `dir` (created if missing).
+    ///
+    /// An existing non-empty directory is refused unless `force`; with `force` a gonio
+    /// dataset's contents are deleted first, while any other non-empty directory is
+    /// still refused (gonio never deletes data it did not write).
+    pub fn create(dir: &Path, header: &ManifestHeader, force: bool) -> Result<Dataset, StoreError> {
+        validate_header(dir, header)?;
+        let mut lock = None;
+        match fs::metadata(dir) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                fs::create_dir_all(dir).ctx("creating directory", dir, Some(dir))?;
+                sync_parent(dir, Some(dir))?;
+            }
+            Err(e) => return Err(StoreError::io("opening", dir, Some(dir), e)),
+            Ok(m) if !m.is_dir() => {
+                return Err(StoreError::NotADataset {
+                    path: dir.to_path_buf(),
+                    reason: "it is a file, not a directory".into(),
+                    hint: "choose a directory path for the dataset",
+                })
+            }
+            Ok(_) => {
+                let non_empty = fs::read_dir(dir)
+                    .ctx("listing", dir, Some(dir))?
+                    .next()
+                    .is_some();
+                if non_empty {
+                    if !force {
+                        return Err(StoreError::NotEmpty {
+                            path: dir.to_path_buf(),
+                        });
+                    }
+                    match probe_manifest(dir)? {
+                        ManifestProbe::Ok(_) | ManifestProbe::Broken(_) => {}
+                        ManifestProbe::Missing => {
+                            return Err(StoreError::NotADataset {
+                                path: dir.to_path_buf(),
+                                reason: "it is not empty and has no manifest.json".into(),
+                                hint: "--force only replaces gonio datasets; remove the \
+                                       directory yourself or choose another one",
+                            })
+                        }
+                        ManifestProbe::Foreign(reason) => {
+                            return Err(StoreError::NotADataset {
+                                path: dir.to_path_buf(),
+                                reason,
+                                hint: "--force only replaces gonio datasets; remove the \
+                                       directory yourself or choose another one",
+                            })
+                        }
+                    }
+                    let l = DirLock::acquire(dir)?;
+                    tracing::warn!(dir = %dir.display(), "--force: deleting the existing dataset");
+                    // Manifest first: an interrupted deletion then no longer looks
+                    // like a complete dataset.
+                    let manifest = dir.join(MANIFEST_FILE);
+                    fs::remove_file(&manifest).ctx("removing", &manifest, Some(dir))?;
+                    for entry in fs::read_dir(dir).ctx("listing", dir, Some(dir))? {
+                        let entry = entry.ctx("listing", dir, Some(dir))?;
+                        let p = entry.path();
+                        let is_dir = entry.file_type().map(|t| t.is_dir()).unwrap_or(false);
+                        if is_dir {
+                            fs::remove_dir_all(&p).ctx("removing", &p, Some(dir))?;
+                        } else {
+                            fs::remove_file(&p).ctx("removing", &p, Some(dir))?;
+                        }
+                    }
+                    sync_dir(dir, Some(dir))?;
+                    lock = Some(l);
+                }
+            }
+        }
+        let lock = match lock {
+            Some(l) => l,
+            None => DirLock::acquire(dir)?,
+        };
+
+        let images = dir.join(IMAGES_DIR);
+        fs::create_dir_all(&images).ctx("creating directory", &images, Some(dir))?;
+        if header.raw_frames {
+            let raw = dir.join(RAW_DIR);
+            fs::create_dir_all(&raw).ctx("creating directory", &raw, Some(dir))?;
+        }
+        let jpath = dir.join(JOURNAL_FILE);
+        let jfile = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&jpath)
+            .ctx("creating", &jpath, Some(dir))?;
+        jfile.sync_all().ctx("syncing", &jpath, Some(dir))?;
+        sync_dir(dir, Some(dir))?;
+        // The manifest comes last: its presence means the dataset was fully created.
+        write_manifest(
+            dir,
+            &ManifestFile {
+                header: header.clone(),
+                complete: false,
+                journal: Some(JOURNAL_FILE.into()),
+                summary: serde_json::Value::Null,
+                records: Vec::new(),
+            },
+        )?;
+        Ok(Dataset {
+            dir: dir.to_path_buf(),
+            header: header.clone(),
+            journal: Appender::new(jfile, 0).ctx("opening", &jpath, Some(dir))?,
+            records: Vec::new(),
+            indices: HashSet::new(),
+            manifest_complete: false,
+            poisoned: None,
+            recovery: RecoveryReport::default(),
+            _lock: lock,
+        })
+    }
+
+    /// Reopen an interrupted (or finished) dataset to continue it.
+    ///
+    /// Repairs what a crash can leave behind and returns the header and the records
+    /// that are safely stored, in journal order; every planned measurement not among
+    /// them must be measured (again). What was repaired is logged and available from
+    /// [`Dataset::recovery`].
+    pub fn resume(dir: &Path) -> Result<(Dataset, ManifestHeader, Vec<MeasurementRecord>), StoreError> {
+        let manifest = read_manifest(dir)?;
+        let lock = DirLock::acquire(dir)?;
+        let mut report = RecoveryReport::default();
+
+        // 1. Temporary files: nobody else writes (we hold the lock), so they are debris.
+        for sub in [dir.to_path_buf(), dir.join(IMAGES_DIR), dir.join(RAW_DIR)] {
+            report.temp_removed.extend(remove_temp_files(&sub, Some(dir))?);
+        }
+        for p in &report.temp_removed {
+            tracing::warn!(file = %p.display(), "resume: removed leftover temporary file");
+        }
+
+        // 2. Journal: cut a torn last line, complete a missing newline.
+        let jpath = dir.join(JOURNAL_FILE);
+        let scan = journal::scan(&jpath, dir)?;
+        let jfile = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(&jpath)
+            .ctx("opening", &jpath, Some(dir))?;
+        let mut len = jfile.metadata().ctx("reading", &jpath, Some(dir))?.len();
+        if let Some(t) = &scan.torn {
+            tracing::warn!(
+                journal = %jpath.display(), line = t.line, reason = %t.reason,
+                "resume: the last journal line is torn (crash while appending); removing it"
+            );
+            jfile.set_len(t.offset).ctx("truncating", &jpath, Some(dir))?;
+            jfile.sync_all().ctx("syncing", &jpath, Some(dir))?;
+            len = t.offset;
+            report.torn_line = Some((t.line, t.reason.clone()));
+        }
+        let mut journal = Appender::new(jfile, len).ctx("opening", &jpath, Some(dir))?;
+        if scan.missing_newline {
+            tracing::warn!(journal = %jpath.display(), "resume: adding the missing final newline");
+            journal
+                .append(b"\n")
+                .map_err(|(e, _)| StoreError::io("appending to", &jpath, Some(dir), e))?;
+            report.added_newline = true;
+        }
+
+        // 3. Duplicates: keep the first.
+        let (records, dups) = dedupe(scan.records);
+        for i in &dups {
+            tracing::warn!(index = i, "resume: index stored twice in the journal; keeping the first");
+        }
+        report.duplicates = dups;
+
+        // 4. Re-hash every file; drop records whose files are missing or damaged.
+        use rayon::prelude::*;
+        let problems: Vec<Option<String>> =
+            records.par_iter().map(|r| check_record_files(dir, r)).collect();
+        let mut kept = Vec::with_capacity(records.len());
+        for (r, problem) in records.into_iter().zip(problems) {
+            match problem {
+                None => kept.push(r),
+                Some(p) => {
+                    tracing::warn!(index = r.index, problem = %p,
+                        "resume: dropping the record so the measurement is redone");
+                    for rel in [image_rel_path(r.index), raw_rel_path(r.index)] {
+                        let f = dir.join(rel);
+                        match fs::remove_file(&f) {
+                            Ok(()) => {}
+                            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                            Err(e) => return Err(StoreError::io("removing", &f, Some(dir), e)),
+                        }
+                    }
+                    report.dropped.push((r.index, p));
+                }
+            }
+        }
+
+        // 5. Orphans: files no kept record refers to.
+        let referenced: HashSet<String> = kept
+            .iter()
+            .flat_map(|r| [r.image.clone(), r.raw.clone()])
+            .flatten()
+            .collect();
+        for (sub, ext) in [(IMAGES_DIR, "exr"), (RAW_DIR, "png")] {
+            report
+                .orphans_removed
+                .extend(remove_orphans(dir, sub, ext, &referenced)?);
+        }
+
+        // 6. If records were dropped, rewrite the journal without them, so a re-measured
+        // index is not shadowed by its old line ("keep first") on the next resume.
+        if !report.dropped.is_empty() || !report.duplicates.is_empty() {
+            let mut bytes = Vec::new();
+            for r in &kept {
+                bytes.extend(encode_line(r).map_err(|source| StoreError::Json {
+                    path: jpath.clone(),
+                    source,
+                })?);
+            }
+            write_atomic(&jpath, &bytes, Some(dir))?;
+            let jfile = OpenOptions::new()
+                .read(true)
+                .write(true)
+                .open(&jpath)
+                .ctx("opening", &jpath, Some(dir))?;
+            journal = Appender::new(jfile, bytes.len() as u64).ctx("opening", &jpath, Some(dir))?;
+        }
+        for sub in [IMAGES_DIR, RAW_DIR] {
+            let d = dir.join(sub);
+            if d.is_dir() {
+                sync_dir(&d, Some(dir))?;
+            }
+        }
+
+        let header = manifest.header.clone();
+        let ds = Dataset {
+            dir: dir.to_path_buf(),
+            header: manifest.header,
+            journal,
+            indices: kept.iter().map(|r| r.index).collect(),
+            records: kept.clone(),
+            manifest_complete: manifest.complete,
+            poisoned: None,
+            recovery: report,
+            _lock: lock,
+        };
+        Ok((ds, header, kept))
+    }
+
+    /// Store one measurement: write its image (and raw frame) durably, then append and
+    /// fsync its journal line. Returns the record with `image`, `image_sha256`, `raw`
+    /// and `raw_sha256` filled in. Measured and substituted records need an image;
+    /// skipped ones must have none. On error nothing is recorded: the measurement can
+    /// be retried (or redone after `resume`).
+    pub fn store(
+        &mut self,
+        mut rec: MeasurementRecord,
+        image: Option<&RgbImage>,
+        raw: Option<&Frame>,
+    ) -> Result<MeasurementRecord, StoreError> {
+        let dir = self.dir.clone();
+        let ds = Some(dir.as_path());
+        if let Some(reason) = &self.poisoned {
+            return Err(StoreError::Poisoned {
+                path: dir,
+                reason: reason.clone(),
+            });
+        }
+        let invalid = |reason: String| StoreError::InvalidMeasurement {
+            path: dir.clone(),
+            index: rec.index,
+            reason,
+        };
+        if self.indices.contains(&rec.index) {
+            return Err(StoreError::DuplicateIndex {
+                path: dir.clone(),
+                index: rec.index,
+            });
+        }
+        let skipped = matches!(rec.status, MeasurementStatus::Skipped { .. });
+        match (skipped, image, raw) {
+            (true, Some(_), _) | (true, _, Some(_)) => {
+                return Err(invalid("a skipped measurement has no image or raw frame".into()))
+            }
+            (false, None, _) => {
+                return Err(invalid(format!(
+                    "a {} measurement needs its image",
+                    rec.status.kind()
+                )))
+            }
+            _ => {}
+        }
+        if let Some(img) = image {
+            if img.width != self.header.image_width
+                || img.height != self.header.image_height
+                || img.data.len() != img.width * img.height * 3
+            {
+                return Err(invalid(format!(
+                    "image is {}×{} with {} values; the dataset's images are {}×{} RGB",
+                    img.width,
+                    img.height,
+                    img.data.len(),
+                    self.header.image_width,
+                    self.header.image_height
+                )));
+            }
+        }
+        if let Some(f) = raw {
+            if f.data.len() != f.width * f.height * 3 || f.width == 0 || f.height == 0 {
+                return Err(invalid(format!(
+                    "raw frame is {}×{} with {} values",
+                    f.width,
+                    f.height,
+                    f.data.len()
+                )));
+            }
+        }
+
+        if self.manifest_complete {
+            // New data after `finish`: the manifest's record list is no longer complete.
+            write_manifest(
+                &dir,
+                &ManifestFile {
+                    header: self.header.clone(),
+                    complete: false,
+                    journal: Some(JOURNAL_FILE.into()),
+                    summary: serde_json::Value::Null,
+                    records: Vec::new(),
+                },
+            )?;
+            self.manifest_complete = false;
+        }
+
+        rec.image = None;
+        rec.image_sha256 = None;
+        rec.raw = None;
+        rec.raw_sha256 = None;
+        let mut written: Vec<PathBuf> = Vec::new();
+        let result = (|| -> Result<(), StoreError> {
+            if let Some(img) = image {
+                let rel = image_rel_path(rec.index);
+                let path = dir.join(&rel);
+                let bytes = encode_exr(img, &path)?;
+                rec.image_sha256 = Some(sha256_hex(&bytes));
+                write_atomic(&path, &bytes, ds)?;
+                written.push(path);
+                rec.image = Some(rel);
+            }
+            if let Some(frame) = raw {
+                let rawdir = dir.join(RAW_DIR);
+                if !rawdir.is_dir() {
+                    fs::create_dir_all(&rawdir).ctx("creating directory", &rawdir, ds)?;
+                    sync_dir(&dir, ds)?;
+                }
+                let rel = raw_rel_path(rec.index);
+                let path = dir.join(&rel);
+                let bytes = encode_raw_png(frame, &path)?;
+                rec.raw_sha256 = Some(sha256_hex(&bytes));
+                write_atomic(&path, &bytes, ds)?;
+                written.push(path);
+                rec.raw = Some(rel);
+            }
+            Ok(())
+        })();
+        let remove_written = |written: &[PathBuf]| {
+            for p in written {
+                let _ = fs::remove_file(p);
+            }
+        };
+        if let Err(e) = result {
+            remove_written(&written);
+            return Err(e);
+        }
+
+        let jpath = dir.join(JOURNAL_FILE);
+        let line = match encode_line(&rec) {
+            Ok(l) => l,
+            Err(source) => {
+                remove_written(&written);
+                return Err(StoreError::Json {
+                    path: jpath,
+                    source,
+                });
+            }
+        };
+        if let Err((e, rolled_back)) = self.journal.append(&line) {
+            remove_written(&written);
+            if !rolled_back {
+                self.poisoned = Some(format!(
+                    "appending to {} failed ({e}) and the partial line could not be removed",
+                    jpath.display()
+                ));
+            }
+            return Err(StoreError::io("appending to", &jpath, ds, e));
+        }
+        self.indices.insert(rec.index);
+        self.records.push(rec.clone());
+        Ok(rec)
+    }
+
+    /// Mark the dataset complete: rewrite `manifest.json` atomically with the header,
+    /// `"complete": true`, `summary` and every record sorted by index.
+    pub fn finish(&mut self, summary: &serde_json::Value) -> Result<(), StoreError> {
+        let mut records = self.records.clone();
+        records.sort_by_key(|r| r.index);
+        write_manifest(
+            &self.dir,
+            &ManifestFile {
+                header: self.header.clone(),
+                complete: true,
+                journal: Some(JOURNAL_FILE.into()),
+                summary: summary.clone(),
+                records,
+            },
+        )?;
+        self.manifest_complete = true;
+        Ok(())
+    }
+
+    /// The dataset directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The dataset's header.
+    pub fn header(&self) -> &ManifestHeader {
+        &self.header
+    }
+
+    /// Records stored so far (including those found by `resume`), in journal order.
+    pub fn records(&self) -> &[MeasurementRecord] {
+        &self.records
+    }
+
+    /// What `resume` repaired (empty for a created dataset).
+    pub fn recovery(&self) -> &RecoveryReport {
+        &self.recovery
+    }
+}
+
+/// Keep the first record of each index; return the kept records (in order) and the
+/// indices that had duplicates.
+fn dedupe(lines: Vec<(usize, MeasurementRecord)>) -> (Vec<MeasurementRecord>, Vec<usize>) {
+    let mut seen: HashMap<usize, ()> = HashMap::new();
+    let mut dups = Vec::new();
+    let mut out = Vec::with_capacity(lines.len());
+    for (_, r) in lines {
+        if seen.insert(r.index, ()).is_some() {
+            if !dups.contains(&r.index) {
+                dups.push(r.index);
+            }
+        } else {
+            out.push(r);
+        }
+    }
+    (out, dups)
+}
+
+/// Check that a record's files are where the store puts them and hash as recorded.
+/// Returns the problem, if any. Never follows a path other than the canonical ones,
+/// so a damaged record cannot point resume at an unrelated file.
+pub(crate) fn check_record_files(dir: &Path, r: &MeasurementRecord) -> Option<String> {
+    let skipped = matches!(r.status, MeasurementStatus::Skipped { .. });
+    if skipped {
+        return None;
+    }
+    let check = |rel: &Option<String>, sha: &Option<String>, expected_rel: String, what: &str| {
+        match (rel, sha) {
+            (Some(rel), Some(sha)) if *rel == expected_rel => {
+                match fs::read(dir.join(rel)) {
+                    Ok(bytes) if sha256_hex(&bytes) == *sha => None,
+                    Ok(_) => Some(format!("{what} {rel} does not match its SHA-256")),
+                    Err(e) => Some(format!("{what} {rel} cannot be read: {e}")),
+                }
+            }
+            (Some(rel), _) if *rel != expected_rel => {
+                Some(format!("{what} path {rel:?} is not {expected_rel:?}"))
+            }
+            _ => Some(format!("{what} has no path or hash in the journal")),
+        }
+    };
+    if let Some(p) = check(&r.image, &r.image_sha256, image_rel_path(r.index), "image") {
+        return Some(p);
+    }
+    if r.raw.is_some() || r.raw_sha256.is_some() {
+        return check(&r.raw, &r.raw_sha256, raw_rel_path(r.index), "raw frame");
+    }
+    None
+}
+
+/// Files in `dir/sub` named like store files (`<digits>.<ext>`) that no record refers
+/// to. Other files are left alone.
+pub(crate) fn find_orphans(
+    dir: &Path,
+    sub: &str,
+    ext: &str,
+    referenced: &HashSet<String>,
+) -> Result<Vec<PathBuf>, StoreError> {
+    let d = dir.join(sub);
+    let entries = match fs::read_dir(&d) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(StoreError::io("listing", &d, Some(dir), e)),
+    };
+    let mut out = Vec::new();
+    for entry in entries {
+        let entry = entry.ctx("listing", &d, Some(dir))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(stem) = name.strip_suffix(&format!(".{ext}")) else {
+            continue;
+        };
+        if name.starts_with(TMP_PREFIX) || stem.is_empty() || !stem.bytes().all(|b| b.is_ascii_digit()) {
+            continue;
+        }
+        if !referenced.contains(&format!("{sub}/{name}")) {
+            out.push(entry.path());
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+fn remove_orphans(
+    dir: &Path,
+    sub: &str,
+    ext: &str,
+    referenced: &HashSet<String>,
+) -> Result<Vec<PathBuf>, StoreError> {
+    let orphans = find_orphans(dir, sub, ext, referenced)?;
+    for p in &orphans {
+        tracing::warn!(file = %p.display(), "resume: removing a file that has no journal line");
+        fs::remove_file(p).ctx("removing", p, Some(dir))?;
+    }
+    Ok(orphans)
+}
+
+/// Encode a raw frame as a 16-bit RGB PNG (values unscaled).
+fn encode_raw_png(frame: &Frame, path: &Path) -> Result<Vec<u8>, StoreError> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    use image::ImageEncoder;
+    let mut bytes = Vec::with_capacity(frame.data.len() * 2);
+    for v in &frame.data {
+        bytes.extend_from_slice(&v.to_ne_bytes());
+    }
+    let mut out = Vec::new();
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
+        .write_image(
+            &bytes,
+            frame.width as u32,
+            frame.height as u32,
+            image::ExtendedColorType::Rgb16,
+        )
+        .map_err(|source| StoreError::Codec {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    Ok(out)
+}
+
+/// Read a dataset for export or inspection: the header and every record of the journal
+/// (the source of truth), first occurrence of each index, sorted by index. A torn last
+/// journal line (an acquisition that crashed or is still running) is ignored with a
+/// warning; the dataset is not modified.
+pub fn load(dir: &Path) -> Result<(ManifestHeader, Vec<MeasurementRecord>), StoreError> {
+    let manifest = read_manifest(dir)?;
+    let jpath = dir.join(JOURNAL_FILE);
+    let scan = journal::scan(&jpath, dir)?;
+    if let Some(t) = &scan.torn {
+        tracing::warn!(journal = %jpath.display(), line = t.line, reason = %t.reason,
+            "ignoring the torn last journal line");
+    }
+    let (mut records, dups) = dedupe(scan.records);
+    for i in dups {
+        tracing::warn!(index = i, "index stored twice in the journal; using the first");
+    }
+    records.sort_by_key(|r| r.index);
+    Ok((manifest.header, records))
+}

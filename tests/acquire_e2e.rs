@@ -1,0 +1,105 @@
+//! The whole chain on a reduced sweep: plan → drive (simulated rig) → capture → rectify →
+//! store → resume, with the error against the simulator's ground truth bounded.
+
+use gonio::engine::{self, Rig, RunOptions};
+use gonio::plan::{Plan, PlanOptions};
+use gonio::store::{self, Dataset, ManifestHeader, MeasurementStatus};
+use gonio::sweep::Sweep;
+use gonio_devices::rig::RigSpec;
+use gonio_devices::Direction;
+use gonio_simulator::{SampleSpec, SimOptions};
+use std::collections::HashSet;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+fn reduced_sweep() -> Sweep {
+    let d = vec![
+        Direction::from_degrees(0.0, 0.0),
+        Direction::from_degrees(30.0, 0.0),
+        Direction::from_degrees(30.0, 150.0),
+        Direction::from_degrees(60.0, 270.0),
+    ];
+    Sweep { name: "reduced".into(), lights: d.clone(), views: d }
+}
+
+fn header(rig: &RigSpec, sample: &SampleSpec, size: usize) -> ManifestHeader {
+    ManifestHeader {
+        format: store::FORMAT.into(),
+        version: store::FORMAT_VERSION,
+        gonio_version: "test".into(),
+        created_unix: 0.0,
+        rig: serde_json::to_value(rig).unwrap(),
+        sample: serde_json::to_value(sample).unwrap(),
+        sweep: serde_json::json!({"name": "reduced"}),
+        image_width: size,
+        image_height: size,
+        values: "linear".into(),
+        seed: 1,
+        raw_frames: false,
+        calibration: None,
+        extra: serde_json::json!({}),
+    }
+}
+
+fn options(size: usize) -> RunOptions {
+    RunOptions { width: size, height: size, raw_frames: false, truth: true, show_progress: false, max_supersample: 8 }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reduced_sweep_end_to_end_with_resume() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    let rig_spec = RigSpec::default_rig();
+    let sample = SampleSpec::resolve("wallpaper").unwrap();
+    let plan = Plan::build(
+        &rig_spec,
+        &reduced_sweep(),
+        &PlanOptions { time_budget: Duration::from_millis(100), ..Default::default() },
+    )
+    .unwrap();
+    assert_eq!(plan.steps.len(), 12);
+    assert_eq!(plan.skipped.len(), 4, "the 4 retro-reflection pairs");
+    let size = 64;
+    let rig = Arc::new(Rig::build(&rig_spec, &sample, &SimOptions::default()).unwrap());
+
+    // First run: stop after 5 measurements (as if paused).
+    let mut partial = plan.clone();
+    partial.steps.truncate(5);
+    let ds = Dataset::create(&dir, &header(&rig_spec, &sample, size), false).unwrap();
+    let pause = Arc::new(AtomicBool::new(false));
+    let (ds, rep) = engine::run(rig.clone(), Arc::new(partial), ds, HashSet::new(), options(size), pause.clone())
+        .await
+        .map_err(|(_, e)| e)
+        .unwrap();
+    assert_eq!(rep.stored_this_run, 5);
+    drop(ds);
+
+    // An existing directory is refused without --force.
+    assert!(Dataset::create(&dir, &header(&rig_spec, &sample, size), false).is_err());
+
+    // Resume: only the missing 7 are measured.
+    let (ds, _, records) = Dataset::resume(&dir).unwrap();
+    let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
+    assert_eq!(done.len(), 5);
+    let rig = Arc::new(Rig::build(&rig_spec, &sample, &SimOptions::default()).unwrap());
+    let (mut ds, rep) = engine::run(rig, Arc::new(plan.clone()), ds, done, options(size), pause)
+        .await
+        .map_err(|(_, e)| e)
+        .unwrap();
+    assert_eq!(rep.stored_this_run, 7);
+    assert!(rep.complete);
+    let fig = rep.truth_error.figures().unwrap();
+    eprintln!("reduced sweep vs truth: {fig:?}");
+    assert!(fig.rmse < 0.03, "rectified vs ground truth RMSE {} too large", fig.rmse);
+    assert!(fig.psnr_db > 30.0, "PSNR {}", fig.psnr_db);
+    ds.finish(&serde_json::json!({"test": true})).unwrap();
+
+    let (_, records) = store::load(&dir).unwrap();
+    let idx: HashSet<usize> = records.iter().map(|r| r.index).collect();
+    assert_eq!(idx.len(), records.len(), "no duplicates");
+    assert_eq!(records.len(), 12);
+    assert!(records.iter().all(|r| matches!(r.status, MeasurementStatus::Measured)));
+    let v = store::verify(&dir).unwrap();
+    eprintln!("verify: {v:?}");
+}

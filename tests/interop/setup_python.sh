@@ -1,0 +1,57 @@
+#!/usr/bin/env bash
+# Create (or re-use) a Python virtual environment with the public btf-extractor 1.7.0
+# reader used by tests/interop/check_ubo2003.py, with every package pinned.
+#
+# Usage: tests/interop/setup_python.sh VENV_DIR
+# Then:  GONIO_PYTHON=VENV_DIR/bin/python cargo test -p gonio --lib store
+#
+# Idempotent: an existing venv that already imports btf_extractor 1.7.0 with the pinned
+# versions is left as it is. btf-extractor ships only an sdist whose Cython extension
+# needs Cython < 0.30 and poetry-core at build time, hence the two-step install without
+# build isolation.
+set -euo pipefail
+
+if [ $# -ne 1 ]; then
+    echo "usage: $0 VENV_DIR" >&2
+    exit 2
+fi
+venv=$1
+python=${PYTHON:-python3}
+
+build_pins=(
+    "Cython==0.29.37"
+    "poetry-core==2.5.0"
+    "numpy==1.26.4"
+    "setuptools==65.5.0"
+    "wheel==0.48.0"
+)
+runtime_pins=(
+    "btf-extractor==1.7.0"
+    "imageio==2.38.1"
+    "nptyping==1.4.4"
+    "typish==1.9.3"
+    "pillow==13.0.0"
+    "simplejpeg==1.9.0"
+)
+
+check() {
+    "$venv/bin/python" - "$@" <<'PY' 2>/dev/null
+import sys
+from importlib.metadata import version
+from btf_extractor import Ubo2003  # noqa: F401
+pins = dict(p.split("==") for p in sys.argv[1:])
+bad = {k: version(k) for k, v in pins.items() if version(k) != v}
+sys.exit(1 if bad else 0)
+PY
+}
+
+if [ -x "$venv/bin/python" ] && check "${build_pins[@]}" "${runtime_pins[@]}"; then
+    echo "$venv: btf-extractor 1.7.0 ready"
+    exit 0
+fi
+
+"$python" -m venv "$venv"
+"$venv/bin/python" -m pip install --quiet "${build_pins[@]}"
+"$venv/bin/python" -m pip install --quiet --no-build-isolation "${runtime_pins[@]}"
+check "${build_pins[@]}" "${runtime_pins[@]}"
+echo "$venv: btf-extractor 1.7.0 ready"
