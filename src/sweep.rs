@@ -15,7 +15,12 @@ pub enum SweepError {
     #[error("sweep file {file}: {message}")]
     Parse { file: String, message: String },
     #[error("sweep {file}: entry {entry} ({what}): {message}")]
-    Invalid { file: String, entry: usize, what: String, message: String },
+    Invalid {
+        file: String,
+        entry: usize,
+        what: String,
+        message: String,
+    },
     #[error("unknown sweep `{0}`: use `bonn81`, `uniform15`, `fibonacci:N`, or a path to a .toml/.csv file")]
     Unknown(String),
 }
@@ -92,7 +97,13 @@ impl Sweep {
         let mut out = Vec::with_capacity(l * self.views.len());
         for (vi, v) in self.views.iter().enumerate() {
             for (li, li_dir) in self.lights.iter().enumerate() {
-                out.push(Pair { index: vi * l + li, light_index: li, view_index: vi, light: *li_dir, view: *v });
+                out.push(Pair {
+                    index: vi * l + li,
+                    light_index: li,
+                    view_index: vi,
+                    light: *li_dir,
+                    view: *v,
+                });
             }
         }
         out
@@ -108,19 +119,27 @@ impl Sweep {
 
     /// `bonn81`, `uniform15`, `fibonacci:N`, or a TOML/CSV file.
     pub fn resolve(spec: &str) -> Result<Sweep, SweepError> {
-        let same = |name: &str, d: Vec<Direction>| Sweep { name: name.into(), lights: d.clone(), views: d };
+        let same = |name: &str, d: Vec<Direction>| Sweep {
+            name: name.into(),
+            lights: d.clone(),
+            views: d,
+        };
         match spec {
             "bonn81" | "bonn" => return Ok(same("bonn81", bonn81())),
             "uniform15" => return Ok(same("uniform15", uniform15())),
             _ => {}
         }
         if let Some(n) = spec.strip_prefix("fibonacci:") {
-            let n: usize = n.parse().ok().filter(|n| (1..=10_000).contains(n)).ok_or_else(|| SweepError::Invalid {
-                file: spec.into(),
-                entry: 0,
-                what: "N".into(),
-                message: "fibonacci:N needs 1 ≤ N ≤ 10000".into(),
-            })?;
+            let n: usize = n
+                .parse()
+                .ok()
+                .filter(|n| (1..=10_000).contains(n))
+                .ok_or_else(|| SweepError::Invalid {
+                    file: spec.into(),
+                    entry: 0,
+                    what: "N".into(),
+                    message: "fibonacci:N needs 1 ≤ N ≤ 10000".into(),
+                })?;
             return Ok(same(spec, fibonacci(n, 80.0)));
         }
         let p = Path::new(spec);
@@ -132,7 +151,10 @@ impl Sweep {
 
     pub fn load(path: &Path) -> Result<Sweep, SweepError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| SweepError::Io { file: file.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| SweepError::Io {
+            file: file.clone(),
+            source,
+        })?;
         let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("sweep").to_string();
         if path.extension().and_then(|e| e.to_str()) == Some("csv") {
             Self::parse_csv(&text, &file, &stem)
@@ -143,7 +165,10 @@ impl Sweep {
 
     /// TOML: `directions = [[θ, φ], …]` or `lights`/`views` lists (degrees).
     pub fn parse_toml(text: &str, file: &str, default_name: &str) -> Result<Sweep, SweepError> {
-        let f: SweepFile = toml::from_str(text).map_err(|e| SweepError::Parse { file: file.into(), message: e.to_string() })?;
+        let f: SweepFile = toml::from_str(text).map_err(|e| SweepError::Parse {
+            file: file.into(),
+            message: e.to_string(),
+        })?;
         let lights = f.lights.or_else(|| f.directions.clone());
         let views = f.views.or(f.directions);
         let (Some(lights), Some(views)) = (lights, views) else {
@@ -170,7 +195,11 @@ impl Sweep {
             }
             let parts: Vec<&str> = line.split(',').map(str::trim).collect();
             let parse = |s: &str| s.parse::<f64>().ok();
-            match (parts.len(), parts.first().and_then(|s| parse(s)), parts.get(1).and_then(|s| parse(s))) {
+            match (
+                parts.len(),
+                parts.first().and_then(|s| parse(s)),
+                parts.get(1).and_then(|s| parse(s)),
+            ) {
                 (2, Some(t), Some(p)) => raw.push([t, p]),
                 _ => {
                     return Err(SweepError::Parse {
@@ -181,14 +210,23 @@ impl Sweep {
             }
         }
         let d = check_list(&raw, file, "direction")?;
-        Ok(Sweep { name: name.into(), lights: d.clone(), views: d })
+        Ok(Sweep {
+            name: name.into(),
+            lights: d.clone(),
+            views: d,
+        })
     }
 }
 
 /// Validate a list of (θ, φ) degrees: ranges and duplicates, naming the entry.
 fn check_list(list: &[[f64; 2]], file: &str, what: &str) -> Result<Vec<Direction>, SweepError> {
     if list.is_empty() {
-        return Err(SweepError::Invalid { file: file.into(), entry: 0, what: what.into(), message: "empty list".into() });
+        return Err(SweepError::Invalid {
+            file: file.into(),
+            entry: 0,
+            what: what.into(),
+            message: "empty list".into(),
+        });
     }
     let mut out: Vec<Direction> = Vec::with_capacity(list.len());
     for (i, &[t, p]) in list.iter().enumerate() {
@@ -230,9 +268,13 @@ mod tests {
 
     #[test]
     fn bad_lists_name_the_entry() {
-        let e = Sweep::parse_toml("directions = [[0, 0], [95, 10]]", "s.toml", "s").unwrap_err().to_string();
+        let e = Sweep::parse_toml("directions = [[0, 0], [95, 10]]", "s.toml", "s")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("s.toml") && e.contains("entry 1") && e.contains("θ"), "{e}");
-        let e = Sweep::parse_toml("directions = [[30, 10], [30, 10]]", "s.toml", "s").unwrap_err().to_string();
+        let e = Sweep::parse_toml("directions = [[30, 10], [30, 10]]", "s.toml", "s")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("duplicate of entry 0"), "{e}");
         let e = Sweep::parse_csv("0,0\n15,abc\n", "d.csv", "d").unwrap_err().to_string();
         assert!(e.contains("line 2"), "{e}");

@@ -20,6 +20,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Homography(pub [[f64; 3]; 3]);
 
+/// A point correspondence: plane `(x, y)` in mm and its pixel `(u, v)`.
+pub type Correspondence = ((f64, f64), (f64, f64));
+
 /// Gauss-Newton / Levenberg-Marquardt iterations after the DLT. The DLT minimizes an
 /// algebraic error; a handful of iterations reach the reprojection-error minimum from it.
 const LM_ITERATIONS: usize = 30;
@@ -108,7 +111,7 @@ impl Homography {
 
     /// Root-mean-square reprojection distance (pixels) of `(plane, pixel)` pairs; infinite
     /// if a plane point maps behind the camera, NaN for no pairs.
-    pub fn rms_error(&self, pairs: &[((f64, f64), (f64, f64))]) -> f64 {
+    pub fn rms_error(&self, pairs: &[Correspondence]) -> f64 {
         let mut sum = 0.0;
         for &((x, y), (u, v)) in pairs {
             match self.apply(x, y) {
@@ -127,7 +130,7 @@ impl Homography {
     /// marker detector actually makes. Errors instead of garbage for fewer than 4 points,
     /// non-finite input, (near-)collinear points or any configuration whose null space is
     /// not one-dimensional (e.g. three of four points on a line).
-    pub fn fit(pairs: &[((f64, f64), (f64, f64))]) -> Result<Homography, CalibError> {
+    pub fn fit(pairs: &[Correspondence]) -> Result<Homography, CalibError> {
         if pairs.len() < 4 {
             return Err(CalibError::TooFewPoints {
                 needed: 4,
@@ -165,7 +168,7 @@ impl Homography {
             .as_ref()
             .ok_or_else(|| CalibError::Degenerate("SVD did not converge".into()))?;
         let s = &svd.singular_values; // sorted descending, length 9
-        if !(s[0] > 0.0) || s[7] / s[0] < DEGENERATE_SV_RATIO {
+        if s[0].is_nan() || s[0] <= 0.0 || s[7] / s[0] < DEGENERATE_SV_RATIO {
             return Err(CalibError::Degenerate(format!(
                 "the points do not determine a homography (singular values {:.3e} … {:.3e}; \
                  are three or more of four points collinear?)",
@@ -209,7 +212,7 @@ impl Homography {
         }
         let hn = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
         let det_rel = hn.determinant() / hn.norm().powi(3);
-        if !(det_rel.abs() > 1e-9) {
+        if det_rel.is_nan() || det_rel.abs() <= 1e-9 {
             return Err(CalibError::Degenerate(format!(
                 "the fitted homography is singular (relative determinant {det_rel:.2e})"
             )));

@@ -16,7 +16,7 @@ pub mod rectify;
 pub mod warp;
 
 pub use error::CalibError;
-pub use homography::Homography;
+pub use homography::{Correspondence, Homography};
 pub use markers::{detect_markers, detect_markers_with, DetectOptions, MarkerDetection};
 pub use rectify::{rectify_frame, HomographySource, Rectified, RectifyError};
 pub use warp::{texel_samples, warp, RectifyParams};

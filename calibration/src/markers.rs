@@ -6,16 +6,18 @@
 //! 1. **Search window**: the predicted image of the marker's cell of the border strip (the
 //!    marker plus the white gap around it), grown by [`DetectOptions::max_offset_px`] to
 //!    absorb the pose error.
-//! 2. **Segmentation**: threshold halfway between the window's robust dark and bright levels
-//!    (5th and 95th percentile of luminance), 4-connected components; the marker is the
+//! 2. **Segmentation**: threshold halfway between the robust dark and bright levels (5th and
+//!    95th percentile of luminance) of the predicted cell, so the dark surround and the
+//!    sample texture in the window do not set them; 4-connected components; the marker is the
 //!    component of plausible area nearest the prediction. It must not touch the window edge
 //!    (that means it is cut off or merged with something dark).
 //! 3. **Sub-pixel centre**: darkness-weighted centroid `w = (B − L)/(B − D)` over the
 //!    predicted marker shape grown by half the white gap (so blur tails are included but the
-//!    dark background and the sample are not), re-centred on the estimate and iterated. `B` is
-//!    a plane fitted to the surrounding white (so illumination gradients do not pull the
-//!    centroid), `D` the marker's median level. Weights are not clipped: the noise of
-//!    white pixels then averages to zero instead of adding one-sided mass.
+//!    dark background and the sample are not), re-centred on the estimate and iterated.
+//!    `B` is a plane fitted to the surrounding white (so illumination gradients do not pull
+//!    the centroid; faintly covered edge pixels are excluded by 3σ clipping), `D` the
+//!    marker's median level. Weights are not clipped: the noise of white pixels then
+//!    averages to zero instead of adding one-sided mass.
 //! 4. **Perspective correction**: the centroid measures the *area* centroid of the projected
 //!    square, which under perspective is not the image of the square's centre. The
 //!    difference is a property of the predicted homography (it hardly changes with a
@@ -26,7 +28,7 @@
 //! (grazing views), of low contrast or contrast-to-noise, saturated, cut off by the window,
 //! or when the dark mass does not match a marker's area (partly hidden, or not a marker).
 
-use crate::Homography;
+use crate::homography::{Correspondence, Homography};
 use gonio_devices::image::RgbImage;
 use gonio_devices::target::{Marker, MarkerBorder};
 use serde::{Deserialize, Serialize};
@@ -41,7 +43,7 @@ pub struct MarkerDetection {
 
 impl MarkerDetection {
     /// `(plane, pixel)` correspondences for [`Homography::fit`].
-    pub fn pairs(&self) -> Vec<((f64, f64), (f64, f64))> {
+    pub fn pairs(&self) -> Vec<Correspondence> {
         self.found.iter().map(|(m, c)| ((m.x, m.y), *c)).collect()
     }
 }
@@ -254,7 +256,7 @@ fn fit_plane(pts: &[(f64, f64, f64)]) -> Option<(f64, f64, f64, f64, f64)> {
         svz += dv * z;
     }
     let det = suu * svv - suv * suv;
-    if !(det > 1e-9 * (suu + svv).powi(2)) || n < 12.0 {
+    if det.is_nan() || det <= 1e-9 * (suu + svv).powi(2) || n < 12.0 {
         return None;
     }
     let b = (svv * suz - suv * svz) / det;
@@ -324,7 +326,7 @@ fn detect_one(
     }
     let dark_p = percentile(&mut tmp, 0.05) as f64;
     let bright_p = percentile(&mut tmp, 0.95) as f64;
-    if !(bright_p > 0.0) || (bright_p - dark_p) / bright_p < opts.min_contrast {
+    if bright_p.is_nan() || bright_p <= 0.0 || (bright_p - dark_p) / bright_p < opts.min_contrast {
         return Err(format!(
             "low contrast: window levels {dark_p:.3} (dark) and {bright_p:.3} (bright), need (bright − dark)/bright ≥ {}",
             opts.min_contrast
@@ -438,7 +440,7 @@ fn detect_one(
             su += w * u;
             sv += w * v;
         }
-        if !(sw > 0.0) {
+        if sw.is_nan() || sw <= 0.0 {
             return Err("no dark mass in the marker region".into());
         }
         let new_shift = (su / sw - qc.0, sv / sw - qc.1);

@@ -11,9 +11,9 @@
 //! which is better than a fit through unreliable points. [`Rectified::source`] records
 //! which one was used, so a dataset can say so per image.
 
+use crate::homography::{Correspondence, Homography};
 use crate::markers::detect_markers;
 use crate::warp::{warp, RectifyParams};
-use crate::Homography;
 use gonio_devices::camera::Intrinsics;
 use gonio_devices::image::RgbImage;
 use gonio_devices::kinematics::CameraPose;
@@ -60,7 +60,10 @@ pub struct Rectified {
 pub enum RectifyError {
     #[error("invalid rectify parameters: {0}")]
     InvalidParams(String),
-    #[error("raw image buffer holds {len} values, a {width}×{height} RGB image needs {expected}")]
+    /// The buffer does not match the size, or the frame is smaller than 2 × 2 pixels.
+    #[error(
+        "raw image: buffer holds {len} values for {width}×{height} RGB (needs {expected}, and at least 2×2 pixels)"
+    )]
     BadImage {
         len: usize,
         width: usize,
@@ -80,7 +83,7 @@ struct MarkerFit {
 
 /// Fit through the detected markers, dropping one clear outlier at a time while at least
 /// [`MIN_MARKERS`] remain.
-fn marker_fit(mut pairs: Vec<((f64, f64), (f64, f64))>) -> MarkerFit {
+fn marker_fit(mut pairs: Vec<Correspondence>) -> MarkerFit {
     loop {
         let kept = pairs.len();
         if kept < MIN_MARKERS {
@@ -136,7 +139,7 @@ pub fn rectify_frame(
 ) -> Result<Rectified, RectifyError> {
     params.validate().map_err(RectifyError::InvalidParams)?;
     let expected = raw.width * raw.height * 3;
-    if raw.data.len() != expected || raw.width == 0 || raw.height == 0 {
+    if raw.data.len() != expected || raw.width < 2 || raw.height < 2 {
         return Err(RectifyError::BadImage {
             len: raw.data.len(),
             width: raw.width,

@@ -6,25 +6,63 @@ use thiserror::Error;
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum DeviceError {
     #[error("{device}: target {target:.6} outside soft limits [{min:.6}, {max:.6}] (command `{command}`)")]
-    SoftLimit { device: String, command: String, target: f64, min: f64, max: f64 },
+    SoftLimit {
+        device: String,
+        command: String,
+        target: f64,
+        min: f64,
+        max: f64,
+    },
     #[error("{device}: limit switch hit during `{command}`")]
     LimitSwitch { device: String, command: String },
     #[error("{device}: `{command}` timed out after {seconds:.3} s")]
-    Timeout { device: String, command: String, seconds: f64 },
+    Timeout {
+        device: String,
+        command: String,
+        seconds: f64,
+    },
     #[error("{device}: stalled during `{command}` (no progress at position {position:.6})")]
-    Stall { device: String, command: String, position: f64 },
-    #[error("{device}: missed target in `{command}`: read back {read_back:.6}, wanted {target:.6} (deadband {deadband:.6})")]
-    MissedTarget { device: String, command: String, target: f64, read_back: f64, deadband: f64 },
+    Stall {
+        device: String,
+        command: String,
+        position: f64,
+    },
+    #[error(
+        "{device}: missed target in `{command}`: read back {read_back:.6}, wanted {target:.6} (deadband {deadband:.6})"
+    )]
+    MissedTarget {
+        device: String,
+        command: String,
+        target: f64,
+        read_back: f64,
+        deadband: f64,
+    },
     #[error("{device}: command `{command}` rejected: {reason}")]
-    Rejected { device: String, command: String, reason: String },
+    Rejected {
+        device: String,
+        command: String,
+        reason: String,
+    },
     #[error("{device}: garbled reply to `{command}`: {reply:?}")]
-    Garbled { device: String, command: String, reply: String },
+    Garbled {
+        device: String,
+        command: String,
+        reply: String,
+    },
     #[error("{device}: disconnected during `{command}`: {reason}")]
-    Disconnected { device: String, command: String, reason: String },
+    Disconnected {
+        device: String,
+        command: String,
+        reason: String,
+    },
     #[error("{device}: not homed; home the axis before `{command}`")]
     NotHomed { device: String, command: String },
     #[error("{device}: `{command}` failed: {reason}")]
-    Other { device: String, command: String, reason: String },
+    Other {
+        device: String,
+        command: String,
+        reason: String,
+    },
 }
 
 impl DeviceError {

@@ -13,7 +13,11 @@ pub struct RgbImage {
 
 impl RgbImage {
     pub fn new(width: usize, height: usize) -> Self {
-        RgbImage { width, height, data: vec![0.0; width * height * 3] }
+        RgbImage {
+            width,
+            height,
+            data: vec![0.0; width * height * 3],
+        }
     }
     #[inline]
     pub fn get(&self, x: usize, y: usize) -> [f32; 3] {

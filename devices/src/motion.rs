@@ -33,7 +33,11 @@ impl MotionModel {
         }
         let v = self.max_velocity;
         let a = self.acceleration;
-        let base = if d < v * v / a { 2.0 * (d / a).sqrt() } else { d / v + v / a };
+        let base = if d < v * v / a {
+            2.0 * (d / a).sqrt()
+        } else {
+            d / v + v / a
+        };
         match self.jerk {
             Some(j) if j > 0.0 && j.is_finite() => base + a / j,
             _ => base,
@@ -63,7 +67,11 @@ impl MotionModel {
         }
         let a = self.acceleration;
         let v = self.max_velocity;
-        let (t_acc, v_peak) = if d < v * v / a { ((d / a).sqrt(), (d * a).sqrt()) } else { (v / a, v) };
+        let (t_acc, v_peak) = if d < v * v / a {
+            ((d / a).sqrt(), (d * a).sqrt())
+        } else {
+            (v / a, v)
+        };
         let t_cruise = (total - 2.0 * t_acc).max(0.0);
         let p = if t < t_acc {
             0.5 * a * t * t
@@ -82,7 +90,13 @@ mod tests {
     use super::*;
 
     fn m() -> MotionModel {
-        MotionModel { max_velocity: 2.0, acceleration: 4.0, jerk: None, settle_time: 0.1, deadband: 1e-6 }
+        MotionModel {
+            max_velocity: 2.0,
+            acceleration: 4.0,
+            jerk: None,
+            settle_time: 0.1,
+            deadband: 1e-6,
+        }
     }
 
     #[test]

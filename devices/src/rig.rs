@@ -20,7 +20,12 @@ pub enum RigError {
     #[error("rig file {file}: {message}")]
     Parse { file: String, message: String },
     #[error("rig file {file}: key `{key}` = {value}: {message}")]
-    Invalid { file: String, key: String, value: String, message: String },
+    Invalid {
+        file: String,
+        key: String,
+        value: String,
+        message: String,
+    },
 }
 
 /// What kind of mechanism the rig is; selects the kinematics.
@@ -66,7 +71,10 @@ fn default_deadband() -> f64 {
 
 impl AxisSpec {
     pub fn limits(&self) -> SoftLimits {
-        SoftLimits { min: self.min_deg.to_radians(), max: self.max_deg.to_radians() }
+        SoftLimits {
+            min: self.min_deg.to_radians(),
+            max: self.max_deg.to_radians(),
+        }
     }
     pub fn motion(&self) -> MotionModel {
         MotionModel {
@@ -122,11 +130,17 @@ fn one() -> f64 {
 
 impl CameraSpec {
     pub fn principal_point(&self) -> [f64; 2] {
-        self.principal_point_px.unwrap_or([self.width as f64 / 2.0, self.height as f64 / 2.0])
+        self.principal_point_px
+            .unwrap_or([self.width as f64 / 2.0, self.height as f64 / 2.0])
     }
     pub fn intrinsics(&self) -> crate::Intrinsics {
         let [cx, cy] = self.principal_point();
-        crate::Intrinsics { fx: self.focal_length_px, fy: self.focal_length_px, cx, cy }
+        crate::Intrinsics {
+            fx: self.focal_length_px,
+            fy: self.focal_length_px,
+            cx,
+            cy,
+        }
     }
     /// Time one capture takes on the rig (exposure plus readout).
     pub fn capture_time(&self) -> f64 {
@@ -164,7 +178,10 @@ impl RigSpec {
     /// Load and validate a rig file.
     pub fn load(path: &Path) -> Result<RigSpec, RigError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| RigError::Io { file: file.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| RigError::Io {
+            file: file.clone(),
+            source,
+        })?;
         Self::parse(&text, &file)
     }
 
@@ -175,8 +192,10 @@ impl RigSpec {
 
     /// Parse and validate; `file` is only used in messages.
     pub fn parse(text: &str, file: &str) -> Result<RigSpec, RigError> {
-        let spec: RigSpec =
-            toml::from_str(text).map_err(|e| RigError::Parse { file: file.to_string(), message: e.to_string() })?;
+        let spec: RigSpec = toml::from_str(text).map_err(|e| RigError::Parse {
+            file: file.to_string(),
+            message: e.to_string(),
+        })?;
         spec.validate(file)?;
         Ok(spec)
     }
@@ -212,18 +231,34 @@ impl RigSpec {
             ));
         }
         if !(self.geometry.clearance_mm >= 0.0 && self.geometry.clearance_mm.is_finite()) {
-            return Err(bad("geometry.clearance_mm".into(), self.geometry.clearance_mm.to_string(), "must be ≥ 0"));
+            return Err(bad(
+                "geometry.clearance_mm".into(),
+                self.geometry.clearance_mm.to_string(),
+                "must be ≥ 0",
+            ));
         }
         let c = &self.camera;
         if !(16..=16384).contains(&c.width) {
-            return Err(bad("camera.width".into(), c.width.to_string(), "valid range is 16 ..= 16384 pixels"));
+            return Err(bad(
+                "camera.width".into(),
+                c.width.to_string(),
+                "valid range is 16 ..= 16384 pixels",
+            ));
         }
         if !(16..=16384).contains(&c.height) {
-            return Err(bad("camera.height".into(), c.height.to_string(), "valid range is 16 ..= 16384 pixels"));
+            return Err(bad(
+                "camera.height".into(),
+                c.height.to_string(),
+                "valid range is 16 ..= 16384 pixels",
+            ));
         }
         pos("camera.focal_length_px", c.focal_length_px)?;
         if !matches!(c.bit_depth, 8 | 10 | 12 | 14 | 16) {
-            return Err(bad("camera.bit_depth".into(), c.bit_depth.to_string(), "must be one of 8, 10, 12, 14, 16"));
+            return Err(bad(
+                "camera.bit_depth".into(),
+                c.bit_depth.to_string(),
+                "must be one of 8, 10, 12, 14, 16",
+            ));
         }
         pos("camera.exposure_s", c.exposure_s)?;
         pos("camera.gain", c.gain)?;
@@ -235,7 +270,11 @@ impl RigSpec {
         for (i, a) in self.axes.iter().enumerate() {
             let k = |f: &str| format!("axis[{i}] ({}).{f}", a.name);
             if !names.insert(a.name.clone()) {
-                return Err(bad(k("name"), a.name.clone(), "duplicate axis name; names must be unique"));
+                return Err(bad(
+                    k("name"),
+                    a.name.clone(),
+                    "duplicate axis name; names must be unique",
+                ));
             }
             if !(a.min_deg.is_finite() && a.max_deg.is_finite() && a.min_deg < a.max_deg) {
                 return Err(bad(
@@ -267,7 +306,11 @@ impl RigSpec {
                 return Err(bad(k("settle_s"), a.settle_s.to_string(), "must be ≥ 0"));
             }
             if !(a.deadband_deg >= 0.0 && a.deadband_deg < 1.0) {
-                return Err(bad(k("deadband_deg"), a.deadband_deg.to_string(), "valid range is 0 ≤ deadband_deg < 1"));
+                return Err(bad(
+                    k("deadband_deg"),
+                    a.deadband_deg.to_string(),
+                    "valid range is 0 ≤ deadband_deg < 1",
+                ));
             }
         }
         let roles: &[&str] = match self.kind {
@@ -278,7 +321,11 @@ impl RigSpec {
                 return Err(bad(
                     "axis".into(),
                     format!("{:?}", self.axes.iter().map(|a| a.role.as_str()).collect::<Vec<_>>()),
-                    &format!("rig kind {:?} needs an axis with role `{role}` (roles: {})", self.kind, roles.join(", ")),
+                    &format!(
+                        "rig kind {:?} needs an axis with role `{role}` (roles: {})",
+                        self.kind,
+                        roles.join(", ")
+                    ),
                 ));
             }
         }
@@ -287,7 +334,11 @@ impl RigSpec {
                 return Err(bad(
                     format!("axis[{i}] ({}).role", a.name),
                     a.role.clone(),
-                    &format!("unknown role for rig kind {:?}; valid roles: {}", self.kind, roles.join(", ")),
+                    &format!(
+                        "unknown role for rig kind {:?}; valid roles: {}",
+                        self.kind,
+                        roles.join(", ")
+                    ),
                 ));
             }
         }
@@ -310,7 +361,10 @@ mod tests {
     fn errors_name_file_key_and_range() {
         let bad = DEFAULT_RIG_TOML.replace("bit_depth = 12", "bit_depth = 13");
         let e = RigSpec::parse(&bad, "my_rig.toml").unwrap_err().to_string();
-        assert!(e.contains("my_rig.toml") && e.contains("camera.bit_depth") && e.contains("8, 10, 12"), "{e}");
+        assert!(
+            e.contains("my_rig.toml") && e.contains("camera.bit_depth") && e.contains("8, 10, 12"),
+            "{e}"
+        );
         let bad = DEFAULT_RIG_TOML.replacen("max_velocity_deg_s = 20.0", "max_velocity_deg_s = -1.0", 1);
         let e = RigSpec::parse(&bad, "r.toml").unwrap_err().to_string();
         assert!(e.contains("max_velocity_deg_s") && e.contains("> 0"), "{e}");

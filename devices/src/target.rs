@@ -19,7 +19,11 @@ pub struct MarkerBorder {
 
 impl Default for MarkerBorder {
     fn default() -> Self {
-        MarkerBorder { border_mm: 10.0, marker_mm: 6.0, markers_per_side: 5 }
+        MarkerBorder {
+            border_mm: 10.0,
+            marker_mm: 6.0,
+            markers_per_side: 5,
+        }
     }
 }
 
@@ -45,7 +49,11 @@ impl MarkerBorder {
             let (x1, y1) = corners[(s + 1) % 4];
             for k in 0..n - 1 {
                 let t = k as f64 / (n - 1) as f64;
-                out.push(Marker { x: x0 + t * (x1 - x0), y: y0 + t * (y1 - y0), half });
+                out.push(Marker {
+                    x: x0 + t * (x1 - x0),
+                    y: y0 + t * (y1 - y0),
+                    half,
+                });
             }
         }
         out
@@ -75,10 +83,16 @@ impl MarkerBorder {
             return Err(format!("{key}.border_mm = {}: must be > 0", self.border_mm));
         }
         if !(self.marker_mm > 0.0 && self.marker_mm < self.border_mm) {
-            return Err(format!("{key}.marker_mm = {}: must be in (0, border_mm = {})", self.marker_mm, self.border_mm));
+            return Err(format!(
+                "{key}.marker_mm = {}: must be in (0, border_mm = {})",
+                self.marker_mm, self.border_mm
+            ));
         }
         if !(2..=64).contains(&self.markers_per_side) {
-            return Err(format!("{key}.markers_per_side = {}: valid range is 2 ..= 64", self.markers_per_side));
+            return Err(format!(
+                "{key}.markers_per_side = {}: valid range is 2 ..= 64",
+                self.markers_per_side
+            ));
         }
         Ok(())
     }

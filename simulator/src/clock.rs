@@ -14,7 +14,10 @@ pub struct SimClock {
 
 impl SimClock {
     pub fn new(realtime: bool) -> Self {
-        SimClock { now: Mutex::new(0.0), realtime }
+        SimClock {
+            now: Mutex::new(0.0),
+            realtime,
+        }
     }
 
     /// Seconds since the rig started.

@@ -40,7 +40,13 @@ impl SimAxis {
             limits,
             motion,
             clock,
-            state: Mutex::new(AxisState { homed: false, start: 0.0, target: 0.0, t_start: 0.0, t_end: 0.0 }),
+            state: Mutex::new(AxisState {
+                homed: false,
+                start: 0.0,
+                target: 0.0,
+                t_start: 0.0,
+                t_end: 0.0,
+            }),
         }
     }
 
@@ -69,7 +75,13 @@ impl Axis for SimAxis {
         let end = self.clock.now() + dt;
         self.clock.wait_until(end).await;
         let mut s = self.state.lock().expect("axis state poisoned");
-        *s = AxisState { homed: true, start: 0.0, target: 0.0, t_start: end, t_end: end };
+        *s = AxisState {
+            homed: true,
+            start: 0.0,
+            target: 0.0,
+            t_start: end,
+            t_end: end,
+        };
         Ok(())
     }
     async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
@@ -78,10 +90,19 @@ impl Axis for SimAxis {
         let now = self.clock.now();
         let mut s = self.state.lock().expect("axis state poisoned");
         if !s.homed {
-            return Err(DeviceError::NotHomed { device: self.name.clone(), command: "move_abs".into() });
+            return Err(DeviceError::NotHomed {
+                device: self.name.clone(),
+                command: "move_abs".into(),
+            });
         }
         let dt = self.motion.move_time(target - from);
-        *s = AxisState { homed: true, start: from, target, t_start: now, t_end: now + dt };
+        *s = AxisState {
+            homed: true,
+            start: from,
+            target,
+            t_start: now,
+            t_end: now + dt,
+        };
         Ok(())
     }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
@@ -105,7 +126,11 @@ impl Axis for SimAxis {
     async fn status(&self) -> Result<AxisStatus, DeviceError> {
         let homed = self.state.lock().expect("axis state poisoned").homed;
         let t_end = self.state.lock().expect("axis state poisoned").t_end;
-        Ok(AxisStatus { homed, moving: self.clock.now() < t_end, position: self.position_now() })
+        Ok(AxisStatus {
+            homed,
+            moving: self.clock.now() < t_end,
+            position: self.position_now(),
+        })
     }
 }
 
@@ -150,7 +175,10 @@ pub struct SimWorld {
 impl SimWorld {
     fn point_light(&self, q: &[f64]) -> PointLight {
         let (on, k) = *self.light.state.lock().expect("light poisoned");
-        PointLight { position: self.kinematics.light_position(q), intensity: if on { k * self.light_intensity_w_sr } else { 0.0 } }
+        PointLight {
+            position: self.kinematics.light_position(q),
+            intensity: if on { k * self.light_intensity_w_sr } else { 0.0 },
+        }
     }
 
     /// Current axis positions.
@@ -171,7 +199,8 @@ impl SimWorld {
     pub fn raw_radiance(&self, q: &[f64]) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
         let light = self.point_light(q);
-        self.renderer.render_raw(&self.intrinsics, &pose, self.width, self.height, &light)
+        self.renderer
+            .render_raw(&self.intrinsics, &pose, self.width, self.height, &light)
     }
 }
 
@@ -205,7 +234,10 @@ impl Camera for SimCamera {
         s.exposure_s = config.exposure;
         s.gain = config.gain;
         s.bit_depth = config.bit_depth.clamp(8, 16);
-        Ok(CameraConfig { bit_depth: s.bit_depth, ..config.clone() })
+        Ok(CameraConfig {
+            bit_depth: s.bit_depth,
+            ..config.clone()
+        })
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
@@ -224,13 +256,23 @@ impl Camera for SimCamera {
             sensor.expose(&rad, seq)
         })
         .await
-        .map_err(|e| DeviceError::Other { device: "sim-camera".into(), command: "capture".into(), reason: e.to_string() })?;
+        .map_err(|e| DeviceError::Other {
+            device: "sim-camera".into(),
+            command: "capture".into(),
+            reason: e.to_string(),
+        })?;
         world.clock.wait(exposure + world.readout_s).await;
         Ok(Frame {
             width: world.width,
             height: world.height,
             data,
-            meta: FrameMeta { timestamp, exposure, gain, sequence: seq, bit_depth: bits },
+            meta: FrameMeta {
+                timestamp,
+                exposure,
+                gain,
+                sequence: seq,
+                bit_depth: bits,
+            },
         })
     }
 }
@@ -245,19 +287,13 @@ pub struct SimRig {
 }
 
 /// Options of the simulated rig that are not in the rig file.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct SimOptions {
     pub realtime: bool,
     /// Override the sensor noise switch (None: noise on).
     pub noise: Option<bool>,
     pub seed: Option<u64>,
     pub quality: crate::render::RenderQuality,
-}
-
-impl Default for SimOptions {
-    fn default() -> Self {
-        SimOptions { realtime: false, noise: None, seed: None, quality: Default::default() }
-    }
 }
 
 /// Errors building a simulated rig (bad sensor options).
@@ -271,14 +307,23 @@ pub struct SimRigError {
 
 pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions) -> Result<SimRig, SimRigError> {
     let clock = Arc::new(SimClock::new(opts.realtime));
-    let axes: Vec<Arc<SimAxis>> =
-        spec.axes.iter().map(|a| Arc::new(SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone()))).collect();
+    let axes: Vec<Arc<SimAxis>> = spec
+        .axes
+        .iter()
+        .map(|a| Arc::new(SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone())))
+        .collect();
     let opt = |key: &str, default: f64| -> Result<f64, SimRigError> {
         match spec.camera.options.get(key) {
             None => Ok(default),
-            Some(v) => v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).filter(|x| x.is_finite() && *x >= 0.0).ok_or(
-                SimRigError { rig: spec.name.clone(), key: key.into(), message: format!("{v}: must be a number ≥ 0") },
-            ),
+            Some(v) => v
+                .as_float()
+                .or_else(|| v.as_integer().map(|i| i as f64))
+                .filter(|x| x.is_finite() && *x >= 0.0)
+                .ok_or(SimRigError {
+                    rig: spec.name.clone(),
+                    key: key.into(),
+                    message: format!("{v}: must be a number ≥ 0"),
+                }),
         }
     };
     let sensor = SensorModel {
@@ -293,7 +338,9 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         noise: opts.noise.unwrap_or(true),
         seed: opts.seed.unwrap_or(opt("seed", 1.0)? as u64),
     };
-    let light = Arc::new(SimLight { state: Mutex::new((false, 0.0)) });
+    let light = Arc::new(SimLight {
+        state: Mutex::new((false, 0.0)),
+    });
     let world = Arc::new(SimWorld {
         axes: axes.clone(),
         kinematics: kinematics::for_rig(spec),
@@ -307,7 +354,10 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         width: spec.camera.width,
         height: spec.camera.height,
     });
-    let camera = Arc::new(SimCamera { world: world.clone(), sequence: AtomicU64::new(0) });
+    let camera = Arc::new(SimCamera {
+        world: world.clone(),
+        sequence: AtomicU64::new(0),
+    });
     Ok(SimRig {
         axes: axes.into_iter().map(|a| a as Arc<dyn Axis>).collect(),
         camera,

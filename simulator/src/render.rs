@@ -36,11 +36,18 @@ pub struct RenderQuality {
     pub supersample: usize,
     /// Shadow-map resolution relative to the height grid (1 = one shadow texel per height texel).
     pub shadow_scale: usize,
+    /// Samples per texel and axis of the ground truth: a texel's true value is the mean
+    /// over its area (what an ideal, alias-free rectification delivers).
+    pub truth_supersample: usize,
 }
 
 impl Default for RenderQuality {
     fn default() -> Self {
-        RenderQuality { supersample: 1, shadow_scale: 1 }
+        RenderQuality {
+            supersample: 1,
+            shadow_scale: 1,
+            truth_supersample: 2,
+        }
     }
 }
 
@@ -58,6 +65,9 @@ pub struct Renderer {
     shadows: Mutex<HashMap<[i64; 3], Arc<ShadowMap>>>,
 }
 
+/// Samples per axis for pixels that see the holder frame rather than the sample.
+const FRAME_SS: usize = 4;
+
 /// Maximum number of cached shadow maps (81 Bonn light directions fit).
 const SHADOW_CACHE: usize = 256;
 
@@ -69,7 +79,11 @@ enum Hit {
 
 impl Renderer {
     pub fn new(sample: Arc<Sample>, quality: RenderQuality) -> Self {
-        Renderer { sample, quality, shadows: Mutex::new(HashMap::new()) }
+        Renderer {
+            sample,
+            quality,
+            shadows: Mutex::new(HashMap::new()),
+        }
     }
 
     /// Number of shadow maps built so far (for the "built once per direction" check).
@@ -88,8 +102,11 @@ impl Renderer {
         }
         let half = self.half();
         if let Surface::Height(g) = &self.sample.surface {
-            if let Some((p, i, j, normal)) = self.march(g, origin, dir) {
-                return Hit::Sample { p, i, j, normal };
+            // Only rays that can reach the sample square are marched through the relief.
+            if self.hits_sample_area(origin, dir) {
+                if let Some((p, i, j, normal)) = self.march(g, origin, dir) {
+                    return Hit::Sample { p, i, j, normal };
+                }
             }
         }
         // The mean plane z = 0: the flat sample, or the holder frame around it.
@@ -101,13 +118,21 @@ impl Renderer {
                 return Hit::Background;
             }
             let (i, j) = self.sample.texel_of(p.x, p.y);
-            return Hit::Sample { p, i, j, normal: Vec3::Z };
+            return Hit::Sample {
+                p,
+                i,
+                j,
+                normal: Vec3::Z,
+            };
         }
         let outer = self.sample.spec.border.outer_half(self.sample.spec.size_mm);
         if p.x.abs() <= outer && p.y.abs() <= outer {
             let spec = &self.sample.spec;
-            let albedo =
-                if spec.border.is_marker(spec.size_mm, p.x, p.y) { spec.marker_albedo } else { spec.frame_albedo };
+            let albedo = if spec.border.is_marker(spec.size_mm, p.x, p.y) {
+                spec.marker_albedo
+            } else {
+                spec.frame_albedo
+            };
             return Hit::Frame { p, albedo };
         }
         Hit::Background
@@ -122,9 +147,12 @@ impl Renderer {
         let step_len = 0.5 * g.texel;
         let steps = (((t1 - t0) * horiz / step_len).ceil() as usize).clamp(1, 4 * g.n);
         let dt = (t1 - t0) / steps as f64;
+        // The relief's edge texels continue a little past the sample square (its cut
+        // edge), so rays grazing the edge hit the sample instead of falling through.
+        let reach = half + 2.0 * g.texel;
         let f = |t: f64| {
             let p = origin + dir * t;
-            if p.x.abs() > half || p.y.abs() > half {
+            if p.x.abs() > reach || p.y.abs() > reach {
                 None
             } else {
                 Some(p.z - self.height(g, p.x, p.y))
@@ -137,20 +165,39 @@ impl Renderer {
             let fb = f(tb);
             if let (Some(a), Some(b)) = (fa, fb) {
                 if a > 0.0 && b <= 0.0 {
-                    // bisection with a secant start: a few iterations reach ~1e-6 mm
-                    let (mut lo, mut hi, mut flo) = (ta, tb, a);
-                    for _ in 0..12 {
-                        let mid = 0.5 * (lo + hi);
-                        match f(mid) {
+                    // Regula falsi (Illinois variant) inside the bracketing step: the
+                    // height field is smooth at this scale, so 4 iterations reach
+                    // ~1e-4 texel where plain bisection needs 12.
+                    let (mut lo, mut hi, mut flo, mut fhi) = (ta, tb, a, b);
+                    let mut side = 0i8;
+                    for _ in 0..4 {
+                        let t = (lo * fhi - hi * flo) / (fhi - flo);
+                        match f(t) {
                             Some(m) if m > 0.0 => {
-                                lo = mid;
+                                lo = t;
                                 flo = m;
+                                if side == 1 {
+                                    fhi *= 0.5;
+                                }
+                                side = 1;
                             }
-                            _ => hi = mid,
+                            Some(m) => {
+                                hi = t;
+                                fhi = m;
+                                if side == -1 {
+                                    flo *= 0.5;
+                                }
+                                side = -1;
+                            }
+                            None => hi = t,
                         }
                     }
-                    let _ = flo;
-                    let p = origin + dir * hi;
+                    let t = if fhi < flo {
+                        (lo * fhi - hi * flo) / (fhi - flo)
+                    } else {
+                        hi
+                    };
+                    let p = origin + dir * t.max(lo.min(hi)).min(hi.max(lo));
                     let (i, j) = self.sample.texel_of(p.x, p.y);
                     return Some((p, i, j, self.normal(g, p.x, p.y)));
                 }
@@ -195,7 +242,11 @@ impl Renderer {
 
     /// The shadow map for a light position, built on first use.
     fn shadow_map(&self, g: &HeightGrid, light: Vec3) -> Arc<ShadowMap> {
-        let key = [(light.x * 1e4).round() as i64, (light.y * 1e4).round() as i64, (light.z * 1e4).round() as i64];
+        let key = [
+            (light.x * 1e4).round() as i64,
+            (light.y * 1e4).round() as i64,
+            (light.z * 1e4).round() as i64,
+        ];
         if let Some(m) = self.shadows.lock().expect("shadow cache poisoned").get(&key) {
             return m.clone();
         }
@@ -279,8 +330,12 @@ impl Renderer {
                 }
                 if let Some(s) = shadow {
                     let half = self.half();
-                    let si = (((p.x + half) / (2.0 * half)) * s.n as f64).floor().clamp(0.0, (s.n - 1) as f64) as usize;
-                    let sj = (((half - p.y) / (2.0 * half)) * s.n as f64).floor().clamp(0.0, (s.n - 1) as f64) as usize;
+                    let si = (((p.x + half) / (2.0 * half)) * s.n as f64)
+                        .floor()
+                        .clamp(0.0, (s.n - 1) as f64) as usize;
+                    let sj = (((half - p.y) / (2.0 * half)) * s.n as f64)
+                        .floor()
+                        .clamp(0.0, (s.n - 1) as f64) as usize;
                     if s.lit[sj * s.n + si] == 0 {
                         return [0.0; 3];
                     }
@@ -291,7 +346,10 @@ impl Renderer {
                 } else {
                     let t = (Vec3::new(1.0, 0.0, 0.0) - normal * normal.x).normalized();
                     let b = normal.cross(t);
-                    (Vec3::new(l.dot(t), l.dot(b), cos_l), Vec3::new(v.dot(t), v.dot(b), normal.dot(v)))
+                    (
+                        Vec3::new(l.dot(t), l.dot(b), cos_l),
+                        Vec3::new(v.dot(t), v.dot(b), normal.dot(v)),
+                    )
                 };
                 let (model, tint) = self.sample.material(i, j);
                 let f = model.eval(l_loc, v_loc);
@@ -309,7 +367,14 @@ impl Renderer {
     }
 
     /// Radiance image of a raw frame seen by a pinhole camera (no sensor effects).
-    pub fn render_raw(&self, intr: &Intrinsics, pose: &CameraPose, width: usize, height: usize, light: &PointLight) -> RgbImage {
+    pub fn render_raw(
+        &self,
+        intr: &Intrinsics,
+        pose: &CameraPose,
+        width: usize,
+        height: usize,
+        light: &PointLight,
+    ) -> RgbImage {
         let mut img = RgbImage::new(width, height);
         let shadow = self.shadow_for(light);
         let (x0, y0, x1, y1) = self.pixel_bounds(intr, pose, width, height);
@@ -317,36 +382,105 @@ impl Renderer {
             return img;
         }
         let ss = self.quality.supersample.max(1);
-        let w_ss = 1.0 / (ss * ss) as f64;
         img.data.par_chunks_mut(width * 3).enumerate().for_each(|(row, out)| {
             if row < y0 || row >= y1 {
                 return;
             }
             for col in x0..x1 {
-                let mut acc = [0.0; 3];
-                for sy in 0..ss {
-                    for sx in 0..ss {
-                        let u = col as f64 + (sx as f64 + 0.5) / ss as f64;
-                        let v = row as f64 + (sy as f64 + 0.5) / ss as f64;
-                        let d = (pose.right * ((u - intr.cx) / intr.fx) + pose.down * ((v - intr.cy) / intr.fy) + pose.forward)
-                            .normalized();
-                        let r = self.radiance_along(pose.position, d, light, shadow.as_deref());
-                        acc[0] += r[0];
-                        acc[1] += r[1];
-                        acc[2] += r[2];
+                let ray = |u: f64, v: f64| {
+                    (pose.right * ((u - intr.cx) / intr.fx) + pose.down * ((v - intr.cy) / intr.fy) + pose.forward)
+                        .normalized()
+                };
+                // Pixels off the sample (holder frame, markers, background) are cheap and
+                // hold the sharp marker edges the rectifier measures: integrate them over
+                // the pixel area with a 4×4 sheared grid. Sample pixels use `supersample`.
+                let centre = ray(col as f64 + 0.5, row as f64 + 0.5);
+                let on_sample = self.hits_sample_area(pose.position, centre);
+                let n = if on_sample {
+                    ss
+                } else {
+                    // Only pixels on an edge (corners differ in what they see) need the
+                    // area integral; flat frame or background pixels take one sample.
+                    let c0 = self.frame_class(pose.position, ray(col as f64, row as f64));
+                    let uniform = [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)]
+                        .iter()
+                        .all(|&(dx, dy)| self.frame_class(pose.position, ray(col as f64 + dx, row as f64 + dy)) == c0);
+                    if uniform {
+                        1
+                    } else {
+                        FRAME_SS
                     }
+                };
+                let mut acc = [0.0; 3];
+                for k in 0..n * n {
+                    let (sx, sy) = (k % n, k / n);
+                    // sheared grid: distinct offsets along both axes (no aligned rows)
+                    let u = col as f64 + (sx as f64 + (sy as f64 + 0.5) / n as f64) / n as f64;
+                    let v = row as f64 + (sy as f64 + (sx as f64 + 0.5) / n as f64) / n as f64;
+                    let d = if n == 1 { centre } else { ray(u, v) };
+                    let r = self.radiance_along(pose.position, d, light, shadow.as_deref());
+                    acc[0] += r[0];
+                    acc[1] += r[1];
+                    acc[2] += r[2];
                 }
+                let w = 1.0 / (n * n) as f64;
                 for c in 0..3 {
-                    out[col * 3 + c] = (acc[c] * w_ss) as f32;
+                    out[col * 3 + c] = (acc[c] * w) as f32;
                 }
             }
         });
         img
     }
 
+    /// What a ray sees on the mean plane, coarsely: 0 background, 1 frame, 2 marker,
+    /// 3 sample area. Used to find pixels that straddle an edge.
+    fn frame_class(&self, origin: Vec3, dir: Vec3) -> u8 {
+        if dir.z >= 0.0 {
+            return 0;
+        }
+        if self.hits_sample_area(origin, dir) {
+            return 3;
+        }
+        let p = origin + dir * (-origin.z / dir.z);
+        let spec = &self.sample.spec;
+        let outer = spec.border.outer_half(spec.size_mm);
+        if p.x.abs() > outer || p.y.abs() > outer {
+            0
+        } else if spec.border.is_marker(spec.size_mm, p.x, p.y) {
+            2
+        } else {
+            1
+        }
+    }
+
+    /// Whether a ray meets the mean plane inside the sample square (grown by the relief's
+    /// parallax margin), i.e. whether it may see the sample rather than the holder.
+    fn hits_sample_area(&self, origin: Vec3, dir: Vec3) -> bool {
+        if dir.z >= 0.0 {
+            return false;
+        }
+        let t = -origin.z / dir.z;
+        let p = origin + dir * t;
+        let margin = match &self.sample.surface {
+            Surface::Height(g) => {
+                let h = g.max.abs().max(g.min.abs());
+                h * (dir.x * dir.x + dir.y * dir.y).sqrt() / -dir.z + g.texel
+            }
+            Surface::Flat => 0.0,
+        };
+        let half = self.half() + margin;
+        p.x.abs() <= half && p.y.abs() <= half
+    }
+
     /// Pixel rectangle [x0, x1) × [y0, y1) that can see the holder (its corners at the
     /// lowest and highest surface heights, projected, plus a margin).
-    fn pixel_bounds(&self, intr: &Intrinsics, pose: &CameraPose, width: usize, height: usize) -> (usize, usize, usize, usize) {
+    fn pixel_bounds(
+        &self,
+        intr: &Intrinsics,
+        pose: &CameraPose,
+        width: usize,
+        height: usize,
+    ) -> (usize, usize, usize, usize) {
         let outer = self.sample.spec.border.outer_half(self.sample.spec.size_mm);
         let (zmin, zmax) = match &self.sample.surface {
             Surface::Height(g) => (g.min.min(0.0), g.max.max(0.0)),
@@ -369,25 +503,46 @@ impl Renderer {
             }
         }
         let clamp = |v: f64, hi: usize| v.clamp(0.0, hi as f64) as usize;
-        (clamp(a - 2.0, width), clamp(b - 2.0, height), clamp(c + 3.0, width), clamp(d + 3.0, height))
+        (
+            clamp(a - 2.0, width),
+            clamp(b - 2.0, height),
+            clamp(c + 3.0, width),
+            clamp(d + 3.0, height),
+        )
     }
 
     /// The exact rectified image in texture space: texel (i, j) shows what the camera at
     /// `camera` sees through the point of the mean plane at the texel centre (conventions:
-    /// column grows with +x, row with −y). Radiance, no sensor effects.
+    /// column grows with +x, row with −y), averaged over the texel area with
+    /// `truth_supersample²` rays. Radiance, no sensor effects.
     pub fn render_truth(&self, camera: Vec3, width: usize, height: usize, light: &PointLight) -> RgbImage {
         let mut img = RgbImage::new(width, height);
         let shadow = self.shadow_for(light);
         let s = self.sample.spec.size_mm;
+        // At least one sample per grid texel of the sample, so coarse outputs still see
+        // every detail of the structure they average over.
+        let grid = self.sample.spec.resolution.div_ceil(width.min(height).max(1));
+        let n = self.quality.truth_supersample.max(grid).clamp(1, 16);
+        let w = 1.0 / (n * n) as f64;
         img.data.par_chunks_mut(width * 3).enumerate().for_each(|(j, out)| {
-            let y = s / 2.0 - (j as f64 + 0.5) / height as f64 * s;
             for i in 0..width {
-                let x = (i as f64 + 0.5) / width as f64 * s - s / 2.0;
-                let d = (Vec3::new(x, y, 0.0) - camera).normalized();
-                let r = self.radiance_along(camera, d, light, shadow.as_deref());
-                out[i * 3] = r[0] as f32;
-                out[i * 3 + 1] = r[1] as f32;
-                out[i * 3 + 2] = r[2] as f32;
+                let mut acc = [0.0; 3];
+                for k in 0..n * n {
+                    // sheared grid over the texel (distinct offsets on both axes)
+                    let (a, b) = (k % n, k / n);
+                    let fx = (a as f64 + (b as f64 + 0.5) / n as f64) / n as f64;
+                    let fy = (b as f64 + (a as f64 + 0.5) / n as f64) / n as f64;
+                    let x = (i as f64 + fx) / width as f64 * s - s / 2.0;
+                    let y = s / 2.0 - (j as f64 + fy) / height as f64 * s;
+                    let d = (Vec3::new(x, y, 0.0) - camera).normalized();
+                    let r = self.radiance_along(camera, d, light, shadow.as_deref());
+                    acc[0] += r[0];
+                    acc[1] += r[1];
+                    acc[2] += r[2];
+                }
+                out[i * 3] = (acc[0] * w) as f32;
+                out[i * 3 + 1] = (acc[1] * w) as f32;
+                out[i * 3 + 2] = (acc[2] * w) as f32;
             }
         });
         img

@@ -46,15 +46,32 @@ pub enum SampleError {
 pub enum HeightSpec {
     Flat,
     /// Plain weave: warp and weft threads of `period_mm` passing over and under each other.
-    Weave { period_mm: f64, amplitude_mm: f64 },
+    Weave {
+        period_mm: f64,
+        amplitude_mm: f64,
+    },
     /// Raised pattern (embossed wallpaper): smooth diamond bumps of `period_mm`.
-    Emboss { period_mm: f64, amplitude_mm: f64 },
+    Emboss {
+        period_mm: f64,
+        amplitude_mm: f64,
+    },
     /// Parallel ribs along y (corduroy) of `period_mm`.
-    Ribs { period_mm: f64, amplitude_mm: f64 },
+    Ribs {
+        period_mm: f64,
+        amplitude_mm: f64,
+    },
     /// Fractal noise (leather grain).
-    Noise { scale_mm: f64, amplitude_mm: f64, octaves: u32, seed: u64 },
+    Noise {
+        scale_mm: f64,
+        amplitude_mm: f64,
+        octaves: u32,
+        seed: u64,
+    },
     /// A grayscale PNG (black = −amplitude/2, white = +amplitude/2), stretched over the sample.
-    Image { path: PathBuf, amplitude_mm: f64 },
+    Image {
+        path: PathBuf,
+        amplitude_mm: f64,
+    },
 }
 
 /// Material map: which material index at which texel.
@@ -161,14 +178,19 @@ impl SampleSpec {
 
     pub fn load(path: &Path) -> Result<SampleSpec, SampleError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| SampleError::Io { file: file.clone(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| SampleError::Io {
+            file: file.clone(),
+            source,
+        })?;
         SampleSpec::parse(&text, &file, path.parent())
     }
 
     /// Parse and validate; relative image paths resolve against `base`.
     pub fn parse(text: &str, file: &str, base: Option<&Path>) -> Result<SampleSpec, SampleError> {
-        let mut spec: SampleSpec =
-            toml::from_str(text).map_err(|e| SampleError::Parse { file: file.into(), message: e.to_string() })?;
+        let mut spec: SampleSpec = toml::from_str(text).map_err(|e| SampleError::Parse {
+            file: file.into(),
+            message: e.to_string(),
+        })?;
         if let (HeightSpec::Image { path, .. }, Some(b)) = (&mut spec.height, base) {
             if path.is_relative() {
                 *path = b.join(&*path);
@@ -179,22 +201,36 @@ impl SampleSpec {
     }
 
     fn validate(&self, file: &str) -> Result<(), SampleError> {
-        let bad = |key: &str, message: String| SampleError::Invalid { file: file.into(), key: key.into(), message };
+        let bad = |key: &str, message: String| SampleError::Invalid {
+            file: file.into(),
+            key: key.into(),
+            message,
+        };
         if !(self.size_mm > 0.0 && self.size_mm <= 1000.0) {
             return Err(bad("size_mm", format!("{}: valid range is (0, 1000] mm", self.size_mm)));
         }
         if !(8..=4096).contains(&self.resolution) {
-            return Err(bad("resolution", format!("{}: valid range is 8 ..= 4096", self.resolution)));
+            return Err(bad(
+                "resolution",
+                format!("{}: valid range is 8 ..= 4096", self.resolution),
+            ));
         }
         if self.materials.is_empty() || self.materials.len() > 255 {
-            return Err(bad("material", format!("{} materials: need 1 ..= 255 [[material]] tables", self.materials.len())));
+            return Err(bad(
+                "material",
+                format!("{} materials: need 1 ..= 255 [[material]] tables", self.materials.len()),
+            ));
         }
         for (i, m) in self.materials.iter().enumerate() {
-            m.validate().map_err(|e| bad(&format!("material[{i}]"), e.to_string()))?;
+            m.validate()
+                .map_err(|e| bad(&format!("material[{i}]"), e.to_string()))?;
         }
         let needs_two = !matches!(self.map, MapSpec::Uniform);
         if needs_two && self.materials.len() < 2 {
-            return Err(bad("map", "this map kind uses materials 0 and 1: add a second [[material]]".into()));
+            return Err(bad(
+                "map",
+                "this map kind uses materials 0 and 1: add a second [[material]]".into(),
+            ));
         }
         let pos = |key: &str, v: f64| {
             if v.is_finite() && v > 0.0 {
@@ -212,13 +248,27 @@ impl SampleSpec {
         };
         match &self.height {
             HeightSpec::Flat => {}
-            HeightSpec::Weave { period_mm, amplitude_mm }
-            | HeightSpec::Emboss { period_mm, amplitude_mm }
-            | HeightSpec::Ribs { period_mm, amplitude_mm } => {
+            HeightSpec::Weave {
+                period_mm,
+                amplitude_mm,
+            }
+            | HeightSpec::Emboss {
+                period_mm,
+                amplitude_mm,
+            }
+            | HeightSpec::Ribs {
+                period_mm,
+                amplitude_mm,
+            } => {
                 pos("height.period_mm", *period_mm)?;
                 amp("height.amplitude_mm", *amplitude_mm)?;
             }
-            HeightSpec::Noise { scale_mm, amplitude_mm, octaves, .. } => {
+            HeightSpec::Noise {
+                scale_mm,
+                amplitude_mm,
+                octaves,
+                ..
+            } => {
                 pos("height.scale_mm", *scale_mm)?;
                 amp("height.amplitude_mm", *amplitude_mm)?;
                 if !(1..=12).contains(octaves) {
@@ -228,7 +278,10 @@ impl SampleSpec {
             HeightSpec::Image { path, amplitude_mm } => {
                 amp("height.amplitude_mm", *amplitude_mm)?;
                 if !path.exists() {
-                    return Err(bad("height.path", format!("height-field image {} does not exist", path.display())));
+                    return Err(bad(
+                        "height.path",
+                        format!("height-field image {} does not exist", path.display()),
+                    ));
                 }
             }
         }
@@ -238,7 +291,9 @@ impl SampleSpec {
             | MapSpec::Ribs { period_mm }
             | MapSpec::Emboss { period_mm }
             | MapSpec::Checker { period_mm } => pos("map.period_mm", *period_mm)?,
-            MapSpec::Noise { scale_mm, threshold, .. } => {
+            MapSpec::Noise {
+                scale_mm, threshold, ..
+            } => {
                 pos("map.scale_mm", *scale_mm)?;
                 if !(0.0..=1.0).contains(threshold) {
                     return Err(bad("map.threshold", format!("{threshold}: valid range is 0 ..= 1")));
@@ -246,15 +301,24 @@ impl SampleSpec {
             }
         }
         if !(0.0..1.0).contains(&self.tint_amplitude) {
-            return Err(bad("tint_amplitude", format!("{}: valid range is 0 ≤ a < 1", self.tint_amplitude)));
+            return Err(bad(
+                "tint_amplitude",
+                format!("{}: valid range is 0 ≤ a < 1", self.tint_amplitude),
+            ));
         }
-        for (k, v) in [("frame_albedo", self.frame_albedo), ("marker_albedo", self.marker_albedo)] {
+        for (k, v) in [
+            ("frame_albedo", self.frame_albedo),
+            ("marker_albedo", self.marker_albedo),
+        ] {
             if !(0.0..=1.0).contains(&v) {
                 return Err(bad(k, format!("{v}: valid range is 0 ..= 1")));
             }
         }
         if self.marker_albedo >= self.frame_albedo {
-            return Err(bad("marker_albedo", "markers must be darker than the frame (marker_albedo < frame_albedo)".into()));
+            return Err(bad(
+                "marker_albedo",
+                "markers must be darker than the frame (marker_albedo < frame_albedo)".into(),
+            ));
         }
         self.border.validate("border").map_err(|m| bad("border", m))?;
         Ok(())
@@ -296,11 +360,18 @@ impl SampleSpec {
                         };
                     }
                 }
-                let (min, max) = heights
-                    .iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &h| (a.min(h as f64), b.max(h as f64)));
+                let (min, max) = heights.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &h| {
+                    (a.min(h as f64), b.max(h as f64))
+                });
                 let normals = normals(&heights, n, texel);
-                Surface::Height(HeightGrid { n, texel, heights, normals, min, max })
+                Surface::Height(HeightGrid {
+                    n,
+                    texel,
+                    heights,
+                    normals,
+                    min,
+                    max,
+                })
             }
         };
         let material_map = match &self.map {
@@ -331,7 +402,12 @@ impl SampleSpec {
         } else {
             None
         };
-        Ok(Sample { spec: self, surface, material_map, tint })
+        Ok(Sample {
+            spec: self,
+            surface,
+            material_map,
+            tint,
+        })
     }
 }
 
@@ -340,27 +416,43 @@ fn height_at(h: &HeightSpec, x: f64, y: f64) -> f64 {
     use std::f64::consts::PI;
     match *h {
         HeightSpec::Flat | HeightSpec::Image { .. } => 0.0,
-        HeightSpec::Weave { period_mm, amplitude_mm } => {
+        HeightSpec::Weave {
+            period_mm,
+            amplitude_mm,
+        } => {
             // Threads along x and y; in each cell the thread on top alternates.
             let (u, v) = (x / period_mm, y / period_mm);
             let warp = (PI * (2.0 * v).fract().abs()).sin().abs().sqrt(); // profile across a weft
             let weft = (PI * (2.0 * u).fract().abs()).sin().abs().sqrt();
             let over = ((PI * u).cos() * (PI * v).cos()).signum();
-            let s = if over > 0.0 { 0.5 * weft + 0.5 * warp * 0.6 } else { 0.5 * warp + 0.5 * weft * 0.6 };
+            let s = if over > 0.0 {
+                0.5 * weft + 0.5 * warp * 0.6
+            } else {
+                0.5 * warp + 0.5 * weft * 0.6
+            };
             amplitude_mm * (s - 0.4)
         }
-        HeightSpec::Emboss { period_mm, amplitude_mm } => {
+        HeightSpec::Emboss {
+            period_mm,
+            amplitude_mm,
+        } => {
             let (u, v) = (2.0 * PI * x / period_mm, 2.0 * PI * y / period_mm);
             let d = 0.5 * (u.cos() + v.cos()) * 0.5 + 0.25 * ((u + v).cos());
             amplitude_mm * d.clamp(-0.5, 0.5)
         }
-        HeightSpec::Ribs { period_mm, amplitude_mm } => {
+        HeightSpec::Ribs {
+            period_mm,
+            amplitude_mm,
+        } => {
             let s = (PI * x / period_mm).sin().abs().powf(0.6);
             amplitude_mm * (s - 0.5)
         }
-        HeightSpec::Noise { scale_mm, amplitude_mm, octaves, seed } => {
-            amplitude_mm * (fbm(seed, x / scale_mm, y / scale_mm, octaves) - 0.5)
-        }
+        HeightSpec::Noise {
+            scale_mm,
+            amplitude_mm,
+            octaves,
+            seed,
+        } => amplitude_mm * (fbm(seed, x / scale_mm, y / scale_mm, octaves) - 0.5),
     }
 }
 
@@ -373,7 +465,11 @@ fn material_at(m: &MapSpec, x: f64, y: f64) -> u8 {
             u8::from(((PI * u).cos() * (PI * v).cos()) < 0.0)
         }
         MapSpec::Ribs { period_mm } => u8::from((PI * x / period_mm).sin().abs() < 0.35),
-        MapSpec::Noise { scale_mm, threshold, seed } => u8::from(value_noise(seed, x / scale_mm, y / scale_mm) > threshold),
+        MapSpec::Noise {
+            scale_mm,
+            threshold,
+            seed,
+        } => u8::from(value_noise(seed, x / scale_mm, y / scale_mm) > threshold),
         MapSpec::Emboss { period_mm } => {
             let (u, v) = (2.0 * PI * x / period_mm, 2.0 * PI * y / period_mm);
             u8::from(0.5 * (u.cos() + v.cos()) * 0.5 + 0.25 * (u + v).cos() > 0.2)
@@ -387,7 +483,8 @@ fn material_at(m: &MapSpec, x: f64, y: f64) -> u8 {
 
 /// Unit normals by central differences (row j grows with −y, so dh/dy flips sign).
 fn normals(h: &[f32], n: usize, texel: f64) -> Vec<[f32; 3]> {
-    let at = |i: isize, j: isize| h[(j.clamp(0, n as isize - 1) as usize) * n + i.clamp(0, n as isize - 1) as usize] as f64;
+    let at =
+        |i: isize, j: isize| h[(j.clamp(0, n as isize - 1) as usize) * n + i.clamp(0, n as isize - 1) as usize] as f64;
     let mut out = vec![[0f32; 3]; n * n];
     for j in 0..n as isize {
         for i in 0..n as isize {
@@ -456,9 +553,14 @@ mod tests {
     fn bad_samples_are_named() {
         let text = BUILTIN[0].1.replacen("size_mm = 60.0", "size_mm = -3.0", 1);
         let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();
-        assert!(e.contains("w.toml") && e.contains("size_mm") && e.contains("valid range"), "{e}");
+        assert!(
+            e.contains("w.toml") && e.contains("size_mm") && e.contains("valid range"),
+            "{e}"
+        );
         let text = "name='x'\nsize_mm=10\nheight={kind='image', path='nope.png', amplitude_mm=0.1}\nmap={kind='uniform'}\n[[material]]\nmodel='lambert'\nalbedo=[0.5,0.5,0.5]\n";
-        let e = SampleSpec::parse(text, "x.toml", Some(Path::new("/tmp"))).unwrap_err().to_string();
+        let e = SampleSpec::parse(text, "x.toml", Some(Path::new("/tmp")))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("nope.png") && e.contains("does not exist"), "{e}");
         let e = SampleSpec::resolve("no-such-sample").unwrap_err().to_string();
         assert!(e.contains("wallpaper"), "{e}");

@@ -11,7 +11,6 @@
 use crate::noise::mix64;
 use gonio_devices::image::RgbImage;
 use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, Normal, Poisson};
 use rand_pcg::Pcg64Mcg;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -52,7 +51,11 @@ impl SensorModel {
     /// Ground-truth image in normalised units from a radiance image.
     pub fn normalize_truth(&self, radiance: &RgbImage) -> RgbImage {
         let k = self.expected_normalized(1.0) as f32;
-        RgbImage { width: radiance.width, height: radiance.height, data: radiance.data.iter().map(|v| v * k).collect() }
+        RgbImage {
+            width: radiance.width,
+            height: radiance.height,
+            data: radiance.data.iter().map(|v| v * k).collect(),
+        }
     }
 
     /// Convert a radiance image into a frame of DN values.
@@ -65,40 +68,75 @@ impl SensorModel {
         let dark = self.dark_current_e_s * self.exposure_s;
         let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
         let r2_corner = cx * cx + cy * cy;
-        let read = Normal::new(0.0, self.read_noise_e.max(0.0)).expect("read noise ≥ 0");
+        let read_sd = self.read_noise_e.max(0.0);
+        let read_var = read_sd * read_sd;
+        // Pixels with no signal (most of a frame: the background) all have the same
+        // Poisson mean; its exp(−mean) is computed once.
+        let dark_limit = (-dark).exp();
+        let full = self.full_well_e;
         out.par_chunks_mut(w * 3).enumerate().for_each(|(row, dst)| {
-            let mut rng = if self.noise {
-                Some(Pcg64Mcg::seed_from_u64(mix64(self.seed ^ mix64(sequence.wrapping_mul(0x9E37) ^ row as u64))))
-            } else {
-                None
-            };
+            let src = &radiance.data[row * w * 3..(row + 1) * w * 3];
             let dy = row as f64 + 0.5 - cy;
+            let vig_row = self.vignetting * dy * dy / r2_corner;
+            // x ≥ 0 is rounded by adding ½ and truncating (libm's round is slow).
+            let to_dn = |e: f64| ((e.min(full) * conv).clamp(0.0, max_dn) + 0.5) as u16;
+            if !self.noise {
+                for col in 0..w {
+                    let dx = col as f64 + 0.5 - cx;
+                    let vig = 1.0 - vig_row - self.vignetting * dx * dx / r2_corner;
+                    for c in 0..3 {
+                        dst[col * 3 + c] = to_dn(src[col * 3 + c] as f64 * k * vig + dark);
+                    }
+                }
+                return;
+            }
+            let mut rng = Pcg64Mcg::seed_from_u64(mix64(self.seed ^ mix64(sequence.wrapping_mul(0x9E37) ^ row as u64)));
             for col in 0..w {
                 let dx = col as f64 + 0.5 - cx;
-                let vig = 1.0 - self.vignetting * (dx * dx + dy * dy) / r2_corner;
+                let vig = 1.0 - vig_row - self.vignetting * dx * dx / r2_corner;
                 for c in 0..3 {
-                    let l = radiance.data[(row * w + col) * 3 + c] as f64;
-                    let mean = l * k * vig + dark;
-                    let e = match rng.as_mut() {
-                        None => mean,
-                        Some(rng) => {
-                            let shot = if mean <= 0.0 {
-                                0.0
-                            } else if mean < 30.0 {
-                                Poisson::new(mean).map(|p| p.sample(rng)).unwrap_or(mean)
-                            } else {
-                                mean + mean.sqrt() * rng.sample::<f64, _>(rand_distr::StandardNormal)
-                            };
-                            shot + read.sample(rng)
+                    let l = src[col * 3 + c] as f64;
+                    let z: f64 = rng.sample(rand_distr::StandardNormal);
+                    let e = if l <= 0.0 {
+                        poisson_with_limit(&mut rng, dark_limit) + read_sd * z
+                    } else {
+                        let mean = l * k * vig + dark;
+                        if mean >= 30.0 {
+                            // shot (Poisson ≈ Gaussian here) and read noise in one draw
+                            mean + (mean + read_var).sqrt() * z
+                        } else {
+                            small_poisson(&mut rng, mean) + read_sd * z
                         }
                     };
-                    let dn = (e.min(self.full_well_e) * conv).round().clamp(0.0, max_dn);
-                    dst[col * 3 + c] = dn as u16;
+                    dst[col * 3 + c] = to_dn(e);
                 }
             }
         });
         out
     }
+}
+
+/// Poisson sample for a small mean (< 30) by Knuth's product of uniforms: about
+/// `mean + 1` uniform draws, no set-up cost (dark pixels are most of a frame).
+fn small_poisson<R: Rng>(rng: &mut R, mean: f64) -> f64 {
+    if mean <= 0.0 {
+        return 0.0;
+    }
+    poisson_with_limit(rng, (-mean).exp())
+}
+
+/// Knuth's method with `limit = exp(−mean)` given.
+fn poisson_with_limit<R: Rng>(rng: &mut R, limit: f64) -> f64 {
+    if limit >= 1.0 {
+        return 0.0;
+    }
+    let mut k = 0u32;
+    let mut p: f64 = rng.random();
+    while p > limit {
+        k += 1;
+        p *= rng.random::<f64>();
+    }
+    k as f64
 }
 
 #[cfg(test)]
@@ -122,7 +160,11 @@ mod tests {
 
     #[test]
     fn noiseless_is_expected_value_and_saturates() {
-        let img = RgbImage { width: 2, height: 1, data: vec![5.0, 5.0, 5.0, 1e6, 0.0, 0.0] };
+        let img = RgbImage {
+            width: 2,
+            height: 1,
+            data: vec![5.0, 5.0, 5.0, 1e6, 0.0, 0.0],
+        };
         let m = model(false);
         let f = m.expose(&img, 0);
         let expect = (5.0 * 1000.0 * m.conversion()).round() as u16;
@@ -135,7 +177,11 @@ mod tests {
     #[test]
     fn shot_noise_has_the_right_variance_and_is_reproducible() {
         let n = 20000;
-        let img = RgbImage { width: n, height: 1, data: vec![10.0; n * 3] };
+        let img = RgbImage {
+            width: n,
+            height: 1,
+            data: vec![10.0; n * 3],
+        };
         let m = model(true);
         let a = m.expose(&img, 7);
         assert_eq!(a, m.expose(&img, 7), "same seed and sequence, same frame");
@@ -144,6 +190,15 @@ mod tests {
         let e: Vec<f64> = a.iter().map(|&d| d as f64 / conv).collect();
         let mean = e.iter().sum::<f64>() / e.len() as f64;
         let var = e.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / e.len() as f64;
+        // small means follow Poisson: mean = variance
+        let mut rng = Pcg64Mcg::seed_from_u64(5);
+        let xs: Vec<f64> = (0..200_000).map(|_| small_poisson(&mut rng, 2.5)).collect();
+        let m = xs.iter().sum::<f64>() / xs.len() as f64;
+        let v = xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / xs.len() as f64;
+        assert!(
+            (m - 2.5).abs() < 0.02 && (v - 2.5).abs() < 0.05,
+            "poisson mean {m} var {v}"
+        );
         // mean 10000 e⁻: variance = 10000 (shot) + 16 (read) + quantisation (≈ (1/conv)²/12)
         let q = (1.0 / conv).powi(2) / 12.0;
         let want = 10000.0 + 16.0 + q;

@@ -60,7 +60,9 @@ pub struct AcquireArgs {
 }
 
 fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
-    let (a, b) = s.split_once(['x', 'X']).ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
+    let (a, b) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
     let w: usize = a.parse().map_err(|_| format!("`{s}`: width is not a number"))?;
     let h: usize = b.parse().map_err(|_| format!("`{s}`: height is not a number"))?;
     if !(8..=8192).contains(&w) || !(8..=8192).contains(&h) {
@@ -105,6 +107,7 @@ pub struct Summary {
     pub truth_error: Option<ErrorFigures>,
     pub homography_from_markers: usize,
     pub homography_from_pose: usize,
+    pub stage_seconds: engine::StageSeconds,
     /// Peak resident memory of this process (MiB, from /proc/self/status VmHWM).
     pub peak_rss_mib: Option<f64>,
 }
@@ -142,7 +145,9 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     for s in &plan.skipped {
         if !done.contains(&s.index) {
             let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
-            dataset.store(rec, None, None).with_context(|| format!("recording skipped pair {}", s.index))?;
+            dataset
+                .store(rec, None, None)
+                .with_context(|| format!("recording skipped pair {}", s.index))?;
         }
     }
     let pause = Arc::new(AtomicBool::new(false));
@@ -220,10 +225,13 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         truth_error: report.truth_error.figures(),
         homography_from_markers: report.homography_from_markers,
         homography_from_pose: report.homography_from_pose,
+        stage_seconds: report.stage_seconds.clone(),
         peak_rss_mib: peak_rss_mib(),
     };
     if complete {
-        dataset.finish(&serde_json::to_value(&summary)?).context("writing the final manifest")?;
+        dataset
+            .finish(&serde_json::to_value(&summary)?)
+            .context("writing the final manifest")?;
     }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
@@ -278,8 +286,12 @@ fn create_new(args: &AcquireArgs) -> Result<Opened> {
         calibration: None,
         extra: serde_json::json!({ "run_settings": settings }),
     };
-    let dataset = Dataset::create(&args.out, &header, args.force)
-        .with_context(|| format!("creating dataset {} (use --force to replace a dataset, --resume to continue one)", args.out.display()))?;
+    let dataset = Dataset::create(&args.out, &header, args.force).with_context(|| {
+        format!(
+            "creating dataset {} (use --force to replace a dataset, --resume to continue one)",
+            args.out.display()
+        )
+    })?;
     write_plan(&args.out, &plan)?;
     Ok((rig, sample, plan, settings, dataset, HashSet::new()))
 }
@@ -298,19 +310,24 @@ fn write_plan(dir: &Path, plan: &Plan) -> Result<()> {
 fn open_resume(dir: &Path) -> Result<Opened> {
     let (dataset, header, records) =
         Dataset::resume(dir).with_context(|| format!("resuming dataset {}", dir.display()))?;
-    let rig: RigSpec = serde_json::from_value(header.rig.clone()).context("reading the rig snapshot from the manifest")?;
+    let rig: RigSpec =
+        serde_json::from_value(header.rig.clone()).context("reading the rig snapshot from the manifest")?;
     let sample: SampleSpec =
         serde_json::from_value(header.sample.clone()).context("reading the sample snapshot from the manifest")?;
     let plan_file = plan_path(dir);
-    let plan: Plan = serde_json::from_slice(
-        &std::fs::read(&plan_file).with_context(|| format!("reading {}", plan_file.display()))?,
-    )
-    .with_context(|| format!("parsing {}", plan_file.display()))?;
+    let plan: Plan =
+        serde_json::from_slice(&std::fs::read(&plan_file).with_context(|| format!("reading {}", plan_file.display()))?)
+            .with_context(|| format!("parsing {}", plan_file.display()))?;
     let settings: RunSettings = serde_json::from_value(header.extra["run_settings"].clone())
         .context("reading run settings from the manifest")?;
     let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
     if done.len() > plan.pairs {
-        bail!("dataset {} holds {} records but its plan has {} pairs", dir.display(), done.len(), plan.pairs);
+        bail!(
+            "dataset {} holds {} records but its plan has {} pairs",
+            dir.display(),
+            done.len(),
+            plan.pairs
+        );
     }
     Ok((rig, sample, plan, settings, dataset, done))
 }
@@ -329,7 +346,11 @@ fn print_summary(s: &Summary) {
         } else {
             format!(
                 " ({})",
-                s.skipped_reasons.iter().map(|(k, v)| format!("{v} {k}")).collect::<Vec<_>>().join(", ")
+                s.skipped_reasons
+                    .iter()
+                    .map(|(k, v)| format!("{v} {k}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             )
         }
     );
@@ -340,7 +361,12 @@ fn print_summary(s: &Summary) {
         s.remaining,
         if s.paused { " (paused)" } else { "" }
     );
-    println!("sweep duration {:.1} h on the rig clock (planned {:.1} h)", s.sweep_duration_s / 3600.0, s.planned_duration_s / 3600.0);
+    println!(
+        "sweep duration {:.0} s = {:.2} h on the rig clock (planned {:.0} s)",
+        s.sweep_duration_s,
+        s.sweep_duration_s / 3600.0,
+        s.planned_duration_s
+    );
     println!("wall time      {:.1} s, {:.1} images/s", s.wall_time_s, s.images_per_s);
     if let Some(e) = &s.truth_error {
         println!(
@@ -348,7 +374,15 @@ fn print_summary(s: &Summary) {
             e.rmse, e.psnr_db, e.mean_abs, e.max_abs, e.images
         );
     }
-    println!("rectification  {} from markers, {} from pose", s.homography_from_markers, s.homography_from_pose);
+    println!(
+        "rectification  {} from markers, {} from pose",
+        s.homography_from_markers, s.homography_from_pose
+    );
+    let t = &s.stage_seconds;
+    println!(
+        "stage seconds  motion {:.1}, capture {:.1}, rectify {:.1}, truth {:.1}, store {:.1}",
+        t.motion, t.capture, t.rectify, t.truth, t.store
+    );
     if let Some(m) = s.peak_rss_mib {
         println!("peak memory    {m:.0} MiB");
     }
@@ -356,4 +390,3 @@ fn print_summary(s: &Summary) {
         println!("resume with    gonio acquire --resume {}", s.dataset);
     }
 }
-

@@ -1,8 +1,8 @@
 //! Options shared by several subcommands: which rig, which sample, which sweep.
 
-use anyhow::{Context, Result};
 use crate::plan::{Plan, PlanOptions, Policy};
 use crate::sweep::Sweep;
+use anyhow::{Context, Result};
 use gonio_devices::rig::RigSpec;
 use gonio_simulator::SampleSpec;
 use std::path::PathBuf;
@@ -52,7 +52,11 @@ impl SweepArgs {
         Ok(Plan::build(
             rig,
             sweep,
-            &PlanOptions { policy: self.policy, time_budget: Duration::from_secs_f64(self.plan_time), seed: self.plan_seed },
+            &PlanOptions {
+                policy: self.policy,
+                time_budget: Duration::from_secs_f64(self.plan_time),
+                seed: self.plan_seed,
+            },
         )?)
     }
 }

@@ -4,6 +4,7 @@
 //! `anyhow`. Every command that prints figures has `--json` for scripts.
 
 mod acquire;
+mod bench;
 mod common;
 mod export;
 mod plan;
@@ -13,7 +14,11 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
-#[command(name = "gonio", version, about = "Plan, drive, rectify, store and compress gonioreflectometer (BTF) acquisitions")]
+#[command(
+    name = "gonio",
+    version,
+    about = "Plan, drive, rectify, store and compress gonioreflectometer (BTF) acquisitions"
+)]
 pub struct Cli {
     /// More log output (-v info, -vv debug); logs go to stderr. RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
@@ -38,6 +43,9 @@ pub enum Command {
     /// The simulator: render single measurements, write ground truth.
     #[command(subcommand)]
     Sim(sim::SimCommand),
+    /// Benchmarks (ratios against a baseline run in the same process).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -52,7 +60,10 @@ pub fn init_logging(verbose: u8, quiet: bool) {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
@@ -62,5 +73,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Export(a) => export::run(a),
         Command::Verify(a) => export::verify(a),
         Command::Sim(c) => sim::run(c),
+        Command::Bench(c) => bench::run(c),
     }
 }

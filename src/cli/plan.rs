@@ -37,12 +37,22 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let d = &plan.durations;
-    println!("rig {} · sweep {} · {} pairs · policy {:?}", plan.rig, plan.sweep, plan.pairs, plan.policy);
-    println!("  feasible {}  substituted {}  skipped {}", counts.feasible, counts.substituted, counts.skipped);
+    println!(
+        "rig {} · sweep {} · {} pairs · policy {:?}",
+        plan.rig, plan.sweep, plan.pairs, plan.policy
+    );
+    println!(
+        "  feasible {}  substituted {}  skipped {}",
+        counts.feasible, counts.substituted, counts.skipped
+    );
     for (k, v) in &counts.skipped_reasons {
         println!("    skipped {v:>5} × {k}");
     }
-    println!("  duration canonical order  {:>9.0} s ({:.2} h)", d.canonical_s, d.canonical_s / 3600.0);
+    println!(
+        "  duration canonical order  {:>9.0} s ({:.2} h)",
+        d.canonical_s,
+        d.canonical_s / 3600.0
+    );
     println!(
         "  duration optimized order  {:>9.0} s ({:.2} h, {:.3} × canonical)",
         d.optimized_s,
@@ -67,7 +77,11 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
                 s.light_deg[1],
                 s.view_deg[0],
                 s.view_deg[1],
-                s.axes_deg.iter().map(|a| format!("{a:8.2}")).collect::<Vec<_>>().join(" "),
+                s.axes_deg
+                    .iter()
+                    .map(|a| format!("{a:8.2}"))
+                    .collect::<Vec<_>>()
+                    .join(" "),
                 s.transition_s
             );
         }

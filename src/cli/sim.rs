@@ -85,7 +85,10 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     let sample = load_sample(&a.sample)?;
     let opts = SimOptions {
         noise: Some(!a.no_noise),
-        quality: RenderQuality { supersample: a.supersample, ..Default::default() },
+        quality: RenderQuality {
+            supersample: a.supersample,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let rig = Rig::build(&spec, &sample, &opts)?;
@@ -111,7 +114,12 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
                 if kind == RenderKind::Raw {
                     return Ok(raw);
                 }
-                let params = RectifyParams { width: a.size, height: a.size, sample_mm: rig.sample_mm, max_supersample: 8 };
+                let params = RectifyParams {
+                    width: a.size,
+                    height: a.size,
+                    sample_mm: rig.sample_mm,
+                    max_supersample: 8,
+                };
                 let pose = rig.kinematics.camera_pose(&q);
                 let r = rectify::rectify_frame(&raw, &spec.camera.intrinsics(), &pose, &rig.border, &params)
                     .map_err(|e| anyhow::anyhow!("rectification failed: {e}"))?;
@@ -126,14 +134,28 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
 
 /// Write PNG (8-bit sRGB, values clamped to [0, 1]) or EXR (linear) by extension.
 pub fn write_image(path: &Path, img: &RgbImage) -> Result<()> {
-    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+    match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+    {
         Some("exr") => store::write_exr(path, img).with_context(|| format!("writing {}", path.display()))?,
         Some("png") => {
             let bytes = store::ubo2003::to_srgb8(img);
-            image::save_buffer(path, &bytes, img.width as u32, img.height as u32, image::ColorType::Rgb8)
-                .with_context(|| format!("writing {}", path.display()))?;
+            image::save_buffer(
+                path,
+                &bytes,
+                img.width as u32,
+                img.height as u32,
+                image::ColorType::Rgb8,
+            )
+            .with_context(|| format!("writing {}", path.display()))?;
         }
-        _ => bail!("{}: unknown image type; use .png (8-bit sRGB) or .exr (linear float)", path.display()),
+        _ => bail!(
+            "{}: unknown image type; use .png (8-bit sRGB) or .exr (linear float)",
+            path.display()
+        ),
     }
     Ok(())
 }

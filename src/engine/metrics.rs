@@ -68,7 +68,11 @@ impl ErrorAccumulator {
             rmse,
             mean_abs: self.sum_abs / self.count as f64,
             max_abs: self.max_abs,
-            psnr_db: if rmse > 0.0 { -20.0 * rmse.log10() } else { f64::INFINITY },
+            psnr_db: if rmse > 0.0 {
+                -20.0 * rmse.log10()
+            } else {
+                f64::INFINITY
+            },
             images: self.images,
             scale: "linear, normalised sensor signal (DN / max DN), clipped at 1; PSNR peak 1".into(),
         })
@@ -87,8 +91,16 @@ mod tests {
 
     #[test]
     fn psnr_of_known_error() {
-        let a = RgbImage { width: 1, height: 1, data: vec![0.5, 0.5, 0.5] };
-        let b = RgbImage { width: 1, height: 1, data: vec![0.6, 0.4, 2.0] };
+        let a = RgbImage {
+            width: 1,
+            height: 1,
+            data: vec![0.5, 0.5, 0.5],
+        };
+        let b = RgbImage {
+            width: 1,
+            height: 1,
+            data: vec![0.6, 0.4, 2.0],
+        };
         let mut acc = ErrorAccumulator::default();
         acc.add(image_error(&a, &b));
         let f = acc.figures().unwrap();

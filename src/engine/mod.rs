@@ -31,11 +31,11 @@ use thiserror::Error;
 
 #[derive(Debug, Error)]
 pub enum EngineError {
-    #[error("device error at measurement {index}: {source}")]
+    #[error("device error at measurement {index}")]
     Device { index: usize, source: DeviceError },
     #[error("device error while preparing the rig: {0}")]
     Setup(DeviceError),
-    #[error("storing measurement {index} failed: {source}")]
+    #[error("storing measurement {index} failed")]
     Store { index: usize, source: StoreError },
     #[error("rectifying measurement {index} failed: {message}")]
     Rectify { index: usize, message: String },
@@ -69,6 +69,23 @@ pub struct RunReport {
     pub truth_error: ErrorAccumulator,
     pub homography_from_markers: usize,
     pub homography_from_pose: usize,
+    /// Wall seconds spent per stage (stages overlap: drive and store run concurrently).
+    pub stage_seconds: StageSeconds,
+}
+
+/// Where the wall time goes, summed over all measurements of a run.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct StageSeconds {
+    /// Drive loop: commanding axes and waiting for them (near zero on a virtual clock).
+    pub motion: f64,
+    /// Drive loop: camera capture (rendering, on the simulated rig).
+    pub capture: f64,
+    /// Store thread: DN → linear conversion and rectification.
+    pub rectify: f64,
+    /// Store thread: rendering the ground truth (simulated rigs only).
+    pub truth: f64,
+    /// Store thread: encoding and durably writing image and journal line.
+    pub store: f64,
 }
 
 /// A captured frame on its way to the store thread.
@@ -83,7 +100,10 @@ struct Job {
 }
 
 fn unix_now() -> f64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0)
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
 }
 
 fn deg2(d: Direction) -> [f64; 2] {
@@ -93,7 +113,11 @@ fn deg2(d: Direction) -> [f64; 2] {
 /// Convert a frame of DN values into linear normalised values (DN / max DN).
 pub fn frame_to_linear(frame: &Frame) -> RgbImage {
     let k = 1.0 / frame.max_dn() as f32;
-    RgbImage { width: frame.width, height: frame.height, data: frame.data.iter().map(|&v| v as f32 * k).collect() }
+    RgbImage {
+        width: frame.width,
+        height: frame.height,
+        data: frame.data.iter().map(|&v| v as f32 * k).collect(),
+    }
 }
 
 /// Record of a skipped pair (no image).
@@ -135,7 +159,12 @@ pub async fn run(
 ) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
     let t_wall = Instant::now();
     let rig_t0 = rig.time();
-    let todo: Vec<(usize, &Step)> = plan.steps.iter().enumerate().filter(|(_, s)| !done.contains(&s.index)).collect();
+    let todo: Vec<(usize, &Step)> = plan
+        .steps
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| !done.contains(&s.index))
+        .collect();
     let already_done = plan.steps.len() - todo.len();
     let bar = progress_bar(todo.len() as u64, opts.show_progress);
     let (tx, rx) = tokio::sync::mpsc::channel::<Job>(2);
@@ -151,6 +180,7 @@ pub async fn run(
     };
     let mut drive_err = None;
     let mut paused = false;
+    let mut drive_times = StageSeconds::default();
     if let Err(e) = prepare(&rig).await {
         drive_err = Some(e);
     }
@@ -162,15 +192,28 @@ pub async fn run(
             paused = true;
             break;
         }
-        match drive_step(&rig, step).await {
+        match drive_step(&rig, step, &mut drive_times).await {
             Ok((frame, q_cmd, q_read)) => {
-                let job = Job { order, step: step.clone(), frame, q_cmd, q_read, rig_time: rig.time(), wall_time: unix_now() };
+                let job = Job {
+                    order,
+                    step: step.clone(),
+                    frame,
+                    q_cmd,
+                    q_read,
+                    rig_time: rig.time(),
+                    wall_time: unix_now(),
+                };
                 if tx.send(job).await.is_err() {
                     break; // store thread ended (failed): its error is reported below
                 }
                 bar.inc(1);
             }
-            Err(e) => drive_err = Some(EngineError::Device { index: step.index, source: e }),
+            Err(e) => {
+                drive_err = Some(EngineError::Device {
+                    index: step.index,
+                    source: e,
+                })
+            }
         }
     }
     drop(tx);
@@ -178,7 +221,10 @@ pub async fn run(
     bar.finish_and_clear();
     let (dataset, stats) = match stored {
         Ok(Ok(v)) => v,
-        Ok(Err((ds, e))) => return Err((Some(ds), e)),
+        Ok(Err(b)) => {
+            let (ds, e) = *b;
+            return Err((Some(ds), e));
+        }
         Err(_) => return Err((None, EngineError::StoreThread)),
     };
     if let Some(e) = drive_err {
@@ -198,12 +244,22 @@ pub async fn run(
             truth_error: stats.error,
             homography_from_markers: stats.markers,
             homography_from_pose: stats.pose,
+            stage_seconds: StageSeconds {
+                motion: drive_times.motion,
+                capture: drive_times.capture,
+                ..stats.times
+            },
         },
     ))
 }
 
 /// Move all axes to the step's targets (concurrently), wait until settled, capture.
-async fn drive_step(rig: &Rig, step: &Step) -> Result<(Frame, Vec<f64>, Vec<f64>), DeviceError> {
+async fn drive_step(
+    rig: &Rig,
+    step: &Step,
+    times: &mut StageSeconds,
+) -> Result<(Frame, Vec<f64>, Vec<f64>), DeviceError> {
+    let t0 = Instant::now();
     let q: Vec<f64> = step.axes_deg.iter().map(|d| d.to_radians()).collect();
     for (axis, &target) in rig.axes.iter().zip(&q) {
         axis.start_move(target).await?;
@@ -213,18 +269,22 @@ async fn drive_step(rig: &Rig, step: &Step) -> Result<(Frame, Vec<f64>, Vec<f64>
     for axis in &rig.axes {
         read.push(axis.wait_idle().await?);
     }
+    let t1 = Instant::now();
     let frame = rig.camera.capture().await?;
+    times.motion += (t1 - t0).as_secs_f64();
+    times.capture += t1.elapsed().as_secs_f64();
     Ok((frame, q, read))
 }
 
 struct StoreStats {
+    times: StageSeconds,
     stored: usize,
     error: ErrorAccumulator,
     markers: usize,
     pose: usize,
 }
 
-type StoreResult = Result<(Dataset, StoreStats), (Dataset, EngineError)>;
+type StoreResult = Result<(Dataset, StoreStats), Box<(Dataset, EngineError)>>;
 
 fn store_loop(
     rig: Arc<Rig>,
@@ -233,7 +293,13 @@ fn store_loop(
     opts: RunOptions,
     failed: Arc<AtomicBool>,
 ) -> StoreResult {
-    let mut stats = StoreStats { stored: 0, error: ErrorAccumulator::default(), markers: 0, pose: 0 };
+    let mut stats = StoreStats {
+        times: StageSeconds::default(),
+        stored: 0,
+        error: ErrorAccumulator::default(),
+        markers: 0,
+        pose: 0,
+    };
     let params = RectifyParams {
         width: opts.width,
         height: opts.height,
@@ -243,20 +309,36 @@ fn store_loop(
     let intr = rig.spec.camera.intrinsics();
     while let Some(job) = rx.blocking_recv() {
         let index = job.step.index;
-        let raw = frame_to_linear(&job.frame);
         let pose = rig.kinematics.camera_pose(&job.q_read);
-        let (rect, truth) = rayon::join(
-            || rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
-            || match (&rig.truth, opts.truth) {
-                (Some(t), true) => Some(t.truth(&job.q_read, opts.width, opts.height)),
-                _ => None,
+        let ((rect, t_rect), (truth, t_truth)) = rayon::join(
+            || {
+                let t = Instant::now();
+                let raw = frame_to_linear(&job.frame);
+                (
+                    rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
+                    t.elapsed().as_secs_f64(),
+                )
+            },
+            || {
+                let t = Instant::now();
+                let truth = match (&rig.truth, opts.truth) {
+                    (Some(t), true) => Some(t.truth(&job.q_read, opts.width, opts.height)),
+                    _ => None,
+                };
+                (truth, t.elapsed().as_secs_f64())
             },
         );
+        stats.times.rectify += t_rect;
+        stats.times.truth += t_truth;
         let rect = match rect {
             Ok(r) => r,
             Err(e) => {
                 failed.store(true, Ordering::SeqCst);
-                return Err((dataset, EngineError::Rectify { index, message: e.to_string() }));
+                let err = EngineError::Rectify {
+                    index,
+                    message: e.to_string(),
+                };
+                return Err(Box::new((dataset, err)));
             }
         };
         match rect.source {
@@ -286,15 +368,22 @@ fn store_loop(
         rec.wall_time_unix = job.wall_time;
         rec.status = match &job.step.status {
             StepStatus::Measure => MeasurementStatus::Measured,
-            StepStatus::Substitute { requested_light_deg, reason } => {
-                MeasurementStatus::Substituted { requested_light_deg: *requested_light_deg, reason: reason.to_string() }
-            }
+            StepStatus::Substitute {
+                requested_light_deg,
+                reason,
+            } => MeasurementStatus::Substituted {
+                requested_light_deg: *requested_light_deg,
+                reason: reason.to_string(),
+            },
         };
         rec.extra = extra;
         let raw_frame = if opts.raw_frames { Some(&job.frame) } else { None };
-        if let Err(e) = dataset.store(rec, Some(&rect.image), raw_frame) {
+        let t_store = Instant::now();
+        let stored = dataset.store(rec, Some(&rect.image), raw_frame);
+        stats.times.store += t_store.elapsed().as_secs_f64();
+        if let Err(e) = stored {
             failed.store(true, Ordering::SeqCst);
-            return Err((dataset, EngineError::Store { index, source: e }));
+            return Err(Box::new((dataset, EngineError::Store { index, source: e })));
         }
         stats.stored += 1;
     }

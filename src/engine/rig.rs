@@ -64,10 +64,18 @@ impl Rig {
     pub fn build(spec: &RigSpec, sample: &SampleSpec, opts: &SimOptions) -> Result<Rig, RigBuildError> {
         let parts = std::iter::once(("camera".to_string(), spec.camera.backend.clone()))
             .chain(std::iter::once(("light".to_string(), spec.light.backend.clone())))
-            .chain(spec.axes.iter().map(|a| (format!("axis {}", a.name), a.backend.clone())));
+            .chain(
+                spec.axes
+                    .iter()
+                    .map(|a| (format!("axis {}", a.name), a.backend.clone())),
+            );
         for (part, backend) in parts {
             if backend != "sim" {
-                return Err(RigBuildError::UnknownBackend { rig: spec.name.clone(), part, backend });
+                return Err(RigBuildError::UnknownBackend {
+                    rig: spec.name.clone(),
+                    part,
+                    backend,
+                });
             }
         }
         let built = Arc::new(sample.clone().build()?);

@@ -20,7 +20,11 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum PlanError {
     #[error("rig `{rig}` cannot measure any pair of sweep `{sweep}`: {reasons}. Widen the axis limits in the rig file or choose another sweep")]
-    Empty { rig: String, sweep: String, reasons: String },
+    Empty {
+        rig: String,
+        sweep: String,
+        reasons: String,
+    },
 }
 
 /// What to do with a pair the rig cannot measure as asked.
@@ -49,7 +53,10 @@ impl std::str::FromStr for Policy {
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum StepStatus {
     Measure,
-    Substitute { requested_light_deg: [f64; 2], reason: Infeasibility },
+    Substitute {
+        requested_light_deg: [f64; 2],
+        reason: Infeasibility,
+    },
 }
 
 /// One measurement in execution order.
@@ -117,12 +124,18 @@ pub struct PlanOptions {
 
 impl Default for PlanOptions {
     fn default() -> Self {
-        PlanOptions { policy: Policy::Skip, time_budget: Duration::from_secs(2), seed: 1 }
+        PlanOptions {
+            policy: Policy::Skip,
+            time_budget: Duration::from_secs(2),
+            seed: 1,
+        }
     }
 }
 
+/// Degrees, rounded to 1e-9° so that 30° does not print as 29.999999999999996°.
 fn deg(d: Direction) -> [f64; 2] {
-    [d.theta_deg(), d.phi_deg()]
+    let r = |x: f64| (x * 1e9).round() / 1e9;
+    [r(d.theta_deg()), r(d.phi_deg())]
 }
 
 /// Light directions tried in place of a blocked one, nearest first.
@@ -155,7 +168,11 @@ fn node_for(kin: &dyn Kinematics, light: Direction, view: Direction) -> Result<N
             q[i] = f64::NAN;
         }
     }
-    cands.dedup_by(|a, b| a.iter().zip(b.iter()).all(|(x, y)| x == y || (x.is_nan() && y.is_nan())));
+    cands.dedup_by(|a, b| {
+        a.iter()
+            .zip(b.iter())
+            .all(|(x, y)| x == y || (x.is_nan() && y.is_nan()))
+    });
     Ok(Node { candidates: cands })
 }
 
@@ -188,7 +205,10 @@ impl Plan {
                             info.push((
                                 pair,
                                 l,
-                                StepStatus::Substitute { requested_light_deg: deg(pair.light), reason },
+                                StepStatus::Substitute {
+                                    requested_light_deg: deg(pair.light),
+                                    reason,
+                                },
                             ));
                         }
                         None => skipped.push(Skipped {
@@ -209,20 +229,35 @@ impl Plan {
             return Err(PlanError::Empty {
                 rig: rig.name.clone(),
                 sweep: sweep.name.clone(),
-                reasons: counts.iter().map(|(k, v)| format!("{v} × {k}")).collect::<Vec<_>>().join(", "),
+                reasons: counts
+                    .iter()
+                    .map(|(k, v)| format!("{v} × {k}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
             });
         }
         let home = kin.home();
         let canonical = order::canonical(&nodes, &motions, &home);
-        let opt = order::optimize(&nodes, &motions, &home, &OrderOptions { time_budget: opts.time_budget, seed: opts.seed });
+        let opt = order::optimize(
+            &nodes,
+            &motions,
+            &home,
+            &OrderOptions {
+                time_budget: opts.time_budget,
+                seed: opts.seed,
+            },
+        );
         let bound = order::lower_bound(&nodes, &motions, &home);
         // Resolve the route into concrete axis targets (free axes stay where they are).
         let mut steps = Vec::with_capacity(nodes.len());
         let mut prev = home.clone();
         let mut t = 0.0;
         for (&ni, &ci) in opt.order.iter().zip(&opt.choice) {
-            let q: Vec<f64> =
-                nodes[ni].candidates[ci].iter().zip(&prev).map(|(&x, &p)| if x.is_nan() { p } else { x }).collect();
+            let q: Vec<f64> = nodes[ni].candidates[ci]
+                .iter()
+                .zip(&prev)
+                .map(|(&x, &p)| if x.is_nan() { p } else { x })
+                .collect();
             let dt = kinematics::transition_time(&motions, &prev, &q);
             t += dt;
             let (pair, light, status) = &info[ni];
@@ -262,7 +297,11 @@ impl Plan {
 
     /// Counts by outcome and skip reason, for summaries.
     pub fn counts(&self) -> PlanCounts {
-        let substituted = self.steps.iter().filter(|s| matches!(s.status, StepStatus::Substitute { .. })).count();
+        let substituted = self
+            .steps
+            .iter()
+            .filter(|s| matches!(s.status, StepStatus::Substitute { .. }))
+            .count();
         let mut reasons: BTreeMap<String, usize> = BTreeMap::new();
         for s in &self.skipped {
             *reasons.entry(reason_key(&s.reason)).or_default() += 1;
@@ -305,13 +344,25 @@ mod tests {
             Direction::from_degrees(30.0, 120.0),
             Direction::from_degrees(60.0, 240.0),
         ];
-        Sweep { name: "small".into(), lights: d.clone(), views: d }
+        Sweep {
+            name: "small".into(),
+            lights: d.clone(),
+            views: d,
+        }
     }
 
     #[test]
     fn default_rig_skips_exactly_the_retro_pairs_and_never_commands_them() {
         let rig = RigSpec::default_rig();
-        let plan = Plan::build(&rig, &small_sweep(), &PlanOptions { time_budget: Duration::from_millis(50), ..Default::default() }).unwrap();
+        let plan = Plan::build(
+            &rig,
+            &small_sweep(),
+            &PlanOptions {
+                time_budget: Duration::from_millis(50),
+                ..Default::default()
+            },
+        )
+        .unwrap();
         assert_eq!(plan.skipped.len(), 4);
         assert_eq!(plan.steps.len(), 12);
         let kin = kinematics::for_rig(&rig);
@@ -326,7 +377,12 @@ mod tests {
                 assert!(a.limits().contains(q[i]));
             }
         }
-        let mut idx: Vec<usize> = plan.steps.iter().map(|s| s.index).chain(plan.skipped.iter().map(|s| s.index)).collect();
+        let mut idx: Vec<usize> = plan
+            .steps
+            .iter()
+            .map(|s| s.index)
+            .chain(plan.skipped.iter().map(|s| s.index))
+            .collect();
         idx.sort();
         assert_eq!(idx, (0..16).collect::<Vec<_>>());
         assert!(plan.durations.optimized_s <= plan.durations.canonical_s + 1e-9);
@@ -339,13 +395,20 @@ mod tests {
         let plan = Plan::build(
             &rig,
             &small_sweep(),
-            &PlanOptions { policy: Policy::Substitute, time_budget: Duration::from_millis(50), seed: 1 },
+            &PlanOptions {
+                policy: Policy::Substitute,
+                time_budget: Duration::from_millis(50),
+                seed: 1,
+            },
         )
         .unwrap();
         assert_eq!(plan.skipped.len(), 0);
         assert_eq!(plan.counts().substituted, 4);
         for s in &plan.steps {
-            if let StepStatus::Substitute { requested_light_deg, .. } = s.status {
+            if let StepStatus::Substitute {
+                requested_light_deg, ..
+            } = s.status
+            {
                 let a = Direction::from_degrees(requested_light_deg[0], requested_light_deg[1]);
                 let b = Direction::from_degrees(s.light_deg[0], s.light_deg[1]);
                 assert!(a.angle_to(b).to_degrees() <= 10.0 + 1e-9);
@@ -355,10 +418,17 @@ mod tests {
 
     #[test]
     fn limits_that_empty_the_sweep_are_an_error() {
-        let text = gonio_devices::rig::DEFAULT_RIG_TOML.replace("min_deg = -80.0\nmax_deg = 80.0", "min_deg = 0.0\nmax_deg = 1.0");
+        let text = gonio_devices::rig::DEFAULT_RIG_TOML
+            .replace("min_deg = -80.0\nmax_deg = 80.0", "min_deg = 0.0\nmax_deg = 1.0");
         let rig = RigSpec::parse(&text, "narrow.toml").unwrap();
-        let sweep = Sweep { name: "s".into(), lights: vec![Direction::from_degrees(45.0, 0.0)], views: vec![Direction::from_degrees(45.0, 90.0)] };
-        let e = Plan::build(&rig, &sweep, &PlanOptions::default()).unwrap_err().to_string();
+        let sweep = Sweep {
+            name: "s".into(),
+            lights: vec![Direction::from_degrees(45.0, 0.0)],
+            views: vec![Direction::from_degrees(45.0, 90.0)],
+        };
+        let e = Plan::build(&rig, &sweep, &PlanOptions::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("out_of_limits") && e.contains("Widen"), "{e}");
     }
 }

@@ -17,10 +17,11 @@
 //! # How [`optimize`] works (and why)
 //!
 //! 1. **Spatial index.** Transition time is `max_i f_i(|Δ_i|)` with every `f_i` monotone,
-//!    so "all configurations within time `T`" is an axis-aligned box whose half-widths are
-//!    the distances each axis covers in `T` ([`reach`]). A uniform grid over candidate
-//!    configurations (one grid per pattern of free axes) answers such range queries exactly;
-//!    the cell size is chosen so that a cell holds about two candidates.
+//!    so "all configurations within time `T`" is exactly an axis-aligned box whose
+//!    half-widths are the distances each axis covers in `T` ([`reach`]). A uniform grid
+//!    over candidate configurations (one grid per pattern of free axes) answers such range
+//!    queries exactly; they give every node its 10 nearest nodes under the node metric
+//!    `d(u, v) = min over candidate pairs` and drive the construction.
 //! 2. **Construction: nearest neighbour** in true transition time from the *resolved*
 //!    current configuration (exact also for free axes), ties broken by the sum of per-axis
 //!    move times, which prefers moves of few axes and so yields the boustrophedon sweeps a
@@ -29,38 +30,42 @@
 //!    candidate per node is a shortest path through a layered graph — exact in
 //!    `O(N·K²)`. Free axes make the resolved configuration depend on the predecessor, so
 //!    the DP state is the *resolved* configuration (deduplicated; see [`dp_choices`]).
-//! 4. **Local search** on the order with the candidates fixed: 2-opt and Or-opt (segments
-//!    of 1–3 nodes, both orientations; a single moved node may also switch candidate),
-//!    restricted to the 10 nearest nodes by the node metric `d(u, v) = min over candidate
-//!    pairs` (neighbour lists keep 2-opt tractable on thousands of nodes), driven by a
-//!    work queue ("don't-look bits"). 2-opt reverses a segment and therefore relies on
-//!    symmetric transition times, which [`MotionModel::move_time`] guarantees (it depends
-//!    on `|distance|` only); the DP and [`route_time`] do not rely on symmetry.
+//! 4. **Local search** on the order: 2-opt and Or-opt (segments of 1–3 nodes, both
+//!    orientations; a single moved node may also switch candidate), plus a per-node
+//!    candidate switch, restricted to the neighbour lists (which keeps 2-opt tractable on
+//!    thousands of nodes) and driven by a work queue ("don't-look bits"). 2-opt reverses
+//!    a segment and therefore relies on symmetric transition times, which
+//!    [`MotionModel::move_time`] guarantees (it depends on `|distance|` only); the DP and
+//!    [`route_time`] do not rely on symmetry.
 //! 5. **Iterated local search** until the time budget is spent: a local double-bridge kick
-//!    (two adjacent short segments swapped — a move 2-opt and Or-opt cannot undo in one
-//!    step), local search around it, keep if not worse, otherwise roll back the touched
-//!    range. Every so often the DP re-optimizes all candidate choices for the current order
-//!    and the best route by exact time is kept.
+//!    (two adjacent segments of up to 30 nodes swapped — a move 2-opt and Or-opt cannot
+//!    undo in one step), local search around it, keep if the exact time is not worse,
+//!    otherwise roll back the touched range. Every `max(64, N/8)` kicks the DP
+//!    re-optimizes all candidate choices for the current order; the best route by exact
+//!    time is returned.
 //!
 //! The construction, the first DP and the first full descent do not look at the clock, so
 //! a (near-)zero budget gives a deterministic result; the seed only drives the kicks.
 //!
-//! Inside local search, free axes are treated as wildcards (they cost nothing on either
-//! side of a transition). That is a lower bound on the exact cost and equal to it without
-//! free axes; the exact cost is restored by every DP checkpoint, and only exact costs
-//! decide which route is returned.
+//! **Free axes in local search.** Every node remembers where its predecessor left the
+//! axes (`inh`), refreshed after every applied move, so the cost of each edge of the
+//! current route is exact. Candidate moves are *estimated* from their changed edges; that
+//! estimate is exact unless a node with free axes is involved (whose resolution changes
+//! with its new predecessor). Moves near such nodes are therefore checked against the
+//! exact cost of every affected edge before they are kept, and kicks are accepted on exact
+//! cost — without that, search happily parks free-axis nodes where the estimate is
+//! wrong.
 //!
 //! # Lower bound
 //!
-//! See [`lower_bound`]: the larger of a "every node is entered once" bound and a
-//! Held–Karp (Lagrangian 1-tree) bound on the node metric, the latter made provable by
-//! computing the spanning tree on a graph that provably contains every edge below a
-//! threshold.
+//! See [`lower_bound`]: the larger of an "every node is entered once" bound and a
+//! Held–Karp (Lagrangian 1-tree) bound on the node metric, the latter made provable by a
+//! spanning-tree bound that accounts for every edge missing from the sparse graph.
 
 use gonio_devices::kinematics::transition_time;
 use gonio_devices::MotionModel;
 use rayon::prelude::*;
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::ops::Range;
 use std::time::{Duration, Instant};
 
@@ -98,7 +103,10 @@ pub struct OrderOptions {
 
 impl Default for OrderOptions {
     fn default() -> Self {
-        OrderOptions { time_budget: Duration::from_secs(2), seed: 0 }
+        OrderOptions {
+            time_budget: Duration::from_secs(2),
+            seed: 0,
+        }
     }
 }
 
@@ -109,6 +117,16 @@ const EPS: f64 = 1e-9;
 const MAX_AXES: usize = 16;
 /// Size of the neighbour lists used by 2-opt / Or-opt.
 const NEIGHBOURS: usize = 10;
+/// Size of the neighbour lists of the Held–Karp bound (larger lists: fewer edges whose
+/// absence must be paid for in the bound).
+const LB_NEIGHBOURS: usize = 16;
+/// Subgradient iterations of the Held–Karp bound.
+const HK_ITERATIONS: usize = 100;
+/// Largest spread of the Held–Karp node weights. The bound is valid for any weights, but
+/// an edge missing from the sparse graph can only be charged `radius + π_u + min π`; with
+/// a wide spread that charge falls far below the edge's true weight and the bound drops
+/// (measured on the Bonn sweep: spread 0.15 s gives the best bound).
+const HK_SPREAD: f64 = 0.15;
 /// Cap on DP states per layer; only reachable with long runs of nodes whose free axes
 /// inherit many distinct values (never on the two-arm rig, whose only free axes are the
 /// light base at the light pole).
@@ -127,15 +145,19 @@ const DP_STATE_CAP: usize = 256;
 /// # Panics
 /// If `order` and `choice` differ in length, an index is out of range, or a configuration
 /// has a different number of axes than `motions`.
-pub fn route_time(
-    nodes: &[Node],
-    motions: &[MotionModel],
-    start: &[f64],
-    order: &[usize],
-    choice: &[usize],
-) -> f64 {
-    assert_eq!(order.len(), choice.len(), "route_time: one candidate choice per position of the order");
-    assert_eq!(start.len(), motions.len(), "route_time: start has {} axes, motions {}", start.len(), motions.len());
+pub fn route_time(nodes: &[Node], motions: &[MotionModel], start: &[f64], order: &[usize], choice: &[usize]) -> f64 {
+    assert_eq!(
+        order.len(),
+        choice.len(),
+        "route_time: one candidate choice per position of the order"
+    );
+    assert_eq!(
+        start.len(),
+        motions.len(),
+        "route_time: start has {} axes, motions {}",
+        start.len(),
+        motions.len()
+    );
     let mut cur = start.to_vec();
     let mut next = vec![0.0; cur.len()];
     let mut total = 0.0;
@@ -164,7 +186,12 @@ pub fn canonical(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> Rout
         for (ci, q) in node.candidates.iter().enumerate() {
             resolve_into(q, &cur, &mut next);
             let t = transition_time(motions, &cur, &next);
-            let travel: f64 = cur.iter().zip(&next).map(|(a, b)| (b - a).abs()).filter(|x| !x.is_nan()).sum();
+            let travel: f64 = cur
+                .iter()
+                .zip(&next)
+                .map(|(a, b)| (b - a).abs())
+                .filter(|x| !x.is_nan())
+                .sum();
             if (t, travel) < (best.0, best.1) {
                 best = (t, travel, ci);
             }
@@ -175,14 +202,19 @@ pub fn canonical(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> Rout
     }
     let order: Vec<usize> = (0..nodes.len()).collect();
     let motion_time = route_time(nodes, motions, start, &order, &choice);
-    Route { order, choice, motion_time }
+    Route {
+        order,
+        choice,
+        motion_time,
+    }
 }
 
 /// A route with small motion time (see the module documentation for the method).
 ///
 /// Tiny instances are solved exactly: without free axes by a Held–Karp subset DP over
 /// (visited set, last candidate) when `2^N·C² ≤ 4·10⁷` (C = total candidates), with free
-/// axes by enumerating all orders for `N ≤ 8` (each with the exact candidate DP).
+/// axes by enumerating all orders for `N ≤ 8` (each with the exact candidate DP) when
+/// `N!·C²/N ≤ 2·10⁷`.
 /// Everything else goes through the heuristic, which spends about `opts.time_budget`
 /// beyond its mandatory first descent.
 ///
@@ -192,11 +224,15 @@ pub fn optimize(nodes: &[Node], motions: &[MotionModel], start: &[f64], opts: &O
     let deadline = Instant::now() + opts.time_budget;
     let p = Problem::new(nodes, motions, start);
     if p.n == 0 {
-        return Route { order: vec![], choice: vec![], motion_time: 0.0 };
+        return Route {
+            order: vec![],
+            choice: vec![],
+            motion_time: 0.0,
+        };
     }
     let (order, sel) = match exact_small(&p) {
         Some(r) => r,
-        None => heuristic(&p, opts.seed, deadline),
+        None => heuristic(&p, opts.seed, deadline, usize::MAX),
     };
     p.route(nodes, &order, &sel)
 }
@@ -211,28 +247,33 @@ pub fn optimize(nodes: &[Node], motions: &[MotionModel], start: &[f64], opts: &O
 /// Hence a route costs at least the weight of its node path under `d`, and any lower bound
 /// on the cheapest Hamiltonian path from `start` under `d` is a lower bound on routes.
 /// Two such bounds are computed and the larger is returned (minus `1e-9·(1 + bound)` for
-/// floating-point safety):
+/// floating-point safety). Cost: about a second for 6500 nodes.
 ///
 /// * **Entering bound.** Each node is entered exactly once, from `start` or another node:
 ///   `Σ_v min(d(start, v), min_{u≠v} d(u, v))`.
 /// * **Held–Karp bound.** Close the path `start → v₁ → … → v_N` into a cycle with an extra
 ///   node `z` joined to `start` and to `v_N` at cost 0. For any node weights `π` (with
-///   `π_z = 0`) and `d'(u, v) = d(u, v) + π_u + π_v`, the cycle costs
-///   `route + 2Σπ` under `d'` (every node has degree 2). Without `z` it is a spanning tree
-///   of `{start} ∪ nodes`, and the two `z` edges cost `π_start + π_{v_N} ≥ π_start +
-///   min_v π_v`. So `route ≥ MST_{d'} + π_start + min_v π_v − 2Σπ` for **every** `π`;
-///   subgradient ascent on `π` (degrees pushed toward 2) makes it tight. The MST of the
-///   complete graph is never materialized: with a threshold `τ`, all pairs with
-///   `d' ≤ τ` are collected by exact range queries (a pair with `d' ≤ τ` has
-///   `d(u, v) ≤ τ − π_u − min π`), Kruskal on them gives exactly the forest the complete
-///   graph's Kruskal has after all edges `≤ τ`, and each of the `c − 1` edges still needed
-///   to join its `c` components costs more than `τ`: `MST_{d'} ≥ w(forest) + (c − 1)·τ`.
-///   The subgradient steps themselves run on a sparse 10-nearest-neighbour graph (cheap);
-///   only the final evaluation uses the exact threshold argument.
+///   `π_z = 0`) and `d'(u, v) = d(u, v) + π_u + π_v`, the cycle costs `route + 2Σπ` under
+///   `d'` (every node has degree 2). Without `z` it is a spanning tree of
+///   `{start} ∪ nodes`, and the two `z` edges cost `π_start + π_{v_N} ≥ π_start +
+///   min_v π_v`. So `route ≥ MST_{d'} + π_start + min_v π_v − 2Σπ` for **every** `π`, and
+///   subgradient ascent on `π` (degrees pushed toward 2) tightens it.
 ///
-/// Note why the bound is not simply "N × smallest move": in a dense sweep most transitions
-/// cost one settle time plus a short move of a single axis, and how short depends on the
-/// ring; the bounds above take the actual nearest neighbours of every node into account.
+///   The MST of the complete graph is never built. The sparse graph holds every node's 16
+///   nearest nodes (exact range queries) and all edges from `start`; an edge missing from
+///   it is longer than the list radius of *both* its ends, so under `d'` it weighs at
+///   least `θ_u = radius_u + π_u + min π` for each end `u`. [`mst_bound`] turns this into
+///   a lower bound on the complete graph's MST: a Kruskal sweep in which components that
+///   contain a node whose `θ` has passed may already be merged by unseen edges. At `π = 0`
+///   the result is within a few seconds of the exact MST. A wide spread of `π` lowers
+///   `min π` and with it every `θ`, so the weights are kept within a spread of
+///   [`HK_SPREAD`]; the bound is valid for any `π`, restricting them only limits the gain.
+///
+/// On the full Bonn sweep of the default rig the bound is ~1 % below the best route found,
+/// which also shows what cannot be gained by any ordering. A bound like "N × the smallest
+/// move" would be useless here (a third of the real value): in a dense sweep most
+/// transitions cost one settle time plus a short move, but how short depends on each
+/// node's ring, which the nearest-neighbour based bounds above see.
 ///
 /// # Panics
 /// If a node has no candidate or a configuration has the wrong number of axes.
@@ -243,17 +284,28 @@ pub fn lower_bound(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> f6
         return 0.0;
     }
     let ds: Vec<f64> = (0..n)
-        .map(|v| p.cands(v).map(|c| lb_cost(p.m, &p.start, p.q(c))).fold(f64::INFINITY, f64::min))
+        .map(|v| {
+            p.cands(v)
+                .map(|c| lb_cost(&p.fm, &p.start, p.q(c)))
+                .fold(f64::INFINITY, f64::min)
+        })
         .collect();
     let bound = if n == 1 {
         ds[0]
     } else {
+        let clock = Instant::now();
         let idx = Index::build(&p);
-        let knn = node_knn(&p, &idx, NEIGHBOURS);
+        let knn = node_knn(&p, &idx, LB_NEIGHBOURS);
         let entering: f64 = (0..n).map(|v| ds[v].min(knn[v][0].1)).sum();
-        let order = nearest_neighbour(&p, idx.clone());
+        let order = nearest_neighbour(&p, idx);
         let ub = dp_choices(&p, &order).1;
-        entering.max(held_karp(&p, &idx, &knn, &ds, ub))
+        let t_prep = clock.elapsed().as_secs_f64();
+        let hk = held_karp(&knn, &ds, ub, LB_NEIGHBOURS);
+        tracing::debug!(
+            "lower bound: entering {entering:.1} s, Held-Karp {hk:.1} s, route {ub:.1} s; {t_prep:.3} s + {:.3} s",
+            clock.elapsed().as_secs_f64() - t_prep
+        );
+        entering.max(hk)
     };
     (bound - 1e-9 * (1.0 + bound.abs())).max(0.0)
 }
@@ -262,10 +314,61 @@ pub fn lower_bound(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> f6
 // Costs
 // ---------------------------------------------------------------------------------------
 
+/// [`MotionModel::move_time`] with its constants precomputed, inlinable in the hot loops
+/// (the devices crate's function is not inlined across crates). Same operations in the
+/// same order, hence bit-identical results (checked by a test), so DP totals equal
+/// [`route_time`] exactly.
+#[derive(Clone, Copy, Debug)]
+struct Fast {
+    v: f64,
+    a: f64,
+    v2a: f64,
+    va: f64,
+    jerk: Option<f64>,
+    settle: f64,
+    deadband: f64,
+}
+
+impl Fast {
+    fn new(m: &MotionModel) -> Self {
+        let (v, a) = (m.max_velocity, m.acceleration);
+        let jerk = match m.jerk {
+            Some(j) if j > 0.0 && j.is_finite() => Some(a / j),
+            _ => None,
+        };
+        Fast {
+            v,
+            a,
+            v2a: v * v / a,
+            va: v / a,
+            jerk,
+            settle: m.settle_time,
+            deadband: m.deadband,
+        }
+    }
+    #[inline(always)]
+    fn move_time(&self, distance: f64) -> f64 {
+        let d = distance.abs();
+        if d <= self.deadband {
+            return 0.0;
+        }
+        let base = if d < self.v2a {
+            2.0 * (d / self.a).sqrt()
+        } else {
+            d / self.v + self.va
+        };
+        let profile = match self.jerk {
+            Some(aj) => base + aj,
+            None => base,
+        };
+        profile + self.settle
+    }
+}
+
 /// Transition time with free (NaN) axes costing nothing; equal to [`transition_time`]
 /// when neither side has NaN, and never larger than the exact time after resolution.
 #[inline]
-fn lb_cost(m: &[MotionModel], a: &[f64], b: &[f64]) -> f64 {
+fn lb_cost(m: &[Fast], a: &[f64], b: &[f64]) -> f64 {
     let mut t = 0.0f64;
     for ((mm, x), y) in m.iter().zip(a).zip(b) {
         let dl = y - x;
@@ -281,7 +384,7 @@ fn lb_cost(m: &[MotionModel], a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// Tie-break key: sum of the per-axis move times (prefers moving few axes).
-fn travel_key(m: &[MotionModel], a: &[f64], b: &[f64]) -> f64 {
+fn travel_key(m: &[Fast], a: &[f64], b: &[f64]) -> f64 {
     m.iter()
         .zip(a.iter().zip(b))
         .map(|(mm, (x, y))| if (y - x).is_nan() { 0.0 } else { mm.move_time(y - x) })
@@ -290,7 +393,13 @@ fn travel_key(m: &[MotionModel], a: &[f64], b: &[f64]) -> f64 {
 
 /// `q` with its NaN entries replaced by `prev` (the free axis stays where it is).
 fn resolve_into(q: &[f64], prev: &[f64], out: &mut [f64]) {
-    assert_eq!(q.len(), prev.len(), "configuration has {} axes, expected {}", q.len(), prev.len());
+    assert_eq!(
+        q.len(),
+        prev.len(),
+        "configuration has {} axes, expected {}",
+        q.len(),
+        prev.len()
+    );
     for ((o, &x), &p) in out.iter_mut().zip(q).zip(prev) {
         *o = if x.is_nan() { p } else { x };
     }
@@ -321,12 +430,24 @@ fn reach(m: &MotionModel, t: f64) -> f64 {
 }
 
 fn check_inputs(nodes: &[Node], motions: &[MotionModel], start: &[f64]) {
-    assert_eq!(start.len(), motions.len(), "start has {} axes, motions {}", start.len(), motions.len());
+    assert_eq!(
+        start.len(),
+        motions.len(),
+        "start has {} axes, motions {}",
+        start.len(),
+        motions.len()
+    );
     assert!(motions.len() <= MAX_AXES, "at most {MAX_AXES} axes are supported");
     for (i, node) in nodes.iter().enumerate() {
         assert!(!node.candidates.is_empty(), "node {i} has no candidate configuration");
         for q in &node.candidates {
-            assert_eq!(q.len(), motions.len(), "node {i}: a candidate has {} axes, expected {}", q.len(), motions.len());
+            assert_eq!(
+                q.len(),
+                motions.len(),
+                "node {i}: a candidate has {} axes, expected {}",
+                q.len(),
+                motions.len()
+            );
         }
     }
 }
@@ -334,6 +455,7 @@ fn check_inputs(nodes: &[Node], motions: &[MotionModel], start: &[f64]) {
 /// Flattened problem: all candidates in one array, nodes as ranges into it.
 struct Problem<'m> {
     m: &'m [MotionModel],
+    fm: Vec<Fast>,
     d: usize,
     n: usize,
     start: Vec<f64>,
@@ -361,7 +483,17 @@ impl<'m> Problem<'m> {
         }
         first.push(cand_node.len() as u32);
         assert!(cand_node.len() < u32::MAX as usize - 2, "too many candidates");
-        Problem { m, d, n: nodes.len(), start: start.to_vec(), cfg, cand_node, first, nan }
+        Problem {
+            m,
+            fm: m.iter().map(Fast::new).collect(),
+            d,
+            n: nodes.len(),
+            start: start.to_vec(),
+            cfg,
+            cand_node,
+            first,
+            nan,
+        }
     }
     #[inline]
     fn q(&self, c: usize) -> &[f64] {
@@ -377,10 +509,17 @@ impl<'m> Problem<'m> {
     /// Public route from an order and global candidate ids; the time is [`route_time`]'s.
     fn route(&self, nodes: &[Node], order: &[u32], sel: &[u32]) -> Route {
         let order_u: Vec<usize> = order.iter().map(|&v| v as usize).collect();
-        let choice: Vec<usize> =
-            order.iter().zip(sel).map(|(&v, &c)| c as usize - self.first[v as usize] as usize).collect();
+        let choice: Vec<usize> = order
+            .iter()
+            .zip(sel)
+            .map(|(&v, &c)| c as usize - self.first[v as usize] as usize)
+            .collect();
         let motion_time = route_time(nodes, self.m, &self.start, &order_u, &choice);
-        Route { order: order_u, choice, motion_time }
+        Route {
+            order: order_u,
+            choice,
+            motion_time,
+        }
     }
 }
 
@@ -451,7 +590,10 @@ impl Index {
             // Cell size: the time radius at which the grid has about one cell per two items.
             let target = (members.len() as f64 / 2.0).max(1.0);
             let cells_at = |t: f64| -> f64 {
-                axes.iter().enumerate().map(|(k, &a)| ((hi[k] - lo[k]) / reach(&p.m[a], t)).floor() + 1.0).product()
+                axes.iter()
+                    .enumerate()
+                    .map(|(k, &a)| ((hi[k] - lo[k]) / reach(&p.m[a], t)).floor() + 1.0)
+                    .product()
             };
             let (mut ta, mut tb) = (1e-9f64, 1e9f64);
             for _ in 0..100 {
@@ -463,8 +605,9 @@ impl Index {
                 }
             }
             let w: Vec<f64> = axes.iter().map(|&a| reach(&p.m[a], tb)).collect();
-            let dims: Vec<usize> =
-                (0..nd).map(|k| (((hi[k] - lo[k]) / w[k]).floor() as usize).saturating_add(1)).collect();
+            let dims: Vec<usize> = (0..nd)
+                .map(|k| (((hi[k] - lo[k]) / w[k]).floor() as usize).saturating_add(1))
+                .collect();
             let mut stride = vec![1usize; nd];
             for k in 1..nd {
                 stride[k] = stride[k - 1] * dims[k - 1];
@@ -487,7 +630,11 @@ impl Index {
             };
             let cell_of = |g: &Grid, c: u32| -> usize {
                 let q = p.q(c as usize);
-                g.axes.iter().enumerate().map(|(k, &a)| g.coord(k, q[a]) * g.stride[k]).sum()
+                g.axes
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &a)| g.coord(k, q[a]) * g.stride[k])
+                    .sum()
             };
             for &c in &members {
                 let cell = cell_of(&g, c);
@@ -539,7 +686,7 @@ impl Index {
                 let s = g.start[cell] as usize;
                 for &it in &g.items[s..s + g.live[cell] as usize] {
                     let c = it as usize;
-                    let cost = lb_cost(p.m, q, p.q(c));
+                    let cost = lb_cost(&p.fm, q, p.q(c));
                     if cost <= t {
                         f(c, cost);
                     }
@@ -602,7 +749,7 @@ fn node_knn(p: &Problem, idx: &Index, k: usize) -> Vec<Vec<(u32, f64)>> {
                     found.truncate(k);
                     return found;
                 }
-                t *= 1.5;
+                t *= 1.2;
             }
         })
         .collect()
@@ -623,8 +770,9 @@ fn nearest_neighbour(p: &Problem, mut idx: Index) -> Vec<u32> {
         let best = loop {
             let mut best: Option<(f64, f64, usize)> = None;
             idx.within(p, &cur, radius, &mut |c, cost| {
+                // (`Option::is_none_or` needs Rust 1.82; the workspace supports 1.80.)
                 if best.is_none_or(|b| cost <= b.0) {
-                    let key = (cost, travel_key(p.m, &cur, p.q(c)), c);
+                    let key = (cost, travel_key(&p.fm, &cur, p.q(c)), c);
                     if best.is_none_or(|b| key < b) {
                         best = Some(key);
                     }
@@ -652,8 +800,10 @@ fn nearest_neighbour(p: &Problem, mut idx: Index) -> Vec<u32> {
 /// A candidate without free axes is one DP state. A candidate with free axes resolves to
 /// a different configuration for each predecessor state, so it becomes one state per
 /// distinct resolved configuration (deduplicated bit-exactly; the inherited values come
-/// from a finite set, so this stays small). Returns the global candidate ids per position
-/// and the exact motion time (the same sum, in the same order, as [`route_time`]).
+/// from a finite set, so this stays small — beyond [`DP_STATE_CAP`] states a layer keeps
+/// the cheapest, the only case in which the DP is not exact). Returns the global
+/// candidate ids per position and the exact motion time (the same sum, in the same order,
+/// as [`route_time`]).
 fn dp_choices(p: &Problem, order: &[u32]) -> (Vec<u32>, f64) {
     let d = p.d;
     let mut prev_cfg = p.start.clone();
@@ -674,7 +824,7 @@ fn dp_choices(p: &Problem, order: &[u32]) -> (Vec<u32>, f64) {
             if !p.nan[c] {
                 let mut best = (f64::INFINITY, 0usize);
                 for s in 0..ns {
-                    let val = prev_cost[s] + lb_cost(p.m, &prev_cfg[s * d..(s + 1) * d], q);
+                    let val = prev_cost[s] + lb_cost(&p.fm, &prev_cfg[s * d..(s + 1) * d], q);
                     if val < best.0 {
                         best = (val, s);
                     }
@@ -687,9 +837,12 @@ fn dp_choices(p: &Problem, order: &[u32]) -> (Vec<u32>, f64) {
                 for s in 0..ns {
                     let pc = &prev_cfg[s * d..(s + 1) * d];
                     resolve_into(q, pc, &mut tmp);
-                    let val = prev_cost[s] + lb_cost(p.m, pc, &tmp);
+                    let val = prev_cost[s] + lb_cost(&p.fm, pc, &tmp);
                     let same = (first_state..cur_cost.len()).find(|&j| {
-                        cur_cfg[j * d..(j + 1) * d].iter().zip(&tmp).all(|(a, b)| a.to_bits() == b.to_bits())
+                        cur_cfg[j * d..(j + 1) * d]
+                            .iter()
+                            .zip(&tmp)
+                            .all(|(a, b)| a.to_bits() == b.to_bits())
                     });
                     match same {
                         Some(j) => {
@@ -712,7 +865,10 @@ fn dp_choices(p: &Problem, order: &[u32]) -> (Vec<u32>, f64) {
             keep.sort_by(|&a, &b| cur_cost[a].total_cmp(&cur_cost[b]).then(a.cmp(&b)));
             keep.truncate(DP_STATE_CAP);
             keep.sort_unstable();
-            let cfg2: Vec<f64> = keep.iter().flat_map(|&j| cur_cfg[j * d..(j + 1) * d].iter().copied()).collect();
+            let cfg2: Vec<f64> = keep
+                .iter()
+                .flat_map(|&j| cur_cfg[j * d..(j + 1) * d].iter().copied())
+                .collect();
             let cost2: Vec<f64> = keep.iter().map(|&j| cur_cost[j]).collect();
             let back2: Vec<(u32, u32)> = keep.iter().map(|&j| cur_back[j]).collect();
             cur_cfg = cfg2;
@@ -724,8 +880,10 @@ fn dp_choices(p: &Problem, order: &[u32]) -> (Vec<u32>, f64) {
         std::mem::swap(&mut prev_cfg, &mut cur_cfg);
         std::mem::swap(&mut prev_cost, &mut cur_cost);
     }
-    let (mut s, total) =
-        prev_cost.iter().enumerate().fold((0usize, f64::INFINITY), |b, (i, &c)| if c < b.1 { (i, c) } else { b });
+    let (mut s, total) = prev_cost
+        .iter()
+        .enumerate()
+        .fold((0usize, f64::INFINITY), |b, (i, &c)| if c < b.1 { (i, c) } else { b });
     let mut sel = vec![0u32; order.len()];
     for pos in (0..order.len()).rev() {
         let (ps, c) = back[back_off[pos] + s];
@@ -740,7 +898,8 @@ fn exact_small(p: &Problem) -> Option<(Vec<u32>, Vec<u32>)> {
     let n = p.n;
     let nc = p.nc();
     if p.nan.iter().any(|&b| b) {
-        if n > 8 {
+        // n! orders, each a DP of about C²/n transitions.
+        if n > 8 || (1..=n).product::<usize>().saturating_mul(nc * nc / n) > 20_000_000 {
             return None;
         }
         // All orders (Heap's algorithm), each with the exact candidate DP.
@@ -777,7 +936,7 @@ fn exact_small(p: &Problem) -> Option<(Vec<u32>, Vec<u32>)> {
     let mut dp = vec![f64::INFINITY; (full + 1) * nc];
     let mut par = vec![u32::MAX; (full + 1) * nc];
     for c in 0..nc {
-        dp[(1usize << p.cand_node[c]) * nc + c] = lb_cost(p.m, &p.start, p.q(c));
+        dp[(1usize << p.cand_node[c]) * nc + c] = lb_cost(&p.fm, &p.start, p.q(c));
     }
     for mask in 1..=full {
         for c in 0..nc {
@@ -790,7 +949,7 @@ fn exact_small(p: &Problem) -> Option<(Vec<u32>, Vec<u32>)> {
                 if mask & bit != 0 {
                     continue;
                 }
-                let val = cur + lb_cost(p.m, p.q(c), p.q(c2));
+                let val = cur + lb_cost(&p.fm, p.q(c), p.q(c2));
                 let j = (mask | bit) * nc + c2;
                 if val < dp[j] {
                     dp[j] = val;
@@ -843,7 +1002,7 @@ fn resolved(q: &[f64], prev: &[f64]) -> [f64; MAX_AXES] {
 /// Exact cost of leaving candidate `a` (whose free axes sit at `inh`, where its
 /// predecessor left them) for candidate `b` (whose free axes stay: cost 0).
 #[inline]
-fn out_cost(m: &[MotionModel], a: &[f64], inh: &[f64], b: &[f64]) -> f64 {
+fn out_cost(m: &[Fast], a: &[f64], inh: &[f64], b: &[f64]) -> f64 {
     let mut t = 0.0f64;
     for (k, mm) in m.iter().enumerate() {
         let x = if a[k].is_nan() { inh[k] } else { a[k] };
@@ -882,9 +1041,9 @@ impl RouteState {
         let d = p.d;
         let q = p.q(self.sel[b] as usize);
         if a == p.n {
-            lb_cost(p.m, &p.start, q)
+            lb_cost(&p.fm, &p.start, q)
         } else {
-            out_cost(p.m, p.q(self.sel[a] as usize), &self.inh[a * d..(a + 1) * d], q)
+            out_cost(&p.fm, p.q(self.sel[a] as usize), &self.inh[a * d..(a + 1) * d], q)
         }
     }
 }
@@ -892,12 +1051,15 @@ impl RouteState {
 /// Local-search state (see [`RouteState`]).
 struct Ls<'a, 'm> {
     p: &'a Problem<'m>,
-    nb: &'a [Vec<u32>],
+    nb: &'a [Vec<(u32, f64)>],
     n: usize,
     d: usize,
     r: RouteState,
     /// Exact motion time of `r` (maintained by the iterated local search).
     exact: f64,
+    /// Positions of nodes whose chosen candidate has free axes (few): moves that touch
+    /// none of them are evaluated exactly by their changed edges alone.
+    free_pos: BTreeSet<u32>,
     queue: VecDeque<u32>,
     inq: Vec<bool>,
     dlo: usize,
@@ -905,7 +1067,7 @@ struct Ls<'a, 'm> {
 }
 
 impl<'a, 'm> Ls<'a, 'm> {
-    fn new(p: &'a Problem<'m>, nb: &'a [Vec<u32>], order: &[u32], sel_pos: &[u32]) -> Self {
+    fn new(p: &'a Problem<'m>, nb: &'a [Vec<(u32, f64)>], order: &[u32], sel_pos: &[u32]) -> Self {
         let n = p.n;
         let mut t = Vec::with_capacity(n + 2);
         t.push(n as u32);
@@ -919,7 +1081,12 @@ impl<'a, 'm> Ls<'a, 'm> {
         for (&v, &c) in order.iter().zip(sel_pos) {
             sel[v as usize] = c;
         }
-        let r = RouteState { t, pos, sel, inh: vec![0.0; (n + 2) * p.d] };
+        let r = RouteState {
+            t,
+            pos,
+            sel,
+            inh: vec![0.0; (n + 2) * p.d],
+        };
         let mut ls = Ls {
             p,
             nb,
@@ -927,6 +1094,7 @@ impl<'a, 'm> Ls<'a, 'm> {
             d: p.d,
             r,
             exact: 0.0,
+            free_pos: BTreeSet::new(),
             queue: VecDeque::new(),
             inq: vec![false; n + 2],
             dlo: usize::MAX,
@@ -965,7 +1133,7 @@ impl<'a, 'm> Ls<'a, 'm> {
         if b as usize == self.n + 1 {
             0.0
         } else {
-            out_cost(self.p.m, self.cfg(a), self.inh(a), self.cfg(b))
+            out_cost(&self.p.fm, self.cfg(a), self.inh(a), self.cfg(b))
         }
     }
     /// Cost of `pp → seg… → qq` with free axes inherited along this new path (exact for
@@ -976,11 +1144,11 @@ impl<'a, 'm> Ls<'a, 'm> {
         let mut cost = 0.0;
         for &x in seg {
             let q = self.cfg(x);
-            cost += lb_cost(self.p.m, &cur[..d], q);
+            cost += lb_cost(&self.p.fm, &cur[..d], q);
             cur = resolved(q, &cur[..d]);
         }
         if qq as usize != self.n + 1 {
-            cost += lb_cost(self.p.m, &cur[..d], self.cfg(qq));
+            cost += lb_cost(&self.p.fm, &cur[..d], self.cfg(qq));
         }
         cost
     }
@@ -1001,6 +1169,7 @@ impl<'a, 'm> Ls<'a, 'm> {
         for i in lo..=hi {
             self.r.pos[self.r.t[i] as usize] = i as u32;
         }
+        self.refresh_free(lo, hi);
         let d = self.d;
         let mut cur = self.out(self.r.t[lo - 1]);
         let mut i = lo;
@@ -1016,6 +1185,52 @@ impl<'a, 'm> Ls<'a, 'm> {
         }
         self.dlo = self.dlo.min(lo);
         self.dhi = self.dhi.max(i.min(self.n)).max(hi);
+    }
+    fn refresh_free(&mut self, lo: usize, hi: usize) {
+        let stale: Vec<u32> = self.free_pos.range(lo as u32..=hi as u32).copied().collect();
+        for i in stale {
+            self.free_pos.remove(&i);
+        }
+        for i in lo..=hi {
+            if self.is_free(self.r.t[i]) {
+                self.free_pos.insert(i as u32);
+            }
+        }
+    }
+    fn has_free(&self, lo: usize, hi: usize) -> bool {
+        self.free_pos.range(lo as u32..=hi as u32).next().is_some()
+    }
+    /// Exact cost of every edge that a change of positions `lo..=hi` can affect: the
+    /// edges into `lo..=j`, `j` the first position after `hi` without free axes.
+    fn window_cost(&self, lo: usize, hi: usize) -> f64 {
+        let mut j = hi + 1;
+        while j <= self.n && self.is_free(self.r.t[j]) {
+            j += 1;
+        }
+        (lo..=j.min(self.n + 1)).map(|i| self.r.edge(self.p, i)).sum()
+    }
+    /// Apply a move that changes positions `lo..=hi` (`apply` must call `touched`). If
+    /// nodes with free axes are nearby, the move's estimated gain may be off, so the exact
+    /// cost of the affected edges is compared and the move undone unless it improves.
+    /// Every committed move therefore lowers the exact cost, so local search terminates.
+    fn commit(&mut self, lo: usize, hi: usize, apply: impl FnOnce(&mut Self)) -> bool {
+        if !self.has_free(lo - 1, hi + 1) {
+            apply(self);
+            return true;
+        }
+        let t0 = self.r.t[lo..=hi].to_vec();
+        let s0: Vec<u32> = t0.iter().map(|&v| self.r.sel[v as usize]).collect();
+        let old = self.window_cost(lo, hi);
+        apply(self);
+        if self.window_cost(lo, hi) < old - EPS {
+            return true;
+        }
+        self.r.t[lo..=hi].copy_from_slice(&t0);
+        for (&v, &c) in t0.iter().zip(&s0) {
+            self.r.sel[v as usize] = c;
+        }
+        self.touched(lo, hi);
+        false
     }
     fn sync(&mut self, lo: usize, hi: usize) {
         if lo <= hi {
@@ -1055,9 +1270,9 @@ impl<'a, 'm> Ls<'a, 'm> {
         let mut best = (cur - EPS, u32::MAX);
         for c in self.p.cands(x as usize) {
             let q = self.p.q(c);
-            let mut v = lb_cost(self.p.m, &oa[..d], q);
+            let mut v = lb_cost(&self.p.fm, &oa[..d], q);
             if b as usize != self.n + 1 {
-                v += out_cost(self.p.m, q, &oa[..d], self.cfg(b));
+                v += out_cost(&self.p.fm, q, &oa[..d], self.cfg(b));
             }
             if v < best.0 {
                 best = (v, c as u32);
@@ -1066,8 +1281,13 @@ impl<'a, 'm> Ls<'a, 'm> {
         if best.1 == u32::MAX {
             return false;
         }
-        self.r.sel[x as usize] = best.1;
-        self.touched(i, i);
+        let c = best.1;
+        if !self.commit(i, i, |s| {
+            s.r.sel[x as usize] = c;
+            s.touched(i, i);
+        }) {
+            return false;
+        }
         self.push(a);
         self.push(b);
         true
@@ -1078,27 +1298,42 @@ impl<'a, 'm> Ls<'a, 'm> {
     /// axes, which the exact acceptance of the iterated local search accounts for.
     fn try_reverse(&mut self, l: usize, r: usize) -> bool {
         let t = &self.r.t;
-        let delta = self.ec(t[l - 1], t[r]) + self.ec(t[l], t[r + 1]) - self.ec(t[l - 1], t[l]) - self.ec(t[r], t[r + 1]);
-        if delta >= -EPS {
+        let delta =
+            self.ec(t[l - 1], t[r]) + self.ec(t[l], t[r + 1]) - self.ec(t[l - 1], t[l]) - self.ec(t[r], t[r + 1]);
+        if delta >= -EPS
+            || !self.commit(l, r, |s| {
+                s.r.t[l..=r].reverse();
+                s.touched(l, r);
+            })
+        {
             return false;
         }
-        self.r.t[l..=r].reverse();
-        self.touched(l, r);
         for z in [self.r.t[l - 1], self.r.t[l], self.r.t[r], self.r.t[r + 1]] {
             self.push(z);
         }
         true
     }
 
-    /// 2-opt: make `x` adjacent to one of its neighbours (successor and predecessor
-    /// variants).
+    /// 2-opt: make `x` adjacent to one of its neighbours, removing the edge to its
+    /// successor or to its predecessor. A move that removes `x`'s successor (predecessor)
+    /// edge can only improve if the new edge `x–y` is cheaper than that edge, or else it is
+    /// found from another endpoint (the classic neighbour-list argument); as the lists are
+    /// sorted by the node metric, which never exceeds the cost of chosen candidates, the
+    /// scan stops at the first neighbour that is too far for both.
     fn two_opt(&mut self, x: u32) -> bool {
-        let nb: &'a [Vec<u32>] = self.nb;
-        for &y in &nb[x as usize] {
-            let i = self.r.pos[x as usize] as usize;
+        let nb: &'a [Vec<(u32, f64)>] = self.nb;
+        let i = self.r.pos[x as usize] as usize;
+        let c_succ = self.ec(x, self.r.t[i + 1]);
+        let c_pred = self.ec(self.r.t[i - 1], x);
+        for &(y, dxy) in &nb[x as usize] {
+            if dxy >= c_succ.max(c_pred) {
+                break;
+            }
             let j = self.r.pos[y as usize] as usize;
             let (a, b) = (i.min(j), i.max(j));
-            if b > a + 1 && (self.try_reverse(a + 1, b) || self.try_reverse(a, b - 1)) {
+            if b > a + 1
+                && ((dxy < c_succ && self.try_reverse(a + 1, b)) || (dxy < c_pred && self.try_reverse(a, b - 1)))
+            {
                 return true;
             }
         }
@@ -1110,12 +1345,19 @@ impl<'a, 'm> Ls<'a, 'm> {
     fn or_opt(&mut self, x: u32) -> bool {
         let n = self.n;
         let i = self.r.pos[x as usize] as usize;
-        let nb: &'a [Vec<u32>] = self.nb;
+        let nb: &'a [Vec<(u32, f64)>] = self.nb;
         let d = self.d;
         let mut best: Option<OrMove> = None;
         let mut best_delta = -EPS;
         for len in 1..=3usize.min(n) {
-            let starts = [Some(i), if len > 1 && i + 1 > len { Some(i + 1 - len) } else { None }];
+            let starts = [
+                Some(i),
+                if len > 1 && i + 1 > len {
+                    Some(i + 1 - len)
+                } else {
+                    None
+                },
+            ];
             for sl in starts.into_iter().flatten() {
                 let sr = sl + len - 1;
                 if sl < 1 || sr > n {
@@ -1126,15 +1368,25 @@ impl<'a, 'm> Ls<'a, 'm> {
                 let mut seg = [0u32; 3];
                 seg[..len].copy_from_slice(&t[sl..=sr]);
                 let free = seg[..len].iter().any(|&z| self.is_free(z));
-                let inner: f64 = if free { (sl + 1..=sr).map(|k| self.r.edge(self.p, k)).sum() } else { 0.0 };
-                let gain = self.ec(a, f) + self.ec(l, b) + inner - self.ec(a, b);
+                let inner: f64 = if free {
+                    (sl + 1..=sr).map(|k| self.r.edge(self.p, k)).sum()
+                } else {
+                    0.0
+                };
+                // What taking the segment out saves; a new edge next to it costs at least
+                // the node metric, so neighbours at least that far are not tried.
+                let saving = self.ec(a, f) + self.ec(l, b) - self.ec(a, b);
+                let gain = saving + inner;
                 let mut rseg = seg;
                 rseg[..len].reverse();
                 for (ei, &e) in [f, l].iter().enumerate() {
                     if len == 1 && ei == 1 {
                         continue;
                     }
-                    for &y in &nb[e as usize] {
+                    for &(y, dey) in &nb[e as usize] {
+                        if dey >= saving {
+                            break;
+                        }
                         let py = self.r.pos[y as usize] as usize;
                         for k in [py, py - 1] {
                             if k + 1 >= sl && k <= sr {
@@ -1146,14 +1398,21 @@ impl<'a, 'm> Ls<'a, 'm> {
                                 let opp = self.out(pp);
                                 for c in self.p.cands(x as usize) {
                                     let q = self.p.q(c);
-                                    let mut v = lb_cost(self.p.m, &opp[..d], q);
+                                    let mut v = lb_cost(&self.p.fm, &opp[..d], q);
                                     if qq as usize != n + 1 {
-                                        v += out_cost(self.p.m, q, &opp[..d], self.cfg(qq));
+                                        v += out_cost(&self.p.fm, q, &opp[..d], self.cfg(qq));
                                     }
                                     let dl = v - base;
                                     if dl < best_delta {
                                         best_delta = dl;
-                                        best = Some(OrMove { delta: dl, sl, sr, k, rev: false, cand: Some(c as u32) });
+                                        best = Some(OrMove {
+                                            delta: dl,
+                                            sl,
+                                            sr,
+                                            k,
+                                            rev: false,
+                                            cand: Some(c as u32),
+                                        });
                                     }
                                 }
                             } else {
@@ -1166,7 +1425,14 @@ impl<'a, 'm> Ls<'a, 'm> {
                                 let dl = v - base;
                                 if dl < best_delta {
                                     best_delta = dl;
-                                    best = Some(OrMove { delta: dl, sl, sr, k, rev, cand: None });
+                                    best = Some(OrMove {
+                                        delta: dl,
+                                        sl,
+                                        sr,
+                                        k,
+                                        rev,
+                                        cand: None,
+                                    });
                                 }
                             }
                         }
@@ -1175,37 +1441,42 @@ impl<'a, 'm> Ls<'a, 'm> {
             }
         }
         match best {
-            Some(m) => {
-                self.apply_or(&m);
-                true
-            }
+            Some(m) => self.apply_or(&m),
             None => false,
         }
     }
 
-    fn apply_or(&mut self, m: &OrMove) {
+    fn apply_or(&mut self, m: &OrMove) -> bool {
         debug_assert!(m.delta < 0.0);
         let len = m.sr - m.sl + 1;
-        let t = &mut self.r.t;
+        let t = &self.r.t;
         let (a, b) = (t[m.sl - 1], t[m.sr + 1]);
         let (pp, qq) = (t[m.k], t[m.k + 1]);
         let (lo, hi, ns) = if m.k < m.sl {
-            t[m.k + 1..=m.sr].rotate_right(len);
             (m.k + 1, m.sr, m.k + 1)
         } else {
-            t[m.sl..=m.k].rotate_left(len);
             (m.sl, m.k, m.k + 1 - len)
         };
-        if m.rev {
-            t[ns..ns + len].reverse();
+        let ok = self.commit(lo, hi, |s| {
+            if m.k < m.sl {
+                s.r.t[lo..=hi].rotate_right(len);
+            } else {
+                s.r.t[lo..=hi].rotate_left(len);
+            }
+            if m.rev {
+                s.r.t[ns..ns + len].reverse();
+            }
+            if let Some(c) = m.cand {
+                s.r.sel[s.r.t[ns] as usize] = c;
+            }
+            s.touched(lo, hi);
+        });
+        if ok {
+            for z in [a, b, pp, qq, self.r.t[ns], self.r.t[ns + len - 1]] {
+                self.push(z);
+            }
         }
-        if let Some(c) = m.cand {
-            self.r.sel[self.r.t[ns] as usize] = c;
-        }
-        self.touched(lo, hi);
-        for z in [a, b, pp, qq, self.r.t[ns], self.r.t[ns + len - 1]] {
-            self.push(z);
-        }
+        ok
     }
 
     /// Double-bridge kick: swap two adjacent segments of up to 30 nodes at a random place.
@@ -1311,13 +1582,11 @@ fn checkpoint(p: &Problem, ls: &mut Ls, best: &mut Best) {
 
 /// The heuristic pipeline of the module documentation. Returns (order, global candidate
 /// ids per position).
-fn heuristic(p: &Problem, seed: u64, deadline: Instant) -> (Vec<u32>, Vec<u32>) {
+fn heuristic(p: &Problem, seed: u64, deadline: Instant, max_kicks: usize) -> (Vec<u32>, Vec<u32>) {
     let n = p.n;
     let clock = Instant::now();
-    let debug = std::env::var_os("GONIO_ORDER_DEBUG").is_some();
     let idx = Index::build(p);
-    let nb: Vec<Vec<u32>> =
-        node_knn(p, &idx, NEIGHBOURS).into_iter().map(|l| l.into_iter().map(|e| e.0).collect()).collect();
+    let nb = node_knn(p, &idx, NEIGHBOURS);
     let t_knn = clock.elapsed();
     let order = nearest_neighbour(p, idx);
     let t_nn = clock.elapsed();
@@ -1332,9 +1601,9 @@ fn heuristic(p: &Problem, seed: u64, deadline: Instant) -> (Vec<u32>, Vec<u32>) 
 
     let mut rng = Rng(seed ^ 0x5DEE_CE66_D1CE_4E5B);
     let mut backup = ls.r.clone();
-    let every = (n / 8).max(1);
+    let every = (n / 8).max(64);
     let (mut since, mut stagnation, mut iterations) = (0usize, 0usize, 0usize);
-    while n >= 3 && Instant::now() < deadline {
+    while n >= 3 && iterations < max_kicks && Instant::now() < deadline {
         iterations += 1;
         if stagnation >= 20 * n {
             // Stuck for long (only happens on small instances within any sensible budget):
@@ -1360,8 +1629,14 @@ fn heuristic(p: &Problem, seed: u64, deadline: Instant) -> (Vec<u32>, Vec<u32>) 
                 ls.exact += new - old;
             } else {
                 Ls::copy_range(&backup, &mut ls.r, lo, hi - 1, p.d);
+                ls.refresh_free(lo, hi - 1);
                 stagnation += 1;
             }
+        }
+        if ls.exact < best.2 - EPS {
+            let order = ls.order();
+            let sel = order.iter().map(|&v| ls.r.sel[v as usize]).collect();
+            best = (order, sel, ls.exact);
         }
         since += 1;
         if since >= every {
@@ -1371,16 +1646,15 @@ fn heuristic(p: &Problem, seed: u64, deadline: Instant) -> (Vec<u32>, Vec<u32>) 
         }
     }
     checkpoint(p, &mut ls, &mut best);
-    if debug {
-        eprintln!(
-            "order: knn {:.3}s nn {:.3}s descent {:.3}s; nn-dp {time:.1} descent {first:.1} final {:.1} ({iterations} kicks, {:.3}s)",
-            t_knn.as_secs_f64(),
-            t_nn.as_secs_f64(),
-            t_descent.as_secs_f64(),
-            best.2,
-            clock.elapsed().as_secs_f64()
-        );
-    }
+    tracing::debug!(
+        "order: neighbours {:.3} s, construction {:.3} s, descent {:.3} s; nearest neighbour {time:.1} s, \
+         descent {first:.1} s, final {:.1} s after {iterations} kicks ({:.3} s)",
+        t_knn.as_secs_f64(),
+        t_nn.as_secs_f64(),
+        t_descent.as_secs_f64(),
+        best.2,
+        clock.elapsed().as_secs_f64()
+    );
     (best.0, best.1)
 }
 
@@ -1407,58 +1681,99 @@ impl UnionFind {
         }
         x
     }
-    fn union(&mut self, a: u32, b: u32) -> bool {
-        let (ra, rb) = (self.find(a), self.find(b));
-        if ra == rb {
-            return false;
-        }
-        self.0[ra.max(rb) as usize] = ra.min(rb);
-        true
-    }
 }
 
-/// Kruskal on `edges` (u, v, d) with weights `d + π_u + π_v`, in the given (re-sorted)
-/// edge order. Returns (forest weight, number of components, degrees, tree edge weights).
-fn kruskal(
+/// Lower bound on the minimum spanning tree of the *complete* graph, computed from a
+/// sparse graph that holds every edge lighter than per-node thresholds.
+///
+/// `edges` are `(u, v, d)` weighted `w = d + π_u + π_v`; every edge at `u` that is *not*
+/// in `edges` weighs at least `theta[u]` (∞: all of `u`'s edges are present).
+///
+/// Kruskal's tree weight is `(N − 1)·w₀ + ∫_{w₀}^∞ (c(t) − 1) dt`, where `c(t)` counts the
+/// components formed by the edges lighter than `t` and `w₀` is at most every weight.
+/// The sparse graph gives `c_sparse(t)`; a missing edge lighter than `t` joins two nodes
+/// that are both "open" at `t` (`theta < t`), so it can only merge components that contain
+/// an open node: `c(t) ≥ (#components without open node) + [some component is open]`.
+/// Sweeping the edges and the openings in increasing order integrates that bound exactly.
+/// With all thresholds infinite this is Kruskal itself.
+///
+/// Also fills `deg` with the degrees of the sparse Kruskal tree (for the subgradient).
+fn mst_bound(
     edges: &[(u32, u32, f64)],
     pi: &[f64],
+    theta: &[f64],
     order: &mut [u32],
     uf: &mut UnionFind,
     deg: &mut [u32],
-) -> (f64, usize, Vec<f64>) {
+) -> f64 {
+    let nn = pi.len();
     let w = |i: u32| {
         let e = edges[i as usize];
         e.2 + pi[e.0 as usize] + pi[e.1 as usize]
     };
     order.sort_by(|&a, &b| w(a).total_cmp(&w(b)));
+    let mut opening: Vec<u32> = (0..nn as u32).filter(|&u| theta[u as usize].is_finite()).collect();
+    opening.sort_by(|&a, &b| theta[a as usize].total_cmp(&theta[b as usize]));
     uf.reset();
     deg.fill(0);
-    let mut comps = pi.len();
-    let mut weight = 0.0;
-    let mut tree_w = Vec::with_capacity(pi.len());
-    for &i in order.iter() {
-        let (u, v, _) = edges[i as usize];
-        if uf.union(u, v) {
-            let wi = w(i);
-            weight += wi;
-            tree_w.push(wi);
-            deg[u as usize] += 1;
-            deg[v as usize] += 1;
-            comps -= 1;
-            if comps == 1 {
-                break;
+    let mut open = vec![false; nn];
+    let (mut comps, mut open_comps) = (nn, 0usize);
+    let first = order
+        .first()
+        .map_or(f64::INFINITY, |&i| w(i))
+        .min(opening.first().map_or(f64::INFINITY, |&u| theta[u as usize]));
+    if !first.is_finite() {
+        return 0.0;
+    }
+    let (mut t_prev, mut integral) = (first, 0.0);
+    let (mut ei, mut oi) = (0usize, 0usize);
+    while comps > 1 {
+        let te = order.get(ei).map_or(f64::INFINITY, |&i| w(i));
+        let to = opening.get(oi).map_or(f64::INFINITY, |&u| theta[u as usize]);
+        let t = te.min(to);
+        if !t.is_finite() {
+            break;
+        }
+        let lbc = (comps - open_comps) + usize::from(open_comps > 0);
+        integral += (lbc as f64 - 1.0) * (t - t_prev);
+        t_prev = t;
+        if to <= te {
+            let r = uf.find(opening[oi]) as usize;
+            oi += 1;
+            if !open[r] {
+                open[r] = true;
+                open_comps += 1;
+            }
+        } else {
+            let (u, v, _) = edges[order[ei] as usize];
+            ei += 1;
+            let (ru, rv) = (uf.find(u), uf.find(v));
+            if ru != rv {
+                let (keep, gone) = (ru.min(rv) as usize, ru.max(rv) as usize);
+                uf.0[gone] = keep as u32;
+                if open[gone] {
+                    if open[keep] {
+                        open_comps -= 1;
+                    } else {
+                        open[keep] = true;
+                    }
+                }
+                comps -= 1;
+                deg[u as usize] += 1;
+                deg[v as usize] += 1;
             }
         }
     }
-    (weight, comps, tree_w)
+    (nn - 1) as f64 * first + integral
 }
 
-/// Held–Karp lower bound (see [`lower_bound`]): subgradient ascent on a sparse graph,
-/// final evaluation made provable by the threshold argument.
-fn held_karp(p: &Problem, idx: &Index, knn: &[Vec<(u32, f64)>], ds: &[f64], ub: f64) -> f64 {
-    let n = p.n;
+/// Held–Karp lower bound (see [`lower_bound`]) on the graph of the `k` nearest
+/// neighbours of every node plus all edges from the start. Every iteration's value is
+/// provable through [`mst_bound`]; the best one is returned.
+fn held_karp(knn: &[Vec<(u32, f64)>], ds: &[f64], ub: f64, k: usize) -> f64 {
+    let n = ds.len();
     let s = n as u32;
-    let mut edges: Vec<(u32, u32, f64)> = Vec::with_capacity(n * (NEIGHBOURS + 1));
+    let mut edges: Vec<(u32, u32, f64)> = Vec::with_capacity(n * (k + 1));
     for (u, list) in knn.iter().enumerate() {
         for &(v, d) in list {
             edges.push(((u as u32).min(v), (u as u32).max(v), d));
@@ -1469,82 +1784,63 @@ fn held_karp(p: &Problem, idx: &Index, knn: &[Vec<(u32, f64)>], ds: &[f64], ub: 
     for (v, &d) in ds.iter().enumerate() {
         edges.push((v as u32, s, d));
     }
+    // Node u's list holds every node with d(u, ·) below its last entry (all nodes if short).
+    let radius: Vec<f64> = knn
+        .iter()
+        .map(|l| {
+            if l.len() < k || l.len() + 1 >= n {
+                f64::INFINITY
+            } else {
+                l[l.len() - 1].1
+            }
+        })
+        .collect();
     let mut order: Vec<u32> = (0..edges.len() as u32).collect();
     let mut uf = UnionFind::new(n + 1);
     let mut deg = vec![0u32; n + 1];
+    let mut theta = vec![f64::INFINITY; n + 1];
     let mut pi = vec![0.0f64; n + 1];
-    let mut best = (f64::NEG_INFINITY, pi.clone());
-    let mut lambda = 1.0;
-    let mut stall = 0;
-    let mut g_prev = vec![0.0f64; n + 1];
-    for _ in 0..300 {
-        let (tree, _, _) = kruskal(&edges, &pi, &mut order, &mut uf, &mut deg);
-        let (tmin, pmin) = pi[..n].iter().enumerate().fold((0, f64::INFINITY), |b, (i, &x)| if x < b.1 { (i, x) } else { b });
+    let mut g = vec![0.0f64; n + 1];
+    let mut best = f64::NEG_INFINITY;
+    let (mut lambda, mut stall) = (1.0, 0);
+    for _ in 0..HK_ITERATIONS {
+        let (tmin, pmin) = pi[..n]
+            .iter()
+            .enumerate()
+            .fold((0, f64::INFINITY), |b, (i, &x)| if x < b.1 { (i, x) } else { b });
+        // A missing edge (u, v) has d > radius[u], so w > radius[u] + π_u + min π.
+        for u in 0..n {
+            theta[u] = radius[u] + pi[u] + pmin;
+        }
+        let tree = mst_bound(&edges, &pi, &theta, &mut order, &mut uf, &mut deg);
         let sum_pi: f64 = pi.iter().sum();
         let l = tree + pi[n] + pmin - 2.0 * sum_pi;
-        if l > best.0 + 1e-9 {
-            best = (l, pi.clone());
+        if l > best + 1e-9 {
+            best = l;
             stall = 0;
         } else {
             stall += 1;
-            if stall >= 8 {
-                lambda *= 0.6;
+            if stall >= 5 {
+                lambda *= 0.5;
                 stall = 0;
             }
         }
         let mut norm = 0.0;
-        for x in 0..=n {
-            let g = deg[x] as f64 - 2.0 + f64::from(u8::from(x == n)) + f64::from(u8::from(x == tmin));
+        for (x, gx) in g.iter_mut().enumerate() {
+            let sub = deg[x] as f64 - 2.0 + f64::from(u8::from(x == n)) + f64::from(u8::from(x == tmin));
             // Momentum (Crowder / Volgenant–Jonker) damps the zig-zag of plain subgradients.
-            g_prev[x] = 0.7 * g + 0.3 * g_prev[x];
-            norm += g_prev[x] * g_prev[x];
+            *gx = 0.7 * sub + 0.3 * *gx;
+            norm += *gx * *gx;
         }
         if norm == 0.0 || lambda < 1e-3 || ub - l <= 1e-9 {
             break;
         }
         let step = lambda * (ub - l) / norm;
-        for (x, g) in pi.iter_mut().zip(&g_prev) {
-            *x += step * g;
+        for (x, gx) in pi.iter_mut().zip(&g) {
+            *x = (*x + step * gx).clamp(-HK_SPREAD / 2.0, HK_SPREAD / 2.0);
         }
     }
-    let pi = best.1;
-    // Provable evaluation at the best weights. Threshold τ: the 99.8 % quantile of the
-    // sparse spanning tree's edges — nearly every tree edge lies below it, so only a few
-    // components remain and the (c − 1)·τ term is close to their true connecting cost.
-    let (_, _, mut tree_w) = kruskal(&edges, &pi, &mut order, &mut uf, &mut deg);
-    tree_w.sort_by(f64::total_cmp);
-    let tau = tree_w[((tree_w.len() as f64 * 0.998) as usize).min(tree_w.len() - 1)];
-    let pmin = pi[..n].iter().copied().fold(f64::INFINITY, f64::min);
-    let mut exact: Vec<(u32, u32, f64)> = (0..n)
-        .into_par_iter()
-        .flat_map_iter(|u| {
-            let r = tau - pi[u] - pmin;
-            let mut found: Vec<(u32, f64)> = Vec::new();
-            if r >= 0.0 {
-                for c in p.cands(u) {
-                    idx.within(p, p.q(c), r, &mut |c2, cost| {
-                        let v = p.cand_node[c2] as usize;
-                        if v > u && cost + pi[u] + pi[v] <= tau {
-                            found.push((v as u32, cost));
-                        }
-                    });
-                }
-            }
-            found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
-            found.dedup_by_key(|e| e.0);
-            found.into_iter().map(move |(v, d)| (u as u32, v, d))
-        })
-        .collect();
-    for (v, &d) in ds.iter().enumerate() {
-        if d + pi[v] + pi[n] <= tau {
-            exact.push((v as u32, s, d));
-        }
-    }
-    let mut order: Vec<u32> = (0..exact.len() as u32).collect();
-    let (forest, comps, _) = kruskal(&exact, &pi, &mut order, &mut uf, &mut deg);
-    let mst_lb = forest + (comps - 1) as f64 * tau;
-    let sum_pi: f64 = pi.iter().sum();
-    mst_lb + pi[n] + pmin - 2.0 * sum_pi
+    best
 }
 
 #[cfg(test)]
@@ -1599,7 +1895,11 @@ mod tests {
                 }
                 used[i] = true;
                 for q in &nodes[i].candidates {
-                    let next: Vec<f64> = q.iter().zip(cur).map(|(&x, &c)| if x.is_nan() { c } else { x }).collect();
+                    let next: Vec<f64> = q
+                        .iter()
+                        .zip(cur)
+                        .map(|(&x, &c)| if x.is_nan() { c } else { x })
+                        .collect();
                     rec(nodes, m, &next, used, acc + transition_time(m, cur, &next), best);
                 }
                 used[i] = false;
@@ -1622,13 +1922,51 @@ mod tests {
     }
 
     #[test]
+    fn inlined_move_time_is_bit_identical() {
+        let mut models = rig_motions();
+        models.push(MotionModel {
+            max_velocity: 2.0,
+            acceleration: 4.0,
+            jerk: Some(30.0),
+            settle_time: 0.1,
+            deadband: 1e-6,
+        });
+        models.push(MotionModel {
+            max_velocity: 2.0,
+            acceleration: 4.0,
+            jerk: Some(0.0),
+            settle_time: 0.0,
+            deadband: 0.0,
+        });
+        let mut rng = Rng(7);
+        for m in &models {
+            let f = Fast::new(m);
+            for i in 0..2000 {
+                let d = match i % 4 {
+                    0 => (unit(&mut rng) - 0.5) * 1e-4,
+                    1 => (unit(&mut rng) - 0.5) * 2.0,
+                    2 => (unit(&mut rng) - 0.5) * 20.0,
+                    _ => m.max_velocity * m.max_velocity / m.acceleration * (1.0 + (unit(&mut rng) - 0.5) * 1e-12),
+                };
+                assert_eq!(f.move_time(d).to_bits(), m.move_time(d).to_bits(), "distance {d}");
+            }
+        }
+    }
+
+    #[test]
     fn route_time_matches_manual_sum() {
         let m = rig_motions();
         let nan = f64::NAN;
         let nodes = vec![
-            Node { candidates: vec![vec![0.1, 0.0, 0.0, 0.0]] },
-            Node { candidates: vec![vec![9.0, 9.0, 9.0, 9.0], vec![0.1, 0.2, nan, 0.0]] },
-            Node { candidates: vec![vec![0.0, 0.2, 0.5, 0.1]] },
+            Node {
+                candidates: vec![vec![0.1, 0.0, 0.0, 0.0]],
+            },
+            Node {
+                candidates: vec![vec![9.0, 9.0, 9.0, 9.0], vec![0.1, 0.2, nan, 0.0]],
+            },
+            Node {
+                candidates: vec![vec![0.0, 0.2, 0.5, 0.1]],
+            },
         ];
         let start = [0.0; 4];
         let t = |axis: usize, d: f64| m[axis].move_time(d);
@@ -1641,7 +1979,9 @@ mod tests {
         let got = route_time(&nodes, &m, &start, &[2, 1, 0], &[0, 1, 0]);
         assert!((got - manual).abs() < 1e-12, "{got} vs {manual}");
         // a move below the deadband is free
-        let tiny = vec![Node { candidates: vec![vec![1e-9, 0.0, 0.0, 0.0]] }];
+        let tiny = vec![Node {
+            candidates: vec![vec![1e-9, 0.0, 0.0, 0.0]],
+        }];
         assert_eq!(route_time(&tiny, &m, &start, &[0], &[0]), 0.0);
     }
 
@@ -1661,7 +2001,10 @@ mod tests {
                 best = best.min(route_time(&nodes, &m, &[0.0; 4], &order_u, &choice));
             }
             let r = p.route(&nodes, &order, &sel);
-            assert!((time - best).abs() < 1e-9, "seed {seed}: dp {time} vs enumeration {best}");
+            assert!(
+                (time - best).abs() < 1e-9,
+                "seed {seed}: dp {time} vs enumeration {best}"
+            );
             assert!((r.motion_time - time).abs() < 1e-9, "DP time must be the route's time");
         }
     }
@@ -1670,17 +2013,27 @@ mod tests {
     fn optimize_matches_brute_force_on_small_instances() {
         let m = rig_motions();
         let start = [0.0; 4];
-        let opts = OrderOptions { time_budget: Duration::from_millis(50), seed: 3 };
+        let opts = OrderOptions {
+            time_budget: Duration::from_millis(50),
+            seed: 3,
+        };
         for seed in 0..4u64 {
             for free in [false, true] {
                 let nodes = random_nodes(seed * 7 + 1, 7, 2, free);
                 let exact = brute_force(&nodes, &m, &start);
                 let r = optimize(&nodes, &m, &start, &opts);
                 assert_valid(&nodes, &r);
-                assert!((r.motion_time - exact).abs() < 1e-9, "seed {seed} free {free}: {} vs {exact}", r.motion_time);
+                assert!(
+                    (r.motion_time - exact).abs() < 1e-9,
+                    "seed {seed} free {free}: {} vs {exact}",
+                    r.motion_time
+                );
                 assert_eq!(r.motion_time, route_time(&nodes, &m, &start, &r.order, &r.choice));
                 let lb = lower_bound(&nodes, &m, &start);
-                assert!(lb <= exact && lb > 0.0, "seed {seed} free {free}: bound {lb} vs optimum {exact}");
+                assert!(
+                    lb <= exact && lb > 0.0,
+                    "seed {seed} free {free}: bound {lb} vs optimum {exact}"
+                );
                 assert!(canonical(&nodes, &m, &start).motion_time >= exact - 1e-9);
             }
         }
@@ -1696,33 +2049,18 @@ mod tests {
                 let nodes = random_nodes(seed * 11 + 5, 8, 2, free);
                 let exact = brute_force(&nodes, &m, &start);
                 let p = Problem::new(&nodes, &m, &start);
-                let deadline = Instant::now() + Duration::from_millis(150);
-                let (order, sel) = heuristic(&p, seed, deadline);
+                // A kick budget instead of a time budget keeps the test independent of load.
+                let deadline = Instant::now() + Duration::from_secs(60);
+                let (order, sel) = heuristic(&p, seed, deadline, 30_000);
                 let r = p.route(&nodes, &order, &sel);
                 assert_valid(&nodes, &r);
-                assert!((r.motion_time - exact).abs() < 1e-9, "seed {seed} free {free}: {} vs {exact}", r.motion_time);
+                assert!(
+                    (r.motion_time - exact).abs() < 1e-9,
+                    "seed {seed} free {free}: {} vs {exact}",
+                    r.motion_time
+                );
             }
         }
-    }
-
-    #[test]
-    #[ignore]
-    fn exp_small_robustness() {
-        let m = rig_motions();
-        let start = [0.0; 4];
-        let mut fails = 0;
-        let mut gap = 0.0f64;
-        for seed in 0..40u64 {
-            let free = seed % 2 == 1;
-            let nodes = random_nodes(seed * 13 + 1000, 8, 2, free);
-            let exact = brute_force(&nodes, &m, &start);
-            let p = Problem::new(&nodes, &m, &start);
-            let deadline = Instant::now() + Duration::from_millis(150);
-            let (order, sel) = heuristic(&p, seed, deadline);
-            let r = p.route(&nodes, &order, &sel);
-            if r.motion_time > exact + 1e-9 { fails += 1; gap = gap.max(r.motion_time / exact - 1.0); println!("fail seed {seed} free {free} {} {exact} cands {:?}", r.motion_time, r.choice); }
-        }
-        println!("EXP fails {fails}/40 max gap {gap}");
     }
 
     #[test]
@@ -1736,7 +2074,10 @@ mod tests {
                     let exact = brute_force(&nodes, &m, &start);
                     let lb = lower_bound(&nodes, &m, &start);
                     assert!(lb <= exact, "n {n} seed {seed} k {k}: bound {lb} > optimum {exact}");
-                    assert!(lb >= 0.3 * exact, "n {n} seed {seed} k {k}: bound {lb} far below optimum {exact}");
+                    assert!(
+                        lb >= 0.3 * exact,
+                        "n {n} seed {seed} k {k}: bound {lb} far below optimum {exact}"
+                    );
                 }
             }
         }
@@ -1805,7 +2146,11 @@ mod tests {
                         q[i_base] = f64::NAN;
                     }
                     cands.sort_by(|a, b| {
-                        a.iter().zip(b).map(|(x, y)| x.total_cmp(y)).find(|o| o.is_ne()).unwrap_or(std::cmp::Ordering::Equal)
+                        a.iter()
+                            .zip(b)
+                            .map(|(x, y)| x.total_cmp(y))
+                            .find(|o| o.is_ne())
+                            .unwrap_or(std::cmp::Ordering::Equal)
                     });
                     cands.dedup_by(|a, b| a.iter().zip(b.iter()).all(|(x, y)| x.to_bits() == y.to_bits()));
                 }
@@ -1821,20 +2166,32 @@ mod tests {
         assert_eq!(nodes.len(), 33 * 33 - 33);
         let canon = canonical(&nodes, &m, &home);
         assert_valid(&nodes, &canon);
-        let opts = OrderOptions { time_budget: Duration::from_millis(300), seed: 9 };
+        let opts = OrderOptions {
+            time_budget: Duration::from_millis(300),
+            seed: 9,
+        };
         let r = optimize(&nodes, &m, &home, &opts);
         assert_valid(&nodes, &r);
         assert_eq!(r.motion_time, route_time(&nodes, &m, &home, &r.order, &r.choice));
         let lb = lower_bound(&nodes, &m, &home);
         assert!(lb <= r.motion_time, "bound {lb} above a route {}", r.motion_time);
-        assert!(r.motion_time < 0.8 * canon.motion_time, "optimized {} vs canonical {}", r.motion_time, canon.motion_time);
-        assert!(r.motion_time < 1.3 * lb, "optimized {} vs bound {lb}", r.motion_time);
+        // Measured: 0.71 × canonical and 1.01 × bound even with a zero budget.
+        assert!(
+            r.motion_time < 0.75 * canon.motion_time,
+            "optimized {} vs canonical {}",
+            r.motion_time,
+            canon.motion_time
+        );
+        assert!(r.motion_time < 1.05 * lb, "optimized {} vs bound {lb}", r.motion_time);
     }
 
     #[test]
     fn zero_budget_is_deterministic() {
         let (nodes, m, home) = bonn_nodes(&[(0.0, 1), (45.0, 18), (75.0, 24)], PoleViews::Sampled);
-        let opts = OrderOptions { time_budget: Duration::ZERO, seed: 42 };
+        let opts = OrderOptions {
+            time_budget: Duration::ZERO,
+            seed: 42,
+        };
         let a = optimize(&nodes, &m, &home, &opts);
         let b = optimize(&nodes, &m, &home, &opts);
         assert_valid(&nodes, &a);
@@ -1847,19 +2204,47 @@ mod tests {
     fn bench_full_bonn() {
         for (label, mode) in [
             ("pole views: turntable sampled every 15°", PoleViews::Sampled),
-            ("pole views: turntable NaN (brief's model, inexact)", PoleViews::FreeTurntable),
+            (
+                "pole views: turntable NaN (brief's model, inexact)",
+                PoleViews::FreeTurntable,
+            ),
         ] {
             let (nodes, m, home) = bonn_nodes(&BONN, mode);
             let ncand: usize = nodes.iter().map(|n| n.candidates.len()).sum();
             println!("\n== full Bonn, {label}: {} nodes, {ncand} candidates", nodes.len());
             let t0 = Instant::now();
             let canon = canonical(&nodes, &m, &home);
-            println!("canonical (views outer, lights inner): {:.1} s  [{:.3} s]", canon.motion_time, t0.elapsed().as_secs_f64());
+            println!(
+                "canonical (views outer, lights inner): {:.1} s  [{:.3} s]",
+                canon.motion_time,
+                t0.elapsed().as_secs_f64()
+            );
+            // The other nesting, for reference: lights outer, views inner.
+            let nd = BONN.iter().map(|r| r.1).sum::<usize>();
+            let mut by_light: Vec<(usize, usize)> = Vec::new();
+            let mut k = 0;
+            for vi in 0..nd {
+                for li in 0..nd {
+                    if vi != li {
+                        by_light.push((li * nd + vi, k));
+                        k += 1;
+                    }
+                }
+            }
+            by_light.sort_unstable();
+            let swapped: Vec<Node> = by_light.iter().map(|&(_, k)| nodes[k].clone()).collect();
+            println!(
+                "canonical (lights outer, views inner): {:.1} s",
+                canonical(&swapped, &m, &home).motion_time
+            );
             let t0 = Instant::now();
             let lb = lower_bound(&nodes, &m, &home);
             println!("lower bound: {lb:.1} s  [{:.3} s]", t0.elapsed().as_secs_f64());
             for budget in [0.0, 0.5, 1.0, 2.0, 5.0] {
-                let opts = OrderOptions { time_budget: Duration::from_secs_f64(budget), seed: 1 };
+                let opts = OrderOptions {
+                    time_budget: Duration::from_secs_f64(budget),
+                    seed: 1,
+                };
                 let t0 = Instant::now();
                 let r = optimize(&nodes, &m, &home, &opts);
                 let secs = t0.elapsed().as_secs_f64();

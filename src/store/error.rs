@@ -24,11 +24,13 @@ pub enum StoreError {
 
     /// Permission denied or a read-only file system.
     #[error(
-        "cannot write {}: {source} (read-only file system or missing permission); \
-         choose a writable directory or fix the permissions, then run the command again",
+        "permission denied while {op} {}: {source} (read-only file system or missing \
+         permission); choose a writable directory or fix the permissions, then run the \
+         command again",
         path.display()
     )]
     ReadOnly {
+        op: &'static str,
         path: PathBuf,
         #[source]
         source: io::Error,
@@ -74,11 +76,7 @@ pub enum StoreError {
          use a newer gonio",
         path.display()
     )]
-    UnsupportedVersion {
-        path: PathBuf,
-        found: u32,
-        supported: u32,
-    },
+    UnsupportedVersion { path: PathBuf, found: u32, supported: u32 },
 
     /// A journal line other than the last one is damaged. A crash can only tear the
     /// last line (every line is fsynced before the next is written), so this is real
@@ -89,11 +87,7 @@ pub enum StoreError {
          may be re-measured, then run `gonio acquire --resume` again",
         path.display()
     )]
-    CorruptJournal {
-        path: PathBuf,
-        line: usize,
-        reason: String,
-    },
+    CorruptJournal { path: PathBuf, line: usize, reason: String },
 
     /// Another process (or another `Dataset` in this process) holds the dataset.
     #[error(
@@ -240,6 +234,7 @@ impl StoreError {
             }
         } else if is_read_only(&source) {
             StoreError::ReadOnly {
+                op,
                 path: path.to_path_buf(),
                 source,
             }

@@ -17,8 +17,8 @@
 use super::atomic::write_atomic;
 use super::error::{IoContext, StoreError};
 use exr::prelude::{
-    f16, read, AnyChannel, AnyChannels, Blocks, FlatSamples, Compression, Encoding, Image, Layer, LayerAttributes, LineOrder,
-    ReadChannels, ReadLayers, RgbaChannels, SmallVec, Vec2, WritableImage,
+    f16, read, AnyChannel, AnyChannels, Blocks, Compression, Encoding, FlatSamples, Image, Layer, LayerAttributes,
+    LineOrder, ReadChannels, ReadLayers, RgbaChannels, SmallVec, Vec2, WritableImage,
 };
 use gonio_devices::image::RgbImage;
 use std::io::Cursor;
@@ -56,9 +56,7 @@ pub fn encode_exr_with(
     check_size(img, path_for_errors)?;
     let (w, h) = (img.width, img.height);
     // One flat f16 vector per channel: much faster than a per-pixel closure.
-    let plane = |c: usize| -> Vec<f16> {
-        img.data.iter().skip(c).step_by(3).map(|&v| f16::from_f32(v)).collect()
-    };
+    let plane = |c: usize| -> Vec<f16> { img.data.iter().skip(c).step_by(3).map(|&v| f16::from_f32(v)).collect() };
     let channels = AnyChannels::sort(SmallVec::from_vec(vec![
         AnyChannel::new("R", FlatSamples::F16(plane(0))),
         AnyChannel::new("G", FlatSamples::F16(plane(1))),

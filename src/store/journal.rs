@@ -16,7 +16,7 @@
 //! Because each line is fsynced before the next is written, a crash can damage only
 //! the last line; damage anywhere else is reported, never "repaired".
 
-use super::error::{IoContext, StoreError};
+use super::error::StoreError;
 use super::manifest::MeasurementRecord;
 use std::fs::File;
 use std::io::{Seek, SeekFrom, Write};
@@ -48,8 +48,7 @@ pub fn decode_line(line: &[u8]) -> Result<MeasurementRecord, String> {
     if &line[PREFIX.len() + 8..HEAD_LEN] != MIDDLE {
         return Err("malformed line prefix".into());
     }
-    let hex = std::str::from_utf8(&line[PREFIX.len()..PREFIX.len() + 8])
-        .map_err(|_| "CRC is not hex".to_string())?;
+    let hex = std::str::from_utf8(&line[PREFIX.len()..PREFIX.len() + 8]).map_err(|_| "CRC is not hex".to_string())?;
     let crc = u32::from_str_radix(hex, 16).map_err(|_| format!("CRC {hex:?} is not hex"))?;
     if line.last() != Some(&b'}') {
         return Err("line is cut short (no closing brace)".into());
@@ -57,9 +56,7 @@ pub fn decode_line(line: &[u8]) -> Result<MeasurementRecord, String> {
     let payload = &line[HEAD_LEN..line.len() - 1];
     let actual = crc32fast::hash(payload);
     if actual != crc {
-        return Err(format!(
-            "CRC mismatch (stored {crc:08x}, computed {actual:08x})"
-        ));
+        return Err(format!("CRC mismatch (stored {crc:08x}, computed {actual:08x})"));
     }
     serde_json::from_slice(payload).map_err(|e| format!("record does not parse: {e}"))
 }
@@ -88,7 +85,18 @@ pub struct Scan {
 /// Read and check every line. Damage on the last line is reported in
 /// [`Scan::torn`]; damage anywhere else is [`StoreError::CorruptJournal`].
 pub fn scan(path: &Path, dataset: &Path) -> Result<Scan, StoreError> {
-    let bytes = std::fs::read(path).ctx("reading", path, Some(dataset))?;
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(StoreError::NotADataset {
+                path: dataset.to_path_buf(),
+                reason: format!("its journal {} is missing", path.display()),
+                hint: "restore journal.jsonl from a backup: without it gonio cannot tell which \
+                       images were completely stored",
+            })
+        }
+        Err(e) => return Err(StoreError::io("reading", path, Some(dataset), e)),
+    };
     scan_bytes(&bytes, path)
 }
 
@@ -183,10 +191,7 @@ mod tests {
         assert_eq!(decode_line(body).unwrap(), rec);
         // Flip one digit inside the payload: still JSON, but the CRC catches it.
         let mut damaged = body.to_vec();
-        let pos = damaged
-            .windows(9)
-            .position(|w| w == b"\"index\":7")
-            .unwrap();
+        let pos = damaged.windows(9).position(|w| w == b"\"index\":7").unwrap();
         damaged[pos + 8] = b'8';
         let err = decode_line(&damaged).unwrap_err();
         assert!(err.contains("CRC mismatch"), "{err}");

@@ -182,10 +182,7 @@ pub(crate) fn validate_header(dir: &Path, h: &ManifestHeader) -> Result<(), Stor
         ));
     }
     if h.image_width == 0 || h.image_height == 0 {
-        return bad(format!(
-            "image size {}×{} is empty",
-            h.image_width, h.image_height
-        ));
+        return bad(format!("image size {}×{} is empty", h.image_width, h.image_height));
     }
     Ok(())
 }
@@ -227,16 +224,8 @@ pub(crate) fn probe_manifest(dir: &Path) -> Result<ManifestProbe, StoreError> {
     };
     match value.get("format").and_then(|f| f.as_str()) {
         Some(FORMAT) => {}
-        Some(other) => {
-            return Ok(ManifestProbe::Foreign(format!(
-                "manifest.json has format {other:?}"
-            )))
-        }
-        None => {
-            return Ok(ManifestProbe::Foreign(
-                "manifest.json has no \"format\" field".into(),
-            ))
-        }
+        Some(other) => return Ok(ManifestProbe::Foreign(format!("manifest.json has format {other:?}"))),
+        None => return Ok(ManifestProbe::Foreign("manifest.json has no \"format\" field".into())),
     }
     if let Some(v) = value.get("version").and_then(|v| v.as_u64()) {
         if v > u64::from(FORMAT_VERSION) {

@@ -72,9 +72,7 @@ pub use error::StoreError;
 pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
 pub use manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
 pub use npy::{export_npy, npy_sidecar_path};
-pub use ubo2003::{
-    entry_name, export_ubo2003, integer_angles, linear_to_srgb8, ExportReport, JPEG_QUALITY,
-};
+pub use ubo2003::{entry_name, export_ubo2003, integer_angles, linear_to_srgb8, ExportReport, JPEG_QUALITY};
 pub use verify::{verify, VerifyReport};
 
 use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};
@@ -192,10 +190,7 @@ impl Dataset {
                 })
             }
             Ok(_) => {
-                let non_empty = fs::read_dir(dir)
-                    .ctx("listing", dir, Some(dir))?
-                    .next()
-                    .is_some();
+                let non_empty = fs::read_dir(dir).ctx("listing", dir, Some(dir))?.next().is_some();
                 if non_empty {
                     if !force {
                         return Err(StoreError::NotEmpty {
@@ -337,14 +332,16 @@ impl Dataset {
         // 3. Duplicates: keep the first.
         let (records, dups) = dedupe(scan.records);
         for i in &dups {
-            tracing::warn!(index = i, "resume: index stored twice in the journal; keeping the first");
+            tracing::warn!(
+                index = i,
+                "resume: index stored twice in the journal; keeping the first"
+            );
         }
         report.duplicates = dups;
 
         // 4. Re-hash every file; drop records whose files are missing or damaged.
         use rayon::prelude::*;
-        let problems: Vec<Option<String>> =
-            records.par_iter().map(|r| check_record_files(dir, r)).collect();
+        let problems: Vec<Option<String>> = records.par_iter().map(|r| check_record_files(dir, r)).collect();
         let mut kept = Vec::with_capacity(records.len());
         for (r, problem) in records.into_iter().zip(problems) {
             match problem {
@@ -452,12 +449,7 @@ impl Dataset {
             (true, Some(_), _) | (true, _, Some(_)) => {
                 return Err(invalid("a skipped measurement has no image or raw frame".into()))
             }
-            (false, None, _) => {
-                return Err(invalid(format!(
-                    "a {} measurement needs its image",
-                    rec.status.kind()
-                )))
-            }
+            (false, None, _) => return Err(invalid(format!("a {} measurement needs its image", rec.status.kind()))),
             _ => {}
         }
         if let Some(img) = image {
@@ -547,10 +539,7 @@ impl Dataset {
             Ok(l) => l,
             Err(source) => {
                 remove_written(&written);
-                return Err(StoreError::Json {
-                    path: jpath,
-                    source,
-                });
+                return Err(StoreError::Json { path: jpath, source });
             }
         };
         if let Err((e, rolled_back)) = self.journal.append(&line) {
@@ -634,20 +623,14 @@ pub(crate) fn check_record_files(dir: &Path, r: &MeasurementRecord) -> Option<St
     if skipped {
         return None;
     }
-    let check = |rel: &Option<String>, sha: &Option<String>, expected_rel: String, what: &str| {
-        match (rel, sha) {
-            (Some(rel), Some(sha)) if *rel == expected_rel => {
-                match fs::read(dir.join(rel)) {
-                    Ok(bytes) if sha256_hex(&bytes) == *sha => None,
-                    Ok(_) => Some(format!("{what} {rel} does not match its SHA-256")),
-                    Err(e) => Some(format!("{what} {rel} cannot be read: {e}")),
-                }
-            }
-            (Some(rel), _) if *rel != expected_rel => {
-                Some(format!("{what} path {rel:?} is not {expected_rel:?}"))
-            }
-            _ => Some(format!("{what} has no path or hash in the journal")),
-        }
+    let check = |rel: &Option<String>, sha: &Option<String>, expected_rel: String, what: &str| match (rel, sha) {
+        (Some(rel), Some(sha)) if *rel == expected_rel => match fs::read(dir.join(rel)) {
+            Ok(bytes) if sha256_hex(&bytes) == *sha => None,
+            Ok(_) => Some(format!("{what} {rel} does not match its SHA-256")),
+            Err(e) => Some(format!("{what} {rel} cannot be read: {e}")),
+        },
+        (Some(rel), _) if *rel != expected_rel => Some(format!("{what} path {rel:?} is not {expected_rel:?}")),
+        _ => Some(format!("{what} has no path or hash in the journal")),
     };
     if let Some(p) = check(&r.image, &r.image_sha256, image_rel_path(r.index), "image") {
         return Some(p);
@@ -690,12 +673,7 @@ pub(crate) fn find_orphans(
     Ok(out)
 }
 
-fn remove_orphans(
-    dir: &Path,
-    sub: &str,
-    ext: &str,
-    referenced: &HashSet<String>,
-) -> Result<Vec<PathBuf>, StoreError> {
+fn remove_orphans(dir: &Path, sub: &str, ext: &str, referenced: &HashSet<String>) -> Result<Vec<PathBuf>, StoreError> {
     let orphans = find_orphans(dir, sub, ext, referenced)?;
     for p in &orphans {
         tracing::warn!(file = %p.display(), "resume: removing a file that has no journal line");

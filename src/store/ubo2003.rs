@@ -181,11 +181,7 @@ pub fn encode_jpeg(rgb: &[u8], width: usize, height: usize, path: &Path) -> Resu
 }
 
 /// Read, hash-check and decode an exported entry's image and return its 8-bit sRGB.
-pub(crate) fn load_srgb8(
-    dir: &Path,
-    header: &ManifestHeader,
-    e: &ExportEntry,
-) -> Result<Vec<u8>, StoreError> {
+pub(crate) fn load_srgb8(dir: &Path, header: &ManifestHeader, e: &ExportEntry) -> Result<Vec<u8>, StoreError> {
     let path = dir.join(&e.image);
     let bytes = match std::fs::read(&path) {
         Ok(b) => b,

@@ -7,9 +7,7 @@
 use super::atomic::TMP_PREFIX;
 use super::error::StoreError;
 use super::manifest::{read_manifest, MeasurementStatus};
-use super::{
-    check_record_files, dedupe, find_orphans, journal, IMAGES_DIR, JOURNAL_FILE, RAW_DIR,
-};
+use super::{check_record_files, dedupe, find_orphans, journal, IMAGES_DIR, JOURNAL_FILE, RAW_DIR};
 use rayon::prelude::*;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -54,10 +52,7 @@ impl VerifyReport {
 
     /// [`is_ok`](Self::is_ok) and no debris at all.
     pub fn is_clean(&self) -> bool {
-        self.is_ok()
-            && self.orphans.is_empty()
-            && self.temp_files.is_empty()
-            && self.torn_line.is_none()
+        self.is_ok() && self.orphans.is_empty() && self.temp_files.is_empty() && self.torn_line.is_none()
     }
 }
 
@@ -84,7 +79,10 @@ impl std::fmt::Display for VerifyReport {
             write!(f, "\n  duplicate indices: {:?}", self.duplicates)?;
         }
         if self.manifest_stale {
-            write!(f, "\n  manifest.json says complete but its records differ from the journal")?;
+            write!(
+                f,
+                "\n  manifest.json says complete but its records differ from the journal"
+            )?;
         }
         if let Some((line, reason)) = &self.torn_line {
             write!(f, "\n  torn last journal line {line}: {reason}")?;
@@ -170,14 +168,8 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, StoreError> {
     if manifest.complete {
         // Compare identities and file hashes, not floats: JSON float parsing is not
         // guaranteed to round-trip bit-exactly.
-        let key = |r: &super::MeasurementRecord| {
-            (
-                r.index,
-                r.status.kind(),
-                r.image_sha256.clone(),
-                r.raw_sha256.clone(),
-            )
-        };
+        let key =
+            |r: &super::MeasurementRecord| (r.index, r.status.kind(), r.image_sha256.clone(), r.raw_sha256.clone());
         let mut journal_keys: Vec<_> = records.iter().map(key).collect();
         let mut manifest_keys: Vec<_> = manifest.records.iter().map(key).collect();
         journal_keys.sort();

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Check a gonio UBO2003 export with the public `btf-extractor` 1.7.0 reader.
 
-Usage: check_ubo2003.py ZIP NPY
+Usage: check_ubo2003.py ZIP NPY [--mean-tol X] [--max-tol Y]
 
 ZIP is written by `gonio::store::export_ubo2003`, NPY (with its sidecar NPY.json) by
 `gonio::store::export_npy` from the same dataset. NPY holds, as float32 [N, H, W, 3] in
@@ -13,8 +13,8 @@ Checks:
     is exactly the set of listed angle tuples (so skipped measurements are absent and
     the reader's fixed-offset name parsing recovers every tuple);
   * every image the reader returns has the reference's shape and equals the reference
-    within JPEG tolerance: mean |error| <= MEAN_TOL and max |error| <= MAX_TOL (8-bit
-    units, /255);
+    within JPEG tolerance: per image mean |error| <= 2.5/255 and max |error| <= 32/255
+    by default (see MEAN_TOL below for the measurements behind these);
   * channel order: `Ubo2003.angles_to_image` returns BGR (it decodes with simplejpeg,
     colorspace="BGR", for OpenCV compatibility). The script converts to RGB and also
     confirms the order from the data: the RGB interpretation must fit the reference
@@ -23,6 +23,7 @@ Checks:
 Prints `ubo2003 interop: N images, max mean-abs err X/255` and exits non-zero on any
 failure.
 """
+import argparse
 import json
 import sys
 import zipfile
@@ -30,21 +31,29 @@ import zipfile
 import numpy as np
 from btf_extractor import Ubo2003
 
-# JPEG tolerance for quality 95 without chroma subsampling (gonio's encoder writes
-# 4:4:4), decoded by libjpeg-turbo (simplejpeg). Measured on gonio's synthetic export
-# (gradients, a hard-edged checker, noise): mean ≤ 0.9/255 and max ≤ 12/255 (see the
-# project notes); the limits leave headroom for other decoders' IDCT rounding while
-# still catching a wrong channel order, a flipped image or a mismatched entry (each
-# gives mean errors of tens of units).
-MEAN_TOL = 2.0
-MAX_TOL = 24.0
+# JPEG tolerance, in 8-bit units (/255). gonio writes quality 95 without chroma
+# subsampling (4:4:4); the reader decodes with libjpeg-turbo (simplejpeg). Measured
+# mean / max abs error per 256 x 256 image at q95 4:4:4:
+#   noise-free gradients and hard edges            0.45 / 4
+#   12-bit shot noise (sigma = sqrt(DN)/4095)      1.5-1.8 / 10-12
+#   10-bit shot noise, or uniform +-0.02 linear    2.7-3.2 / 18-23
+# gonio's synthetic interop dataset (12-bit shot noise, hard-edged checker, a clipped
+# over-exposed texel) gives 1.75 / 19. The defaults leave headroom for other decoders'
+# rounding while a wrong channel order, a flipped image, a missing sRGB encoding or a
+# mismatched entry gives mean errors of tens. Noisier data need --mean-tol/--max-tol.
+MEAN_TOL = 2.5
+MAX_TOL = 32.0
 
 
 def main(argv):
-    if len(argv) != 3:
-        print(__doc__.strip().splitlines()[2], file=sys.stderr)
-        return 2
-    zip_path, npy_path = argv[1], argv[2]
+    ap = argparse.ArgumentParser(description="Check a gonio UBO2003 export with btf-extractor 1.7.0.")
+    ap.add_argument("zip", help="archive written by export_ubo2003")
+    ap.add_argument("npy", help="reference written by export_npy (with NPY.json beside it)")
+    ap.add_argument("--mean-tol", type=float, default=MEAN_TOL, help="per-image mean abs error limit, /255")
+    ap.add_argument("--max-tol", type=float, default=MAX_TOL, help="per-image max abs error limit, /255")
+    args = ap.parse_args(argv[1:])
+    zip_path, npy_path = args.zip, args.npy
+    mean_tol, max_tol = args.mean_tol, args.max_tol
     failures = []
 
     ref = np.load(npy_path)
@@ -100,9 +109,9 @@ def main(argv):
         sum_bgr += float(np.abs(bgr.astype(np.float32) - want).mean())
         worst_mean = max(worst_mean, mean)
         worst_max = max(worst_max, mx)
-        if mean > MEAN_TOL or mx > MAX_TOL:
+        if mean > mean_tol or mx > max_tol:
             failures.append(
-                f"{e['entry']!r}: mean abs err {mean:.2f}/255 (limit {MEAN_TOL}), max {mx:.0f}/255 (limit {MAX_TOL})"
+                f"{e['entry']!r}: mean abs err {mean:.2f}/255 (limit {mean_tol}), max {mx:.0f}/255 (limit {max_tol})"
             )
     if entries and not sum_rgb < sum_bgr:
         failures.append(

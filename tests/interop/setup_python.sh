@@ -32,6 +32,7 @@ runtime_pins=(
     "typish==1.9.3"
     "pillow==13.0.0"
     "simplejpeg==1.9.0"
+    "packaging==26.3"
 )
 
 check() {

@@ -27,7 +27,10 @@ impl std::fmt::Display for Infeasibility {
         match self {
             Infeasibility::OutOfLimits { detail } => write!(f, "out of axis limits: {detail}"),
             Infeasibility::LightBlockedByCamera { clearance_mm } => {
-                write!(f, "light blocked by the camera (clearance {clearance_mm:.1} mm, needs > 0)")
+                write!(
+                    f,
+                    "light blocked by the camera (clearance {clearance_mm:.1} mm, needs > 0)"
+                )
             }
         }
     }
@@ -85,7 +88,11 @@ pub fn for_rig(rig: &RigSpec) -> Box<dyn Kinematics> {
 
 /// Time to go from `a` to `b` with all axes moving at once: the slowest axis decides.
 pub fn transition_time(motions: &[MotionModel], a: &[f64], b: &[f64]) -> f64 {
-    motions.iter().zip(a.iter().zip(b)).map(|(m, (x, y))| m.move_time(y - x)).fold(0.0, f64::max)
+    motions
+        .iter()
+        .zip(a.iter().zip(b))
+        .map(|(m, (x, y))| m.move_time(y - x))
+        .fold(0.0, f64::max)
 }
 
 /// Among `solutions`, the one reached fastest from `prev` (ties: smallest total travel).

@@ -13,7 +13,15 @@ use crate::SoftLimits;
 use std::f64::consts::{PI, TAU};
 
 /// Axis roles this kind needs, in no particular order.
-pub const ROLES: [&str; 4] = ["sample_rotation", "camera_elevation", "light_azimuth", "light_elevation"];
+pub const ROLES: [&str; 4] = [
+    "sample_rotation",
+    "camera_elevation",
+    "light_azimuth",
+    "light_elevation",
+];
+
+/// Turntable sampling step (rad) offered when the camera is at the pole.
+const POLE_SAMPLE: f64 = PI / 12.0;
 
 pub struct TwoArm {
     n: usize,
@@ -29,7 +37,11 @@ pub struct TwoArm {
 
 impl TwoArm {
     pub fn new(rig: &RigSpec) -> Self {
-        let idx = |role: &str| rig.axis_by_role(role).map(|(i, _)| i).expect("rig validated: role present");
+        let idx = |role: &str| {
+            rig.axis_by_role(role)
+                .map(|(i, _)| i)
+                .expect("rig validated: role present")
+        };
         TwoArm {
             n: rig.axes.len(),
             i_turn: idx("sample_rotation"),
@@ -64,7 +76,10 @@ impl TwoArm {
     /// Signed elevation / azimuth-offset options for a direction: (elevation, azimuth offset).
     fn elevation_options(&self, axis: usize, theta: f64) -> Vec<(f64, f64)> {
         let l = self.limits[axis];
-        [(theta, 0.0), (-theta, PI)].into_iter().filter(|(e, _)| l.contains(*e)).collect()
+        [(theta, 0.0), (-theta, PI)]
+            .into_iter()
+            .filter(|(e, _)| l.contains(*e))
+            .collect()
     }
 
     /// Shortest distance (mm) from the camera body centre to the lamp's ray toward the
@@ -89,7 +104,10 @@ impl Kinematics for TwoArm {
         let (tc, tl, b) = (q[self.i_cam], q[self.i_larc], q[self.i_lbase]);
         let view_w = Vec3::new(tc.sin(), 0.0, tc.cos());
         let light_w = Vec3::new(tl.sin() * b.cos(), tl.sin() * b.sin(), tl.cos());
-        (Direction::from_vector(light_w.rotate_z(-alpha)), Direction::from_vector(view_w.rotate_z(-alpha)))
+        (
+            Direction::from_vector(light_w.rotate_z(-alpha)),
+            Direction::from_vector(view_w.rotate_z(-alpha)),
+        )
     }
 
     fn camera_pose(&self, q: &[f64]) -> CameraPose {
@@ -101,7 +119,12 @@ impl Kinematics for TwoArm {
         // The camera is fixed to its arm with image x along world +y (the arc's axis).
         let right = Vec3::new(0.0, 1.0, 0.0).rotate_z(-alpha);
         let down = forward.cross(right);
-        CameraPose { position, right, down, forward }
+        CameraPose {
+            position,
+            right,
+            down,
+            forward,
+        }
     }
 
     fn light_position(&self, q: &[f64]) -> Vec3 {
@@ -110,27 +133,40 @@ impl Kinematics for TwoArm {
     }
 
     fn free_axes(&self, light: Direction, view: Direction) -> Vec<usize> {
-        let mut v = Vec::new();
-        if view.theta < POLE_EPS {
-            v.push(self.i_turn);
-        }
+        // The light base is free when the lamp is at the pole. The turntable is never
+        // free on its own: with the camera at the pole it still sets the light's
+        // azimuth in the sample frame (φ_l = β − α), so IK offers sampled values instead.
+        let _ = view;
         if light.theta < POLE_EPS {
-            v.push(self.i_lbase);
+            vec![self.i_lbase]
+        } else {
+            Vec::new()
         }
-        v
     }
 
     fn inverse(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Result<Vec<Vec<f64>>, Infeasibility> {
         let clearance = self.light_clearance(light.vector(), view.vector());
         if clearance <= 0.0 {
-            return Err(Infeasibility::LightBlockedByCamera { clearance_mm: clearance });
+            return Err(Infeasibility::LightBlockedByCamera {
+                clearance_mm: clearance,
+            });
         }
         // (camera elevation, turntable) candidates
         let mut view_opts: Vec<(f64, f64)> = Vec::new();
         if view.theta < POLE_EPS {
-            // Azimuth free: keep the turntable where it is (or at home).
-            let a = prev.map(|p| p[self.i_turn]).unwrap_or(0.0);
-            view_opts.push((0.0, a));
+            // The view azimuth is undefined: keep the turntable where it is, or, with no
+            // previous configuration, offer every 15° so the planner can pick.
+            match prev {
+                Some(p) => view_opts.push((0.0, p[self.i_turn])),
+                None => {
+                    let l = self.limits[self.i_turn];
+                    let mut a = (l.min / POLE_SAMPLE).ceil() * POLE_SAMPLE;
+                    while a <= l.max + 1e-12 {
+                        view_opts.push((0.0, a.min(l.max)));
+                        a += POLE_SAMPLE;
+                    }
+                }
+            }
         } else {
             for (e, off) in self.elevation_options(self.i_cam, view.theta) {
                 for a in self.wraps(self.i_turn, wrap_pi(off - view.phi)) {
@@ -228,11 +264,41 @@ mod tests {
         let rig = RigSpec::default_rig();
         let k = for_rig(&rig);
         let prev = vec![0.7, 0.2, -1.1, 0.3];
-        let sols = k.inverse(Direction::from_degrees(0.0, 0.0), Direction::from_degrees(0.0, 0.0), Some(&prev));
+        let sols = k.inverse(
+            Direction::from_degrees(0.0, 0.0),
+            Direction::from_degrees(0.0, 0.0),
+            Some(&prev),
+        );
         // light == view at the pole: blocked
         assert!(sols.is_err());
-        let sols = k.inverse(Direction::from_degrees(30.0, 90.0), Direction::from_degrees(0.0, 0.0), Some(&prev)).unwrap();
-        assert!(sols.iter().all(|q| q[0] == 0.7), "turntable stays where it was at θv = 0");
+        let sols = k
+            .inverse(
+                Direction::from_degrees(30.0, 90.0),
+                Direction::from_degrees(0.0, 0.0),
+                Some(&prev),
+            )
+            .unwrap();
+        assert!(
+            sols.iter().all(|q| q[0] == 0.7),
+            "turntable stays where it was at θv = 0"
+        );
+        // the light azimuth in the sample frame is still right with the turntable at 0.7
+        for q in &sols {
+            let (l, _) = k.forward(q);
+            assert!(l.angle_to(Direction::from_degrees(30.0, 90.0)) < 1e-9);
+        }
+        // without a previous configuration, sampled turntable positions are offered
+        let sols = k
+            .inverse(
+                Direction::from_degrees(30.0, 90.0),
+                Direction::from_degrees(0.0, 0.0),
+                None,
+            )
+            .unwrap();
+        assert!(sols.len() > 10);
+        assert!(k
+            .free_axes(Direction::from_degrees(30.0, 90.0), Direction::from_degrees(0.0, 0.0))
+            .is_empty());
     }
 
     #[test]

@@ -48,7 +48,10 @@ pub(crate) fn vcavity_g(l: Vec3, v: Vec3, h: Vec3) -> f64 {
 pub(crate) fn eval(kd: &Rgb, ks: &Rgb, lobes: &[BeckmannLobe], fresnel: &Fresnel, l: Vec3, v: Vec3) -> Rgb {
     let mut spec = [0.0; 3];
     if let Some(h) = half_vector(l, v) {
-        let dd: f64 = lobes.iter().map(|lb| lb.weight * d(Distribution::Beckmann, h, lb.m, lb.m)).sum();
+        let dd: f64 = lobes
+            .iter()
+            .map(|lb| lb.weight * d(Distribution::Beckmann, h, lb.m, lb.m))
+            .sum();
         if dd > 0.0 {
             let g = vcavity_g(l, v, h);
             let s = dd * g / (4.0 * l.z * v.z);

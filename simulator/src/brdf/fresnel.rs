@@ -29,9 +29,7 @@ impl Fresnel {
         match self {
             Fresnel::None => [1.0; 3],
             Fresnel::Dielectric { eta } => [dielectric(cos_i, *eta); 3],
-            Fresnel::Conductor { eta, k } => {
-                [0, 1, 2].map(|c| conductor(cos_i, eta[c], k[c]))
-            }
+            Fresnel::Conductor { eta, k } => [0, 1, 2].map(|c| conductor(cos_i, eta[c], k[c])),
             Fresnel::Schlick { f0 } => {
                 let m = (1.0 - cos_i.abs().min(1.0)).max(0.0);
                 let m5 = m * m * m * m * m;
@@ -60,11 +58,7 @@ impl Fresnel {
             }
             Fresnel::Conductor { eta, k } => {
                 if !eta.iter().all(|e| e.is_finite() && *e > 0.0 && *e <= 100.0) {
-                    return bad(
-                        "fresnel.eta",
-                        format!("{eta:?}"),
-                        "each channel must be in (0, 100]",
-                    );
+                    return bad("fresnel.eta", format!("{eta:?}"), "each channel must be in (0, 100]");
                 }
                 if !k.iter().all(|e| e.is_finite() && *e >= 0.0 && *e <= 100.0) {
                     return bad("fresnel.k", format!("{k:?}"), "each channel must be in [0, 100]");
@@ -206,8 +200,8 @@ mod tests {
     #[test]
     fn total_internal_reflection_gives_one() {
         // From glass (n = 1.5) into air: η = 1/1.5, critical angle asin(1/1.5) = 41.8°.
-        let eta = 1.0 / 1.5;
-        let crit = (eta as f64).asin();
+        let eta: f64 = 1.0 / 1.5;
+        let crit = eta.asin();
         for &deg in &[42.0f64, 60.0, 89.99] {
             assert_eq!(dielectric(deg.to_radians().cos(), eta), 1.0, "θ={deg}");
         }

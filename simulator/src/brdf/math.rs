@@ -41,11 +41,7 @@ pub(crate) fn erf(x: f64) -> f64 {
         return x;
     }
     let a = x.abs();
-    let r = if a < 3.0 {
-        erf_series(a)
-    } else {
-        1.0 - erfc_cf(a)
-    };
+    let r = if a < 3.0 { erf_series(a) } else { 1.0 - erfc_cf(a) };
     r.copysign(x)
 }
 
@@ -65,18 +61,49 @@ pub(crate) fn erfc(x: f64) -> f64 {
     }
 }
 
+/// `2/(2k+1)` for the series below (multiplications instead of divisions).
+const TWO_OVER_ODD: [f64; 96] = {
+    let mut t = [0.0; 96];
+    let mut k = 0;
+    while k < 96 {
+        t[k] = 2.0 / (2 * k + 1) as f64;
+        k += 1;
+    }
+    t
+};
+
+/// Fast complementary error function for x ≥ 0 (Chebyshev fit, Numerical Recipes
+/// `erfcc`): relative error < 1.2e-7 everywhere (tested against [`erfc`]). Used for the
+/// Beckmann Smith Λ, where it bounds the error of `G1` to ~1e-7 at a fraction of the cost.
+#[inline]
+pub(crate) fn erfc_fast(x: f64) -> f64 {
+    let z = x.abs();
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let p = -z * z - 1.265_512_23
+        + t * (1.000_023_68
+            + t * (0.374_091_96
+                + t * (0.096_784_18
+                    + t * (-0.186_288_06
+                        + t * (0.278_868_07
+                            + t * (-1.135_203_98 + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
+    let r = t * p.exp();
+    if x >= 0.0 {
+        r
+    } else {
+        2.0 - r
+    }
+}
+
 /// `erf(x) = 2x e^{-x²}/√π Σ (2x²)^k / (2k+1)!!` for 0 ≤ x < 3: all terms positive, no
-/// cancellation.
+/// cancellation; at most ~70 terms.
 fn erf_series(x: f64) -> f64 {
     let x2 = x * x;
     let mut term = x;
     let mut sum = x;
-    let mut k = 0.0;
-    loop {
-        k += 1.0;
-        term *= 2.0 * x2 / (2.0 * k + 1.0);
+    for c in &TWO_OVER_ODD[1..] {
+        term *= x2 * c;
         sum += term;
-        if term < sum * 1e-17 || k > 200.0 {
+        if term < sum * 1e-17 {
             break;
         }
     }
@@ -226,6 +253,18 @@ mod tests {
             assert!(((erfc(x) - e) / e).abs() < 1e-10, "erfc({x}) = {}", erfc(x));
         }
         assert_eq!(erfc(40.0), 0.0);
+    }
+
+    #[test]
+    fn erfc_fast_relative_error() {
+        let mut worst: f64 = 0.0;
+        for i in 0..=2600 {
+            let x = i as f64 * 0.01; // 0 … 26
+            let e = erfc(x);
+            worst = worst.max(((erfc_fast(x) - e) / e).abs());
+        }
+        assert!(worst < 1.2e-7, "{worst}");
+        assert!(((erfc_fast(-1.0) - erfc(-1.0)) / erfc(-1.0)).abs() < 1.2e-7);
     }
 
     #[test]

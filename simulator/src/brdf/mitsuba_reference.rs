@@ -4,7 +4,19 @@
 //! `l`, `v` = `(sin θ cos φ, sin θ sin φ, cos θ)` from the listed degrees, for
 //! `roughplastic` (`int_ior` = eta, `ext_ior` = 1, `diffuse_reflectance`,
 //! `specular_reflectance`, `nonlinear`) and `roughconductor` (`alpha_u`, `alpha_v`, `eta`,
-//! `k` as RGB). Mitsuba computes in f32.
+//! `k` as RGB). Mitsuba computes in f32. To regenerate (`pip install mitsuba`):
+//!
+//! ```text
+//! import mitsuba as mi; mi.set_variant('scalar_rgb')
+//! b = mi.load_dict({'type': 'roughplastic', 'distribution': 'ggx', 'alpha': 0.1,
+//!                   'int_ior': 1.5, 'ext_ior': 1.0, 'nonlinear': False,
+//!                   'diffuse_reflectance': {'type': 'rgb', 'value': [0.5, 0.3, 0.2]}})
+//! si = mi.SurfaceInteraction3f(); si.wi = mi.Vector3f(l)
+//! f = b.eval(mi.BSDFContext(), si, mi.Vector3f(v)) / v[2]
+//! ```
+//!
+//! Observed agreement: rough plastic ≤ 5e-6 relative, GGX conductor ≤ 1e-6, Beckmann
+//! conductor ≤ 0.7 % (Mitsuba's rational Beckmann `G1`; ours uses the exact Λ).
 
 use super::*;
 
@@ -195,7 +207,10 @@ fn rough_plastic_matches_mitsuba3() {
         let f = m.eval(dir_deg(a[0], a[1]), dir_deg(a[2], a[3]));
         let dev = deviation(f, expect);
         worst = worst.max(dev);
-        assert!(dev < 5e-5, "{d} α={alpha} η={eta} {a:?}: ours {f:?} vs Mitsuba {expect:?} ({dev:e})");
+        assert!(
+            dev < 5e-5,
+            "{d} α={alpha} η={eta} {a:?}: ours {f:?} vs Mitsuba {expect:?} ({dev:e})"
+        );
     }
     eprintln!("rough plastic: worst relative deviation from Mitsuba 3: {worst:e}");
 }
@@ -221,7 +236,13 @@ fn rough_conductor_matches_mitsuba3() {
         worst[i] = worst[i].max(dev);
         // Mitsuba's Beckmann G1 is a rational fit (< 0.35 % per G1); ours is exact.
         let tol = if i == 1 { 8e-3 } else { 1e-5 };
-        assert!(dev < tol, "{d} ({au},{av}) {a:?}: ours {f:?} vs Mitsuba {expect:?} ({dev:e})");
+        assert!(
+            dev < tol,
+            "{d} ({au},{av}) {a:?}: ours {f:?} vs Mitsuba {expect:?} ({dev:e})"
+        );
     }
-    eprintln!("rough conductor: worst deviation GGX {:e}, Beckmann {:e}", worst[0], worst[1]);
+    eprintln!(
+        "rough conductor: worst deviation GGX {:e}, Beckmann {:e}",
+        worst[0], worst[1]
+    );
 }

@@ -15,7 +15,7 @@ use super::Rgb;
 /// (the lobe is not normalized and grows without bound as `n·l → 0`). Kept for comparison
 /// with the lecture notes; use `modified-phong` for physically plausible work.
 #[inline]
-pub(crate) fn phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rgb {
+pub fn phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rgb {
     let c = reflect_z(l).dot(v);
     let s = pow_pos(c, n) / l.z;
     [0, 1, 2].map(|i| kd[i] * FRAC_1_PI + ks[i] * s)
@@ -27,7 +27,7 @@ pub(crate) fn phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rgb {
 /// albedo is exactly `ks`, and it only decreases with the angle of incidence (lobe cut by
 /// the horizon). Reciprocal; energy conserving when `kd + ks ≤ 1` per channel.
 #[inline]
-pub(crate) fn modified_phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rgb {
+pub fn modified_phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rgb {
     let c = reflect_z(l).dot(v);
     let s = (n + 2.0) / (2.0 * PI) * pow_pos(c, n);
     [0, 1, 2].map(|i| kd[i] * FRAC_1_PI + ks[i] * s)
@@ -42,7 +42,7 @@ pub(crate) fn modified_phong(kd: &Rgb, ks: &Rgb, n: f64, l: Vec3, v: Vec3) -> Rg
 /// angles, so energy is conserved when `kd + A(m) ks ≤ 1` — which `validate` enforces.
 /// `(r·v)^n ≈ (n·h)^{4n}` relates the exponent to Phong's. Reciprocal.
 #[inline]
-pub(crate) fn blinn_phong(kd: &Rgb, ks: &Rgb, m: f64, l: Vec3, v: Vec3) -> Rgb {
+pub fn blinn_phong(kd: &Rgb, ks: &Rgb, m: f64, l: Vec3, v: Vec3) -> Rgb {
     let s = match half_vector(l, v) {
         Some(h) => (m + 8.0) / (8.0 * PI) * pow_pos(h.z, m),
         None => 0.0,
@@ -69,7 +69,9 @@ mod tests {
     fn blinn_phong_albedo_closed_form_values() {
         assert!((blinn_phong_normal_albedo(0.0) - 1.0).abs() < 1e-15);
         // maximum ≈ 1.0752 near m = 8.8
-        let max = (0..200).map(|i| blinn_phong_normal_albedo(i as f64 * 0.5)).fold(0.0, f64::max);
+        let max = (0..200)
+            .map(|i| blinn_phong_normal_albedo(i as f64 * 0.5))
+            .fold(0.0, f64::max);
         assert!(max > 1.075 && max < 1.0753, "{max}");
         assert!((blinn_phong_normal_albedo(1e6) - 1.0).abs() < 1e-5);
     }

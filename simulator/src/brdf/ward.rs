@@ -34,15 +34,7 @@ pub enum WardNormalization {
 
 #[allow(clippy::too_many_arguments)]
 #[inline]
-pub(crate) fn eval(
-    kd: &Rgb,
-    ks: &Rgb,
-    ax: f64,
-    ay: f64,
-    norm: WardNormalization,
-    l: Vec3,
-    v: Vec3,
-) -> Rgb {
+pub(crate) fn eval(kd: &Rgb, ks: &Rgb, ax: f64, ay: f64, norm: WardNormalization, l: Vec3, v: Vec3) -> Rgb {
     let h = l + v;
     let mut s = 0.0;
     if h.z > 0.0 {
