@@ -4,6 +4,7 @@
 //! hardware traits of `gonio-devices`) → [`rectify`] → [`store`].
 
 pub mod cli;
+pub mod compress;
 pub mod engine;
 pub mod plan;
 pub mod rectify;

@@ -170,6 +170,17 @@ pub struct SimWorld {
     pub readout_s: f64,
     pub width: usize,
     pub height: usize,
+    pub roi: Roi,
+}
+
+/// Which part of the sensor the simulated camera reads out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Roi {
+    /// The whole sensor.
+    Full,
+    /// The bounding box of the sample holder (plus a margin): the rest of the frame only
+    /// sees the dark background, so reading it costs time and tells nothing.
+    Holder,
 }
 
 impl SimWorld {
@@ -249,11 +260,21 @@ impl Camera for SimCamera {
             (s.exposure_s, s.gain, s.bit_depth)
         };
         let timestamp = world.clock.now();
+        // Noise is seeded by the pose, not the frame counter: the same measurement gets the
+        // same noise whether the run was interrupted and resumed or not.
+        let noise_key = q.iter().fold(0u64, |h, x| crate::noise::mix64(h ^ x.to_bits()));
         let w2 = world.clone();
         let data = tokio::task::spawn_blocking(move || {
             let rad = w2.raw_radiance(&q);
             let sensor = w2.sensor.lock().expect("sensor poisoned").clone();
-            sensor.expose(&rad, seq)
+            match w2.roi {
+                Roi::Full => sensor.expose(&rad, noise_key),
+                Roi::Holder => {
+                    let pose = w2.kinematics.camera_pose(&q);
+                    let roi = w2.renderer.pixel_bounds(&w2.intrinsics, &pose, w2.width, w2.height);
+                    sensor.expose_roi(&rad, noise_key, roi)
+                }
+            }
         })
         .await
         .map_err(|e| DeviceError::Other {
@@ -353,6 +374,17 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         readout_s: spec.camera.readout_s,
         width: spec.camera.width,
         height: spec.camera.height,
+        roi: match spec.camera.options.get("roi").and_then(|v| v.as_str()) {
+            None | Some("holder") => Roi::Holder,
+            Some("full") => Roi::Full,
+            Some(other) => {
+                return Err(SimRigError {
+                    rig: spec.name.clone(),
+                    key: "roi".into(),
+                    message: format!("`{other}`: use \"holder\" (default) or \"full\""),
+                })
+            }
+        },
     });
     let camera = Arc::new(SimCamera {
         world: world.clone(),

@@ -144,7 +144,8 @@ impl Renderer {
         let t0 = ((origin.z - g.max) / -dir.z).max(0.0);
         let t1 = (origin.z - g.min) / -dir.z;
         let horiz = (dir.x * dir.x + dir.y * dir.y).sqrt();
-        let step_len = 0.5 * g.texel;
+        // One step per grid texel: the bilinear surface has no detail finer than that.
+        let step_len = g.texel;
         let steps = (((t1 - t0) * horiz / step_len).ceil() as usize).clamp(1, 4 * g.n);
         let dt = (t1 - t0) / steps as f64;
         // The relief's edge texels continue a little past the sample square (its cut
@@ -170,7 +171,7 @@ impl Renderer {
                     // ~1e-4 texel where plain bisection needs 12.
                     let (mut lo, mut hi, mut flo, mut fhi) = (ta, tb, a, b);
                     let mut side = 0i8;
-                    for _ in 0..4 {
+                    for _ in 0..3 {
                         let t = (lo * fhi - hi * flo) / (fhi - flo);
                         match f(t) {
                             Some(m) if m > 0.0 => {
@@ -330,12 +331,8 @@ impl Renderer {
                 }
                 if let Some(s) = shadow {
                     let half = self.half();
-                    let si = (((p.x + half) / (2.0 * half)) * s.n as f64)
-                        .floor()
-                        .clamp(0.0, (s.n - 1) as f64) as usize;
-                    let sj = (((half - p.y) / (2.0 * half)) * s.n as f64)
-                        .floor()
-                        .clamp(0.0, (s.n - 1) as f64) as usize;
+                    let si = ((((p.x + half) / (2.0 * half)) * s.n as f64) as usize).min(s.n - 1);
+                    let sj = ((((half - p.y) / (2.0 * half)) * s.n as f64) as usize).min(s.n - 1);
                     if s.lit[sj * s.n + si] == 0 {
                         return [0.0; 3];
                     }
@@ -474,7 +471,7 @@ impl Renderer {
 
     /// Pixel rectangle [x0, x1) × [y0, y1) that can see the holder (its corners at the
     /// lowest and highest surface heights, projected, plus a margin).
-    fn pixel_bounds(
+    pub fn pixel_bounds(
         &self,
         intr: &Intrinsics,
         pose: &CameraPose,
@@ -555,6 +552,7 @@ fn grid_coords(g: &HeightGrid, half: f64, x: f64, y: f64) -> (usize, usize, f64,
     let n = g.n;
     let gx = ((x + half) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
     let gy = ((half - y) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
-    let (i0, j0) = (gx.floor() as usize, gy.floor() as usize);
-    (i0.min(n - 1), j0.min(n - 1), gx - gx.floor(), gy - gy.floor())
+    // gx, gy ≥ 0 here, so truncation is floor (and avoids a libm call per lookup).
+    let (i0, j0) = (gx as usize, gy as usize);
+    (i0.min(n - 1), j0.min(n - 1), gx - i0 as f64, gy - j0 as f64)
 }

@@ -503,8 +503,9 @@ impl Sample {
     pub fn texel_of(&self, x: f64, y: f64) -> (usize, usize) {
         let n = self.spec.resolution;
         let s = self.spec.size_mm;
-        let i = (((x + s / 2.0) / s) * n as f64).floor().clamp(0.0, (n - 1) as f64) as usize;
-        let j = (((s / 2.0 - y) / s) * n as f64).floor().clamp(0.0, (n - 1) as f64) as usize;
+        // `as usize` saturates negatives to 0 and truncates (= floor for x ≥ 0).
+        let i = ((((x + s / 2.0) / s) * n as f64) as usize).min(n - 1);
+        let j = ((((s / 2.0 - y) / s) * n as f64) as usize).min(n - 1);
         (i, j)
     }
 

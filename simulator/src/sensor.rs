@@ -60,6 +60,14 @@ impl SensorModel {
 
     /// Convert a radiance image into a frame of DN values.
     pub fn expose(&self, radiance: &RgbImage, sequence: u64) -> Vec<u16> {
+        self.expose_roi(radiance, sequence, (0, 0, radiance.width, radiance.height))
+    }
+
+    /// Like [`expose`](Self::expose) but reading out only the region of interest
+    /// `[x0, x1) × [y0, y1)`; pixels outside it are not read (0), as with a camera's ROI
+    /// readout. Noise is reproducible for the same (seed, sequence, ROI).
+    pub fn expose_roi(&self, radiance: &RgbImage, sequence: u64, roi: (usize, usize, usize, usize)) -> Vec<u16> {
+        let (rx0, ry0, rx1, ry1) = (roi.0, roi.1, roi.2.min(radiance.width), roi.3.min(radiance.height));
         let (w, h) = (radiance.width, radiance.height);
         let mut out = vec![0u16; w * h * 3];
         let conv = self.conversion();
@@ -75,13 +83,16 @@ impl SensorModel {
         let dark_limit = (-dark).exp();
         let full = self.full_well_e;
         out.par_chunks_mut(w * 3).enumerate().for_each(|(row, dst)| {
+            if row < ry0 || row >= ry1 {
+                return;
+            }
             let src = &radiance.data[row * w * 3..(row + 1) * w * 3];
             let dy = row as f64 + 0.5 - cy;
             let vig_row = self.vignetting * dy * dy / r2_corner;
             // x ≥ 0 is rounded by adding ½ and truncating (libm's round is slow).
             let to_dn = |e: f64| ((e.min(full) * conv).clamp(0.0, max_dn) + 0.5) as u16;
             if !self.noise {
-                for col in 0..w {
+                for col in rx0..rx1 {
                     let dx = col as f64 + 0.5 - cx;
                     let vig = 1.0 - vig_row - self.vignetting * dx * dx / r2_corner;
                     for c in 0..3 {
@@ -91,7 +102,7 @@ impl SensorModel {
                 return;
             }
             let mut rng = Pcg64Mcg::seed_from_u64(mix64(self.seed ^ mix64(sequence.wrapping_mul(0x9E37) ^ row as u64)));
-            for col in 0..w {
+            for col in rx0..rx1 {
                 let dx = col as f64 + 0.5 - cx;
                 let vig = 1.0 - vig_row - self.vignetting * dx * dx / r2_corner;
                 for c in 0..3 {

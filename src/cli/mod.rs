@@ -5,6 +5,7 @@
 
 mod acquire;
 mod bench;
+mod brdf;
 mod common;
 mod export;
 mod plan;
@@ -43,6 +44,9 @@ pub enum Command {
     /// The simulator: render single measurements, write ground truth.
     #[command(subcommand)]
     Sim(sim::SimCommand),
+    /// The BRDF material library: list models, evaluate one.
+    #[command(subcommand)]
+    Brdf(brdf::BrdfCommand),
     /// Benchmarks (ratios against a baseline run in the same process).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -74,5 +78,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Verify(a) => export::verify(a),
         Command::Sim(c) => sim::run(c),
         Command::Bench(c) => bench::run(c),
+        Command::Brdf(c) => brdf::run(c),
     }
 }

@@ -1,0 +1,2 @@
+//! BTF compression (PCA, per-view factorization, …): being built, see issue "The
+//! compression pipeline".
