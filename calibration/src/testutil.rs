@@ -14,9 +14,12 @@ pub const WIDTH: usize = 768;
 pub const HEIGHT: usize = 640;
 pub const SAMPLE_MM: f64 = 60.0;
 
+/// The test camera: the default rig's sensor with a fixed focal length of 5000 px, so
+/// the tests' geometry does not drift when the default rig's lens changes.
 pub fn rig_intrinsics() -> Intrinsics {
-    let rig = RigSpec::default_rig();
+    let mut rig = RigSpec::default_rig();
     assert_eq!((rig.camera.width, rig.camera.height), (WIDTH, HEIGHT));
+    rig.camera.focal_length_px = 5000.0;
     rig.camera.intrinsics()
 }
 

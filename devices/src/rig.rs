@@ -35,6 +35,15 @@ pub enum RigKind {
     /// Sample turntable, camera on an elevation arc, light on an elevation arc that sits on
     /// a rotating base.
     TwoArm,
+    /// Fixed camera, lamp on one circular arc, sample on a 3-axis gimbal of rotary stages
+    /// (Winkler & Zagar 2015): the sample turns, not the camera.
+    Gimbal,
+    /// The lamp never moves (RGL pgII principle); camera on a 2-axis arc, sample on tilt +
+    /// rotation stages.
+    StaticLight,
+    /// N fixed cameras and M fixed lamps (Bonn's Dome): measuring is selecting. Two selector
+    /// axes whose position (degrees at the interface) is the camera / lamp index.
+    Dome,
 }
 
 /// One axis as written in the rig file (degrees for rotary axes).
@@ -100,6 +109,38 @@ pub struct GeometrySpec {
     /// Extra clearance kept between the light path and the camera body.
     #[serde(default)]
     pub clearance_mm: f64,
+    /// Height of the sample holder's rim above the sample surface; 0 = no rim (off).
+    #[serde(default)]
+    pub holder_rim_height_mm: f64,
+    /// Edge length of the (square) sample the rim must not shadow; 0 = off.
+    #[serde(default)]
+    pub sample_size_mm: f64,
+    /// Horizontal gap between the sample's edge and the rim's inner wall. The default is
+    /// the marker border's width (`MarkerBorder::default().border_mm`), which lies between
+    /// the sample and the rim.
+    #[serde(default = "default_rim_gap")]
+    pub holder_rim_gap_mm: f64,
+    /// static-light: the fixed lamp's angle from the world zenith, in the world x-z plane.
+    #[serde(default)]
+    pub fixed_light_elevation_deg: f64,
+    /// dome: camera directions `[[θ, φ], …]` (degrees, world = sample frame); absent = the
+    /// uniform 15° layout (`kinematics::dome::uniform15`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_directions_deg: Option<Vec<[f64; 2]>>,
+    /// dome: lamp directions, as `camera_directions_deg`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light_directions_deg: Option<Vec<[f64; 2]>>,
+    /// dome: a requested direction matches a camera / lamp closer than this. The default is
+    /// below 1e-9 rad, so what is measured is what was asked to the planner's precision.
+    #[serde(default = "default_dome_tolerance")]
+    pub dome_match_tolerance_deg: f64,
+}
+
+fn default_rim_gap() -> f64 {
+    10.0
+}
+fn default_dome_tolerance() -> f64 {
+    5e-8
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -237,6 +278,7 @@ impl RigSpec {
                 "must be ≥ 0",
             ));
         }
+        self.validate_kind_geometry(file)?;
         let c = &self.camera;
         if !(16..=16384).contains(&c.width) {
             return Err(bad(
@@ -313,9 +355,7 @@ impl RigSpec {
                 ));
             }
         }
-        let roles: &[&str] = match self.kind {
-            RigKind::TwoArm => &crate::kinematics::two_arm::ROLES,
-        };
+        let roles: &[&str] = crate::kinematics::roles(self.kind);
         for role in roles {
             if self.axis_by_role(role).is_none() {
                 return Err(bad(
@@ -340,6 +380,98 @@ impl RigSpec {
                         roles.join(", ")
                     ),
                 ));
+            }
+        }
+        if self.kind == RigKind::Dome {
+            let (cams, lamps) = crate::kinematics::dome::directions(self);
+            for (role, n, list) in [
+                ("camera_select", cams.len(), "camera_directions_deg"),
+                ("light_select", lamps.len(), "light_directions_deg"),
+            ] {
+                let (i, a) = self.axis_by_role(role).expect("roles checked above");
+                if a.min_deg > 0.0 || a.max_deg < (n - 1) as f64 {
+                    return Err(bad(
+                        format!("axis[{i}] ({}).min_deg/max_deg", a.name),
+                        format!("[{}, {}]", a.min_deg, a.max_deg),
+                        &format!(
+                            "a selector's position is the index into geometry.{list} ({n} entries): limits must cover 0 ..= {}",
+                            n - 1
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Optional geometry keys: the holder rim and the kind-specific ones.
+    fn validate_kind_geometry(&self, file: &str) -> Result<(), RigError> {
+        let g = &self.geometry;
+        let bad = |key: &str, value: String, message: &str| RigError::Invalid {
+            file: file.to_string(),
+            key: format!("geometry.{key}"),
+            value,
+            message: message.to_string(),
+        };
+        for (key, v) in [
+            ("holder_rim_height_mm", g.holder_rim_height_mm),
+            ("sample_size_mm", g.sample_size_mm),
+            ("holder_rim_gap_mm", g.holder_rim_gap_mm),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(key, v.to_string(), "must be a finite number ≥ 0"));
+            }
+        }
+        if g.holder_rim_height_mm > 0.0 && g.sample_size_mm > 0.0 && g.holder_rim_gap_mm <= 0.0 {
+            return Err(bad(
+                "holder_rim_gap_mm",
+                g.holder_rim_gap_mm.to_string(),
+                "must be > 0 when a rim is on: a rim at the sample's very edge shadows every direction that is not straight overhead",
+            ));
+        }
+        if !(g.fixed_light_elevation_deg.is_finite() && g.fixed_light_elevation_deg.abs() < 90.0) {
+            return Err(bad(
+                "fixed_light_elevation_deg",
+                g.fixed_light_elevation_deg.to_string(),
+                "valid range is -90 < fixed_light_elevation_deg < 90 degrees",
+            ));
+        }
+        if !(g.dome_match_tolerance_deg.is_finite()
+            && g.dome_match_tolerance_deg > 0.0
+            && g.dome_match_tolerance_deg < 5.0)
+        {
+            return Err(bad(
+                "dome_match_tolerance_deg",
+                g.dome_match_tolerance_deg.to_string(),
+                "valid range is 0 < dome_match_tolerance_deg < 5 degrees",
+            ));
+        }
+        for (key, list) in [
+            ("camera_directions_deg", &g.camera_directions_deg),
+            ("light_directions_deg", &g.light_directions_deg),
+        ] {
+            let Some(list) = list else { continue };
+            if self.kind != RigKind::Dome {
+                return Err(bad(
+                    key,
+                    format!("{} entries", list.len()),
+                    "only a `dome` rig has fixed direction lists",
+                ));
+            }
+            if list.is_empty() || list.len() > 721 {
+                return Err(bad(key, format!("{} entries", list.len()), "need 1 ..= 721 directions"));
+            }
+            let mut seen: Vec<crate::Direction> = Vec::with_capacity(list.len());
+            for (i, &[t, p]) in list.iter().enumerate() {
+                let entry = || format!("entry {i} [{t}, {p}]");
+                if !(t.is_finite() && (0.0..90.0).contains(&t) && p.is_finite()) {
+                    return Err(bad(key, entry(), "θ must be in [0°, 90°) and φ finite"));
+                }
+                let d = crate::Direction::from_degrees(t, p);
+                if let Some(j) = seen.iter().position(|o| o.angle_to(d) < 1e-9) {
+                    return Err(bad(key, entry(), &format!("duplicate of entry {j}")));
+                }
+                seen.push(d);
             }
         }
         Ok(())
@@ -370,5 +502,31 @@ mod tests {
         assert!(e.contains("max_velocity_deg_s") && e.contains("> 0"), "{e}");
         let e = RigSpec::parse("name = 1", "x.toml").unwrap_err().to_string();
         assert!(e.contains("x.toml"), "{e}");
+    }
+
+    #[test]
+    fn optional_geometry_keys_are_checked_and_name_the_key() {
+        let with_gap0 = DEFAULT_RIG_TOML.replace(
+            "sample_size_mm = 50.0",
+            "sample_size_mm = 50.0\nholder_rim_gap_mm = 0.0",
+        );
+        let e = RigSpec::parse(&with_gap0, "r.toml").unwrap_err().to_string();
+        assert!(e.contains("geometry.holder_rim_gap_mm") && e.contains("> 0"), "{e}");
+        let lists = DEFAULT_RIG_TOML.replace(
+            "clearance_mm = 5.0",
+            "clearance_mm = 5.0\ncamera_directions_deg = [[0, 0]]",
+        );
+        let e = RigSpec::parse(&lists, "r.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("geometry.camera_directions_deg") && e.contains("dome"),
+            "{e}"
+        );
+        let neg = DEFAULT_RIG_TOML.replace("holder_rim_height_mm = 1.5", "holder_rim_height_mm = -1.0");
+        let e = RigSpec::parse(&neg, "r.toml").unwrap_err().to_string();
+        assert!(e.contains("geometry.holder_rim_height_mm"), "{e}");
+        // a rig of one kind with another kind's roles names the missing role
+        let wrong = DEFAULT_RIG_TOML.replace("kind = \"two-arm\"", "kind = \"gimbal\"");
+        let e = RigSpec::parse(&wrong, "r.toml").unwrap_err().to_string();
+        assert!(e.contains("light_arc"), "{e}");
     }
 }

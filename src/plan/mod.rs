@@ -268,7 +268,7 @@ impl Plan {
                 light_deg: deg(*light),
                 view_deg: deg(pair.view),
                 status: status.clone(),
-                axes_deg: q.iter().map(|x| x.to_degrees()).collect(),
+                axes_deg: q.iter().map(|x| (x.to_degrees() * 1e9).round() / 1e9).collect(),
                 transition_s: dt,
                 capture_start_s: t,
             });
@@ -321,6 +321,8 @@ pub fn reason_key(r: &Infeasibility) -> String {
     match r {
         Infeasibility::OutOfLimits { .. } => "out_of_limits".into(),
         Infeasibility::LightBlockedByCamera { .. } => "light_blocked_by_camera".into(),
+        Infeasibility::NotInDome { .. } => "not_in_dome".into(),
+        Infeasibility::HolderShadow { .. } => "holder_shadow".into(),
     }
 }
 
