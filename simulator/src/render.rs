@@ -46,7 +46,7 @@ impl Default for RenderQuality {
         RenderQuality {
             supersample: 1,
             shadow_scale: 1,
-            truth_supersample: 2,
+            truth_supersample: 1,
         }
     }
 }
@@ -215,7 +215,7 @@ impl Renderer {
     }
 
     /// Bilinear height (mm) at a sample-frame point.
-    #[inline]
+    #[inline(always)]
     fn height(&self, g: &HeightGrid, x: f64, y: f64) -> f64 {
         let (i0, j0, fx, fy) = grid_coords(g, self.half(), x, y);
         let n = g.n;
@@ -550,8 +550,9 @@ impl Renderer {
 #[inline]
 fn grid_coords(g: &HeightGrid, half: f64, x: f64, y: f64) -> (usize, usize, f64, f64) {
     let n = g.n;
-    let gx = ((x + half) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
-    let gy = ((half - y) / g.texel - 0.5).clamp(0.0, (n - 1) as f64);
+    let inv = 1.0 / g.texel; // constant per grid: the compiler hoists it out of the loops
+    let gx = ((x + half) * inv - 0.5).clamp(0.0, (n - 1) as f64);
+    let gy = ((half - y) * inv - 0.5).clamp(0.0, (n - 1) as f64);
     // gx, gy ≥ 0 here, so truncation is floor (and avoids a libm call per lookup).
     let (i0, j0) = (gx as usize, gy as usize);
     (i0.min(n - 1), j0.min(n - 1), gx - i0 as f64, gy - j0 as f64)
