@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# The test command (README): formatting, lints, every Rust test, then the interop checks
-# against public readers (they need the venv that .ci/run installs; without it they are
-# skipped with a notice, never silently passed).
+# The test command (README): formatting, lints, every Rust test, the reliability campaigns
+# with their figures, then the interop checks against public readers and oracles (they
+# need the venv that .ci/run installs; without it they are skipped with a notice, and
+# under CI they fail).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export GONIO_VENV="${GONIO_VENV:-$PWD/target/venv}"
@@ -15,5 +16,8 @@ echo "== cargo clippy (warnings denied)"
 cargo clippy --workspace --all-targets -- -D warnings
 echo "== cargo test"
 cargo test --workspace
+echo "== campaign figures (kill -9, faults)"
+cargo test -q -p gonio --test campaign_kill9 --test campaign_faults -- --nocapture 2>&1 \
+  | grep -E "^(kill9:|fault|\||[a-z-]+ +\|)" || true
 echo "== interop"
 bash tests/interop/run.sh

@@ -339,13 +339,26 @@ impl RigSpec {
                     "the home position 0 must lie inside the limits",
                 ));
             }
-            pos(&k("max_velocity_deg_s"), a.max_velocity_deg_s)?;
-            pos(&k("acceleration_deg_s2"), a.acceleration_deg_s2)?;
+            // Bounded ranges: absurd values (1e300 s of settling, 1e-300 °/s) would make
+            // every planned time overflow and no plan meaningful.
+            let within = |key: String, v: f64, lo: f64, hi: f64| {
+                if v.is_finite() && v >= lo && v <= hi {
+                    Ok(())
+                } else {
+                    Err(bad(key, v.to_string(), &format!("valid range is {lo:e} ..= {hi:e}")))
+                }
+            };
+            within(k("max_velocity_deg_s"), a.max_velocity_deg_s, 1e-3, 1e7)?;
+            within(k("acceleration_deg_s2"), a.acceleration_deg_s2, 1e-3, 1e10)?;
             if let Some(j) = a.jerk_deg_s3 {
-                pos(&k("jerk_deg_s3"), j)?;
+                within(k("jerk_deg_s3"), j, 1e-3, 1e13)?;
             }
-            if !(a.settle_s >= 0.0 && a.settle_s.is_finite()) {
-                return Err(bad(k("settle_s"), a.settle_s.to_string(), "must be ≥ 0"));
+            if !(a.settle_s >= 0.0 && a.settle_s <= 3600.0) {
+                return Err(bad(
+                    k("settle_s"),
+                    a.settle_s.to_string(),
+                    "valid range is 0 ..= 3600 s",
+                ));
             }
             if !(a.deadband_deg >= 0.0 && a.deadband_deg < 1.0) {
                 return Err(bad(
@@ -499,7 +512,7 @@ mod tests {
         );
         let bad = DEFAULT_RIG_TOML.replacen("max_velocity_deg_s = 20.0", "max_velocity_deg_s = -1.0", 1);
         let e = RigSpec::parse(&bad, "r.toml").unwrap_err().to_string();
-        assert!(e.contains("max_velocity_deg_s") && e.contains("> 0"), "{e}");
+        assert!(e.contains("max_velocity_deg_s") && e.contains("valid range"), "{e}");
         let e = RigSpec::parse("name = 1", "x.toml").unwrap_err().to_string();
         assert!(e.contains("x.toml"), "{e}");
     }

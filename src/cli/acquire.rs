@@ -3,10 +3,12 @@
 use super::common::{load_sample, RigArgs, SweepArgs};
 use crate::engine::metrics::ErrorFigures;
 use crate::engine::{self, Rig, RunOptions};
-use crate::plan::Plan;
+use crate::plan::{Plan, PlanOptions};
 use crate::store::{self, Dataset, ManifestHeader};
+use crate::sweep::Sweep;
 use anyhow::{bail, Context, Result};
 use gonio_devices::rig::RigSpec;
+use gonio_devices::Direction;
 use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
@@ -14,6 +16,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 #[derive(clap::Args, Debug)]
 pub struct AcquireArgs {
@@ -315,9 +318,27 @@ fn open_resume(dir: &Path) -> Result<Opened> {
     let sample: SampleSpec =
         serde_json::from_value(header.sample.clone()).context("reading the sample snapshot from the manifest")?;
     let plan_file = plan_path(dir);
-    let plan: Plan =
+    let plan: Plan = if !plan_file.exists() && records.is_empty() {
+        // Interrupted between creating the dataset and writing its plan: nothing was
+        // measured yet, so plan again from the manifest's snapshots.
+        tracing::warn!(dir = %dir.display(), "plan.json missing in an empty dataset: planning again");
+        let sweep = sweep_from_header(&header.sweep).context("reading the sweep snapshot from the manifest")?;
+        let policy = serde_json::from_value(header.sweep["policy"].clone()).unwrap_or_default();
+        let plan = Plan::build(
+            &rig,
+            &sweep,
+            &PlanOptions {
+                policy,
+                time_budget: Duration::ZERO,
+                seed: 1,
+            },
+        )?;
+        write_plan(dir, &plan)?;
+        plan
+    } else {
         serde_json::from_slice(&std::fs::read(&plan_file).with_context(|| format!("reading {}", plan_file.display()))?)
-            .with_context(|| format!("parsing {}", plan_file.display()))?;
+            .with_context(|| format!("parsing {}", plan_file.display()))?
+    };
     let settings: RunSettings = serde_json::from_value(header.extra["run_settings"].clone())
         .context("reading run settings from the manifest")?;
     let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
@@ -330,6 +351,19 @@ fn open_resume(dir: &Path) -> Result<Opened> {
         );
     }
     Ok((rig, sample, plan, settings, dataset, done))
+}
+
+/// The sweep recorded in a manifest header (`lights_deg`, `views_deg`, degrees).
+fn sweep_from_header(v: &serde_json::Value) -> Result<Sweep> {
+    let list = |key: &str| -> Result<Vec<Direction>> {
+        let raw: Vec<[f64; 2]> = serde_json::from_value(v[key].clone()).with_context(|| format!("sweep.{key}"))?;
+        Ok(raw.iter().map(|[t, p]| Direction::from_degrees(*t, *p)).collect())
+    };
+    Ok(Sweep {
+        name: v["name"].as_str().unwrap_or("sweep").to_string(),
+        lights: list("lights_deg")?,
+        views: list("views_deg")?,
+    })
 }
 
 fn print_summary(s: &Summary) {

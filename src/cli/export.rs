@@ -53,5 +53,15 @@ pub fn verify(args: VerifyArgs) -> Result<ExitCode> {
     } else {
         println!("{report:?}");
     }
-    Ok(ExitCode::SUCCESS)
+    if report.damaged.is_empty() {
+        Ok(ExitCode::SUCCESS)
+    } else {
+        eprintln!(
+            "{}: {} damaged or missing file(s); `gonio acquire --resume {}` measures them again",
+            args.dir.display(),
+            report.damaged.len(),
+            args.dir.display()
+        );
+        Ok(ExitCode::from(2))
+    }
 }

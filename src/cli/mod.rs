@@ -7,6 +7,7 @@ mod acquire;
 mod bench;
 mod brdf;
 mod common;
+mod compress;
 mod export;
 mod plan;
 mod sim;
@@ -50,6 +51,10 @@ pub enum Command {
     /// Benchmarks (ratios against a baseline run in the same process).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Compress a dataset (PCA or per-view factorization) into a .gbtf file and report its error.
+    Compress(compress::CompressArgs),
+    /// Reconstruct one (light, view) image from a .gbtf file.
+    Reconstruct(compress::ReconstructArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -79,5 +84,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim(c) => sim::run(c),
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),
+        Command::Compress(a) => compress::run(a),
+        Command::Reconstruct(a) => compress::reconstruct(a),
     }
 }

@@ -199,6 +199,9 @@ impl Dataset {
                     }
                     match probe_manifest(dir)? {
                         ManifestProbe::Ok(_) | ManifestProbe::Broken(_) => {}
+                        // A `create` interrupted before its manifest was written (a kill,
+                        // a power cut) leaves only the store's own skeleton: replaceable.
+                        ManifestProbe::Missing if is_interrupted_create(dir) => {}
                         ManifestProbe::Missing => {
                             return Err(StoreError::NotADataset {
                                 path: dir.to_path_buf(),
@@ -221,7 +224,11 @@ impl Dataset {
                     // Manifest first: an interrupted deletion then no longer looks
                     // like a complete dataset.
                     let manifest = dir.join(MANIFEST_FILE);
-                    fs::remove_file(&manifest).ctx("removing", &manifest, Some(dir))?;
+                    match fs::remove_file(&manifest) {
+                        Ok(()) => {}
+                        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                        Err(e) => return Err(StoreError::io("removing", &manifest, Some(dir), e)),
+                    }
                     for entry in fs::read_dir(dir).ctx("listing", dir, Some(dir))? {
                         let entry = entry.ctx("listing", dir, Some(dir))?;
                         let p = entry.path();
@@ -595,6 +602,39 @@ impl Dataset {
     pub fn recovery(&self) -> &RecoveryReport {
         &self.recovery
     }
+}
+
+/// True if `dir` holds nothing but what `Dataset::create` writes before its manifest: an
+/// empty `journal.jsonl`, empty `images/` and `raw/` directories and the store's temporary
+/// files. Such a directory is the debris of a create that was interrupted (no measurement
+/// can have been stored: the manifest is written before the first one), so `--force` may
+/// replace it even though it has no manifest.
+fn is_interrupted_create(dir: &Path) -> bool {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return false;
+    };
+    let mut any = false;
+    for entry in entries {
+        let Ok(entry) = entry else { return false };
+        any = true;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Ok(meta) = fs::symlink_metadata(entry.path()) else {
+            return false;
+        };
+        let ok = if name.starts_with(TMP_PREFIX) {
+            meta.is_file()
+        } else if name == JOURNAL_FILE {
+            meta.is_file() && meta.len() == 0
+        } else if name == IMAGES_DIR || name == RAW_DIR {
+            meta.is_dir() && fs::read_dir(entry.path()).is_ok_and(|mut d| d.next().is_none())
+        } else {
+            false
+        };
+        if !ok {
+            return false;
+        }
+    }
+    any
 }
 
 /// Keep the first record of each index; return the kept records (in order) and the

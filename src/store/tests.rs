@@ -801,3 +801,48 @@ fn bench_compressions() {
         }
     }
 }
+
+/// Regression (kill -9 campaign): a `create` killed before its manifest was written left a
+/// directory that `--resume` refused (no manifest) and `--force` refused too ("not empty
+/// and has no manifest.json"), so the operator had to delete it by hand. `--force` now
+/// replaces exactly that skeleton, and still refuses anything else without a manifest.
+#[test]
+fn force_replaces_the_debris_of_an_interrupted_create() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    // What create leaves when killed just before writing the manifest.
+    fs::create_dir_all(dir.join(IMAGES_DIR)).unwrap();
+    fs::write(dir.join(JOURNAL_FILE), b"").unwrap();
+    fs::write(dir.join(format!("{TMP_PREFIX}123-{MANIFEST_FILE}")), b"{\"format\":").unwrap();
+    assert!(matches!(Dataset::resume(&dir), Err(StoreError::NotADataset { .. })));
+    assert!(matches!(
+        Dataset::create(&dir, &header(8, 8), false),
+        Err(StoreError::NotEmpty { .. })
+    ));
+    let mut ds = Dataset::create(&dir, &header(8, 8), true).expect("--force replaces an interrupted create");
+    ds.store(rec(0, 0, [0.0, 0.0], [30.0, 0.0]), Some(&gradient(8, 8, 0)), None)
+        .unwrap();
+    drop(ds);
+    assert!(verify(&dir).unwrap().is_clean());
+
+    // Anything more than that skeleton is still refused and left alone.
+    for extra in ["notes.txt", "images/00001.exr"] {
+        let d = tmp.path().join(format!("other-{}", extra.len()));
+        fs::create_dir_all(d.join(IMAGES_DIR)).unwrap();
+        fs::write(d.join(JOURNAL_FILE), b"").unwrap();
+        fs::write(d.join(extra), b"keep me").unwrap();
+        assert!(matches!(
+            Dataset::create(&d, &header(8, 8), true),
+            Err(StoreError::NotADataset { .. })
+        ));
+        assert_eq!(fs::read(d.join(extra)).unwrap(), b"keep me");
+    }
+    // A non-empty journal means measurements may be in it: refused.
+    let d = tmp.path().join("journal-not-empty");
+    fs::create_dir_all(d.join(IMAGES_DIR)).unwrap();
+    fs::write(d.join(JOURNAL_FILE), b"{}\n").unwrap();
+    assert!(matches!(
+        Dataset::create(&d, &header(8, 8), true),
+        Err(StoreError::NotADataset { .. })
+    ));
+}

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Create (or re-use) a Python virtual environment with the public btf-extractor 1.7.0
-# reader used by tests/interop/check_ubo2003.py, with every package pinned.
+# reader used by tests/interop/check_ubo2003.py and the Mitsuba 3 renderer (PyPI `mitsuba`
+# 3.9.1 with `drjit` 1.5.0, binary wheels) used as an oracle by tests/interop/mitsuba_*.py,
+# with every package pinned.
 #
 # Usage: tests/interop/setup_python.sh VENV_DIR
 # Then:  GONIO_PYTHON=VENV_DIR/bin/python cargo test -p gonio --lib store
@@ -33,6 +35,8 @@ runtime_pins=(
     "pillow==13.0.0"
     "simplejpeg==1.9.0"
     "packaging==26.3"
+    "mitsuba==3.9.1"
+    "drjit==1.5.0"
 )
 
 check() {
@@ -40,6 +44,8 @@ check() {
 import sys
 from importlib.metadata import version
 from btf_extractor import Ubo2003  # noqa: F401
+import mitsuba
+mitsuba.set_variant("scalar_rgb")
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
 sys.exit(1 if bad else 0)
@@ -47,7 +53,7 @@ PY
 }
 
 if [ -x "$venv/bin/python" ] && check "${build_pins[@]}" "${runtime_pins[@]}"; then
-    echo "$venv: btf-extractor 1.7.0 ready"
+    echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1 ready"
     exit 0
 fi
 
@@ -55,4 +61,4 @@ fi
 "$venv/bin/python" -m pip install --quiet "${build_pins[@]}"
 "$venv/bin/python" -m pip install --quiet --no-build-isolation "${runtime_pins[@]}"
 check "${build_pins[@]}" "${runtime_pins[@]}"
-echo "$venv: btf-extractor 1.7.0 ready"
+echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1 ready"

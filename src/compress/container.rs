@@ -1,0 +1,185 @@
+//! The `.gbtf` container: gonio's own compressed-BTF file.
+//!
+//! ```text
+//! offset  size  content
+//! 0       8     magic  b"GBTF\0\r\n\x1a"
+//! 8       4     format version (u32 LE), currently 1
+//! 12      8     header length H (u64 LE)
+//! 20      H     header: UTF-8 JSON (see [`GbtfHeader`])
+//! 20+H    4     CRC-32 (IEEE) of the header bytes (u32 LE)
+//! then, for each block listed in the header, in order:
+//!         8     block length B in bytes (u64 LE), must equal rows · cols · 4
+//!         B     row-major f32 little-endian values
+//!         4     CRC-32 of the B bytes (u32 LE)
+//! end of file (trailing bytes are an error)
+//! ```
+//!
+//! The header is self-describing: method, parameters, image size, light and view
+//! directions (degrees), and the name and shape of every block.
+
+use super::CompressError;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+pub const MAGIC: &[u8; 8] = b"GBTF\0\r\n\x1a";
+pub const VERSION: u32 = 1;
+
+/// Name and shape of one factor block (row-major f32).
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct BlockInfo {
+    pub name: String,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+/// The JSON header of a `.gbtf` file.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct GbtfHeader {
+    /// `"pvmf"` or `"pca"`.
+    pub method: String,
+    /// Method parameters (components, seed, oversampling, power iterations, …).
+    pub params: serde_json::Value,
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    /// Factor value type: always `"f32le"` in version 1.
+    pub dtype: String,
+    pub lights_deg: Vec<[f64; 2]>,
+    pub views_deg: Vec<[f64; 2]>,
+    /// `[light, view]` pairs that were not measured and were filled before factorizing.
+    pub filled: Vec<[usize; 2]>,
+    /// Free-form provenance (source dataset, its `values` and `sample`).
+    pub source: serde_json::Value,
+    pub blocks: Vec<BlockInfo>,
+}
+
+/// A header and its blocks.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Gbtf {
+    pub header: GbtfHeader,
+    pub blocks: Vec<Vec<f32>>,
+}
+
+impl Gbtf {
+    /// Serialize to bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, CompressError> {
+        if self.header.blocks.len() != self.blocks.len() {
+            return Err(CompressError::Invalid(format!(
+                "{} block descriptions for {} blocks",
+                self.header.blocks.len(),
+                self.blocks.len()
+            )));
+        }
+        let header = serde_json::to_vec(&self.header).map_err(|e| CompressError::Invalid(e.to_string()))?;
+        let total: usize = self.blocks.iter().map(|b| 12 + b.len() * 4).sum::<usize>() + 24 + header.len();
+        let mut out = Vec::with_capacity(total);
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&VERSION.to_le_bytes());
+        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        out.extend_from_slice(&header);
+        out.extend_from_slice(&crc32fast::hash(&header).to_le_bytes());
+        for (info, b) in self.header.blocks.iter().zip(&self.blocks) {
+            if info.rows * info.cols != b.len() {
+                return Err(CompressError::Invalid(format!(
+                    "block {}: {}×{} declared, {} values",
+                    info.name,
+                    info.rows,
+                    info.cols,
+                    b.len()
+                )));
+            }
+            let start = out.len() + 8;
+            out.extend_from_slice(&((b.len() * 4) as u64).to_le_bytes());
+            for v in b {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+            let crc = crc32fast::hash(&out[start..]);
+            out.extend_from_slice(&crc.to_le_bytes());
+        }
+        Ok(out)
+    }
+
+    /// Parse bytes, checking magic, version, lengths and every CRC. `path` names the
+    /// file in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Gbtf, CompressError> {
+        let corrupt = |reason: String| CompressError::Corrupt {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let mut pos = 0usize;
+        let mut take = |n: usize, what: &str| -> Result<&[u8], CompressError> {
+            if bytes.len() - pos < n {
+                return Err(corrupt(format!(
+                    "truncated: {what} needs {n} bytes at offset {pos}, the file has {} left",
+                    bytes.len() - pos
+                )));
+            }
+            let s = &bytes[pos..pos + n];
+            pos += n;
+            Ok(s)
+        };
+        if take(8, "magic")? != MAGIC {
+            return Err(corrupt("not a .gbtf file (bad magic)".into()));
+        }
+        let version = u32::from_le_bytes(take(4, "version")?.try_into().unwrap());
+        if version != VERSION {
+            return Err(corrupt(format!(
+                "format version {version}, this gonio reads version {VERSION}"
+            )));
+        }
+        let hlen = u64::from_le_bytes(take(8, "header length")?.try_into().unwrap());
+        let hlen = usize::try_from(hlen).map_err(|_| corrupt("header length overflows".into()))?;
+        let hbytes = take(hlen, "header")?;
+        let crc = u32::from_le_bytes(take(4, "header CRC")?.try_into().unwrap());
+        if crc32fast::hash(hbytes) != crc {
+            return Err(corrupt("header CRC mismatch".into()));
+        }
+        let header: GbtfHeader = serde_json::from_slice(hbytes).map_err(|e| corrupt(format!("header JSON: {e}")))?;
+        if header.dtype != "f32le" {
+            return Err(corrupt(format!("unknown dtype {:?}", header.dtype)));
+        }
+        let mut blocks = Vec::with_capacity(header.blocks.len());
+        for info in &header.blocks {
+            let what = format!("block {}", info.name);
+            let len = u64::from_le_bytes(take(8, &what)?.try_into().unwrap());
+            let want = (info.rows as u64) * (info.cols as u64) * 4;
+            if len != want {
+                return Err(corrupt(format!(
+                    "{what}: length {len} bytes, its shape {}×{} needs {want}",
+                    info.rows, info.cols
+                )));
+            }
+            let data = take(len as usize, &what)?;
+            let crc = u32::from_le_bytes(take(4, &what)?.try_into().unwrap());
+            if crc32fast::hash(data) != crc {
+                return Err(corrupt(format!("{what}: CRC mismatch")));
+            }
+            blocks.push(
+                data.chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+                    .collect(),
+            );
+        }
+        if pos != bytes.len() {
+            return Err(corrupt(format!(
+                "{} trailing bytes after the last block",
+                bytes.len() - pos
+            )));
+        }
+        Ok(Gbtf { header, blocks })
+    }
+
+    pub fn write(&self, path: &Path) -> Result<u64, CompressError> {
+        let bytes = self.to_bytes()?;
+        crate::store::atomic::write_atomic(path, &bytes, None)?;
+        Ok(bytes.len() as u64)
+    }
+
+    pub fn read(path: &Path) -> Result<Gbtf, CompressError> {
+        let bytes = std::fs::read(path).map_err(|source| CompressError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Gbtf::from_bytes(&bytes, path)
+    }
+}

@@ -1,0 +1,405 @@
+//! Tests of the compression pipeline on small synthetic datasets written with `store`.
+
+use super::*;
+use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
+use faer::Mat;
+use gonio_devices::image::RgbImage;
+use std::path::Path;
+
+const W: usize = 8;
+const H: usize = 6;
+
+fn lights() -> Vec<[f64; 2]> {
+    vec![[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [60.0, 90.0]]
+}
+fn views() -> Vec<[f64; 2]> {
+    vec![[0.0, 0.0], [45.0, 0.0], [45.0, 180.0], [60.0, 270.0]]
+}
+
+fn header(w: usize, h: usize) -> ManifestHeader {
+    ManifestHeader {
+        format: store::FORMAT.into(),
+        version: store::FORMAT_VERSION,
+        gonio_version: "test".into(),
+        created_unix: 1_700_000_000.0,
+        rig: serde_json::json!({"name": "test rig"}),
+        sample: serde_json::json!({"name": "synthetic"}),
+        sweep: serde_json::json!({"name": "t", "lights_deg": lights(), "views_deg": views()}),
+        image_width: w,
+        image_height: h,
+        values: "synthetic".into(),
+        seed: 1,
+        raw_frames: false,
+        calibration: None,
+        extra: serde_json::Value::Null,
+    }
+}
+
+/// Write a dataset whose image (light, view) is `f(light, view, texel, channel)`;
+/// pairs in `skip` are recorded as skipped.
+fn write_dataset(dir: &Path, skip: &[(usize, usize)], f: impl Fn(usize, usize, usize, usize) -> f32) {
+    let mut ds = Dataset::create(dir, &header(W, H), false).unwrap();
+    let (ls, vs) = (lights(), views());
+    for (v, vd) in vs.iter().enumerate() {
+        for (l, ld) in ls.iter().enumerate() {
+            let index = v * ls.len() + l;
+            let mut rec = MeasurementRecord::new(index, index, *ld, *vd);
+            if skip.contains(&(l, v)) {
+                rec.status = MeasurementStatus::Skipped { reason: "test".into() };
+                ds.store(rec, None, None).unwrap();
+                continue;
+            }
+            let mut img = RgbImage::new(W, H);
+            for t in 0..W * H {
+                for c in 0..3 {
+                    img.data[t * 3 + c] = f(l, v, t, c);
+                }
+            }
+            ds.store(rec, Some(&img), None).unwrap();
+        }
+    }
+    ds.finish(&serde_json::json!({})).unwrap();
+}
+
+/// An exactly rank-3 BTF whose values are exact in half float (multiples of 1/128 below
+/// 0.5), so the EXR round trip does not perturb the rank: a_k(texel) ∈ {0,¼,½,¾},
+/// b_k(light, view, channel) ∈ {0, 1/32, …, 7/32}.
+fn rank3(l: usize, v: usize, t: usize, c: usize) -> f32 {
+    (0..3)
+        .map(|k| {
+            let a = ((t * (k + 1) + k * 5 + t / 3) % 4) as f32 / 4.0;
+            let b = ((l * 3 + v * (k + 2) + c * (k + 1) + k) % 8) as f32 / 32.0;
+            a * b
+        })
+        .sum()
+}
+
+/// A full-rank BTF (hash noise plus structure).
+fn noisy(l: usize, v: usize, t: usize, c: usize) -> f32 {
+    let mut z = ((l * 131 + v * 17 + t * 7 + c) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    z ^= z >> 29;
+    z = z.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z ^= z >> 32;
+    0.3 * ((t % W) as f32 / W as f32) * (1.0 + l as f32 * 0.1) + 0.2 * (z % 1000) as f32 / 1000.0
+}
+
+fn max_err(ds: &DatasetViews, m: &CompressedBtf) -> f32 {
+    let mut e = 0f32;
+    for v in 0..ds.n_views() {
+        for l in 0..ds.n_lights() {
+            if let Some(orig) = ds.read_image(l, v).unwrap() {
+                let rec = m.reconstruct(l, v).unwrap();
+                for (a, b) in orig.iter().zip(&rec) {
+                    assert!(b.is_finite());
+                    e = e.max((a - b).abs());
+                }
+            }
+        }
+    }
+    e
+}
+
+/// Compress, write, read back and wrap.
+fn round_trip(ds: &DatasetViews, p: &Params, file: &Path) -> (CompressedBtf, EncodeInfo) {
+    let (g, info) = compress(ds, p).unwrap();
+    let bytes = g.write(file).unwrap();
+    assert_eq!(bytes, std::fs::metadata(file).unwrap().len());
+    let back = Gbtf::read(file).unwrap();
+    assert_eq!(back, g);
+    (CompressedBtf::new(back).unwrap(), info)
+}
+
+#[test]
+fn rank3_is_reproduced_by_both_methods_with_c3() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], rank3);
+    let ds = DatasetViews::open(&dir).unwrap();
+    assert_eq!((ds.n_lights(), ds.n_views(), ds.n_measured()), (5, 4, 20));
+    // The data are exactly rank 3, not less: c = 2 must lose something.
+    for method in [Method::Pvmf, Method::Pca] {
+        let (m, info) = round_trip(&ds, &Params::new(method, 3), &tmp.path().join("a.gbtf"));
+        assert_eq!(info.filled, 0);
+        let e = max_err(&ds, &m);
+        assert!(e < 1e-5, "{method:?}: max error {e}");
+        let (m2, _) = round_trip(&ds, &Params::new(method, 2), &tmp.path().join("b.gbtf"));
+        let e2 = max_err(&ds, &m2);
+        assert!(e2 > 1e-3, "{method:?}: c = 2 max error {e2}");
+        // Reconstruction by directions selects the same pair.
+        assert_eq!(
+            m.reconstruct_deg([30.0, 120.0], [45.0, 180.0]).unwrap(),
+            m.reconstruct(2, 2).unwrap()
+        );
+        assert!(matches!(
+            m.reconstruct_deg([31.0, 120.0], [45.0, 180.0]),
+            Err(CompressError::NotMeasured { which: "light", .. })
+        ));
+    }
+}
+
+#[test]
+fn error_decreases_with_components() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    for method in [Method::Pvmf, Method::Pca] {
+        let mut last = f64::INFINITY;
+        for c in [1, 2, 4, 8, 12] {
+            let (g, _) = compress(&ds, &Params::new(method, c)).unwrap();
+            let ev = evaluate(&ds, &CompressedBtf::new(g).unwrap()).unwrap();
+            let e = ev.stats.rmse_linear();
+            assert_eq!(ev.images, 20);
+            assert!(e < last * 0.999, "{method:?} c = {c}: rmse {e} not below {last}");
+            last = e;
+        }
+        // PVMF with c = 15 = lights · 3 is lossless (up to f32).
+        if method == Method::Pvmf {
+            let (g, _) = compress(&ds, &Params::new(method, 15)).unwrap();
+            assert!(max_err(&ds, &CompressedBtf::new(g).unwrap()) < 1e-5);
+        }
+    }
+}
+
+#[test]
+fn rank_deficient_and_constant_inputs() {
+    type Field = fn(usize, usize, usize, usize) -> f32;
+    let cases: [(&str, Field); 3] = [
+        ("rank 1", |l, v, t, c| {
+            ((t % 4) as f32 / 4.0) * ((l + v + c) % 8) as f32 / 32.0
+        }),
+        ("constant", |_, _, _, _| 0.5),
+        ("zero", |_, _, _, _| 0.0),
+    ];
+    for (name, f) in cases {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("ds");
+        write_dataset(&dir, &[], f);
+        let ds = DatasetViews::open(&dir).unwrap();
+        // c above the rank, and (PVMF: 20 > 15 columns) above the matrix size.
+        for method in [Method::Pvmf, Method::Pca] {
+            for c in [1, 5, 20] {
+                let (m, _) = round_trip(&ds, &Params::new(method, c), &tmp.path().join("x.gbtf"));
+                let e = max_err(&ds, &m);
+                assert!(e < 1e-5, "{name} {method:?} c = {c}: max error {e}");
+            }
+        }
+    }
+}
+
+#[test]
+fn pca_is_deterministic_for_a_fixed_seed() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let p = Params {
+        seed: 7,
+        power_iters: 0,
+        oversample: 1,
+        ..Params::new(Method::Pca, 4)
+    };
+    let a = compress(&ds, &p).unwrap().0.to_bytes().unwrap();
+    let b = compress(&ds, &p).unwrap().0.to_bytes().unwrap();
+    assert_eq!(a, b, "same seed, different files");
+    // With no power iteration and little oversampling the sketch matters: another seed
+    // gives other factors (so the seed is really used).
+    let c = compress(&ds, &Params { seed: 8, ..p.clone() })
+        .unwrap()
+        .0
+        .to_bytes()
+        .unwrap();
+    assert_ne!(a, c);
+    let pv = Params::new(Method::Pvmf, 4);
+    assert_eq!(
+        compress(&ds, &pv).unwrap().0.to_bytes().unwrap(),
+        compress(&ds, &pv).unwrap().0.to_bytes().unwrap()
+    );
+}
+
+#[test]
+fn container_corruption_is_detected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], rank3);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let (g, _) = compress(&ds, &Params::new(Method::Pvmf, 2)).unwrap();
+    let bytes = g.to_bytes().unwrap();
+    let p = Path::new("f.gbtf");
+    assert_eq!(Gbtf::from_bytes(&bytes, p).unwrap(), g);
+    let err = |b: &[u8]| match Gbtf::from_bytes(b, p) {
+        Err(CompressError::Corrupt { reason, .. }) => reason,
+        other => panic!("expected Corrupt, got {other:?}"),
+    };
+    // Every truncation is refused.
+    for cut in [0, 5, 12, 19, 30, bytes.len() / 2, bytes.len() - 1] {
+        assert!(err(&bytes[..cut]).contains("truncated") || cut < 8, "cut at {cut}");
+    }
+    let mut b = bytes.clone();
+    b[0] ^= 1;
+    assert!(err(&b).contains("magic"));
+    let mut b = bytes.clone();
+    b[8] = 2;
+    assert!(err(&b).contains("version 2"));
+    let mut b = bytes.clone();
+    b[25] ^= 0x20;
+    assert!(err(&b).contains("header CRC"));
+    // A flipped bit in the last block's data.
+    let mut b = bytes.clone();
+    let n = b.len();
+    b[n - 10] ^= 0x01;
+    let r = err(&b);
+    assert!(r.contains("CRC mismatch") && r.contains("block v3"), "{r}");
+    let mut b = bytes.clone();
+    b.push(0);
+    assert!(err(&b).contains("trailing"));
+    // And through the file reader, the error names the file.
+    let f = tmp.path().join("bad.gbtf");
+    std::fs::write(&f, &bytes[..bytes.len() - 3]).unwrap();
+    let msg = Gbtf::read(&f).unwrap_err().to_string();
+    assert!(msg.contains("bad.gbtf") && msg.contains("truncated"), "{msg}");
+}
+
+#[test]
+fn skipped_pairs_are_filled_from_the_nearest_light() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    // Light 1 (30°, 0°) of view 1 skipped; its nearest measured light is light 0 (0°, 0°)
+    // at 30°, nearer than lights 2, 3 (≈ 52°) and 4 (≈ 67°).
+    write_dataset(&dir, &[(1, 1), (4, 3)], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    assert_eq!(ds.n_measured(), 18);
+    let vm = ds.view_matrix(1).unwrap();
+    assert_eq!(vm.filled, vec![(1, 0)]);
+    for t in 0..vm.rows {
+        assert_eq!(
+            vm.data[t * vm.cols + 3..t * vm.cols + 6],
+            vm.data[t * vm.cols..t * vm.cols + 3]
+        );
+    }
+    let (g, info) = compress(&ds, &Params::new(Method::Pvmf, 2)).unwrap();
+    assert_eq!(info.filled, 2);
+    assert_eq!(g.header.filled, vec![[1, 1], [4, 3]]);
+    let (g, info) = compress(&ds, &Params::new(Method::Pca, 2)).unwrap();
+    assert_eq!((info.filled, g.header.filled.len()), (2, 2));
+    let ev = evaluate(&ds, &CompressedBtf::new(g).unwrap()).unwrap();
+    assert_eq!(ev.images, 18, "filled pairs are not counted in the error");
+}
+
+#[test]
+fn non_finite_input_is_rejected_naming_file_and_measurement() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], rank3);
+    let mut img = RgbImage::new(W, H);
+    img.data[7] = f32::NAN;
+    store::write_exr(&dir.join("images/00013.exr"), &img).unwrap();
+    let ds = DatasetViews::open(&dir).unwrap();
+    for method in [Method::Pvmf, Method::Pca] {
+        let e = compress(&ds, &Params::new(method, 2)).unwrap_err();
+        match &e {
+            CompressError::NonFinite { index, texel, .. } => assert_eq!((*index, *texel), (13, 2)),
+            other => panic!("{other:?}"),
+        }
+        let msg = e.to_string();
+        assert!(msg.contains("00013.exr") && msg.contains("measurement 13"), "{msg}");
+    }
+}
+
+/// f32 against f64 SVD on one view-sized matrix with a large dynamic range (singular
+/// values 1 … 1e-7, as between a specular highlight and shadowed texels). The truncation
+/// error of the f64 SVD is the optimal one (the dropped singular values); f32's floor is
+/// ~1e-7 relative to σ₁, so it cannot resolve components below that. Printed with
+/// `--nocapture`; the production code runs the SVD in f64.
+#[test]
+fn f32_versus_f64_svd_accuracy() {
+    let (m, n) = (512, 45);
+    let u = Mat::<f64>::from_fn(m, n, |i, j| {
+        noisy(j % 5, j / 5, i, 0) as f64 - 0.2 + (i == j) as u8 as f64
+    });
+    let v = Mat::<f64>::from_fn(n, n, |i, j| noisy(i % 5, 3, j, 1) as f64 + (i == j) as u8 as f64);
+    let qu = u.qr().compute_thin_Q();
+    let qv = v.qr().compute_thin_Q();
+    let sigma: Vec<f64> = (0..n).map(|k| 10f64.powf(-7.0 * k as f64 / (n - 1) as f64)).collect();
+    let a = Mat::<f64>::from_fn(m, n, |i, j| (0..n).map(|k| qu[(i, k)] * sigma[k] * qv[(j, k)]).sum());
+    let a32 = Mat::<f32>::from_fn(m, n, |i, j| a[(i, j)] as f32);
+    let svd = a32.thin_svd().unwrap();
+    let (u32m, s32, v32) = (svd.U(), svd.S().column_vector(), svd.V());
+    for c in [4, 12, 24, 36, 42] {
+        let optimal = sigma[c..].iter().map(|s| s * s).sum::<f64>().sqrt();
+        let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+        let e64 = (&a - &us * vv.transpose()).norm_l2();
+        let r32 = Mat::<f64>::from_fn(m, n, |i, j| {
+            (0..c)
+                .map(|k| u32m[(i, k)] as f64 * s32[k] as f64 * v32[(j, k)] as f64)
+                .sum()
+        });
+        let e32 = (&a - &r32).norm_l2();
+        println!(
+            "rank-{c:2} truncation error: optimal {optimal:.3e}, f64 SVD {e64:.3e} ({:.4}×), f32 SVD {e32:.3e} ({:.2}×)",
+            e64 / optimal,
+            e32 / optimal
+        );
+        assert!(
+            (e64 / optimal - 1.0).abs() < 1e-6,
+            "c = {c}: f64 {e64} vs optimal {optimal}"
+        );
+        if c == 42 {
+            // Below ~1e-6 of σ₁ the f32 SVD is dominated by its own rounding.
+            assert!(e32 > 5.0 * optimal, "c = {c}: f32 {e32} vs optimal {optimal}");
+        }
+        if c == 4 {
+            assert!(e32 < 1.01 * optimal, "c = {c}: f32 {e32} vs optimal {optimal}");
+        }
+    }
+}
+
+#[test]
+fn error_stats_are_on_the_8bit_srgb_scale() {
+    let mut s = ErrorStats::default();
+    // linear 1.0 → code 255, 0.0 → 0, 0.214 → sRGB ≈ 0.498 → code 127; 2.0 clamps to 255.
+    s.add(&[0.0, 1.0, 0.214, 2.0], &[0.0, 0.0, 0.0, 1.0]);
+    assert_eq!(s.values, 4);
+    assert_eq!(store::linear_to_srgb8(0.214), 127);
+    let d = [0.0, 1.0, 127.0 / 255.0, 0.0];
+    let mae = d.iter().sum::<f64>() / 4.0;
+    let rmse = (d.iter().map(|x| x * x).sum::<f64>() / 4.0).sqrt();
+    assert!((s.mean_abs_8bit() - mae).abs() < 1e-12, "{}", s.mean_abs_8bit());
+    assert!((s.rmse_8bit() - rmse).abs() < 1e-12);
+    assert_eq!(s.max_8bit, 1.0);
+    assert!((s.psnr_8bit() + 20.0 * rmse.log10()).abs() < 1e-9);
+    let lin = ((1.0f64 + 0.214f32 as f64 * 0.214f32 as f64 + 1.0) / 4.0).sqrt();
+    assert!((s.rmse_linear() - lin).abs() < 1e-7);
+    assert!(peak_memory_bytes().unwrap() > 1 << 20);
+}
+
+/// f32 against f64 SVD on a real view matrix: `GONIO_COMPRESS_DATASET=DIR cargo test
+/// --release -p gonio --lib compress::tests::f32_versus_f64_on_a_dataset -- --ignored
+/// --nocapture`. Prints the rank-c Frobenius error of both, relative to ‖A‖.
+#[test]
+#[ignore = "needs a dataset: set GONIO_COMPRESS_DATASET"]
+fn f32_versus_f64_on_a_dataset() {
+    let dir = std::env::var("GONIO_COMPRESS_DATASET").expect("GONIO_COMPRESS_DATASET");
+    let ds = DatasetViews::open(Path::new(&dir)).unwrap();
+    for view in [0, ds.n_views() / 2, ds.n_views() - 1] {
+        let vm = ds.view_matrix(view).unwrap();
+        let a = Mat::<f64>::from_fn(vm.rows, vm.cols, |i, j| vm.data[i * vm.cols + j] as f64);
+        let a32 = Mat::<f32>::from_fn(vm.rows, vm.cols, |i, j| vm.data[i * vm.cols + j]);
+        let norm = a.norm_l2();
+        let svd = a32.thin_svd().unwrap();
+        let (u, s, v) = (svd.U(), svd.S().column_vector(), svd.V());
+        for c in [2, 4, 9, 15, 30] {
+            let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+            let e64 = (&a - &us * vv.transpose()).norm_l2() / norm;
+            let r32 = Mat::<f64>::from_fn(vm.rows, vm.cols, |i, j| {
+                (0..c).map(|k| u[(i, k)] as f64 * s[k] as f64 * v[(j, k)] as f64).sum()
+            });
+            let e32 = (&a - &r32).norm_l2() / norm;
+            println!(
+                "view {view:2} c = {c:2}: relative error f64 {e64:.6e}, f32 {e32:.6e}, ratio {:.6}",
+                e32 / e64
+            );
+            assert!(e64 <= e32 * (1.0 + 1e-3));
+        }
+    }
+}
