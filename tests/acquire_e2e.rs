@@ -52,6 +52,7 @@ fn options(size: usize) -> RunOptions {
         height: size,
         raw_frames: false,
         truth: true,
+        store_truth: true,
         show_progress: false,
         max_supersample: 8,
     }
@@ -127,6 +128,19 @@ async fn reduced_sweep_end_to_end_with_resume() {
     assert_eq!(idx.len(), records.len(), "no duplicates");
     assert_eq!(records.len(), 12);
     assert!(records.iter().all(|r| matches!(r.status, MeasurementStatus::Measured)));
+    // The stored ground truth agrees with the error recorded at acquisition time.
+    for r in &records {
+        let rel = r.extra["truth_image"].as_str().expect("truth image recorded");
+        let truth = store::read_exr(&dir.join(rel)).unwrap();
+        let image = store::read_exr(&dir.join(r.image.as_ref().unwrap())).unwrap();
+        let recorded = r.extra["truth_rmse"].as_f64().unwrap();
+        let again = gonio::engine::metrics::rmse(&image, &truth);
+        assert!(
+            (again - recorded).abs() < 2e-3,
+            "index {}: {again} vs {recorded}",
+            r.index
+        );
+    }
     let v = store::verify(&dir).unwrap();
     eprintln!("verify: {v:?}");
 }

@@ -51,6 +51,9 @@ pub struct AcquireArgs {
     /// Do not compare with the simulator's ground truth (saves its render time).
     #[arg(long)]
     pub no_truth: bool,
+    /// Also write the simulator's exact rectified ground truth as truth/NNNNN.exr.
+    #[arg(long, conflicts_with = "no_truth")]
+    pub store_truth: bool,
     /// Seed of the simulated sensor noise.
     #[arg(long)]
     pub seed: Option<u64>,
@@ -83,6 +86,8 @@ struct RunSettings {
     truth: bool,
     seed: Option<u64>,
     raw: bool,
+    #[serde(default)]
+    store_truth: bool,
 }
 
 /// The summary printed at the end (and with --json).
@@ -187,6 +192,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         height: settings.height,
         raw_frames: settings.raw,
         truth: settings.truth,
+        store_truth: settings.store_truth,
         show_progress: !args.json && !args.quiet_progress(),
         max_supersample: 8,
     };
@@ -264,6 +270,7 @@ fn create_new(args: &AcquireArgs) -> Result<Opened> {
         truth: !args.no_truth,
         seed: args.seed,
         raw: args.raw,
+        store_truth: args.store_truth,
     };
     let header = ManifestHeader {
         format: store::FORMAT.into(),

@@ -50,6 +50,8 @@ pub struct RunOptions {
     pub raw_frames: bool,
     /// Compare with the simulator's ground truth (if the rig has one).
     pub truth: bool,
+    /// Also store the ground truth as `truth/NNNNN.exr` (the exact rectified BTF).
+    pub store_truth: bool,
     pub show_progress: bool,
     /// Supersampling cap of the rectification filter.
     pub max_supersample: usize,
@@ -350,6 +352,19 @@ fn store_loop(
             "markers_found": rect.markers_found,
             "marker_rms_px": rect.marker_rms_px,
         });
+        if let (Some(t), true) = (&truth, opts.store_truth) {
+            let rel = format!("truth/{index:05}.exr");
+            let path = dataset.dir().join(&rel);
+            let written = std::fs::create_dir_all(dataset.dir().join("truth"))
+                .map_err(|e| StoreError::io("creating", &path, Some(dataset.dir()), e))
+                .and_then(|_| crate::store::encode_exr(t, &path))
+                .and_then(|bytes| crate::store::atomic::write_atomic(&path, &bytes, Some(dataset.dir())));
+            if let Err(e) = written {
+                failed.store(true, Ordering::SeqCst);
+                return Err(Box::new((dataset, EngineError::Store { index, source: e })));
+            }
+            extra["truth_image"] = serde_json::json!(rel);
+        }
         if let Some(t) = &truth {
             let e = metrics::image_error(&rect.image, t);
             extra["truth_rmse"] = serde_json::json!((e.0 / e.3.max(1) as f64).sqrt());
