@@ -16,6 +16,211 @@ use std::time::Instant;
 pub enum BenchCommand {
     /// Time the simulator's stages (raw render, ground truth, sensor) per sample kind.
     Sim(SimBenchArgs),
+    /// Planner quality against its time budget: optimized duration vs. the lower bound.
+    Plan(PlanBenchArgs),
+    /// Render error against a high-sample reference versus time, per quality knob.
+    Render(RenderBenchArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct RenderBenchArgs {
+    #[command(flatten)]
+    pub rig: RigArgs,
+    #[arg(long, default_value = gonio_simulator::sample::DEFAULT_SAMPLE)]
+    pub sample: String,
+    /// Measurements (Bonn pairs spread over the sweep).
+    #[arg(long, default_value_t = 8)]
+    pub measurements: usize,
+    /// Samples per pixel and axis of the reference.
+    #[arg(long, default_value_t = 8)]
+    pub reference: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct RenderRow {
+    image: &'static str,
+    knob: String,
+    ms_per_image: f64,
+    /// RMSE against the reference, relative to the reference's mean value.
+    relative_rmse: f64,
+}
+
+fn render(a: RenderBenchArgs) -> Result<ExitCode> {
+    let rig = a.rig.load()?;
+    let kin = kinematics::for_rig(&rig);
+    let dirs = sweep::bonn81();
+    let qs: Vec<Vec<f64>> = (0..a.measurements.max(1))
+        .map(|k| (k * 6561 / a.measurements.max(1) + 13) % 6561)
+        .filter_map(|idx| {
+            kin.inverse(dirs[idx % 81], dirs[idx / 81], None)
+                .ok()
+                .map(|s| s[0].clone())
+        })
+        .collect();
+    let spec = load_sample(&a.sample)?;
+    let sample = Arc::new(spec.build()?);
+    let intr = rig.camera.intrinsics();
+    let light = |q: &[f64]| PointLight {
+        position: kin.light_position(q),
+        intensity: rig.light.intensity_w_sr,
+    };
+    let raw = |quality: RenderQuality| {
+        let r = Renderer::new(sample.clone(), quality);
+        let t = Instant::now();
+        let imgs: Vec<_> = qs
+            .iter()
+            .map(|q| {
+                r.render_raw(
+                    &intr,
+                    &kin.camera_pose(q),
+                    rig.camera.width,
+                    rig.camera.height,
+                    &light(q),
+                )
+            })
+            .collect();
+        (imgs, t.elapsed().as_secs_f64() * 1e3 / qs.len() as f64)
+    };
+    let truth = |quality: RenderQuality| {
+        let r = Renderer::new(sample.clone(), quality);
+        let t = Instant::now();
+        let imgs: Vec<_> = qs
+            .iter()
+            .map(|q| r.render_truth(kin.camera_pose(q).position, 256, 256, &light(q)))
+            .collect();
+        (imgs, t.elapsed().as_secs_f64() * 1e3 / qs.len() as f64)
+    };
+    let rel_rmse = |a: &[gonio_devices::image::RgbImage], b: &[gonio_devices::image::RgbImage]| {
+        let (mut sq, mut sum, mut n) = (0.0f64, 0.0f64, 0usize);
+        for (x, y) in a.iter().zip(b) {
+            for (p, r) in x.data.iter().zip(&y.data) {
+                sq += ((p - r) as f64).powi(2);
+                sum += *r as f64;
+                n += 1;
+            }
+        }
+        (sq / n as f64).sqrt() / (sum / n as f64).max(1e-30)
+    };
+    let q = |supersample, shadow_scale, truth_supersample| RenderQuality {
+        supersample,
+        shadow_scale,
+        truth_supersample,
+    };
+    let mut rows = Vec::new();
+    let (raw_ref, _) = raw(q(a.reference, 4, 1));
+    for (ss, sh) in [(1, 1), (2, 1), (4, 1), (1, 2), (1, 4), (2, 2)] {
+        let (imgs, ms) = raw(q(ss, sh, 1));
+        rows.push(RenderRow {
+            image: "raw",
+            knob: format!("supersample {ss}, shadow map ×{sh}"),
+            ms_per_image: ms,
+            relative_rmse: rel_rmse(&imgs, &raw_ref),
+        });
+    }
+    let (truth_ref, _) = truth(q(1, 4, a.reference));
+    for (ts, sh) in [(1, 1), (2, 1), (4, 1), (1, 4)] {
+        let (imgs, ms) = truth(q(1, sh, ts));
+        rows.push(RenderRow {
+            image: "truth",
+            knob: format!("samples/texel {ts}², shadow map ×{sh}"),
+            ms_per_image: ms,
+            relative_rmse: rel_rmse(&imgs, &truth_ref),
+        });
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        println!(
+            "sample {} · {} measurements · reference: {}² samples per pixel/texel, shadow map ×4",
+            a.sample,
+            qs.len(),
+            a.reference
+        );
+        println!("{:<6} {:<34} {:>12} {:>14}", "image", "knob", "ms/image", "rel. RMSE");
+        for r in &rows {
+            println!(
+                "{:<6} {:<34} {:>12.2} {:>14.5}",
+                r.image, r.knob, r.ms_per_image, r.relative_rmse
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(clap::Args, Debug)]
+pub struct PlanBenchArgs {
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// `bonn81` (default), `uniform15`, `fibonacci:N` or a file.
+    #[arg(long, default_value = "bonn81")]
+    pub sweep: String,
+    /// Optimizer budgets in seconds.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.5, 1.0, 2.0, 5.0])]
+    pub budgets: Vec<f64>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct PlanRow {
+    budget_s: f64,
+    canonical_s: f64,
+    optimized_s: f64,
+    lower_bound_s: f64,
+    optimized_over_canonical: f64,
+    optimized_over_bound: f64,
+    plan_time_s: f64,
+}
+
+fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
+    let rig = a.rig.load()?;
+    let sweep = crate::sweep::Sweep::resolve(&a.sweep)?;
+    let mut rows = Vec::new();
+    for &b in &a.budgets {
+        anyhow::ensure!(
+            b.is_finite() && (0.0..=600.0).contains(&b),
+            "--budgets: {b} is not in 0 ..= 600 s"
+        );
+        let opts = crate::plan::PlanOptions {
+            time_budget: std::time::Duration::from_secs_f64(b),
+            ..Default::default()
+        };
+        let p = crate::plan::Plan::build(&rig, &sweep, &opts)?;
+        let d = &p.durations;
+        rows.push(PlanRow {
+            budget_s: b,
+            canonical_s: d.canonical_s,
+            optimized_s: d.optimized_s,
+            lower_bound_s: d.lower_bound_s,
+            optimized_over_canonical: d.optimized_s / d.canonical_s,
+            optimized_over_bound: d.optimized_s / d.lower_bound_s,
+            plan_time_s: p.plan_time_s,
+        });
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        println!("rig {} · sweep {}", rig.name, sweep.name);
+        println!(
+            "{:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>10}",
+            "budget s", "canonical s", "optimized s", "bound s", "opt/canon", "opt/bound", "plan s"
+        );
+        for r in &rows {
+            println!(
+                "{:>8.2} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>10.2}",
+                r.budget_s,
+                r.canonical_s,
+                r.optimized_s,
+                r.lower_bound_s,
+                r.optimized_over_canonical,
+                r.optimized_over_bound,
+                r.plan_time_s
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 #[derive(clap::Args, Debug)]
@@ -48,6 +253,8 @@ struct SimRow {
 pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
     match cmd {
         BenchCommand::Sim(a) => sim(a),
+        BenchCommand::Plan(a) => plan(a),
+        BenchCommand::Render(a) => render(a),
     }
 }
 
