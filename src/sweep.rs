@@ -55,17 +55,9 @@ pub fn bonn81() -> Vec<Direction> {
 }
 
 /// A near-uniform 15° set: θ rings every 15° up to 75°, azimuth steps so neighbours on a
-/// ring are about 15° apart.
+/// ring are about 15° apart (80 directions; the dome rig's default layout).
 pub fn uniform15() -> Vec<Direction> {
-    let mut v = vec![Direction::from_degrees(0.0, 0.0)];
-    for ring in 1..=5 {
-        let t = 15.0 * ring as f64;
-        let n = ((360.0 * t.to_radians().sin()) / 15.0).round().max(6.0) as usize;
-        for k in 0..n {
-            v.push(Direction::from_degrees(t, k as f64 * 360.0 / n as f64));
-        }
-    }
-    v
+    gonio_devices::kinematics::dome::uniform15()
 }
 
 /// `n` directions on a spherical Fibonacci lattice over the hemisphere up to `max_theta_deg`.

@@ -10,7 +10,7 @@ use super::{CameraPose, Infeasibility, Kinematics};
 use crate::geometry::{wrap_pi, Direction, Vec3, POLE_EPS};
 use crate::rig::RigSpec;
 use crate::SoftLimits;
-use std::f64::consts::{PI, TAU};
+use std::f64::consts::PI;
 
 /// Axis roles this kind needs, in no particular order.
 pub const ROLES: [&str; 4] = [
@@ -55,22 +55,9 @@ impl TwoArm {
         }
     }
 
-    /// All values `base + k·2π` inside the limits (the wrap-arounds of a rotary axis).
+    /// All values `base + k·2π` inside the limits of an axis (see [`super::wraps`]).
     fn wraps(&self, axis: usize, base: f64) -> Vec<f64> {
-        let l = self.limits[axis];
-        let mut out = Vec::new();
-        let mut x = base - TAU * ((base - l.min) / TAU).floor();
-        // x is now the smallest representative ≥ l.min (up to rounding)
-        if x - TAU >= l.min {
-            x -= TAU;
-        }
-        while x <= l.max + 1e-12 {
-            if x >= l.min - 1e-12 {
-                out.push(x.clamp(l.min, l.max));
-            }
-            x += TAU;
-        }
-        out
+        super::wraps(self.limits[axis], base)
     }
 
     /// Signed elevation / azimuth-offset options for a direction: (elevation, azimuth offset).
