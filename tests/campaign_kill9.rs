@@ -21,21 +21,20 @@ mod common;
 
 use gonio::store::{self, MeasurementRecord};
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::bin;
+use common::{bin, write_scene};
 
-/// splitmix64: a tiny seeded generator, so a failing trial can be replayed by its seed.
+/// SplitMix64 stream over the simulator's `mix64`, so a failing trial can be replayed by
+/// its seed.
 struct Rng(u64);
 impl Rng {
     fn next(&mut self) -> u64 {
+        let out = gonio_simulator::noise::mix64(self.0);
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        out
     }
     /// Uniform in [0, 1).
     fn unit(&mut self) -> f64 {
@@ -45,34 +44,6 @@ impl Rng {
 
 fn env_u64(name: &str, default: u64) -> u64 {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
-
-/// Write the reduced rig and sweep into `dir`; returns (rig, sweep) paths.
-pub fn write_scene(dir: &Path) -> (PathBuf, PathBuf) {
-    let default_rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("devices/rigs/default.toml");
-    let text = std::fs::read_to_string(&default_rig).unwrap();
-    let mut small = text.clone();
-    for (from, to) in [
-        ("width = 768", "width = 192"),
-        ("height = 640", "height = 160"),
-        ("focal_length_px = 4300.0", "focal_length_px = 1075.0"),
-    ] {
-        assert!(
-            small.contains(from),
-            "{} no longer contains `{from}`",
-            default_rig.display()
-        );
-        small = small.replacen(from, to, 1);
-    }
-    let rig = dir.join("rig_small.toml");
-    std::fs::write(&rig, small).unwrap();
-    let sweep = dir.join("sweep6.toml");
-    std::fs::write(
-        &sweep,
-        "directions = [[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [45.0, 240.0], [60.0, 60.0], [75.0, 300.0]]\n",
-    )
-    .unwrap();
-    (rig, sweep)
 }
 
 pub fn acquire_cmd(rig: &Path, sweep: &Path, out: &Path) -> Command {

@@ -1544,16 +1544,15 @@ impl<'a, 'm> Ls<'a, 'm> {
     }
 }
 
-/// SplitMix64: tiny, seedable, good enough for picking kick positions.
+/// SplitMix64 stream (the simulator's `mix64` finaliser): tiny, seedable, good enough for
+/// picking kick positions.
 struct Rng(u64);
 
 impl Rng {
     fn next(&mut self) -> u64 {
+        let out = gonio_simulator::noise::mix64(self.0);
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        out
     }
     fn below(&mut self, n: usize) -> usize {
         (self.next() % n.max(1) as u64) as usize
