@@ -9,6 +9,7 @@ mod brdf;
 mod common;
 mod compress;
 mod export;
+mod import;
 mod plan;
 mod sim;
 
@@ -40,6 +41,8 @@ pub enum Command {
     Plan(plan::PlanArgs),
     /// Export a dataset to an interchange format.
     Export(export::ExportArgs),
+    /// Import a foreign archive (Bonn UBO2003 zip) into a native dataset.
+    Import(import::ImportArgs),
     /// Check every stored image of a dataset against its recorded hash.
     Verify(export::VerifyArgs),
     /// The simulator: render single measurements, write ground truth.
@@ -81,6 +84,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Plan(a) => plan::run(a),
         Command::Export(a) => export::run(a),
         Command::Verify(a) => export::verify(a),
+        Command::Import(a) => import::run(a, cli.quiet),
         Command::Sim(c) => sim::run(c),
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),

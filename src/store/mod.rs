@@ -59,6 +59,7 @@
 pub mod atomic;
 mod error;
 pub mod exr_io;
+pub mod import_ubo2003;
 mod journal;
 mod manifest;
 pub mod npy;
