@@ -25,6 +25,9 @@ pub enum RenderKind {
     Rectified,
     /// The exact rectified image rendered in texture space (no sensor noise).
     Truth,
+    /// The radiance image the camera sees (W m⁻² sr⁻¹ per pixel, before the sensor):
+    /// what an independent renderer (Mitsuba, tests/interop/mitsuba_frame.py) is compared with.
+    Radiance,
 }
 
 #[derive(clap::Args, Debug)]
@@ -59,6 +62,10 @@ pub struct RenderArgs {
     /// Output image: .png (8-bit sRGB) or .exr (linear float).
     #[arg(long)]
     pub out: PathBuf,
+    /// Also write the scene (camera pose and intrinsics, light position and intensity,
+    /// sample size; millimetres, sample frame) as JSON, for rendering it elsewhere.
+    #[arg(long)]
+    pub scene_json: Option<PathBuf>,
 }
 
 pub fn run(cmd: SimCommand) -> Result<ExitCode> {
@@ -92,6 +99,15 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
         ..Default::default()
     };
     let rig = Rig::build(&spec, &sample, &opts)?;
+    if let Some(path) = &a.scene_json {
+        write_scene_json(path, &spec, &rig, &sample, a.light, a.view)?;
+    }
+    if kind == RenderKind::Radiance {
+        let img = render_radiance(&spec, &sample, &opts, &rig, a.light, a.view)?;
+        write_image(&a.out, &img)?;
+        eprintln!("wrote {} ({}×{}, radiance W m⁻² sr⁻¹)", a.out.display(), img.width, img.height);
+        return Ok(ExitCode::SUCCESS);
+    }
     let sols = rig
         .kinematics
         .inverse(a.light, a.view, None)
@@ -130,6 +146,62 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     write_image(&a.out, &img)?;
     eprintln!("wrote {} ({}×{})", a.out.display(), img.width, img.height);
     Ok(ExitCode::SUCCESS)
+}
+
+/// The first IK solution of a pair, or an error naming the rig.
+fn configuration(rig: &Rig, light: Direction, view: Direction) -> Result<Vec<f64>> {
+    let sols = rig
+        .kinematics
+        .inverse(light, view, None)
+        .map_err(|e| anyhow::anyhow!("rig `{}` cannot measure this pair: {e}", rig.spec.name))?;
+    Ok(sols[0].clone())
+}
+
+/// The radiance the camera sees at the pair's configuration, before any sensor effect.
+fn render_radiance(
+    spec: &gonio_devices::rig::RigSpec,
+    sample: &gonio_simulator::SampleSpec,
+    opts: &SimOptions,
+    rig: &Rig,
+    light: Direction,
+    view: Direction,
+) -> Result<RgbImage> {
+    let q = configuration(rig, light, view)?;
+    let built = std::sync::Arc::new(sample.clone().build()?);
+    let renderer = std::sync::Arc::new(gonio_simulator::Renderer::new(built, opts.quality));
+    let sim = gonio_simulator::build_sim_rig(spec, renderer, opts)?;
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    rt.block_on(sim.light.set(true, 1.0))
+        .map_err(crate::engine::EngineError::Setup)?;
+    Ok(sim.world.raw_radiance(&q))
+}
+
+/// The scene of one measurement as JSON (see `--scene-json`).
+fn write_scene_json(
+    path: &Path,
+    spec: &gonio_devices::rig::RigSpec,
+    rig: &Rig,
+    sample: &gonio_simulator::SampleSpec,
+    light: Direction,
+    view: Direction,
+) -> Result<()> {
+    let q = configuration(rig, light, view)?;
+    let pose = rig.kinematics.camera_pose(&q);
+    let lp = rig.kinematics.light_position(&q);
+    let v = |p: gonio_devices::geometry::Vec3| [p.x, p.y, p.z];
+    let intr = spec.camera.intrinsics();
+    let scene = serde_json::json!({
+        "units": "mm, sample frame (z = sample normal); radiance W m^-2 sr^-1",
+        "camera": {
+            "position": v(pose.position), "right": v(pose.right), "down": v(pose.down), "forward": v(pose.forward),
+            "fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
+            "width": spec.camera.width, "height": spec.camera.height,
+        },
+        "light": { "position": v(lp), "intensity_w_sr": spec.light.intensity_w_sr },
+        "sample": { "name": sample.name, "size_mm": sample.size_mm },
+        "axes_deg": q.iter().map(|x| x.to_degrees()).collect::<Vec<_>>(),
+    });
+    std::fs::write(path, serde_json::to_vec_pretty(&scene)?).with_context(|| format!("writing {}", path.display()))
 }
 
 /// Write PNG (8-bit sRGB, values clamped to [0, 1]) or EXR (linear) by extension.

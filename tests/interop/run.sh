@@ -42,3 +42,7 @@ PY
 # Mitsuba 3 (scalar_rgb) as an oracle for the microfacet BRDFs: rough conductors and
 # rough plastics over seeded random direction pairs; tolerances in the script.
 "$GONIO_PYTHON" tests/interop/mitsuba_bsdf.py "$gonio"
+# Mitsuba 3 as an oracle for whole raw frames: flat white standard and flat rough gold,
+# point light, perspective camera, radiance compared pixel by pixel (tolerances in the script).
+mkdir -p "$work/frames"
+"$GONIO_PYTHON" tests/interop/mitsuba_frame.py "$gonio" "$work/frames"
