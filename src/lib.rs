@@ -10,3 +10,4 @@ pub mod plan;
 pub mod rectify;
 pub mod store;
 pub mod sweep;
+pub mod synth;

@@ -71,6 +71,7 @@ const FRAME_SS: usize = 4;
 /// Maximum number of cached shadow maps (81 Bonn light directions fit).
 const SHADOW_CACHE: usize = 256;
 
+#[derive(Clone, Copy, Debug)]
 enum Hit {
     Sample { p: Vec3, i: usize, j: usize, normal: Vec3 },
     Frame { p: Vec3, albedo: f64 },
@@ -307,7 +308,15 @@ impl Renderer {
     /// Radiance (W m⁻² sr⁻¹, RGB) arriving at `origin` along unit `dir`.
     #[inline]
     fn radiance_along(&self, origin: Vec3, dir: Vec3, light: &PointLight, shadow: Option<&ShadowMap>) -> [f64; 3] {
-        match self.trace(origin, dir) {
+        self.shade(&self.trace(origin, dir), dir, light, shadow)
+    }
+
+    /// Radiance leaving the surface point `hit` (found along unit `dir`) toward the ray's
+    /// origin: the light-dependent half of [`Self::radiance_along`], so a view's hits can
+    /// be traced once and shaded for every light ([`TruthView`]).
+    #[inline]
+    fn shade(&self, hit: &Hit, dir: Vec3, light: &PointLight, shadow: Option<&ShadowMap>) -> [f64; 3] {
+        match *hit {
             Hit::Background => [0.0; 3],
             Hit::Frame { p, albedo } => {
                 let to_l = light.position - p;
@@ -512,18 +521,30 @@ impl Renderer {
     /// `camera` sees through the point of the mean plane at the texel centre (conventions:
     /// column grows with +x, row with −y), averaged over the texel area with
     /// `truth_supersample²` rays. Radiance, no sensor effects.
+    ///
+    /// Equal to `shade_truth(&truth_view(camera, width, height), light)`; call those two
+    /// directly to render many lights for one view (the ray march is then done once).
     pub fn render_truth(&self, camera: Vec3, width: usize, height: usize, light: &PointLight) -> RgbImage {
-        let mut img = RgbImage::new(width, height);
-        let shadow = self.shadow_for(light);
-        let s = self.sample.spec.size_mm;
-        // At least one sample per grid texel of the sample, so coarse outputs still see
-        // every detail of the structure they average over.
+        self.shade_truth(&self.truth_view(camera, width, height), light)
+    }
+
+    /// Truth samples per texel and axis for a `width × height` truth image: at least one
+    /// sample per grid texel of the sample, so coarse outputs still see every detail of
+    /// the structure they average over.
+    fn truth_samples(&self, width: usize, height: usize) -> usize {
         let grid = self.sample.spec.resolution.div_ceil(width.min(height).max(1));
-        let n = self.quality.truth_supersample.max(grid).clamp(1, 16);
-        let w = 1.0 / (n * n) as f64;
-        img.data.par_chunks_mut(width * 3).enumerate().for_each(|(j, out)| {
+        self.quality.truth_supersample.max(grid).clamp(1, 16)
+    }
+
+    /// Trace every truth ray of a view once: the light-independent half of
+    /// [`Self::render_truth`] (parallax and masking depend on the camera only).
+    pub fn truth_view(&self, camera: Vec3, width: usize, height: usize) -> TruthView {
+        let s = self.sample.spec.size_mm;
+        let n = self.truth_samples(width, height);
+        let per_row = width * n * n;
+        let mut rays = vec![(Hit::Background, Vec3::Z); per_row * height];
+        rays.par_chunks_mut(per_row.max(1)).enumerate().for_each(|(j, row)| {
             for i in 0..width {
-                let mut acc = [0.0; 3];
                 for k in 0..n * n {
                     // sheared grid over the texel (distinct offsets on both axes)
                     let (a, b) = (k % n, k / n);
@@ -532,7 +553,32 @@ impl Renderer {
                     let x = (i as f64 + fx) / width as f64 * s - s / 2.0;
                     let y = s / 2.0 - (j as f64 + fy) / height as f64 * s;
                     let d = (Vec3::new(x, y, 0.0) - camera).normalized();
-                    let r = self.radiance_along(camera, d, light, shadow.as_deref());
+                    row[i * n * n + k] = (self.trace(camera, d), d);
+                }
+            }
+        });
+        TruthView {
+            width,
+            height,
+            samples: n,
+            camera,
+            rays,
+        }
+    }
+
+    /// Shade a traced view for one light: the light-dependent half of [`Self::render_truth`].
+    pub fn shade_truth(&self, view: &TruthView, light: &PointLight) -> RgbImage {
+        let (width, n) = (view.width, view.samples);
+        let mut img = RgbImage::new(width, view.height);
+        let shadow = self.shadow_for(light);
+        let w = 1.0 / (n * n) as f64;
+        let per_row = width * n * n;
+        img.data.par_chunks_mut(width * 3).enumerate().for_each(|(j, out)| {
+            let row = &view.rays[j * per_row..(j + 1) * per_row];
+            for i in 0..width {
+                let mut acc = [0.0; 3];
+                for (hit, d) in &row[i * n * n..(i + 1) * n * n] {
+                    let r = self.shade(hit, *d, light, shadow.as_deref());
                     acc[0] += r[0];
                     acc[1] += r[1];
                     acc[2] += r[2];
@@ -544,6 +590,21 @@ impl Renderer {
         });
         img
     }
+}
+
+/// The traced truth rays of one view ([`Renderer::truth_view`]): what the camera sees
+/// through each sample point of each texel. Shading it for a light
+/// ([`Renderer::shade_truth`]) costs a shadow-map look-up and a BRDF evaluation per ray,
+/// no marching; a full BTF traces 81 views once each instead of 6561 times.
+/// About 80 bytes per ray (5 MiB for a 256² view with one ray per texel).
+pub struct TruthView {
+    pub width: usize,
+    pub height: usize,
+    /// Rays per texel and axis.
+    pub samples: usize,
+    /// Where the camera was (mm, sample frame).
+    pub camera: Vec3,
+    rays: Vec<(Hit, Vec3)>,
 }
 
 /// Grid cell and fractions for bilinear interpolation at (x, y).

@@ -12,6 +12,7 @@ mod export;
 mod import;
 mod plan;
 mod sim;
+mod sim_btf;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;

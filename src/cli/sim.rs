@@ -15,6 +15,9 @@ use std::process::ExitCode;
 pub enum SimCommand {
     /// Render one measurement: the raw frame, its rectification, or the exact ground truth.
     Render(RenderArgs),
+    /// A complete synthetic ground-truth BTF (every pair of a sweep, exact, noiseless) as
+    /// a native dataset, without simulating the acquisition.
+    Btf(super::sim_btf::BtfArgs),
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum, PartialEq)]
@@ -71,6 +74,7 @@ pub struct RenderArgs {
 pub fn run(cmd: SimCommand) -> Result<ExitCode> {
     match cmd {
         SimCommand::Render(a) => render(a),
+        SimCommand::Btf(a) => super::sim_btf::run(a),
     }
 }
 
