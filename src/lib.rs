@@ -3,6 +3,7 @@
 //! See ARCHITECTURE.md for the map. Data flows sweep → [`plan`] → engine (drives the
 //! hardware traits of `gonio-devices`) → [`rectify`] → [`store`].
 
+pub mod calibrate;
 pub mod cli;
 pub mod compress;
 pub mod engine;

@@ -21,7 +21,9 @@ pub enum SweepError {
         what: String,
         message: String,
     },
-    #[error("unknown sweep `{0}`: use `bonn81`, `uniform15`, `fibonacci:N`, or a path to a .toml/.csv file")]
+    #[error(
+        "unknown sweep `{0}`: use `bonn81`, `uniform15`, `bonn151`, `fibonacci:N`, or a path to a .toml/.csv file"
+    )]
     Unknown(String),
 }
 
@@ -58,6 +60,12 @@ pub fn bonn81() -> Vec<Direction> {
 /// ring are about 15° apart (80 directions; the dome rig's default layout).
 pub fn uniform15() -> Vec<Direction> {
     gonio_devices::kinematics::dome::uniform15()
+}
+
+/// Bonn's Dome 1 layout, 151 directions (the UBO2014 data; the `dome151` rig's cameras
+/// and lamps): see `gonio_devices::kinematics::dome::bonn_dome1`.
+pub fn bonn151() -> Vec<Direction> {
+    gonio_devices::kinematics::dome::bonn_dome1()
 }
 
 /// `n` directions on a spherical Fibonacci lattice over the hemisphere up to `max_theta_deg`.
@@ -109,7 +117,7 @@ impl Sweep {
         self.len() == 0
     }
 
-    /// `bonn81`, `uniform15`, `fibonacci:N`, or a TOML/CSV file.
+    /// `bonn81`, `uniform15`, `bonn151` (alias `dome151`), `fibonacci:N`, or a TOML/CSV file.
     pub fn resolve(spec: &str) -> Result<Sweep, SweepError> {
         let same = |name: &str, d: Vec<Direction>| Sweep {
             name: name.into(),
@@ -119,6 +127,7 @@ impl Sweep {
         match spec {
             "bonn81" | "bonn" => return Ok(same("bonn81", bonn81())),
             "uniform15" => return Ok(same("uniform15", uniform15())),
+            "bonn151" | "dome151" => return Ok(same("bonn151", bonn151())),
             _ => {}
         }
         if let Some(n) = spec.strip_prefix("fibonacci:") {
@@ -272,6 +281,16 @@ mod tests {
         assert!(e.contains("line 2"), "{e}");
         let ok = Sweep::parse_csv("theta,phi\n0,0\n45,90\n", "d.csv", "d").unwrap();
         assert_eq!(ok.len(), 4);
+    }
+
+    #[test]
+    fn named_sets_have_their_sizes() {
+        assert_eq!(Sweep::resolve("uniform15").unwrap().lights.len(), 80);
+        let b = Sweep::resolve("bonn151").unwrap();
+        assert_eq!((b.name.as_str(), b.lights.len(), b.len()), ("bonn151", 151, 22801));
+        assert_eq!(Sweep::resolve("dome151").unwrap().lights, b.lights);
+        let e = Sweep::resolve("bonn152").unwrap_err().to_string();
+        assert!(e.contains("bonn151"), "{e}");
     }
 
     #[test]

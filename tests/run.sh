@@ -19,5 +19,21 @@ cargo test --workspace
 echo "== campaign figures (kill -9, faults)"
 cargo test -q -p gonio --test campaign_kill9 --test campaign_faults -- --nocapture 2>&1 \
   | grep -E "^(kill9:|fault|\||[a-z-]+ +\|)" || true
+echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
+bash tests/campaigns/soak.sh
 echo "== interop"
 bash tests/interop/run.sh
+
+# --- V4L2 camera backend against the kernel's vivid driver in a QEMU VM (tests/vivid/).
+# Needs apt-get (to download the Debian kernel/busybox/QEMU packages, never installed) and
+# libclang (the `v4l2` feature's bindgen). Mandatory under CI; elsewhere skipped with a
+# notice when those are missing.
+echo "== vivid (V4L2 backend in a VM)"
+if command -v apt-get >/dev/null && { [ -n "$(ls /usr/lib/llvm-*/lib/libclang-[0-9]*.so* 2>/dev/null)" ] || [ -n "${LIBCLANG_PATH:-}" ]; }; then
+  bash tests/vivid/run.sh
+elif [ -n "${CI:-}" ]; then
+  echo "vivid: apt-get or libclang missing under CI (.ci/run installs libclang-dev)" >&2
+  exit 1
+else
+  echo "vivid: skipped (needs apt-get and libclang-dev; run .ci/run)"
+fi

@@ -9,8 +9,10 @@
 //!   pose homography where they are not, then the warp. The root crate's `rectify` module
 //!   re-exports it.
 
+pub mod checkerboard;
 pub mod error;
 pub mod homography;
+pub mod intrinsics;
 pub mod markers;
 pub mod rectify;
 pub mod warp;

@@ -71,4 +71,9 @@ pub trait Camera: Send + Sync {
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError>;
     /// Capture one frame with the current settings.
     async fn capture(&self) -> Result<Frame, DeviceError>;
+    /// The rig has just become still (every axis settled). A streaming camera (V4L2)
+    /// holds frames exposed during the move in its queue; it must not return any frame
+    /// whose exposure started before this call. Cameras that expose only when `capture`
+    /// is called (the simulated one) need nothing, hence the empty default.
+    fn rig_still(&self) {}
 }

@@ -14,7 +14,12 @@ pub mod kinematics;
 pub mod light;
 pub mod motion;
 pub mod rig;
+/// Serial motor controllers (Zaber ASCII, Newport ESP300); cargo feature `serial`.
+#[cfg(feature = "serial")]
+pub mod serial;
 pub mod target;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
 
 pub use axis::{Axis, AxisStatus, SoftLimits};
 pub use camera::{Camera, CameraConfig, Frame, FrameMeta, Intrinsics};

@@ -44,6 +44,12 @@ pub enum RigKind {
     /// N fixed cameras and M fixed lamps (Bonn's Dome): measuring is selecting. Two selector
     /// axes whose position (degrees at the interface) is the camera / lamp index.
     Dome,
+    /// CTU's Lightdrum principle: cameras fixed on an arc that rotates about the vertical,
+    /// fixed lamps. An arc rotation axis plus camera / lamp selectors.
+    Lightdrum,
+    /// The static-light rig with a camera arc that does not turn (1 axis): measures the
+    /// pairs whose light, view and normal are coplanar (see `kinematics::static_light`).
+    StaticLightArc,
 }
 
 /// One axis as written in the rig file (degrees for rotary axes).
@@ -130,6 +136,14 @@ pub struct GeometrySpec {
     /// dome: lamp directions, as `camera_directions_deg`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub light_directions_deg: Option<Vec<[f64; 2]>>,
+    /// lightdrum: signed camera elevations along the rotating arc (degrees from the
+    /// zenith; negative = far side of the pole). Absent = 0, 15, …, 75°.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arc_camera_elevations_deg: Option<Vec<f64>>,
+    /// dome: a named camera / lamp layout used where no explicit list is given:
+    /// `uniform15` (80 directions, the default) or `bonn-dome1` (Bonn's Dome, 151).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dome_layout: Option<String>,
     /// dome: a requested direction matches a camera / lamp closer than this. The default is
     /// below 1e-9 rad, so what is measured is what was asked to the planner's precision.
     #[serde(default = "default_dome_tolerance")]
@@ -395,10 +409,18 @@ impl RigSpec {
                 ));
             }
         }
-        if self.kind == RigKind::Dome {
+        if matches!(self.kind, RigKind::Dome | RigKind::Lightdrum) {
             let (cams, lamps) = crate::kinematics::dome::directions(self);
+            let (n_cams, cam_list) = if self.kind == RigKind::Lightdrum {
+                (
+                    crate::kinematics::lightdrum::elevations(self).len(),
+                    "arc_camera_elevations_deg",
+                )
+            } else {
+                (cams.len(), "camera_directions_deg")
+            };
             for (role, n, list) in [
-                ("camera_select", cams.len(), "camera_directions_deg"),
+                ("camera_select", n_cams, cam_list),
                 ("light_select", lamps.len(), "light_directions_deg"),
             ] {
                 let (i, a) = self.axis_by_role(role).expect("roles checked above");
@@ -459,12 +481,29 @@ impl RigSpec {
                 "valid range is 0 < dome_match_tolerance_deg < 5 degrees",
             ));
         }
+        if let Some(name) = &g.dome_layout {
+            if !matches!(self.kind, RigKind::Dome | RigKind::Lightdrum) {
+                return Err(bad(
+                    "dome_layout",
+                    name.clone(),
+                    "only a `dome` or `lightdrum` rig has a fixed layout",
+                ));
+            }
+            if crate::kinematics::dome::layout(name).is_none() {
+                return Err(bad(
+                    "dome_layout",
+                    name.clone(),
+                    &format!("unknown layout; known: {}", crate::kinematics::dome::LAYOUTS.join(", ")),
+                ));
+            }
+        }
         for (key, list) in [
             ("camera_directions_deg", &g.camera_directions_deg),
             ("light_directions_deg", &g.light_directions_deg),
         ] {
             let Some(list) = list else { continue };
-            if self.kind != RigKind::Dome {
+            let lightdrum_lamps = self.kind == RigKind::Lightdrum && key == "light_directions_deg";
+            if self.kind != RigKind::Dome && !lightdrum_lamps {
                 return Err(bad(
                     key,
                     format!("{} entries", list.len()),
@@ -485,6 +524,31 @@ impl RigSpec {
                     return Err(bad(key, entry(), &format!("duplicate of entry {j}")));
                 }
                 seen.push(d);
+            }
+        }
+        if let Some(list) = &g.arc_camera_elevations_deg {
+            let key = "arc_camera_elevations_deg";
+            if self.kind != RigKind::Lightdrum {
+                return Err(bad(
+                    key,
+                    format!("{list:?}"),
+                    "only a `lightdrum` rig has an arc of cameras",
+                ));
+            }
+            if list.is_empty() || list.len() > 181 {
+                return Err(bad(key, format!("{} entries", list.len()), "need 1 ..= 181 elevations"));
+            }
+            for (i, &e) in list.iter().enumerate() {
+                if !(e.is_finite() && e > -90.0 && e < 90.0) {
+                    return Err(bad(
+                        key,
+                        format!("entry {i} ({e})"),
+                        "valid range is -90 < elevation < 90 degrees",
+                    ));
+                }
+                if let Some(j) = list[..i].iter().position(|&o| (o - e).abs() < 1e-9) {
+                    return Err(bad(key, format!("entry {i} ({e})"), &format!("duplicate of entry {j}")));
+                }
             }
         }
         Ok(())

@@ -171,6 +171,8 @@ pub struct SimWorld {
     pub width: usize,
     pub height: usize,
     pub roi: Roi,
+    /// Lens distortion of the simulated camera (zero = ideal pinhole).
+    pub lens: crate::render::LensDistortion,
 }
 
 /// Which part of the sensor the simulated camera reads out.
@@ -211,7 +213,7 @@ impl SimWorld {
         let pose = self.kinematics.camera_pose(q);
         let light = self.point_light(q);
         self.renderer
-            .render_raw(&self.intrinsics, &pose, self.width, self.height, &light)
+            .render_raw_distorted(&self.intrinsics, &self.lens, &pose, self.width, self.height, &light)
     }
 }
 
@@ -269,6 +271,7 @@ impl Camera for SimCamera {
             let sensor = w2.sensor.lock().expect("sensor poisoned").clone();
             match w2.roi {
                 Roi::Full => sensor.expose(&rad, noise_key),
+                Roi::Holder if !w2.lens.is_zero() => sensor.expose(&rad, noise_key),
                 Roi::Holder => {
                     let pose = w2.kinematics.camera_pose(&q);
                     let roi = w2.renderer.pixel_bounds(&w2.intrinsics, &pose, w2.width, w2.height);
@@ -374,6 +377,24 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         readout_s: spec.camera.readout_s,
         width: spec.camera.width,
         height: spec.camera.height,
+        lens: {
+            // Distortion coefficients may be negative: read them without `opt`'s ≥ 0 rule.
+            let mut c = [0.0; 5];
+            for (k, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
+                if let Some(v) = spec.camera.options.get(*key) {
+                    c[k] = v
+                        .as_float()
+                        .or_else(|| v.as_integer().map(|i| i as f64))
+                        .filter(|x| x.is_finite() && x.abs() < 10.0)
+                        .ok_or(SimRigError {
+                            rig: spec.name.clone(),
+                            key: (*key).into(),
+                            message: format!("{v}: must be a number with |value| < 10"),
+                        })?;
+                }
+            }
+            crate::render::LensDistortion(c)
+        },
         roi: match spec.camera.options.get("roi").and_then(|v| v.as_str()) {
             None | Some("holder") => Roi::Holder,
             Some("full") => Roi::Full,

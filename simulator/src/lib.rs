@@ -5,6 +5,7 @@
 //! - [`render`]: the physically based renderer (raw frames and ground truth).
 //! - [`sensor`]: radiance → digital numbers (noise, saturation, vignetting).
 //! - [`clock`], [`devices`]: simulated axes, lamp and camera on a virtual clock.
+//! - [`emulate`] (feature `emulate`): Zaber / Newport ESP300 controller emulators on ptys.
 //!
 //! The simulator implements the hardware traits of `gonio-devices`, so the acquisition
 //! engine cannot tell it from a real rig.
@@ -12,6 +13,8 @@
 pub mod brdf;
 pub mod clock;
 pub mod devices;
+#[cfg(feature = "emulate")]
+pub mod emulate;
 pub mod noise;
 pub mod render;
 pub mod sample;

@@ -20,6 +20,10 @@ pub enum BenchCommand {
     Plan(PlanBenchArgs),
     /// Render error against a high-sample reference versus time, per quality knob.
     Render(RenderBenchArgs),
+    /// Serial layer cost over a pty: round trips/s and per-measurement overhead vs. sim axes.
+    Serial(super::bench_serial::SerialBenchArgs),
+    /// Every compression method over its knob: error vs. encode time and vs. ratio (table + SVG).
+    Compress(super::bench_compress::CompressBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -51,8 +55,10 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
     let rig = a.rig.load()?;
     let kin = kinematics::for_rig(&rig);
     let dirs = sweep::bonn81();
+    // Views spread over the sweep, lights stepping through all rings (a stride of 37 of
+    // the 81 Bonn lights) so that grazing lights, where shadow maps matter, are included.
     let qs: Vec<Vec<f64>> = (0..a.measurements.max(1))
-        .map(|k| (k * 6561 / a.measurements.max(1) + 13) % 6561)
+        .map(|k| (k * 81 / a.measurements.max(1)) * 81 + (k * 37 + 13) % 81)
         .filter_map(|idx| {
             kin.inverse(dirs[idx % 81], dirs[idx / 81], None)
                 .ok()
@@ -255,6 +261,8 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Sim(a) => sim(a),
         BenchCommand::Plan(a) => plan(a),
         BenchCommand::Render(a) => render(a),
+        BenchCommand::Serial(a) => super::bench_serial::run(a),
+        BenchCommand::Compress(a) => super::bench_compress::run(a),
     }
 }
 

@@ -26,7 +26,7 @@ impl RigArgs {
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct SweepArgs {
-    /// `bonn81` (default), `uniform15`, `fibonacci:N`, or a .toml/.csv direction list.
+    /// `bonn81` (default), `uniform15`, `bonn151` (Bonn's Dome), `fibonacci:N`, or a .toml/.csv direction list.
     #[arg(long, default_value = "bonn81")]
     pub sweep: String,
     /// What to do with pairs the rig cannot measure: `skip` or `substitute`.
@@ -37,6 +37,10 @@ pub struct SweepArgs {
     pub plan_time: f64,
     #[arg(long, default_value_t = 1)]
     pub plan_seed: u64,
+    /// The sample is isotropic: measure only pairs distinct in (θ_l, θ_v, |φ_l − φ_v|);
+    /// export reconstructs the others (see `plan::isotropic`).
+    #[arg(long)]
+    pub isotropic: bool,
 }
 
 impl SweepArgs {
@@ -49,15 +53,15 @@ impl SweepArgs {
             "--plan-time {}: must be between 0 and 3600 seconds",
             self.plan_time
         );
-        Ok(Plan::build(
-            rig,
-            sweep,
-            &PlanOptions {
-                policy: self.policy,
-                time_budget: Duration::from_secs_f64(self.plan_time),
-                seed: self.plan_seed,
-            },
-        )?)
+        let opts = PlanOptions {
+            policy: self.policy,
+            time_budget: Duration::from_secs_f64(self.plan_time),
+            seed: self.plan_seed,
+        };
+        if self.isotropic {
+            return Ok(Plan::build_isotropic(rig, sweep, &opts)?);
+        }
+        Ok(Plan::build(rig, sweep, &opts)?)
     }
 }
 

@@ -1,7 +1,10 @@
 //! `gonio compress` and `gonio reconstruct`.
 
 use super::common::parse_angles;
-use crate::compress::{self, CompressedBtf, DatasetViews, Gbtf, Method, Params};
+use crate::compress::btf_ubo2014::{self, Precision};
+use crate::compress::dfmf::{self, ColorModel, DfmfParams};
+use crate::compress::interp::AnyModel;
+use crate::compress::{self, DatasetViews, Method, Params};
 use anyhow::{Context, Result};
 use gonio_devices::image::RgbImage;
 use serde::Serialize;
@@ -15,9 +18,40 @@ pub enum MethodArg {
     Pca,
     /// Per-view matrix factorization (one truncated SVD per view).
     Pvmf,
+    /// DFMF as in Bonn's UBO2014 files: one full-matrix factorization per channel of a
+    /// decorrelated colour model; written as a UBO2014 `.btf` (`--format btf`).
+    Dfmf,
+    /// Local PCA / PCMF: --clusters clusters of ABRDFs, -c eigen-ABRDFs each.
+    LocalPca,
+    /// Median-cut quantization of ABRDFs into --boxes boxes (index image + BRDF block).
+    MedianCut,
+    /// Homomorphic factorization per ABRDF (light × view × half-vector factors, log domain).
+    Homomorphic,
 }
 
-#[derive(clap::Args, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum FormatArg {
+    /// gonio's own container (CRC-checked, self-describing).
+    Gbtf,
+    /// Bonn's UBO2014 DFMF `.btf`, readable by btf-extractor's `Ubo2014`.
+    Btf,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum ColorModelArg {
+    /// Linear R, G, B (UBO2014 colour model 0).
+    Rgb,
+    /// log luminance + chroma/luminance (UBO2014 colour model 11; the reader clamps to [0, 1]).
+    LogYuv,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum PrecisionArg {
+    F16,
+    F32,
+}
+
+#[derive(clap::Args, Debug, Clone)]
 pub struct CompressArgs {
     /// The dataset directory.
     pub dataset: PathBuf,
@@ -38,6 +72,40 @@ pub struct CompressArgs {
     /// PCA: oversampling of the sketch.
     #[arg(long, default_value_t = 10)]
     pub oversample: usize,
+    /// Local PCA: number of clusters k.
+    #[arg(long, default_value_t = 8)]
+    pub clusters: usize,
+    /// Local PCA: maximum alternation rounds (assignment + per-cluster PCA).
+    #[arg(long, default_value_t = 10)]
+    pub iters: usize,
+    /// Median cut: number of boxes (BRDFs).
+    #[arg(long, default_value_t = 256)]
+    pub boxes: usize,
+    /// Median cut: split level by level (2^depth boxes) instead of the longest box first.
+    #[arg(long)]
+    pub balanced: bool,
+    /// Median cut: cut where the two halves' squared error is smallest, not at the median.
+    #[arg(long)]
+    pub min_error_cut: bool,
+    /// Homomorphic: bins of the half vector's polar angle (0: light × view factors only).
+    #[arg(long, default_value_t = 16)]
+    pub half_bins: usize,
+    /// Homomorphic: backfitting sweeps of the least-squares fit.
+    #[arg(long, default_value_t = 20)]
+    pub sweeps: usize,
+    /// Output container: gonio's `.gbtf`, or Bonn's UBO2014 `.btf` (DFMF only). Default:
+    /// `btf` for dfmf, `gbtf` otherwise.
+    #[arg(long, value_enum)]
+    pub format: Option<FormatArg>,
+    /// DFMF: colour model of the factorized channels.
+    #[arg(long, value_enum, default_value = "log-yuv")]
+    pub color_model: ColorModelArg,
+    /// DFMF: components of the two chroma channels (default: -c). Luminance gets -c.
+    #[arg(long)]
+    pub chroma_components: Option<usize>,
+    /// DFMF: stored scalar type (f16 like Bonn's files, or f32).
+    #[arg(long, value_enum, default_value = "f16")]
+    pub precision: PrecisionArg,
     /// Skip the error evaluation (a second pass reading every image).
     #[arg(long)]
     pub no_eval: bool,
@@ -47,50 +115,111 @@ pub struct CompressArgs {
 
 #[derive(clap::Args, Debug)]
 pub struct ReconstructArgs {
-    /// A `.gbtf` file written by `gonio compress`.
+    /// A `.gbtf` or UBO2014 `.btf` file written by `gonio compress`.
     pub file: PathBuf,
-    /// Light direction `θ,φ` in degrees (must be a measured grid direction).
+    /// Light direction `θ,φ` in degrees; between measured directions the factor rows are
+    /// interpolated (barycentric in the enclosing triangle of measured directions).
     #[arg(long, value_parser = parse_angles)]
     pub light: gonio_devices::Direction,
-    /// View direction `θ,φ` in degrees (must be a measured grid direction).
+    /// View direction `θ,φ` in degrees (interpolated like --light).
     #[arg(long, value_parser = parse_angles)]
     pub view: gonio_devices::Direction,
-    /// Output image: .png (8-bit sRGB) or .exr (linear float).
+    /// Compare with a reference image (.exr, linear), e.g. `gonio sim render --kind truth`.
+    #[arg(long)]
+    pub compare: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+    /// Output image: .png (8-bit sRGB), .exr (linear float) or .npy (float32 H × W × 3).
     #[arg(long)]
     pub out: PathBuf,
 }
 
-#[derive(Serialize, Debug)]
-struct Report {
-    method: &'static str,
-    components: usize,
-    out: String,
-    images_measured: usize,
-    filled_pairs: usize,
-    dataset_passes: usize,
-    stored_bytes: u64,
+#[derive(Serialize, Debug, Clone)]
+pub(crate) struct Report {
+    pub(crate) method: &'static str,
+    pub(crate) components: usize,
+    /// `gbtf` or `ubo2014-btf`.
+    pub(crate) format: &'static str,
+    /// The method's parameters as stored in the file's header.
+    pub(crate) params: serde_json::Value,
+    pub(crate) out: String,
+    pub(crate) images_measured: usize,
+    pub(crate) filled_pairs: usize,
+    pub(crate) dataset_passes: usize,
+    pub(crate) stored_bytes: u64,
     /// Lights · views · W · H · 3 (one 8-bit RGB image per grid pair).
-    raw_8bit_bytes: u64,
-    compression_ratio: f64,
-    encode_seconds: f64,
+    pub(crate) raw_8bit_bytes: u64,
+    pub(crate) compression_ratio: f64,
+    pub(crate) encode_seconds: f64,
     /// The remaining fields are absent with --no-eval.
-    error_scale: &'static str,
-    rmse_8bit: Option<f64>,
-    mean_abs_8bit: Option<f64>,
-    max_8bit: Option<f64>,
-    psnr_8bit_db: Option<f64>,
-    rmse_linear: Option<f64>,
-    decode_seconds_per_image: Option<f64>,
-    peak_memory_bytes: Option<u64>,
+    pub(crate) error_scale: &'static str,
+    pub(crate) rmse_8bit: Option<f64>,
+    pub(crate) mean_abs_8bit: Option<f64>,
+    pub(crate) max_8bit: Option<f64>,
+    pub(crate) psnr_8bit_db: Option<f64>,
+    pub(crate) rmse_linear: Option<f64>,
+    pub(crate) decode_seconds_per_image: Option<f64>,
+    /// Against the simulator's ground truth (datasets acquired with --store-truth).
+    pub(crate) truth: Option<TruthReport>,
+    pub(crate) peak_memory_bytes: Option<u64>,
+}
+
+/// Errors against the simulator's ground truth; same scales as the main figures.
+#[derive(Serialize, Debug, Clone)]
+pub(crate) struct TruthReport {
+    pub(crate) images: usize,
+    pub(crate) rmse_8bit: f64,
+    pub(crate) mean_abs_8bit: f64,
+    pub(crate) max_8bit: f64,
+    pub(crate) psnr_8bit_db: f64,
+    pub(crate) rmse_linear: f64,
+    /// The measurements themselves against truth: the floor set by noise and rectification.
+    pub(crate) measured_rmse_8bit: f64,
+    pub(crate) measured_rmse_linear: f64,
 }
 
 pub fn run(args: CompressArgs) -> Result<ExitCode> {
+    let r = compress_report(&args)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        print_report(&r);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
+/// compress` report.
+pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     let t0 = Instant::now();
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
+    let format = args.format.unwrap_or(match args.method {
+        MethodArg::Dfmf => FormatArg::Btf,
+        _ => FormatArg::Gbtf,
+    });
+    if matches!(args.method, MethodArg::Dfmf) != (format == FormatArg::Btf) {
+        anyhow::bail!(
+            "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
+        );
+    }
     let params = Params {
         method: match args.method {
             MethodArg::Pca => Method::Pca,
             MethodArg::Pvmf => Method::Pvmf,
+            MethodArg::Dfmf => return dfmf_report(args, &ds, t0),
+            MethodArg::LocalPca => Method::LocalPca {
+                clusters: args.clusters,
+                iters: args.iters,
+            },
+            MethodArg::MedianCut => Method::MedianCut {
+                boxes: args.boxes,
+                balanced: args.balanced,
+                min_error_cut: args.min_error_cut,
+            },
+            MethodArg::Homomorphic => Method::Homomorphic {
+                half_bins: args.half_bins,
+                sweeps: args.sweeps,
+            },
         },
         components: args.components,
         seed: args.seed,
@@ -110,6 +239,8 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
     let mut r = Report {
         method: params.method.name(),
         components: params.components,
+        format: "gbtf",
+        params: serde_json::to_value(&params)?,
         out: args.out.display().to_string(),
         images_measured: ds.n_measured(),
         filled_pairs: info.filled,
@@ -125,27 +256,98 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
         psnr_8bit_db: None,
         rmse_linear: None,
         decode_seconds_per_image: None,
+        truth: None,
         peak_memory_bytes: None,
     };
+    finish_report(args, &ds, &mut r)?;
+    Ok(r)
+}
+
+/// Read the written file back (checks every CRC or length), evaluate it against the
+/// dataset (and its truth), record peak memory.
+fn finish_report(args: &CompressArgs, ds: &DatasetViews, r: &mut Report) -> Result<()> {
     if !args.no_eval {
-        // Evaluate what was written: read the file back (checks every CRC).
-        let model =
-            CompressedBtf::new(Gbtf::read(&args.out).with_context(|| format!("reading {}", args.out.display()))?)?;
-        let ev = compress::evaluate(&ds, &model).context("evaluating the reconstruction")?;
+        let model = AnyModel::open(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
+        let ev = compress::evaluate(ds, model.model()).context("evaluating the reconstruction")?;
         r.rmse_8bit = Some(ev.stats.rmse_8bit());
         r.mean_abs_8bit = Some(ev.stats.mean_abs_8bit());
         r.max_8bit = Some(ev.stats.max_8bit);
         r.psnr_8bit_db = Some(ev.stats.psnr_8bit());
         r.rmse_linear = Some(ev.stats.rmse_linear());
         r.decode_seconds_per_image = Some(ev.decode_seconds_per_image);
+        r.truth = ev.truth.map(|t| TruthReport {
+            images: t.images,
+            rmse_8bit: t.reconstruction.rmse_8bit(),
+            mean_abs_8bit: t.reconstruction.mean_abs_8bit(),
+            max_8bit: t.reconstruction.max_8bit,
+            psnr_8bit_db: t.reconstruction.psnr_8bit(),
+            rmse_linear: t.reconstruction.rmse_linear(),
+            measured_rmse_8bit: t.measurement.rmse_8bit(),
+            measured_rmse_linear: t.measurement.rmse_linear(),
+        });
     }
     r.peak_memory_bytes = compress::peak_memory_bytes();
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&r)?);
-    } else {
-        print_report(&r);
-    }
-    Ok(ExitCode::SUCCESS)
+    Ok(())
+}
+
+fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Report> {
+    let color_model = match args.color_model {
+        ColorModelArg::Rgb => ColorModel::Rgb,
+        ColorModelArg::LogYuv => ColorModel::LogYuv,
+    };
+    let precision = match args.precision {
+        PrecisionArg::F16 => Precision::F16,
+        PrecisionArg::F32 => Precision::F32,
+    };
+    let c = args.components;
+    let cc = args.chroma_components.unwrap_or(c);
+    let params = DfmfParams {
+        color_model,
+        components: match color_model {
+            ColorModel::LogYuv => [c, cc, cc],
+            ColorModel::Rgb => [c, c, c],
+        },
+        seed: args.seed,
+        oversample: args.oversample,
+        power_iters: args.power_iters,
+    };
+    let (model, info) = dfmf::encode(ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
+    let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
+    let xml = format!(
+        "<gonio><source>{}</source><params>{}</params></gonio>",
+        ds.dir.display(),
+        pjson
+    );
+    let stored = btf_ubo2014::write(&args.out, &model, precision, &xml)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let encode_seconds = t0.elapsed().as_secs_f64();
+    drop(model);
+    let raw = (ds.n_lights() * ds.n_views() * ds.texels() * 3) as u64;
+    let mut r = Report {
+        method: "dfmf",
+        components: c,
+        format: "ubo2014-btf",
+        params: pjson,
+        out: args.out.display().to_string(),
+        images_measured: ds.n_measured(),
+        filled_pairs: info.filled,
+        dataset_passes: info.passes,
+        stored_bytes: stored,
+        raw_8bit_bytes: raw,
+        compression_ratio: raw as f64 / stored as f64,
+        encode_seconds,
+        error_scale: "8-bit sRGB codes / 255 (UBO2003 encoding); linear in the dataset's values",
+        rmse_8bit: None,
+        mean_abs_8bit: None,
+        max_8bit: None,
+        psnr_8bit_db: None,
+        rmse_linear: None,
+        decode_seconds_per_image: None,
+        truth: None,
+        peak_memory_bytes: None,
+    };
+    finish_report(args, ds, &mut r)?;
+    Ok(r)
 }
 
 fn print_report(r: &Report) {
@@ -171,38 +373,117 @@ fn print_report(r: &Report) {
         println!("error linear   RMSE {lin:.6}");
         println!("decode         {:.3} ms per image", dec * 1e3);
     }
+    if let Some(t) = &r.truth {
+        println!(
+            "vs. truth      RMSE {:.5} (/255), PSNR {:.2} dB, linear RMSE {:.6}; measurements themselves: \
+             RMSE {:.5} (/255), linear {:.6} ({} images)",
+            t.rmse_8bit, t.psnr_8bit_db, t.rmse_linear, t.measured_rmse_8bit, t.measured_rmse_linear, t.images
+        );
+    }
     if let Some(p) = r.peak_memory_bytes {
         println!("peak memory    {} MiB", p / (1 << 20));
     }
 }
 
 pub fn reconstruct(args: ReconstructArgs) -> Result<ExitCode> {
-    let model = CompressedBtf::new(Gbtf::read(&args.file).with_context(|| format!("reading {}", args.file.display()))?)
-        .with_context(|| format!("{}", args.file.display()))?;
+    let any = AnyModel::open(&args.file).with_context(|| format!("reading {}", args.file.display()))?;
+    let model = any.model();
     let (l, v) = (
         [args.light.theta_deg(), args.light.phi_deg()],
         [args.view.theta_deg(), args.view.phi_deg()],
     );
-    let data = model
-        .reconstruct_deg(l, v)
+    let t0 = Instant::now();
+    let (data, how) = compress::interp::reconstruct_at(model, l, v)
         .with_context(|| format!("reconstructing light {l:?}°, view {v:?}° from {}", args.file.display()))?;
-    let h = model.header();
-    if let (Some(li), Some(vi)) = (
-        compress::find_direction(&h.lights_deg, l),
-        compress::find_direction(&h.views_deg, v),
-    ) {
-        if h.filled.contains(&[li, vi]) {
-            eprintln!(
-                "warning: light {l:?}°, view {v:?}° was not measured; its image was filled from the \
-                 nearest measured light before compression"
-            );
+    let decode_seconds = t0.elapsed().as_secs_f64();
+    if let AnyModel::Gbtf(m) = &any {
+        let filled = &m.header().filled;
+        for &(li, _, _) in &how.lights {
+            for &(vi, _, _) in &how.views {
+                if filled.contains(&[li, vi]) {
+                    eprintln!(
+                        "warning: grid pair light {:?}°, view {:?}° was not measured; its image was filled from \
+                         the nearest measured light before compression",
+                        m.header().lights_deg[li],
+                        m.header().views_deg[vi]
+                    );
+                }
+            }
         }
     }
     let img = RgbImage {
-        width: h.width,
-        height: h.height,
+        width: model.width(),
+        height: model.height(),
         data,
     };
-    super::sim::write_image(&args.out, &img)?;
+    let comparison = match &args.compare {
+        Some(p) => {
+            let reference = crate::store::read_exr(p).with_context(|| format!("reading {}", p.display()))?;
+            if (reference.width, reference.height) != (img.width, img.height) {
+                anyhow::bail!(
+                    "{} is {}×{}, the reconstruction is {}×{}",
+                    p.display(),
+                    reference.width,
+                    reference.height,
+                    img.width,
+                    img.height
+                );
+            }
+            let mut st = compress::ErrorStats::default();
+            st.add(&reference.data, &img.data);
+            Some(st)
+        }
+        None => None,
+    };
+    if args.out.extension().and_then(|e| e.to_str()) == Some("npy") {
+        // Raw float32 (H, W, 3) for scripts (tests/interop/check_ubo2014.py).
+        let mut bytes = crate::store::npy::npy_header(&[img.height, img.width, 3]);
+        bytes.extend(img.data.iter().flat_map(|v| v.to_le_bytes()));
+        crate::store::atomic::write_atomic(&args.out, &bytes, None)
+            .with_context(|| format!("writing {}", args.out.display()))?;
+    } else {
+        super::sim::write_image(&args.out, &img)?;
+    }
+    if args.json {
+        let j = serde_json::json!({
+            "out": args.out.display().to_string(),
+            "light_deg": l,
+            "view_deg": v,
+            "interpolation": how,
+            "decode_seconds": decode_seconds,
+            "compare": comparison.as_ref().map(|st| serde_json::json!({
+                "reference": args.compare.as_ref().map(|p| p.display().to_string()),
+                "rmse_8bit": st.rmse_8bit(),
+                "mean_abs_8bit": st.mean_abs_8bit(),
+                "max_8bit": st.max_8bit,
+                "psnr_8bit_db": st.psnr_8bit(),
+                "rmse_linear": st.rmse_linear(),
+            })),
+        });
+        println!("{}", serde_json::to_string_pretty(&j)?);
+    } else {
+        let fmt = |v: &[(usize, [f64; 2], f64)]| {
+            v.iter()
+                .map(|(_, d, w)| format!("{:.1},{:.1}° ×{w:.3}", d[0], d[1]))
+                .collect::<Vec<_>>()
+                .join(" + ")
+        };
+        println!(
+            "{} {}: lights {}; views {}",
+            args.out.display(),
+            if how.exact { "(measured pair)" } else { "(interpolated)" },
+            fmt(&how.lights),
+            fmt(&how.views)
+        );
+        if let Some(st) = &comparison {
+            println!(
+                "vs. reference  RMSE {:.5} (/255), PSNR {:.2} dB, max {:.5}, linear RMSE {:.6}",
+                st.rmse_8bit(),
+                st.psnr_8bit(),
+                st.max_8bit,
+                st.rmse_linear()
+            );
+        }
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -5,12 +5,18 @@
 
 mod acquire;
 mod bench;
+mod bench_compress;
+mod bench_serial;
 mod brdf;
+mod calibrate;
 mod common;
 mod compress;
+mod devices;
 mod export;
+mod generate;
 mod import;
 mod plan;
+mod serve_stage;
 mod sim;
 mod sim_btf;
 
@@ -57,8 +63,15 @@ pub enum Command {
     Bench(bench::BenchCommand),
     /// Compress a dataset (PCA or per-view factorization) into a .gbtf file and report its error.
     Compress(compress::CompressArgs),
+    /// Find hardware: list serial ports and video devices, probe a port for a controller.
+    #[command(subcommand)]
+    Devices(devices::DevicesCommand),
+    /// Run a calibration recipe (calibration/recipes/*.toml) on a rig; write a versioned result.
+    Calibrate(calibrate::CalibrateArgs),
     /// Reconstruct one (light, view) image from a .gbtf file.
     Reconstruct(compress::ReconstructArgs),
+    /// A new BTF from one median-cut file's index image and another's BRDF block.
+    Generate(generate::GenerateArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -90,6 +103,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),
         Command::Compress(a) => compress::run(a),
+        Command::Devices(c) => devices::run(c),
         Command::Reconstruct(a) => compress::reconstruct(a),
+        Command::Generate(a) => generate::run(a),
+        Command::Calibrate(a) => calibrate::run(a),
     }
 }

@@ -66,6 +66,23 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         d.optimized_s / d.lower_bound_s
     );
     println!("  capture per measurement   {:>9.2} s", d.capture_per_measurement_s);
+    if let Some(iso) = &plan.isotropic {
+        println!(
+            "  isotropic: {} classes ({} unreachable), {} pairs measured, {} reconstructed on export",
+            iso.classes,
+            iso.unreachable_classes,
+            plan.steps.len(),
+            counts.reconstructed
+        );
+        println!(
+            "  full sweep would take     {:>9.0} s ({:.2} h optimized; canonical {:.0} s); saved {:.0} s ({:.1} %)",
+            iso.full_durations.optimized_s,
+            iso.full_durations.optimized_s / 3600.0,
+            iso.full_durations.canonical_s,
+            iso.saved_s,
+            100.0 * iso.saved_s / iso.full_durations.optimized_s
+        );
+    }
     println!("  plan computed in {:.2} s", plan.plan_time_s);
     if args.show > 0 {
         println!("  first steps (index: light θ,φ → view θ,φ; axes °; move s):");

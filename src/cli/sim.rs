@@ -18,6 +18,8 @@ pub enum SimCommand {
     /// A complete synthetic ground-truth BTF (every pair of a sweep, exact, noiseless) as
     /// a native dataset, without simulating the acquisition.
     Btf(super::sim_btf::BtfArgs),
+    /// Emulate a motor controller (Zaber ASCII or Newport ESP300) on a pty until killed.
+    ServeStage(super::serve_stage::ServeStageArgs),
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum, PartialEq)]
@@ -75,6 +77,7 @@ pub fn run(cmd: SimCommand) -> Result<ExitCode> {
     match cmd {
         SimCommand::Render(a) => render(a),
         SimCommand::Btf(a) => super::sim_btf::run(a),
+        SimCommand::ServeStage(a) => super::serve_stage::run(a),
     }
 }
 
@@ -109,7 +112,12 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     if kind == RenderKind::Radiance {
         let img = render_radiance(&spec, &sample, &opts, &rig, a.light, a.view)?;
         write_image(&a.out, &img)?;
-        eprintln!("wrote {} ({}×{}, radiance W m⁻² sr⁻¹)", a.out.display(), img.width, img.height);
+        eprintln!(
+            "wrote {} ({}×{}, radiance W m⁻² sr⁻¹)",
+            a.out.display(),
+            img.width,
+            img.height
+        );
         return Ok(ExitCode::SUCCESS);
     }
     let sols = rig

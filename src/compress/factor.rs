@@ -14,6 +14,20 @@ pub enum Method {
     Pca,
     /// Per-view matrix factorization (one truncated SVD per view).
     Pvmf,
+    /// Local PCA / PCMF (`local_pca`): `clusters` clusters of ABRDFs with `components`
+    /// eigen-ABRDFs each, at most `iters` alternation rounds.
+    #[serde(rename = "local-pca")]
+    LocalPca { clusters: usize, iters: usize },
+    /// Median-cut quantization of ABRDFs (`median_cut`): index image + BRDF block.
+    #[serde(rename = "median-cut")]
+    MedianCut {
+        boxes: usize,
+        balanced: bool,
+        min_error_cut: bool,
+    },
+    /// Homomorphic factorization per ABRDF (`homomorphic`): light × view × half-vector
+    /// factors fitted in the log domain (`half_bins` θ_h bins, `sweeps` backfitting sweeps).
+    Homomorphic { half_bins: usize, sweeps: usize },
 }
 
 impl Method {
@@ -21,6 +35,9 @@ impl Method {
         match self {
             Method::Pca => "pca",
             Method::Pvmf => "pvmf",
+            Method::LocalPca { .. } => "local-pca",
+            Method::MedianCut { .. } => "median-cut",
+            Method::Homomorphic { .. } => "homomorphic",
         }
     }
 }
@@ -119,7 +136,12 @@ fn orthonormalize(y: &Mat<f64>) -> Mat<f64> {
     y.qr().compute_thin_Q()
 }
 
-fn header_for(ds: &DatasetViews, params: &Params, filled: Vec<[usize; 2]>, blocks: Vec<BlockInfo>) -> GbtfHeader {
+pub(super) fn header_for(
+    ds: &DatasetViews,
+    params: &Params,
+    filled: Vec<[usize; 2]>,
+    blocks: Vec<BlockInfo>,
+) -> GbtfHeader {
     GbtfHeader {
         method: params.method.name().into(),
         params: serde_json::to_value(params).unwrap_or(serde_json::Value::Null),
@@ -147,6 +169,9 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     match params.method {
         Method::Pvmf => compress_pvmf(ds, params),
         Method::Pca => compress_pca(ds, params),
+        Method::LocalPca { .. } => super::local_pca::compress(ds, params),
+        Method::MedianCut { .. } => super::median_cut::compress(ds, params),
+        Method::Homomorphic { .. } => super::homomorphic::compress(ds, params),
     }
 }
 
@@ -323,6 +348,27 @@ impl CompressedBtf {
         let method = match h.method.as_str() {
             "pvmf" => Method::Pvmf,
             "pca" => Method::Pca,
+            "local-pca" => {
+                let (_, c) = super::local_pca::validate(h)?;
+                let k = h.blocks[2].rows;
+                super::local_pca::check_indices(&gbtf.blocks[0], k, "cluster")?;
+                let method = Method::LocalPca { clusters: k, iters: 0 };
+                return Ok(CompressedBtf { gbtf, method, c });
+            }
+            "median-cut" => {
+                let boxes = super::median_cut::validate(&gbtf)?;
+                let method = Method::MedianCut {
+                    boxes,
+                    balanced: false,
+                    min_error_cut: false,
+                };
+                return Ok(CompressedBtf { gbtf, method, c: 0 });
+            }
+            "homomorphic" => {
+                let half_bins = super::homomorphic::validate(h)?;
+                let method = Method::Homomorphic { half_bins, sweeps: 0 };
+                return Ok(CompressedBtf { gbtf, method, c: 0 });
+            }
             m => return Err(bad(format!("unknown method {m:?}"))),
         };
         if h.channels != 3 {
@@ -333,6 +379,7 @@ impl CompressedBtf {
         let want: Vec<(usize, usize)> = match method {
             Method::Pvmf => (0..nv).flat_map(|_| [(t, c), (nl * 3, c)]).collect(),
             Method::Pca => vec![(t, c), (nl * nv * 3, c)],
+            _ => Vec::new(),
         };
         let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
         if got != want || c == 0 {
@@ -362,6 +409,15 @@ impl CompressedBtf {
             )));
         }
         let c = self.c;
+        if let Method::Homomorphic { half_bins, .. } = self.method {
+            return Ok(super::homomorphic::reconstruct(&self.gbtf, half_bins, light, view));
+        }
+        if let Method::MedianCut { .. } = self.method {
+            return Ok(super::median_cut::reconstruct(&self.gbtf, light, view));
+        }
+        if let Method::LocalPca { clusters, .. } = self.method {
+            return Ok(super::local_pca::reconstruct(&self.gbtf, clusters, c, light, view));
+        }
         let (us, vrows) = match self.method {
             Method::Pvmf => {
                 let vb = &self.gbtf.blocks[2 * view + 1];
@@ -371,6 +427,7 @@ impl CompressedBtf {
                 let r = (view * nl + light) * 3;
                 (&self.gbtf.blocks[0], &self.gbtf.blocks[1][r * c..(r + 3) * c])
             }
+            _ => return Err(CompressError::Invalid(format!("no decoder for {:?}", self.method))),
         };
         let (v0, rest) = vrows.split_at(c);
         let (v1, v2) = rest.split_at(c);

@@ -7,9 +7,16 @@
 //!   difference of the 8-bit codes is divided by 255. RMSE, mean absolute error and max
 //!   error are on this scale, and PSNR = 20·log10(1 / RMSE) dB on it.
 //! * **linear**: RMSE of the raw linear values (the dataset's `values` unit).
+//!
+//! When the dataset was acquired with `--store-truth` (a simulated rig writes the exact
+//! noiseless rectified image of measurement `i` as `truth/iiiii.exr`), the reconstruction is
+//! also compared with that truth, and so is the measurement itself: the second figure is
+//! the floor set by sensor noise and rectification, which no compression of the
+//! measurements can beat on average (and which a low-rank model can undercut slightly,
+//! because truncation removes some of the noise).
 
 use super::data::DatasetViews;
-use super::factor::CompressedBtf;
+use super::interp::BtfModel;
 use super::CompressError;
 use crate::store::linear_to_srgb8;
 use serde::Serialize;
@@ -60,25 +67,71 @@ impl ErrorStats {
     }
 }
 
+/// Error against the simulator's ground truth (datasets acquired with `--store-truth`).
+#[derive(Serialize, Clone, Debug, PartialEq)]
+pub struct TruthEvaluation {
+    /// Measured images that have a truth image.
+    pub images: usize,
+    /// Reconstruction against truth.
+    pub reconstruction: ErrorStats,
+    /// Measurement against truth (the noise and rectification floor).
+    pub measurement: ErrorStats,
+}
+
 /// Result of [`evaluate`].
 #[derive(Serialize, Clone, Debug, PartialEq)]
 pub struct Evaluation {
     pub images: usize,
     pub stats: ErrorStats,
-    /// Mean wall time of [`CompressedBtf::reconstruct`] per image.
+    /// Mean wall time of [`BtfModel::reconstruct`] per image.
     pub decode_seconds_per_image: f64,
+    /// `None` when the dataset has no `truth/` images.
+    pub truth: Option<TruthEvaluation>,
 }
 
-/// Reconstruct every measured image of `ds` from `model` and compare.
-pub fn evaluate(ds: &DatasetViews, model: &CompressedBtf) -> Result<Evaluation, CompressError> {
-    let h = model.header();
-    if (h.width, h.height, h.lights_deg.len(), h.views_deg.len()) != (ds.width, ds.height, ds.n_lights(), ds.n_views())
+/// The stored truth image of canonical measurement `index`, if the dataset has one.
+pub fn read_truth(ds: &DatasetViews, index: usize) -> Result<Option<Vec<f32>>, CompressError> {
+    let path = ds.dir.join(format!("truth/{index:05}.exr"));
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let img = crate::store::read_exr(&path)?;
+    if img.width != ds.width || img.height != ds.height {
+        return Err(CompressError::Dataset {
+            dir: ds.dir.clone(),
+            reason: format!(
+                "{} is {}×{}, the images are {}×{}",
+                path.display(),
+                img.width,
+                img.height,
+                ds.width,
+                ds.height
+            ),
+        });
+    }
+    Ok(Some(img.data))
+}
+
+/// Reconstruct every measured image of `ds` from `model` and compare (and with the
+/// ground truth where the dataset stores it).
+pub fn evaluate(ds: &DatasetViews, model: &dyn BtfModel) -> Result<Evaluation, CompressError> {
+    if (
+        model.width(),
+        model.height(),
+        model.lights_deg().len(),
+        model.views_deg().len(),
+    ) != (ds.width, ds.height, ds.n_lights(), ds.n_views())
     {
         return Err(CompressError::Invalid(
             "the compressed file's grid or image size differs from the dataset's".into(),
         ));
     }
     let mut stats = ErrorStats::default();
+    let mut truth = TruthEvaluation {
+        images: 0,
+        reconstruction: ErrorStats::default(),
+        measurement: ErrorStats::default(),
+    };
     let (mut images, mut decode_s) = (0usize, 0f64);
     for v in 0..ds.n_views() {
         for l in 0..ds.n_lights() {
@@ -88,12 +141,18 @@ pub fn evaluate(ds: &DatasetViews, model: &CompressedBtf) -> Result<Evaluation, 
             decode_s += t0.elapsed().as_secs_f64();
             stats.add(&orig, &rec);
             images += 1;
+            if let Some(t) = read_truth(ds, v * ds.n_lights() + l)? {
+                truth.reconstruction.add(&t, &rec);
+                truth.measurement.add(&t, &orig);
+                truth.images += 1;
+            }
         }
     }
     Ok(Evaluation {
         images,
         stats,
         decode_seconds_per_image: decode_s / images.max(1) as f64,
+        truth: (truth.images > 0).then_some(truth),
     })
 }
 

@@ -19,7 +19,13 @@
 //!   by the SVD of the small R factor (`factor::truncated_svd`).
 //! * [`container`] is the `.gbtf` file: magic, version, JSON header, CRC-checked f32 LE
 //!   factor blocks.
-//! * [`metrics`] compares reconstructions with the measured images.
+//! * [`metrics`] compares reconstructions with the measured images (and, for datasets
+//!   acquired with `--store-truth`, with the simulator's ground truth).
+//! * [`dfmf`] is DFMF (Bonn's UBO2014 method: per-channel full-matrix factorization in a
+//!   log-luminance/chroma colour model) and [`btf_ubo2014`] its `.btf` container, which the
+//!   public `btf-extractor` reader loads (`tests/interop/check_ubo2014.py`).
+//! * [`interp`] reconstructs any (light, view) direction pair from any model
+//!   ([`interp::BtfModel`]) by barycentric interpolation on the direction grid.
 //!
 //! Stored factors are **f32** (little-endian): for PVMF per view `U·S` (texels × c) and
 //! `V` (lights·3 × c); for PCA one `U·S` (texels × c) and one `V` (views·lights·3 × c),
@@ -36,10 +42,22 @@
 //!
 //! Filled (unmeasured) pairs are factorized with the rest so that every grid pair can
 //! be reconstructed, but they are excluded from the error statistics.
+//!
+//! Methods on whole ABRDFs (one per texel, all measurements × 3) read the dataset once
+//! into a [`local_pca::Abrdfs`] matrix (f32 up to 1 GiB, else 8-bit sRGB codes with a
+//! per-column scale): [`local_pca`] (PCMF, Müller et al. 2003), [`median_cut`] (thesis
+//! ch. 8: index image + BRDF block, and `gonio generate`), [`homomorphic`] (McCool et
+//! al. 2001, per-ABRDF product of light, view and half-vector factors).
 
+pub mod btf_ubo2014;
 pub mod container;
 pub mod data;
+pub mod dfmf;
 pub mod factor;
+pub mod homomorphic;
+pub mod interp;
+pub mod local_pca;
+pub mod median_cut;
 pub mod metrics;
 
 #[cfg(test)]
@@ -84,6 +102,19 @@ pub enum CompressError {
     Invalid(String),
     #[error("SVD failed: {0}")]
     Svd(String),
-    #[error("{which} direction {deg:?}° is not one of the measured directions (interpolation is not implemented)")]
+    /// An exact lookup (`CompressedBtf::reconstruct_deg`) of a direction that is not on the
+    /// grid; [`interp::reconstruct_at`] interpolates instead.
+    #[error("{which} direction {deg:?}° is not one of the measured directions (use interpolation)")]
     NotMeasured { which: &'static str, deg: [f64; 2] },
+    /// Interpolation refuses to extrapolate far from every measurement.
+    #[error(
+        "{which} direction {deg:?}° is {gap_deg:.1}° from the nearest measured direction; \
+         interpolation uses measurements within {limit_deg}°"
+    )]
+    TooFar {
+        which: &'static str,
+        deg: [f64; 2],
+        gap_deg: f64,
+        limit_deg: f64,
+    },
 }

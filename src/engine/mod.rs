@@ -271,6 +271,8 @@ async fn drive_step(
     for axis in &rig.axes {
         read.push(axis.wait_idle().await?);
     }
+    // A streaming camera must not hand out frames exposed during the move.
+    rig.camera.rig_still();
     let t1 = Instant::now();
     let frame = rig.camera.capture().await?;
     times.motion += (t1 - t0).as_secs_f64();

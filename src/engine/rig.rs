@@ -4,12 +4,14 @@
 //! implementation stands behind each is the rig file's `backend` key; a simulated rig also
 //! offers the ground truth of every measurement ([`GroundTruth`]).
 
+use async_trait::async_trait;
 use gonio_devices::image::RgbImage;
 use gonio_devices::kinematics::{self, Kinematics};
 use gonio_devices::rig::RigSpec;
 use gonio_devices::target::MarkerBorder;
-use gonio_devices::{Axis, Camera, Light};
+use gonio_devices::{Axis, AxisStatus, Camera, DeviceError, Light, MotionModel, SoftLimits};
 use gonio_simulator::clock::SimClock;
+use gonio_simulator::devices::SimAxis;
 use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions, SimWorld};
 use std::sync::Arc;
 
@@ -43,8 +45,23 @@ pub struct Rig {
 
 #[derive(Debug, thiserror::Error)]
 pub enum RigBuildError {
-    #[error("rig {rig}: {part} uses backend `{backend}`, which this build does not provide (available: sim)")]
-    UnknownBackend { rig: String, part: String, backend: String },
+    #[error("rig {rig}: {part} uses backend `{backend}`, which this build does not provide (available: {available})")]
+    UnknownBackend {
+        rig: String,
+        part: String,
+        backend: String,
+        available: String,
+    },
+    /// (`error` is not a `source`: its text is already in the message, and anyhow's chain
+    /// would print it twice.)
+    #[error("rig {rig}: {error}")]
+    Serial {
+        rig: String,
+        error: gonio_devices::serial::SerialConfigError,
+    },
+    #[cfg(feature = "v4l2")]
+    #[error("rig {rig}: {source}")]
+    Camera { rig: String, source: DeviceError },
     #[error(transparent)]
     Sim(#[from] gonio_simulator::devices::SimRigError),
     #[error(transparent)]
@@ -60,38 +77,204 @@ impl Rig {
         }
     }
 
-    /// Build the rig. Every part must currently be `sim` (real backends plug in here).
+    /// Build the rig from the rig file's backends.
+    ///
+    /// Camera and light are simulated (`sim`). Axes are `sim` or a serial controller
+    /// (`zaber`, `esp300`; options in the axis' `options` table, see
+    /// `gonio_devices::serial`). A rig with serial axes is a *mixed* rig: the serial axes
+    /// move in wall time, and the simulated camera renders the pose they actually reached
+    /// (each serial axis drives a shadow simulated axis to its read-back, see
+    /// [`MirroredAxis`]), so the images and the ground truth stay consistent.
     pub fn build(spec: &RigSpec, sample: &SampleSpec, opts: &SimOptions) -> Result<Rig, RigBuildError> {
-        let parts = std::iter::once(("camera".to_string(), spec.camera.backend.clone()))
-            .chain(std::iter::once(("light".to_string(), spec.light.backend.clone())))
-            .chain(
-                spec.axes
-                    .iter()
-                    .map(|a| (format!("axis {}", a.name), a.backend.clone())),
-            );
-        for (part, backend) in parts {
+        let unknown = |part: String, backend: &str, available: &str| RigBuildError::UnknownBackend {
+            rig: spec.name.clone(),
+            part,
+            backend: backend.to_string(),
+            available: available.to_string(),
+        };
+        for (part, backend) in [("camera", &spec.camera.backend), ("light", &spec.light.backend)] {
+            #[cfg(feature = "v4l2")]
+            if part == "camera" && backend == "v4l2" {
+                continue;
+            }
             if backend != "sim" {
-                return Err(RigBuildError::UnknownBackend {
-                    rig: spec.name.clone(),
-                    part,
-                    backend,
-                });
+                return Err(unknown(part.to_string(), backend, "sim"));
+            }
+        }
+        let axis_backends = std::iter::once("sim")
+            .chain(gonio_devices::serial::BACKENDS.iter().copied())
+            .collect::<Vec<_>>()
+            .join(", ");
+        let mut mixed = false;
+        for a in &spec.axes {
+            if gonio_devices::serial::BACKENDS.contains(&a.backend.as_str()) {
+                mixed = true;
+            } else if a.backend != "sim" {
+                return Err(unknown(format!("axis {}", a.name), &a.backend, &axis_backends));
             }
         }
         let built = Arc::new(sample.clone().build()?);
         let renderer = Arc::new(Renderer::new(built, opts.quality));
-        let sim = build_sim_rig(spec, renderer, opts)?;
+        // The shadow world of a mixed rig runs on a virtual clock: the serial axes already
+        // take real time, the shadow axes only have to end up where the real ones are.
+        let sim_opts = SimOptions {
+            realtime: opts.realtime && !mixed,
+            ..opts.clone()
+        };
+        let sim = build_sim_rig(spec, renderer, &sim_opts)?;
+        let mut axes = sim.axes;
+        if mixed {
+            let mut ports = gonio_devices::serial::PortRegistry::new();
+            for (i, a) in spec.axes.iter().enumerate() {
+                if a.backend == "sim" {
+                    continue;
+                }
+                let real = ports.build_axis(a).map_err(|error| RigBuildError::Serial {
+                    rig: spec.name.clone(),
+                    error,
+                })?;
+                axes[i] = Arc::new(MirroredAxis {
+                    real,
+                    shadow: sim.world.axes[i].clone(),
+                });
+            }
+        }
+        #[allow(unused_mut)]
+        let (mut camera, mut truth): (Arc<dyn Camera>, Option<Arc<dyn GroundTruth>>) =
+            (sim.camera, Some(sim.world as Arc<dyn GroundTruth>));
+        if mixed && opts.realtime {
+            // The shadow world's clock is virtual (see above), so its camera would expose
+            // and read out instantly; with `--realtime` the rig must take its real time.
+            camera = Arc::new(WallPacedCamera {
+                inner: camera,
+                seconds: spec.camera.capture_time(),
+            });
+        }
+        #[cfg(feature = "v4l2")]
+        if let Some(real) = v4l2_camera(spec)? {
+            // A real camera sees the real scene: the simulator's ground truth does not apply.
+            camera = real;
+            truth = None;
+        }
         Ok(Rig {
             spec: spec.clone(),
             kinematics: kinematics::for_rig(spec),
-            axes: sim.axes,
-            camera: sim.camera,
+            axes,
+            camera,
             light: sim.light,
-            truth: Some(sim.world as Arc<dyn GroundTruth>),
-            clock: Some(sim.clock),
+            truth,
+            clock: if mixed { None } else { Some(sim.clock) },
             border: sample.border.clone(),
             sample_mm: sample.size_mm,
             started: std::time::Instant::now(),
         })
     }
+}
+
+/// A simulated camera that takes its exposure and readout time on the wall clock (a mixed
+/// rig in `--realtime` mode: the serial axes move in real time, so must the captures).
+struct WallPacedCamera {
+    inner: Arc<dyn Camera>,
+    seconds: f64,
+}
+
+#[async_trait]
+impl Camera for WallPacedCamera {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    async fn configure(
+        &self,
+        config: &gonio_devices::CameraConfig,
+    ) -> Result<gonio_devices::CameraConfig, DeviceError> {
+        self.inner.configure(config).await
+    }
+    async fn capture(&self) -> Result<gonio_devices::Frame, DeviceError> {
+        let start = std::time::Instant::now();
+        let frame = self.inner.capture().await?;
+        let left = self.seconds - start.elapsed().as_secs_f64();
+        if left > 0.0 {
+            tokio::time::sleep(std::time::Duration::from_secs_f64(left)).await;
+        }
+        Ok(frame)
+    }
+    fn rig_still(&self) {
+        self.inner.rig_still()
+    }
+}
+
+/// A real axis whose settled read-back is copied to a simulated axis, so the simulated
+/// camera of a mixed rig renders the pose the hardware reached (including its deadband
+/// error), not the pose that was asked for.
+pub struct MirroredAxis {
+    pub real: Arc<dyn Axis>,
+    pub shadow: Arc<SimAxis>,
+}
+
+impl MirroredAxis {
+    async fn mirror(&self, read_back: f64) -> Result<(), DeviceError> {
+        let lim = self.shadow.limits();
+        // A read-back a microstep outside the soft limits must not fail the shadow move.
+        let x = read_back.clamp(lim.min, lim.max);
+        if let Err(DeviceError::NotHomed { .. }) = self.shadow.start_move(x).await {
+            self.shadow.home().await?;
+            self.shadow.start_move(x).await?;
+        }
+        self.shadow.wait_idle().await.map(|_| ())
+    }
+}
+
+#[async_trait]
+impl Axis for MirroredAxis {
+    fn name(&self) -> &str {
+        self.real.name()
+    }
+    fn limits(&self) -> SoftLimits {
+        self.real.limits()
+    }
+    fn motion(&self) -> MotionModel {
+        self.real.motion()
+    }
+    async fn home(&self) -> Result<(), DeviceError> {
+        self.real.home().await?;
+        self.shadow.home().await?;
+        let p = self.real.position().await?;
+        self.mirror(p).await
+    }
+    async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
+        self.real.start_move(target).await
+    }
+    async fn wait_idle(&self) -> Result<f64, DeviceError> {
+        let p = self.real.wait_idle().await?;
+        self.mirror(p).await?;
+        Ok(p)
+    }
+    async fn stop(&self) -> Result<(), DeviceError> {
+        self.real.stop().await
+    }
+    async fn position(&self) -> Result<f64, DeviceError> {
+        self.real.position().await
+    }
+    async fn status(&self) -> Result<AxisStatus, DeviceError> {
+        self.real.status().await
+    }
+}
+
+// ---- V4L2 camera backend (feature `v4l2`, devices/src/v4l2) ---------------------------
+
+/// The rig's camera when its backend is `v4l2` (`None` for other backends): opened and
+/// checked here so that a missing or wrong device fails the rig build, not step one.
+#[cfg(feature = "v4l2")]
+fn v4l2_camera(spec: &RigSpec) -> Result<Option<Arc<dyn Camera>>, RigBuildError> {
+    use gonio_devices::v4l2::{V4l2Camera, V4l2Options};
+    if spec.camera.backend != "v4l2" {
+        return Ok(None);
+    }
+    let err = |source| RigBuildError::Camera {
+        rig: spec.name.clone(),
+        source,
+    };
+    let opts = V4l2Options::from_rig(&spec.camera).map_err(err)?;
+    let camera = V4l2Camera::open(opts).map_err(err)?;
+    Ok(Some(Arc::new(camera)))
 }

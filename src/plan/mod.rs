@@ -5,6 +5,7 @@
 //! (`plan.json`) and executed step by step by the acquisition engine, which resumes it
 //! by skipping the steps the journal already holds.
 
+pub mod isotropic;
 pub mod order;
 
 use crate::sweep::{Pair, Sweep};
@@ -112,6 +113,32 @@ pub struct Plan {
     pub plan_time_s: f64,
     /// Number of directions in the sweep's light list (for the canonical index).
     pub light_count: usize,
+    /// Present when the sample was declared isotropic: the pairs left out because an
+    /// equivalent one is measured, and what that saves ([`Plan::build_isotropic`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub isotropic: Option<IsotropicPlan>,
+}
+
+/// The isotropic reduction of a plan (see [`isotropic`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IsotropicPlan {
+    /// Class tolerance on θ_l, θ_v and |φ_l − φ_v| (degrees).
+    pub tolerance_deg: f64,
+    /// Whether the mirror φ → −φ is used (|Δφ| instead of the signed difference).
+    pub mirror_symmetry: bool,
+    /// Isotropy classes in the sweep.
+    pub classes: usize,
+    /// Classes no member of which the rig reaches (not reduced: each member is skipped or
+    /// substituted on its own).
+    pub unreachable_classes: usize,
+    /// Counts and durations of planning every pair (no reduction), for comparison.
+    pub full_counts: PlanCounts,
+    pub full_durations: Durations,
+    /// Optimized duration saved by the reduction (full − reduced), s.
+    pub saved_s: f64,
+    /// Every pair not measured, with its representative and the transform that maps the
+    /// representative onto it (what export uses to reconstruct the full set).
+    pub equivalents: Vec<isotropic::Equivalent>,
 }
 
 #[derive(Clone, Debug)]
@@ -178,6 +205,73 @@ fn node_for(kin: &dyn Kinematics, light: Direction, view: Direction) -> Result<N
 
 impl Plan {
     pub fn build(rig: &RigSpec, sweep: &Sweep, opts: &PlanOptions) -> Result<Plan, PlanError> {
+        Self::build_pairs(rig, sweep, &sweep.pairs(), opts)
+    }
+
+    /// Plan for a sample declared isotropic: measure one reachable pair per isotropy class
+    /// (see [`isotropic`]) and record how every other pair is reconstructed. The full plan
+    /// is computed too (half the time budget each), so the saving is a planned figure, not
+    /// an estimate.
+    pub fn build_isotropic(rig: &RigSpec, sweep: &Sweep, opts: &PlanOptions) -> Result<Plan, PlanError> {
+        let t0 = Instant::now();
+        let half = PlanOptions {
+            time_budget: opts.time_budget / 2,
+            ..opts.clone()
+        };
+        let pairs = sweep.pairs();
+        let full = Self::build_pairs(rig, sweep, &pairs, &half)?;
+        let kin = kinematics::for_rig(rig);
+        let classes = isotropic::classes(&pairs);
+        let mut measured: Vec<Pair> = Vec::new();
+        let mut equivalents = Vec::new();
+        let mut unreachable = 0;
+        for class in &classes {
+            let rep = class
+                .iter()
+                .copied()
+                .find(|&i| kin.inverse(pairs[i].light, pairs[i].view, None).is_ok());
+            match rep {
+                Some(r) => {
+                    measured.push(pairs[r]);
+                    for &m in class.iter().filter(|&&m| m != r) {
+                        let (psi, mirrored) = isotropic::transform(&pairs[r], &pairs[m]);
+                        equivalents.push(isotropic::Equivalent {
+                            index: pairs[m].index,
+                            representative: pairs[r].index,
+                            light_deg: deg(pairs[m].light),
+                            view_deg: deg(pairs[m].view),
+                            rotation_deg: (psi * 1e9).round() / 1e9,
+                            mirrored,
+                        });
+                    }
+                }
+                None => {
+                    unreachable += 1;
+                    measured.extend(class.iter().map(|&i| pairs[i]));
+                }
+            }
+        }
+        measured.sort_by_key(|p| p.index);
+        equivalents.sort_by_key(|e| e.index);
+        let mut plan = Self::build_pairs(rig, sweep, &measured, &half)?;
+        plan.isotropic = Some(IsotropicPlan {
+            tolerance_deg: isotropic::TOLERANCE_DEG,
+            mirror_symmetry: true,
+            classes: classes.len(),
+            unreachable_classes: unreachable,
+            full_counts: full.counts(),
+            saved_s: full.durations.optimized_s - plan.durations.optimized_s,
+            full_durations: full.durations,
+            equivalents,
+        });
+        plan.pairs = pairs.len();
+        plan.plan_time_s = t0.elapsed().as_secs_f64();
+        Ok(plan)
+    }
+
+    /// Plan the given pairs of `sweep` (all of them, or the representatives of an
+    /// isotropic reduction).
+    fn build_pairs(rig: &RigSpec, sweep: &Sweep, pairs: &[Pair], opts: &PlanOptions) -> Result<Plan, PlanError> {
         let t0 = Instant::now();
         let kin = kinematics::for_rig(rig);
         let motions: Vec<MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();
@@ -185,7 +279,7 @@ impl Plan {
         let mut nodes: Vec<Node> = Vec::new();
         let mut info: Vec<(Pair, Direction, StepStatus)> = Vec::new();
         let mut skipped = Vec::new();
-        for pair in sweep.pairs() {
+        for &pair in pairs {
             match node_for(kin.as_ref(), pair.light, pair.view) {
                 Ok(n) => {
                     nodes.push(n);
@@ -280,7 +374,7 @@ impl Plan {
             rig: rig.name.clone(),
             sweep: sweep.name.clone(),
             policy: opts.policy,
-            pairs: sweep.len(),
+            pairs: pairs.len(),
             steps,
             skipped,
             durations: Durations {
@@ -292,6 +386,7 @@ impl Plan {
             },
             plan_time_s: t0.elapsed().as_secs_f64(),
             light_count: sweep.lights.len(),
+            isotropic: None,
         })
     }
 
@@ -312,6 +407,7 @@ impl Plan {
             substituted,
             skipped: self.skipped.len(),
             skipped_reasons: reasons,
+            reconstructed: self.isotropic.as_ref().map_or(0, |i| i.equivalents.len()),
         }
     }
 }
@@ -333,6 +429,9 @@ pub struct PlanCounts {
     pub substituted: usize,
     pub skipped: usize,
     pub skipped_reasons: BTreeMap<String, usize>,
+    /// Pairs not measured because an isotropy-equivalent pair is (reconstructed on export).
+    #[serde(default)]
+    pub reconstructed: usize,
 }
 
 #[cfg(test)]
@@ -432,5 +531,107 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("out_of_limits") && e.contains("Widen"), "{e}");
+    }
+
+    /// The isotropic plan measures one reachable pair per class, accounts for every pair
+    /// exactly once (measured, skipped or reconstructed from a *measured* representative
+    /// by an exact transform) and is faster than the full plan.
+    #[test]
+    fn isotropic_plan_covers_every_pair_once_and_saves_time() {
+        let rig = RigSpec::default_rig();
+        let sweep = Sweep::resolve("bonn81").unwrap();
+        let opts = PlanOptions {
+            time_budget: Duration::from_millis(100),
+            ..Default::default()
+        };
+        let plan = Plan::build_isotropic(&rig, &sweep, &opts).unwrap();
+        let iso = plan.isotropic.as_ref().unwrap();
+        let pairs = sweep.pairs();
+        let mut seen = vec![0u8; pairs.len()];
+        for s in &plan.steps {
+            seen[s.index] += 1;
+        }
+        for s in &plan.skipped {
+            seen[s.index] += 1;
+        }
+        let measured: std::collections::HashMap<usize, &Step> = plan
+            .steps
+            .iter()
+            .filter(|s| matches!(s.status, StepStatus::Measure))
+            .map(|s| (s.index, s))
+            .collect();
+        for e in &iso.equivalents {
+            seen[e.index] += 1;
+            let rep = measured.get(&e.representative).expect("representative is measured");
+            let (p, r) = (&pairs[e.index], &pairs[rep.index]);
+            assert!(isotropic::apply(r.light, e.rotation_deg, e.mirrored).angle_to(p.light) < 1e-9);
+            assert!(isotropic::apply(r.view, e.rotation_deg, e.mirrored).angle_to(p.view) < 1e-9);
+        }
+        assert!(seen.iter().all(|&n| n == 1), "every pair exactly once");
+        assert_eq!(
+            plan.steps.len() + plan.skipped.len(),
+            iso.classes - iso.unreachable_classes + plan.skipped.len()
+        );
+        let c = plan.counts();
+        assert_eq!(c.reconstructed + c.feasible + c.skipped + c.substituted, 6561);
+        // retro pairs are one class per θ ring, unreachable on this rig: skipped, not reduced
+        assert_eq!(iso.unreachable_classes, 6);
+        assert_eq!(plan.skipped.len(), 81);
+        assert_eq!(iso.full_counts.feasible, 6480);
+        assert!(plan.steps.len() * 4 < 6480, "{} steps", plan.steps.len());
+        assert!(plan.durations.optimized_s < 0.5 * iso.full_durations.optimized_s);
+        assert!((iso.saved_s - (iso.full_durations.optimized_s - plan.durations.optimized_s)).abs() < 1e-6);
+        assert!(plan.durations.lower_bound_s <= plan.durations.optimized_s + 1e-9);
+        // the stored plan round-trips through JSON with its reduction
+        let back: Plan = serde_json::from_str(&serde_json::to_string(&plan).unwrap()).unwrap();
+        assert_eq!(back.isotropic.unwrap().equivalents, iso.equivalents);
+    }
+
+    /// A pair outside the rig's limits is still measured through a reachable rotation of it.
+    #[test]
+    fn isotropic_plan_measures_a_reachable_rotation_of_an_unreachable_pair() {
+        // turntable and light base limited to ±10°: most azimuths are out of reach
+        let text = gonio_devices::rig::DEFAULT_RIG_TOML
+            .replace("min_deg = -200.0\nmax_deg = 200.0", "min_deg = -10.0\nmax_deg = 10.0");
+        let rig = RigSpec::parse(&text, "narrow-turntable.toml").unwrap();
+        let kin = kinematics::for_rig(&rig);
+        let ring = |t: f64| {
+            (0..4)
+                .map(|k| Direction::from_degrees(t, 90.0 * k as f64))
+                .collect::<Vec<_>>()
+        };
+        let sweep = Sweep {
+            name: "rings".into(),
+            lights: ring(45.0),
+            views: ring(30.0),
+        };
+        let pairs = sweep.pairs();
+        let reachable: Vec<bool> = pairs
+            .iter()
+            .map(|p| kin.inverse(p.light, p.view, None).is_ok())
+            .collect();
+        let plan = Plan::build_isotropic(&rig, &sweep, &PlanOptions::default()).unwrap();
+        let iso = plan.isotropic.as_ref().unwrap();
+        // (45°, 30°) with |Δφ| ∈ {0°, 90°, 180°}: three classes
+        assert_eq!(iso.classes, 3);
+        let rescued: Vec<usize> = iso
+            .equivalents
+            .iter()
+            .filter(|e| !reachable[e.index])
+            .map(|e| e.index)
+            .collect();
+        assert!(
+            !rescued.is_empty(),
+            "some unreachable pair is reconstructed from a reachable one"
+        );
+        for e in &iso.equivalents {
+            assert!(reachable[e.representative]);
+        }
+        for s in &plan.steps {
+            assert!(reachable[s.index], "only reachable pairs are commanded");
+        }
+        let full = Plan::build(&rig, &sweep, &PlanOptions::default()).unwrap();
+        assert_eq!(full.skipped.len(), reachable.iter().filter(|r| !**r).count());
+        assert!(plan.skipped.len() < full.skipped.len());
     }
 }

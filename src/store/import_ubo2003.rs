@@ -452,8 +452,8 @@ pub fn import_ubo2003(
     // Grid pairs the archive does not hold: recorded as skipped, never invented.
     let present: HashSet<usize> = entries.iter().map(index_of).collect();
     let mut missing = 0;
-    for v in 0..views.len() {
-        for l in 0..lights.len() {
+    for (v, view) in views.iter().enumerate() {
+        for (l, light) in lights.iter().enumerate() {
             let index = v * lights.len() + l;
             if present.contains(&index) {
                 continue;
@@ -462,7 +462,7 @@ pub fn import_ubo2003(
             if done.contains(&index) {
                 continue;
             }
-            let mut rec = MeasurementRecord::new(index, index, deg(&lights[l]), deg(&views[v]));
+            let mut rec = MeasurementRecord::new(index, index, deg(light), deg(view));
             rec.status = MeasurementStatus::Skipped {
                 reason: "not in the archive".into(),
             };

@@ -58,6 +58,7 @@
 
 pub mod atomic;
 mod error;
+pub mod export_iso;
 pub mod exr_io;
 pub mod import_ubo2003;
 mod journal;

@@ -74,6 +74,9 @@ pub struct ExportEntry {
     /// Image path relative to the dataset and its expected hash.
     pub image: String,
     pub image_sha256: Option<String>,
+    /// Set for a pair reconstructed from an isotropy-equivalent measurement (status
+    /// "isotropic"; `image` is the representative's): see `export_iso`.
+    pub transform: Option<super::export_iso::IsoTransform>,
 }
 
 /// Round a (θ, φ) direction in degrees to the integers used in UBO2003 names.
@@ -145,8 +148,11 @@ pub fn plan_export(
             status,
             image,
             image_sha256: r.image_sha256.clone(),
+            transform: None,
         });
     }
+    // isotropic acquisitions: add the reconstructed pairs (no-op for other datasets)
+    let skipped = skipped + super::export_iso::extend(dir, records, &mut entries, out)?;
     Ok((entries, skipped))
 }
 
@@ -214,6 +220,10 @@ pub(crate) fn load_srgb8(dir: &Path, header: &ManifestHeader, e: &ExportEntry) -
             ),
         });
     }
+    let img = match &e.transform {
+        Some(t) => t.apply(&img),
+        None => img,
+    };
     Ok(to_srgb8(&img))
 }
 

@@ -46,3 +46,85 @@ PY
 # point light, perspective camera, radiance compared pixel by pixel (tolerances in the script).
 mkdir -p "$work/frames"
 "$GONIO_PYTHON" tests/interop/mitsuba_frame.py "$gonio" "$work/frames"
+
+# ---- Motor-controller emulators vs. the vendors' own client software (issue 5) ----------
+# `gonio sim serve-stage` opens a pty, prints {"path": …} and emulates the controller until
+# SIGTERM. Zaber's official library zaber-motion and PyMeasure's ESP300 driver (over pyvisa-py)
+# each run a session against it (tests/interop/zaber_motion_session.py, pymeasure_esp300.py,
+# which print their own transcript); then the wire transcript the emulator logged (every line
+# received, every reply sent) is printed, so what the vendor client really sent is visible.
+trap 'for f in "$work"/*.pid; do [ -e "$f" ] && kill "$(cat "$f")" 2>/dev/null; done; rm -rf "$work"' EXIT
+serve_stage() { # NAME PROTOCOL [serve-stage args…]: starts it, sets $stage_path
+  local name=$1 proto=$2
+  shift 2
+  RUST_LOG=gonio_simulator::emulate=debug "$gonio" sim serve-stage --protocol "$proto" --json "$@" \
+    > "$work/$name.json" 2> "$work/$name.log" &
+  echo $! > "$work/$name.pid"
+  for _ in $(seq 100); do
+    [ -s "$work/$name.json" ] && break
+    sleep 0.1
+  done
+  stage_path=$("$GONIO_PYTHON" -c 'import json,sys; print(json.load(open(sys.argv[1]))["path"])' "$work/$name.json")
+}
+stop_stage() { # NAME: SIGTERM, wait, print the wire transcript
+  local name=$1
+  kill -TERM "$(cat "$work/$name.pid")"
+  wait "$(cat "$work/$name.pid")" || { echo "interop: $name emulator exited with $?" >&2; cat "$work/$name.log" >&2; exit 1; }
+  rm -f "$work/$name.pid"
+  echo "--- $name: wire transcript (emulator log; rx = what the client sent, tx = the reply) ---"
+  sed -n 's/.* \(zaber\|esp300\) \(rx #[0-9]*\|tx\): /\2: /p' "$work/$name.log"
+}
+serve_stage zaber zaber --axes 1
+"$GONIO_PYTHON" tests/interop/zaber_motion_session.py "$stage_path"
+stop_stage zaber
+serve_stage esp300 esp300 --axes 3
+"$GONIO_PYTHON" tests/interop/pymeasure_esp300.py "$stage_path"
+stop_stage esp300
+
+# ---- Bonn's UBO2014 DFMF .btf read by btf-extractor's Ubo2014 (issue 6) -----------------
+# The acquisition above compressed with DFMF in both colour models the reader decodes
+# (log-luminance/chroma with half floats as Bonn's files, plain RGB with f32); the reader's
+# images must equal `gonio reconstruct` of the same file within float tolerance.
+mkdir -p "$work/ubo2014"
+"$gonio" compress "$work/ds" --method dfmf -c 4 --out "$work/ubo2014/logyuv.btf" --no-eval > /dev/null
+"$GONIO_PYTHON" tests/interop/check_ubo2014.py "$gonio" "$work/ubo2014/logyuv.btf" "$work/ds" "$work/ubo2014"
+"$gonio" compress "$work/ds" --method dfmf --color-model rgb --precision f32 -c 3 --out "$work/ubo2014/rgb.btf" --no-eval > /dev/null
+"$GONIO_PYTHON" tests/interop/check_ubo2014.py "$gonio" "$work/ubo2014/rgb.btf" "$work/ds" "$work/ubo2014"
+
+# ---- Isotropic reduction vs. a full acquisition (issue 4) --------------------------------
+# The same flat glossy (isotropic) sample acquired twice on a 21-direction sweep: every
+# pair, and `--isotropic` (one pair per (θ_l, θ_v, |Δφ|) class). The reduced dataset's
+# exports must hold the full pair set, btf-extractor must read it, and every reconstructed
+# image must match the really measured one (tests/interop/check_isotropic.py).
+mkdir -p "$work/iso"
+cat > "$work/iso/glossy.toml" <<'TOML'
+name = "glossy-flat"
+size_mm = 60.0
+resolution = 64
+height = { kind = "flat" }
+map = { kind = "uniform" }
+[[material]]
+model = "modified-phong"
+kd = [0.3, 0.25, 0.2]
+ks = [0.3, 0.3, 0.3]
+exponent = 20.0
+TOML
+cat > "$work/iso/sweep.toml" <<'TOML'
+directions = [[0, 0], [30, 0], [30, 30], [30, 60], [30, 90], [30, 120], [30, 150], [30, 180], [30, 210], [30, 240], [30, 270], [30, 300], [30, 330], [60, 0], [60, 45], [60, 90], [60, 135], [60, 180], [60, 225], [60, 270], [60, 315]]
+TOML
+for mode in full iso; do
+  flag=""; [ "$mode" = iso ] && flag="--isotropic"
+  "$gonio" acquire --quiet --out "$work/iso/$mode" $flag --sample "$work/iso/glossy.toml" --sweep "$work/iso/sweep.toml" \
+    --size 48x48 --no-noise --no-truth --plan-time 0.2 --json > "$work/iso/$mode.json"
+  "$gonio" export "$work/iso/$mode" --format npy "$work/iso/$mode.npy" > /dev/null
+done
+"$gonio" export "$work/iso/iso" --format ubo2003 "$work/iso/iso.zip" > /dev/null
+"$GONIO_PYTHON" tests/interop/check_ubo2003.py "$work/iso/iso.zip" "$work/iso/iso.npy"
+"$GONIO_PYTHON" tests/interop/check_isotropic.py "$work/iso/full.npy" "$work/iso/iso.npy"
+
+# --- Camera calibration (intrinsics) against OpenCV -------------------------------------
+# `gonio calibrate` on the simulated wide-lens rig (known focal length, principal point and
+# distortion); OpenCV's cv2.calibrateCamera on the same detected corners must agree within
+# the tolerances stated in tests/interop/opencv_intrinsics.py (0.05 % of f for fx, fy, cx, cy).
+"$gonio" calibrate calibration/recipes/intrinsics.toml --rig devices/rigs/wide-lens.toml --out "$work/cal" --json > "$work/cal.json"
+"$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal"

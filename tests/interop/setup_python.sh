@@ -37,6 +37,30 @@ runtime_pins=(
     "packaging==26.3"
     "mitsuba==3.9.1"
     "drjit==1.5.0"
+    # OpenCV: oracle for camera calibration (tests/interop/opencv_intrinsics.py).
+    # 4.10.0.84: the newest release that still accepts numpy 1.26 (5.x needs numpy >= 2).
+    "opencv-python-headless==4.10.0.84"
+    # Vendor clients for the motor-controller emulators (tests/interop/zaber_motion_session.py,
+    # tests/interop/pymeasure_esp300.py) and their dependencies; pandas 2.2.3 because pandas 3
+    # needs numpy >= 2 (btf-extractor needs numpy < 2).
+    "zaber-motion==10.2.0"
+    "reactivex==4.1.0"
+    "pymeasure==0.16.0"
+    "pyvisa==1.16.2"
+    "pyvisa-py==0.8.1"
+    "pyserial==3.5"
+    "pandas==2.2.3"
+    "python-dateutil==4.0.0"
+    "pytz==2026.6"
+    "tzdata==2026.6"
+    "pint==0.25.3"
+    "flexcache==0.3"
+    "flexparser==0.4"
+    "platformdirs==4.14.7"
+    "typing_extensions==4.16.0"
+    "pyqtgraph==0.14.0"
+    "qtpy==2.4.3"
+    "colorama==0.4.6"
 )
 
 check() {
@@ -46,6 +70,10 @@ from importlib.metadata import version
 from btf_extractor import Ubo2003  # noqa: F401
 import mitsuba
 mitsuba.set_variant("scalar_rgb")
+import cv2  # noqa: F401
+import zaber_motion.ascii  # noqa: F401
+import pymeasure.instruments.newport  # noqa: F401
+import pyvisa_py  # noqa: F401
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
 sys.exit(1 if bad else 0)

@@ -39,11 +39,76 @@ pub fn uniform15() -> Vec<Direction> {
     v
 }
 
-/// (camera, lamp) directions of a dome rig file.
+/// Bonn's Dome 1 layout (151 directions; the cameras of the UBO2014 data, whose flashes
+/// are the lamps): ten θ rings with their own azimuth counts and offsets, as documented by
+/// the University of Bonn (`cgbonn/btflib`, `create_ubo_dome1_sampling.m`). It is *not*
+/// the uniform 15° set ([`uniform15`] has 80 directions): the rings are 7.5° apart above
+/// 23.5° and alternate rings are turned by half an azimuth step so that neighbours do not
+/// line up. Azimuths are wrapped into [0°, 360°) (conventions.md); the canonical order is
+/// ring by ring, φ ascending from the ring's offset, as in the Bonn list.
+pub fn bonn_dome1() -> Vec<Direction> {
+    const RINGS: [(f64, usize, f64); 10] = [
+        (0.0, 1, 0.0),
+        (11.0, 6, 15.0),
+        (23.5, 12, 0.0),
+        (30.0, 12, 15.0),
+        (37.5, 12, 0.0),
+        (45.0, 18, 0.0),
+        (52.5, 18, 7.5),
+        (60.0, 24, 0.0),
+        (67.5, 24, 7.5),
+        (75.0, 24, 0.0),
+    ];
+    let mut v = Vec::with_capacity(151);
+    for (t, n, offset) in RINGS {
+        for k in 0..n {
+            v.push(Direction::from_degrees(
+                t,
+                (k as f64 * 360.0 / n as f64 + offset).rem_euclid(360.0),
+            ));
+        }
+    }
+    v
+}
+
+/// Named dome layouts (`geometry.dome_layout`).
+pub const LAYOUTS: [&str; 3] = ["uniform15", "bonn-dome1", "bonn81"];
+
+/// The Bonn 81 directions (conventions.md; the gonio crate's `sweep::bonn81`): a lamp
+/// layout for a lightdrum that measures the Bonn set.
+pub fn bonn81() -> Vec<Direction> {
+    let mut v = Vec::with_capacity(81);
+    for (t, n) in [(0.0, 1), (15.0, 6), (30.0, 12), (45.0, 18), (60.0, 20), (75.0, 24)] {
+        for k in 0..n {
+            v.push(Direction::from_degrees(t, k as f64 * 360.0 / n as f64));
+        }
+    }
+    v
+}
+
+/// The directions of a named layout, if the name is known.
+pub fn layout(name: &str) -> Option<Vec<Direction>> {
+    match name {
+        "uniform15" => Some(uniform15()),
+        "bonn-dome1" | "bonn151" => Some(bonn_dome1()),
+        "bonn81" => Some(bonn81()),
+        _ => None,
+    }
+}
+
+/// (camera, lamp) directions of a dome rig file: explicit lists first, then
+/// `geometry.dome_layout`, then the uniform 15° layout.
 pub fn directions(rig: &RigSpec) -> (Vec<Direction>, Vec<Direction>) {
+    let named = || {
+        rig.geometry
+            .dome_layout
+            .as_deref()
+            .and_then(layout)
+            .unwrap_or_else(uniform15)
+    };
     let list = |l: &Option<Vec<[f64; 2]>>| match l {
         Some(l) => l.iter().map(|&[t, p]| Direction::from_degrees(t, p)).collect(),
-        None => uniform15(),
+        None => named(),
     };
     (
         list(&rig.geometry.camera_directions_deg),
@@ -310,5 +375,37 @@ mod tests {
         let c = pose.to_camera(Vec3::ZERO);
         assert!(c.x.abs() < 1e-9 && c.y.abs() < 1e-9 && (c.z - 650.0).abs() < 1e-9);
         assert!(pose.right.dot(pose.forward).abs() < 1e-12);
+    }
+
+    /// Bonn's Dome 1 layout has 151 distinct directions on ten rings, and the shipped
+    /// `dome151` rig measures all 151 × 151 pairs with FK(IK) exact.
+    #[test]
+    fn bonn_dome1_has_151_directions_and_dome151_round_trips() {
+        let d = bonn_dome1();
+        assert_eq!(d.len(), 151);
+        for (i, a) in d.iter().enumerate() {
+            assert!(d[..i].iter().all(|b| b.angle_to(*a) > 1e-6), "entry {i} repeats");
+            assert!(a.theta_deg() <= 75.0 + 1e-9 && (0.0..360.0).contains(&a.phi_deg()));
+        }
+        let ring = |t: f64| d.iter().filter(|x| (x.theta_deg() - t).abs() < 1e-9).count();
+        assert_eq!(
+            [0.0, 11.0, 23.5, 30.0, 37.5, 45.0, 52.5, 60.0, 67.5, 75.0].map(ring),
+            [1, 6, 12, 12, 12, 18, 18, 24, 24, 24]
+        );
+        assert_ne!(
+            uniform15().len(),
+            151,
+            "uniform15 is the 80-direction set, not Bonn's 151"
+        );
+        let rig = shipped("dome151.toml");
+        let (fails, worst, ok) = round_trip(&rig, &d);
+        assert!(worst < 1e-12, "{worst}");
+        assert!(fails.is_empty(), "{fails:?}");
+        assert_eq!(ok, 151 * 151);
+        let bad = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/rigs/dome151.toml"))
+            .unwrap()
+            .replace("dome_layout = \"bonn-dome1\"", "dome_layout = \"bonn-dome2\"");
+        let e = RigSpec::parse(&bad, "d.toml").unwrap_err().to_string();
+        assert!(e.contains("geometry.dome_layout") && e.contains("bonn-dome1"), "{e}");
     }
 }

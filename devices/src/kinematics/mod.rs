@@ -8,6 +8,7 @@
 pub mod dome;
 pub mod gimbal;
 pub mod holder;
+pub mod lightdrum;
 mod rot;
 pub mod static_light;
 pub mod two_arm;
@@ -117,6 +118,8 @@ pub fn for_rig(rig: &RigSpec) -> Box<dyn Kinematics> {
         RigKind::Gimbal => Box::new(gimbal::Gimbal::new(rig)),
         RigKind::StaticLight => Box::new(static_light::StaticLight::new(rig)),
         RigKind::Dome => Box::new(dome::Dome::new(rig)),
+        RigKind::Lightdrum => Box::new(lightdrum::Lightdrum::new(rig)),
+        RigKind::StaticLightArc => Box::new(static_light::StaticLight::new(rig)),
     };
     match holder::Holder::from_rig(rig) {
         Some(h) => Box::new(holder::Shadowed::new(inner, h)),
@@ -131,6 +134,8 @@ pub fn roles(kind: RigKind) -> &'static [&'static str] {
         RigKind::Gimbal => &gimbal::ROLES,
         RigKind::StaticLight => &static_light::ROLES,
         RigKind::Dome => &dome::ROLES,
+        RigKind::Lightdrum => &lightdrum::ROLES,
+        RigKind::StaticLightArc => &static_light::ROLES_ONE_ARC,
     }
 }
 

@@ -15,6 +15,16 @@
 //! **Singular configurations.** θ_l = 0: the lamp is on the sample normal, α does not move
 //! the light and only sets where the view lands; IK keeps α (`prev`) or, without one,
 //! offers it every 30°. Camera at the world pole (ε = 0): β is free.
+//!
+//! **The 1-axis arc variant** (kind `static-light-arc`, roles `camera_elevation`,
+//! `sample_tilt`, `sample_rotation`): the camera arc does not turn (β ≡ 0), it lies in the
+//! plane of the lamp and the zenith, which also holds the tilted sample normal. Three axes
+//! cannot reach a 4-parameter pair set: this rig measures exactly the pairs whose light,
+//! view and sample normal are coplanar (φ_v − φ_l = 0° or 180°, or a direction at the
+//! pole) — for every light azimuth, because the rotation stage turns the sample. Other
+//! pairs get [`Infeasibility::OutOfLimits`] saying so. With the lamp on the normal
+//! (θ_l = 0) the rotation is what brings the view into the arc's plane (α = −φ_v or
+//! 180° − φ_v).
 
 use super::rot::Mat3;
 use super::{fit, light_clearance, out_of_limits, wraps, CameraPose, Infeasibility, Kinematics};
@@ -26,12 +36,20 @@ use std::f64::consts::PI;
 /// Axis roles this kind needs.
 pub const ROLES: [&str; 4] = ["camera_azimuth", "camera_elevation", "sample_tilt", "sample_rotation"];
 
+/// Axis roles of the 1-axis camera arc variant (`static-light-arc`).
+pub const ROLES_ONE_ARC: [&str; 3] = ["camera_elevation", "sample_tilt", "sample_rotation"];
+
+/// How far (unit-vector component) a view may miss the fixed arc's plane and still count as
+/// in it: far below the 1e-9 rad the round trip guarantees.
+const PLANE_EPS: f64 = 1e-11;
+
 /// Rotation sampling step (rad) offered when the lamp is on the sample normal.
 const POLE_SAMPLE: f64 = PI / 6.0;
 
 pub struct StaticLight {
     n: usize,
-    i_caz: usize,
+    /// `None` on the 1-axis arc variant (the arc never turns: β ≡ 0).
+    i_caz: Option<usize>,
     i_cel: usize,
     i_tilt: usize,
     i_rot: usize,
@@ -52,7 +70,7 @@ impl StaticLight {
         let l0 = rig.geometry.fixed_light_elevation_deg.to_radians();
         StaticLight {
             n: rig.axes.len(),
-            i_caz: idx("camera_azimuth"),
+            i_caz: rig.axis_by_role("camera_azimuth").map(|(i, _)| i),
             i_cel: idx("camera_elevation"),
             i_tilt: idx("sample_tilt"),
             i_rot: idx("sample_rotation"),
@@ -68,6 +86,11 @@ impl StaticLight {
         self.lamp.x.atan2(self.lamp.z)
     }
 
+    /// The arc's rotation β (0 on the 1-axis variant).
+    fn beta(&self, q: &[f64]) -> f64 {
+        self.i_caz.map_or(0.0, |i| q[i])
+    }
+
     fn rotation(&self, q: &[f64]) -> Mat3 {
         Mat3::ry(q[self.i_tilt]).mul(&Mat3::rz(q[self.i_rot]))
     }
@@ -77,13 +100,22 @@ impl StaticLight {
     }
 
     /// (tilt, rotation) options that bring the light onto the fixed lamp.
-    fn sample_options(&self, light: Direction, prev: Option<&[f64]>) -> Vec<(f64, f64)> {
+    fn sample_options(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Vec<(f64, f64)> {
         let lt = self.limits[self.i_tilt];
         let lr = self.limits[self.i_rot];
         let l0 = self.lambda0();
         let mut out = Vec::new();
         if light.theta < POLE_EPS {
             let Some(t) = fit(lt, l0) else { return out };
+            if self.i_caz.is_none() && view.theta >= POLE_EPS {
+                // the fixed arc: the rotation must bring the view into the arc's plane
+                for a in [-view.phi, PI - view.phi] {
+                    for a in wraps(lr, a) {
+                        out.push((t, a));
+                    }
+                }
+                return out;
+            }
             match prev {
                 Some(p) => out.push((t, p[self.i_rot])),
                 None => {
@@ -114,7 +146,7 @@ impl Kinematics for StaticLight {
 
     fn forward(&self, q: &[f64]) -> (Direction, Direction) {
         let r = self.rotation(q);
-        let c = Self::camera_world(q[self.i_cel], q[self.i_caz]);
+        let c = Self::camera_world(q[self.i_cel], self.beta(q));
         (
             Direction::from_vector(r.apply_t(self.lamp)),
             Direction::from_vector(r.apply_t(c)),
@@ -123,10 +155,10 @@ impl Kinematics for StaticLight {
 
     fn camera_pose(&self, q: &[f64]) -> CameraPose {
         let r = self.rotation(q);
-        let c = Self::camera_world(q[self.i_cel], q[self.i_caz]);
+        let c = Self::camera_world(q[self.i_cel], self.beta(q));
         let forward = r.apply_t(-c);
         // image x along the arc's rotation axis, as on the two-arm rig's camera arc
-        let right = r.apply_t(Vec3::new(0.0, 1.0, 0.0).rotate_z(q[self.i_caz]));
+        let right = r.apply_t(Vec3::new(0.0, 1.0, 0.0).rotate_z(self.beta(q)));
         CameraPose {
             position: r.apply_t(c) * self.camera_distance,
             right,
@@ -141,13 +173,16 @@ impl Kinematics for StaticLight {
 
     fn free_axes(&self, light: Direction, view: Direction) -> Vec<usize> {
         // β is free when every way of holding the sample puts the camera at the pole.
-        let opts = self.sample_options(light, None);
+        let Some(i_caz) = self.i_caz else {
+            return Vec::new();
+        };
+        let opts = self.sample_options(light, view, None);
         let at_pole = |&(t, a): &(f64, f64)| {
             let c = Mat3::ry(t).mul(&Mat3::rz(a)).apply(view.vector());
             c.x.hypot(c.y) < POLE_EPS && c.z > 0.0
         };
         if !opts.is_empty() && opts.iter().all(at_pole) {
-            vec![self.i_caz]
+            vec![i_caz]
         } else {
             Vec::new()
         }
@@ -161,15 +196,28 @@ impl Kinematics for StaticLight {
                 clearance_mm: clearance,
             });
         }
-        let (le, la) = (self.limits[self.i_cel], self.limits[self.i_caz]);
+        let le = self.limits[self.i_cel];
         let mut out = Vec::new();
-        for (t, a) in self.sample_options(light, prev) {
+        let mut off_plane = false;
+        for (t, a) in self.sample_options(light, view, prev) {
             let c = Mat3::ry(t).mul(&Mat3::rz(a)).apply(v);
             let r = c.x.hypot(c.y);
-            let cams: Vec<(f64, f64)> = if r < POLE_EPS && c.z > 0.0 {
-                let b = prev.map(|p| p[self.i_caz]).unwrap_or(0.0);
+            let cams: Vec<(f64, f64)> = if let (None, false) = (self.i_caz, r < POLE_EPS && c.z > 0.0) {
+                // fixed arc in the world x-z plane: the camera is at (sin ε, 0, cos ε)
+                if c.y.abs() > PLANE_EPS {
+                    off_plane = true;
+                    Vec::new()
+                } else {
+                    fit(le, c.x.atan2(c.z)).map(|e| vec![(e, 0.0)]).unwrap_or_default()
+                }
+            } else if r < POLE_EPS && c.z > 0.0 {
+                let b = match (prev, self.i_caz) {
+                    (Some(p), Some(i)) => p[i],
+                    _ => 0.0,
+                };
                 fit(le, 0.0).map(|e| vec![(e, b)]).unwrap_or_default()
             } else {
+                let la = self.limits[self.i_caz.expect("2-axis arc")];
                 let (e, b) = (r.atan2(c.z), c.y.atan2(c.x));
                 [(e, b), (-e, b + PI)]
                     .into_iter()
@@ -179,12 +227,21 @@ impl Kinematics for StaticLight {
             };
             for (e, b) in cams {
                 let mut q = vec![0.0; self.n];
-                q[self.i_caz] = b;
+                if let Some(i) = self.i_caz {
+                    q[i] = b;
+                }
                 q[self.i_cel] = e;
                 q[self.i_tilt] = t;
                 q[self.i_rot] = a;
                 out.push(q);
             }
+        }
+        if out.is_empty() && off_plane {
+            return Err(out_of_limits(
+                light,
+                view,
+                "a 1-axis camera arc reaches only pairs whose light, view and sample normal are coplanar (φ_v − φ_l = 0° or 180°)",
+            ));
         }
         if out.is_empty() {
             return Err(out_of_limits(
@@ -305,5 +362,66 @@ mod tests {
             let (_, v) = k.forward(&q);
             assert!(angle_between(pose.position, v.vector()) < 1e-12);
         }
+    }
+
+    /// The 1-axis arc variant reaches exactly the coplanar pairs (all of them, except the
+    /// retro pairs its camera blocks), and names the reason for the others.
+    #[test]
+    fn one_axis_arc_reaches_exactly_the_coplanar_pairs() {
+        let rig = shipped("static-light-arc.toml");
+        let k = for_rig(&rig);
+        assert_eq!(k.axis_count(), 3);
+        let (fails, worst, ok) = round_trip(&rig, &bonn());
+        assert!(worst < 1e-9, "worst round-trip error {worst} rad");
+        let coplanar = |l: &Direction, v: &Direction| {
+            let d = (l.phi_deg() - v.phi_deg()).rem_euclid(180.0);
+            l.theta < POLE_EPS || v.theta < POLE_EPS || d < 1e-9 || 180.0 - d < 1e-9
+        };
+        let dirs = bonn();
+        let mut expected_ok = 0;
+        for v in &dirs {
+            for l in &dirs {
+                let r = k.inverse(*l, *v, None);
+                match (coplanar(l, v), l.angle_to(*v) < 1e-12, r) {
+                    (_, true, Err(Infeasibility::LightBlockedByCamera { .. })) => {}
+                    (true, false, Ok(sols)) => {
+                        expected_ok += 1;
+                        assert!(sols.iter().all(|q| q.len() == 3));
+                    }
+                    (false, false, Err(Infeasibility::OutOfLimits { detail })) => {
+                        assert!(detail.contains("coplanar"), "{detail}")
+                    }
+                    (c, retro, r) => panic!("light {l:?} view {v:?} coplanar {c} retro {retro}: {r:?}"),
+                }
+            }
+        }
+        assert_eq!(ok, expected_ok);
+        assert_eq!(fails["light_blocked_by_camera"], 81);
+        // lamp on the normal: the rotation stage brings the view into the arc's plane
+        let sols = k
+            .inverse(
+                Direction::from_degrees(0.0, 0.0),
+                Direction::from_degrees(45.0, 70.0),
+                None,
+            )
+            .unwrap();
+        assert!(sols.len() >= 2, "{sols:?}");
+        assert!(k
+            .free_axes(Direction::from_degrees(30.0, 0.0), Direction::from_degrees(0.0, 0.0))
+            .is_empty());
+    }
+
+    #[test]
+    fn one_axis_arc_with_an_oblique_lamp_round_trips() {
+        let t = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/rigs/static-light-arc.toml"))
+            .unwrap()
+            .replace("fixed_light_elevation_deg = 0.0", "fixed_light_elevation_deg = 40.0");
+        let rig = RigSpec::parse(&t, "oblique-arc.toml").unwrap();
+        let (fails, worst, ok) = round_trip(&rig, &bonn());
+        assert!(worst < 1e-9, "{worst}");
+        // the same coplanar pairs as with the lamp overhead: τ = 40° ∓ θ_l stays in ±80°
+        let (_, _, ok_overhead) = round_trip(&shipped("static-light-arc.toml"), &bonn());
+        assert_eq!(ok, ok_overhead, "{fails:?}");
+        assert_eq!(ok + fails["out_of_limits"] + fails["light_blocked_by_camera"], 6561);
     }
 }

@@ -1,0 +1,790 @@
+//! Checkerboard corner detection with sub-pixel refinement, for camera calibration.
+//!
+//! 1. Frame checks first, so a useless frame gets a diagnosis rather than "not found":
+//!    an empty (black, or uniform) frame and a saturated one are reported as such.
+//! 2. Candidates: saddle points of the Gaussian-smoothed image (the Hessian determinant is
+//!    strongly negative only where two dark and two bright quadrants meet), kept if a
+//!    circle around them crosses the mean level exactly four times. This rejects the
+//!    L-shaped corners of the holder's markers and of the board's outer squares, which
+//!    cross it twice.
+//! 3. Grid: grown from the candidate nearest the centroid by predicting each neighbour from
+//!    the local grid vectors (updated as it grows, so perspective is followed), then checked
+//!    to be exactly the expected `cols × rows` with every node present.
+//! 4. Sub-pixel: the cornerSubPix principle — at the true corner q every image gradient g
+//!    at p in the window is orthogonal to p − q — solved by weighted least squares on a
+//!    bilinearly resampled window re-centred on each iterate, with the window sized to the
+//!    local square size so it never reaches the next corner.
+//!
+//! Pixel convention: pixel (i, j) has its centre at (i + ½, j + ½).
+
+use gonio_devices::image::RgbImage;
+use nalgebra::{Matrix2, Vector2};
+use serde::{Deserialize, Serialize};
+use std::collections::{HashMap, VecDeque};
+use thiserror::Error;
+
+/// The board: inner corners along its x and y axes and their pitch.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CheckerboardSpec {
+    /// Inner corners along the target's x axis.
+    pub cols: usize,
+    /// Inner corners along the target's y axis.
+    pub rows: usize,
+    /// Square size (mm).
+    pub pitch_mm: f64,
+}
+
+impl CheckerboardSpec {
+    /// Target-plane position (mm) of inner corner (i, j): the board is centred on the
+    /// origin, i grows with +x and j with +y.
+    pub fn object_point(&self, i: usize, j: usize) -> [f64; 2] {
+        [
+            (i as f64 - (self.cols as f64 - 1.0) / 2.0) * self.pitch_mm,
+            (j as f64 - (self.rows as f64 - 1.0) / 2.0) * self.pitch_mm,
+        ]
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CheckerboardOptions {
+    /// Gaussian σ (pixels) of the smoothing before the saddle detector.
+    pub smoothing_px: f64,
+    /// Radius (pixels) of the four-crossings circle test; must be below half a square.
+    pub ring_radius_px: f64,
+    /// A candidate's ring contrast must exceed this fraction of the frame's contrast.
+    pub min_contrast: f64,
+    /// Values at or above this are saturated (linear frame units).
+    pub saturation_level: f32,
+    /// Frames where more than this fraction of the bright pixels is saturated are reported
+    /// as saturated when no board is found.
+    pub max_saturated_fraction: f64,
+    /// Largest sub-pixel window half-size (pixels).
+    pub max_window_px: usize,
+    /// Frames whose 1st–99th percentile spread is below this fraction of
+    /// `saturation_level` are empty (black, lens cap, light off): too little signal for
+    /// corners, whatever the detector would make of the noise.
+    pub min_frame_contrast: f64,
+}
+
+impl Default for CheckerboardOptions {
+    fn default() -> Self {
+        CheckerboardOptions {
+            smoothing_px: 1.2,
+            ring_radius_px: 3.5,
+            min_contrast: 0.15,
+            saturation_level: 1.0,
+            max_saturated_fraction: 0.2,
+            max_window_px: 6,
+            min_frame_contrast: 0.01,
+        }
+    }
+}
+
+/// A detected board: corners in grid order (i fastest), their target-plane points.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CheckerboardDetection {
+    pub image: Vec<[f64; 2]>,
+    pub object: Vec<[f64; 2]>,
+    /// Saddle candidates found before the grid was grown (diagnostics).
+    pub candidates: usize,
+    /// Mean distance the sub-pixel step moved the corners (pixels).
+    pub mean_refinement_px: f64,
+}
+
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum CheckerboardError {
+    #[error("checkerboard: empty frame: almost no contrast (1st–99th percentile {p1:.4}–{p99:.4} of full scale); is the light on, the lens cap off, the target in view?")]
+    Empty { p1: f32, p99: f32 },
+    #[error(
+        "checkerboard: saturated frame: {percent:.1} % of the bright pixels at or above {level}; shorten the exposure"
+    )]
+    Saturated { percent: f64, level: f32 },
+    #[error("checkerboard: the board was not found: {found} corner candidates, grid of {grid_cols}×{grid_rows} grown, expected {cols}×{rows} inner corners ({hint})")]
+    NotFound {
+        found: usize,
+        grid_cols: usize,
+        grid_rows: usize,
+        cols: usize,
+        rows: usize,
+        hint: String,
+    },
+    #[error("checkerboard: image of {width}×{height} pixels has {len} values, expected width·height·3")]
+    BadImage { width: usize, height: usize, len: usize },
+    #[error("checkerboard: invalid spec: {0}")]
+    BadSpec(String),
+}
+
+/// A single-channel image, row-major.
+struct Gray {
+    w: usize,
+    h: usize,
+    d: Vec<f32>,
+}
+
+impl Gray {
+    #[inline]
+    fn at(&self, x: usize, y: usize) -> f32 {
+        self.d[y * self.w + x]
+    }
+    /// Bilinear value at pixel coordinates (u, v) (centres at half-integers), clamped.
+    #[inline]
+    fn sample(&self, u: f64, v: f64) -> f64 {
+        let x = (u - 0.5).clamp(0.0, (self.w - 1) as f64);
+        let y = (v - 0.5).clamp(0.0, (self.h - 1) as f64);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(self.w - 1), (y0 + 1).min(self.h - 1));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let a = self.at(x0, y0) as f64 * (1.0 - fx) + self.at(x1, y0) as f64 * fx;
+        let b = self.at(x0, y1) as f64 * (1.0 - fx) + self.at(x1, y1) as f64 * fx;
+        a * (1.0 - fy) + b * fy
+    }
+}
+
+fn gaussian_blur(g: &Gray, sigma: f64) -> Gray {
+    if sigma <= 0.0 {
+        return Gray {
+            w: g.w,
+            h: g.h,
+            d: g.d.clone(),
+        };
+    }
+    let r = (3.0 * sigma).ceil() as isize;
+    let k: Vec<f32> = (-r..=r)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
+    let ks: f32 = k.iter().sum();
+    let k: Vec<f32> = k.iter().map(|v| v / ks).collect();
+    let (w, h) = (g.w as isize, g.h as isize);
+    let mut tmp = vec![0.0f32; g.d.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let mut s = 0.0;
+            for (t, kv) in k.iter().enumerate() {
+                let xx = (x + t as isize - r).clamp(0, w - 1);
+                s += kv * g.d[(y * w + xx) as usize];
+            }
+            tmp[(y * w + x) as usize] = s;
+        }
+    }
+    let mut out = vec![0.0f32; g.d.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let mut s = 0.0;
+            for (t, kv) in k.iter().enumerate() {
+                let yy = (y + t as isize - r).clamp(0, h - 1);
+                s += kv * tmp[(yy * w + x) as usize];
+            }
+            out[(y * w + x) as usize] = s;
+        }
+    }
+    Gray { w: g.w, h: g.h, d: out }
+}
+
+/// Detect a `spec.cols × spec.rows` checkerboard in a linear RGB frame.
+pub fn detect_checkerboard(
+    img: &RgbImage,
+    spec: &CheckerboardSpec,
+    opts: &CheckerboardOptions,
+) -> Result<CheckerboardDetection, CheckerboardError> {
+    if img.data.len() != img.width * img.height * 3 || img.width < 8 || img.height < 8 {
+        return Err(CheckerboardError::BadImage {
+            width: img.width,
+            height: img.height,
+            len: img.data.len(),
+        });
+    }
+    if spec.cols < 2 || spec.rows < 2 || !(spec.pitch_mm > 0.0 && spec.pitch_mm.is_finite()) {
+        return Err(CheckerboardError::BadSpec(format!(
+            "{}×{} inner corners, pitch {} mm: need ≥ 2×2 corners and a pitch > 0",
+            spec.cols, spec.rows, spec.pitch_mm
+        )));
+    }
+    let gray = Gray {
+        w: img.width,
+        h: img.height,
+        d: img
+            .data
+            .chunks_exact(3)
+            .map(|c| {
+                let v = (c[0] + c[1] + c[2]) / 3.0;
+                if v.is_finite() {
+                    v
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+    };
+    // Frame-level diagnosis.
+    let mut sorted = gray.d.clone();
+    sorted.sort_by(f32::total_cmp);
+    let pct = |p: f64| sorted[((sorted.len() - 1) as f64 * p) as usize];
+    let (p1, p99) = (pct(0.01), pct(0.99));
+    // Saturation is judged among the bright pixels (above half-way from the dark floor to
+    // the maximum): a board filling a tenth of the frame is fully clipped even though most
+    // of the frame is dark background.
+    let bright_level = p1 + 0.5 * (sorted[sorted.len() - 1] - p1);
+    let (mut lit, mut clipped) = (0usize, 0usize);
+    for (c, &gv) in img.data.chunks_exact(3).zip(&gray.d) {
+        if gv >= bright_level {
+            lit += 1;
+            if c.iter().any(|&v| v >= opts.saturation_level) {
+                clipped += 1;
+            }
+        }
+    }
+    let saturated = clipped as f64 / lit.max(1) as f64;
+    let frame_contrast = p99 - p1;
+    // NaN-safe: a NaN contrast counts as no contrast.
+    let enough =
+        frame_contrast > 0.0 && frame_contrast as f64 >= opts.min_frame_contrast * opts.saturation_level as f64;
+    if !enough {
+        if saturated > opts.max_saturated_fraction {
+            return Err(CheckerboardError::Saturated {
+                percent: 100.0 * saturated,
+                level: opts.saturation_level,
+            });
+        }
+        return Err(CheckerboardError::Empty { p1, p99 });
+    }
+    let result = detect_inner(&gray, spec, opts, frame_contrast as f64);
+    match result {
+        Err(e) if saturated > opts.max_saturated_fraction => {
+            let _ = e;
+            Err(CheckerboardError::Saturated {
+                percent: 100.0 * saturated,
+                level: opts.saturation_level,
+            })
+        }
+        other => other,
+    }
+}
+
+fn detect_inner(
+    gray: &Gray,
+    spec: &CheckerboardSpec,
+    opts: &CheckerboardOptions,
+    frame_contrast: f64,
+) -> Result<CheckerboardDetection, CheckerboardError> {
+    let smooth = gaussian_blur(gray, opts.smoothing_px);
+    let (w, h) = (gray.w, gray.h);
+    // Saddle response: −det(Hessian) of the smoothed image.
+    let mut resp = vec![0.0f32; w * h];
+    let mut max_resp = 0.0f32;
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let c = smooth.at(x, y);
+            let fxx = smooth.at(x + 1, y) - 2.0 * c + smooth.at(x - 1, y);
+            let fyy = smooth.at(x, y + 1) - 2.0 * c + smooth.at(x, y - 1);
+            let fxy = (smooth.at(x + 1, y + 1) - smooth.at(x - 1, y + 1) - smooth.at(x + 1, y - 1)
+                + smooth.at(x - 1, y - 1))
+                / 4.0;
+            let s = fxy * fxy - fxx * fyy;
+            if s > 0.0 {
+                resp[y * w + x] = s;
+                max_resp = max_resp.max(s);
+            }
+        }
+    }
+    let thresh = 0.02 * max_resp;
+    let ring = opts.ring_radius_px.max(1.5);
+    let margin = (ring.ceil() as usize + 2).min(w / 2).min(h / 2);
+    let mut candidates: Vec<[f64; 2]> = Vec::new();
+    const NMS: isize = 2;
+    for y in margin..h - margin {
+        for x in margin..w - margin {
+            let s = resp[y * w + x];
+            if s <= thresh {
+                continue;
+            }
+            let mut is_max = true;
+            'n: for dy in -NMS..=NMS {
+                for dx in -NMS..=NMS {
+                    if dx == 0 && dy == 0 {
+                        continue;
+                    }
+                    let (xx, yy) = ((x as isize + dx) as usize, (y as isize + dy) as usize);
+                    let o = resp[yy * w + xx];
+                    // ties broken toward the first (top-left) pixel
+                    if o > s || (o == s && (dy < 0 || (dy == 0 && dx < 0))) {
+                        is_max = false;
+                        break 'n;
+                    }
+                }
+            }
+            if !is_max {
+                continue;
+            }
+            let (u, v) = (x as f64 + 0.5, y as f64 + 0.5);
+            if ring_crossings(&smooth, u, v, ring, opts.min_contrast * frame_contrast) {
+                candidates.push([u, v]);
+            }
+        }
+    }
+    let found = candidates.len();
+    let not_found = |gc: usize, gr: usize, hint: &str| CheckerboardError::NotFound {
+        found,
+        grid_cols: gc,
+        grid_rows: gr,
+        cols: spec.cols,
+        rows: spec.rows,
+        hint: hint.into(),
+    };
+    if found < spec.cols * spec.rows {
+        return Err(not_found(
+            0,
+            0,
+            "too few corner candidates: board out of view, occluded, too blurred or too small",
+        ));
+    }
+    let grid = grow_grid(&candidates, &smooth);
+    let (mut imin, mut imax, mut jmin, mut jmax) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+    for &(i, j) in grid.keys() {
+        imin = imin.min(i);
+        imax = imax.max(i);
+        jmin = jmin.min(j);
+        jmax = jmax.max(j);
+    }
+    let (gc, gr) = ((imax - imin + 1) as usize, (jmax - jmin + 1) as usize);
+    let (cols, rows) = (spec.cols, spec.rows);
+    // The grown grid may carry stray X-junctions next to the board (a holder marker
+    // touching a dark square at its corner): keep the unique complete window of the
+    // board's size, in either orientation.
+    let mut windows = Vec::new();
+    for (wc, wr, swap) in [(cols, rows, false), (rows, cols, true)] {
+        if wc > gc || wr > gr || (swap && cols == rows) {
+            continue;
+        }
+        for i0 in imin..=imax - wc as i64 + 1 {
+            for j0 in jmin..=jmax - wr as i64 + 1 {
+                let full = (0..wc as i64).all(|di| (0..wr as i64).all(|dj| grid.contains_key(&(i0 + di, j0 + dj))));
+                if full {
+                    windows.push((i0, j0, wc as i64, wr as i64, swap));
+                }
+            }
+        }
+    }
+    let (i0, j0, wc, wr, swap) = match windows.as_slice() {
+        [one] => *one,
+        [] => {
+            let hint = if grid.len() < cols * rows {
+                "corners missing (occlusion, glare, part of the board out of view, too grazing a view)"
+            } else {
+                "no complete board-sized window in the grid: holes, or a wrong board spec"
+            };
+            return Err(not_found(gc, gr, hint));
+        }
+        _ => {
+            return Err(not_found(
+                gc,
+                gr,
+                "more than one board-sized window: wrong board spec (too small)?",
+            ))
+        }
+    };
+    // Normalize indices to start at 0 and arrange the axes so that i runs along the
+    // board's `cols`, the (i, j) → (x, y) map is a proper rotation seen from the camera
+    // (no mirror), and — for determinism — the i axis points as far right as possible.
+    let mut pts: Vec<((i64, i64), usize)> = grid
+        .iter()
+        .filter(|(&(i, j), _)| i >= i0 && i < i0 + wc && j >= j0 && j < j0 + wr)
+        .map(|(&(i, j), &k)| ((i - i0, j - j0), k))
+        .collect();
+    let (mut nc, mut nr) = (wc, wr);
+    if swap {
+        for p in pts.iter_mut() {
+            p.0 = (p.0 .1, p.0 .0);
+        }
+        std::mem::swap(&mut nc, &mut nr);
+    }
+    let lookup = |pts: &[((i64, i64), usize)], i: i64, j: i64| pts.iter().find(|p| p.0 == (i, j)).map(|p| p.1);
+    let axis_dirs = |pts: &[((i64, i64), usize)]| -> ([f64; 2], [f64; 2]) {
+        let p00 = candidates[lookup(pts, 0, 0).expect("complete grid")];
+        let pi = candidates[lookup(pts, nc - 1, 0).expect("complete grid")];
+        let pj = candidates[lookup(pts, 0, nr - 1).expect("complete grid")];
+        ([pi[0] - p00[0], pi[1] - p00[1]], [pj[0] - p00[0], pj[1] - p00[1]])
+    };
+    let (a, b) = axis_dirs(&pts);
+    // Seen from the camera, +x → +u and +y → −v: the image cross product a × b is negative.
+    if a[0] * b[1] - a[1] * b[0] > 0.0 {
+        for p in pts.iter_mut() {
+            p.0 .1 = nr - 1 - p.0 .1;
+        }
+    }
+    // Candidate symmetries keeping handedness: 180° always; 90° steps if square.
+    let rotations: &[u8] = if nc == nr { &[0, 1, 2, 3] } else { &[0, 2] };
+    let rotate = |p: (i64, i64), r: u8| -> (i64, i64) {
+        match r {
+            0 => p,
+            1 => (p.1, nc - 1 - p.0),
+            2 => (nc - 1 - p.0, nr - 1 - p.1),
+            _ => (nr - 1 - p.1, p.0),
+        }
+    };
+    let mut best = (f64::NEG_INFINITY, 0u8);
+    for &r in rotations {
+        let rp: Vec<_> = pts.iter().map(|&(ij, k)| (rotate(ij, r), k)).collect();
+        let (a, _) = axis_dirs(&rp);
+        let score = a[0] / (a[0].hypot(a[1]) + 1e-12);
+        if score > best.0 + 1e-9 {
+            best = (score, r);
+        }
+    }
+    let pts: Vec<_> = pts.iter().map(|&(ij, k)| (rotate(ij, best.1), k)).collect();
+    let mut ordered = vec![usize::MAX; cols * rows];
+    for &((i, j), k) in &pts {
+        ordered[j as usize * cols + i as usize] = k;
+    }
+    // Sub-pixel refinement, window from the local grid spacing.
+    let mut image = Vec::with_capacity(cols * rows);
+    let mut object = Vec::with_capacity(cols * rows);
+    let mut moved = 0.0;
+    for j in 0..rows {
+        for i in 0..cols {
+            let p = candidates[ordered[j * cols + i]];
+            let mut spacing = f64::INFINITY;
+            for (di, dj) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
+                let (ii, jj) = (i as i64 + di, j as i64 + dj);
+                if ii >= 0 && jj >= 0 && (ii as usize) < cols && (jj as usize) < rows {
+                    let q = candidates[ordered[jj as usize * cols + ii as usize]];
+                    spacing = spacing.min((q[0] - p[0]).hypot(q[1] - p[1]));
+                }
+            }
+            let win = ((0.4 * spacing).floor() as usize).clamp(2, opts.max_window_px.max(2));
+            let q = refine_corner(&smooth, p, win).ok_or_else(|| {
+                not_found(
+                    cols,
+                    rows,
+                    &format!(
+                        "sub-pixel refinement of corner ({i}, {j}) near ({:.1}, {:.1}) px failed",
+                        p[0], p[1]
+                    ),
+                )
+            })?;
+            moved += (q[0] - p[0]).hypot(q[1] - p[1]);
+            image.push(q);
+            object.push(spec.object_point(i, j));
+        }
+    }
+    Ok(CheckerboardDetection {
+        image,
+        object,
+        candidates: found,
+        mean_refinement_px: moved / (cols * rows) as f64,
+    })
+}
+
+/// The four-crossings test: a circle around an X-corner alternates dark, bright, dark,
+/// bright; an L-corner (marker, board edge) only has one dark or one bright arc.
+fn ring_crossings(g: &Gray, u: f64, v: f64, r: f64, min_contrast: f64) -> bool {
+    const N: usize = 32;
+    let vals: Vec<f64> = (0..N)
+        .map(|k| {
+            let a = k as f64 * std::f64::consts::TAU / N as f64;
+            g.sample(u + r * a.cos(), v + r * a.sin())
+        })
+        .collect();
+    let (lo, hi) = vals
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+    if hi - lo < min_contrast {
+        return false;
+    }
+    let mid = 0.5 * (lo + hi);
+    let signs: Vec<bool> = vals.iter().map(|&x| x > mid).collect();
+    let mut crossings = 0;
+    let mut run = 0;
+    let mut shortest = usize::MAX;
+    // start at a crossing so runs are counted whole
+    let start = (0..N).find(|&k| signs[k] != signs[(k + N - 1) % N]);
+    let Some(start) = start else { return false };
+    for t in 0..N {
+        let k = (start + t) % N;
+        if t > 0 && signs[k] != signs[(k + N - 1) % N] {
+            crossings += 1;
+            shortest = shortest.min(run);
+            run = 0;
+        }
+        run += 1;
+    }
+    crossings += 1; // the crossing at `start`
+    shortest = shortest.min(run);
+    // Opposite quadrants must agree: a real X-corner's arcs are each ≥ 2 samples long.
+    crossings == 4 && shortest >= 2
+}
+
+/// Grow a 4-connected grid from the candidate nearest the centroid.
+fn grow_grid(pts: &[[f64; 2]], smooth: &Gray) -> HashMap<(i64, i64), usize> {
+    let n = pts.len();
+    let mut grid = HashMap::new();
+    if n < 5 {
+        return grid;
+    }
+    let cx = pts.iter().map(|p| p[0]).sum::<f64>() / n as f64;
+    let cy = pts.iter().map(|p| p[1]).sum::<f64>() / n as f64;
+    let d2 = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
+    let seed = (0..n)
+        .min_by(|&a, &b| d2(pts[a], [cx, cy]).total_cmp(&d2(pts[b], [cx, cy])))
+        .expect("non-empty");
+    // Local basis at the seed. Under strong perspective a diagonal of the grid can be
+    // shorter than an axis, so neighbours are classified by the image, not by distance: a
+    // step along a board axis follows an edge between a dark and a bright square (the two
+    // sides of its midpoint differ), a diagonal step crosses the middle of one square.
+    let mut near: Vec<usize> = (0..n).filter(|&k| k != seed).collect();
+    near.sort_by(|&a, &b| d2(pts[a], pts[seed]).total_cmp(&d2(pts[b], pts[seed])));
+    near.truncate(8);
+    let vec = |k: usize| [pts[k][0] - pts[seed][0], pts[k][1] - pts[seed][1]];
+    let edge_score = |k: usize| {
+        let v = vec(k);
+        let len = v[0].hypot(v[1]).max(1e-9);
+        let nrm = [-v[1] / len, v[0] / len];
+        let mid = [pts[seed][0] + 0.5 * v[0], pts[seed][1] + 0.5 * v[1]];
+        let off = 0.25 * len;
+        (smooth.sample(mid[0] + nrm[0] * off, mid[1] + nrm[1] * off)
+            - smooth.sample(mid[0] - nrm[0] * off, mid[1] - nrm[1] * off))
+        .abs()
+    };
+    let scores: Vec<f64> = near.iter().map(|&k| edge_score(k)).collect();
+    let best_score = scores.iter().copied().fold(0.0, f64::max);
+    let edges: Vec<usize> = near
+        .iter()
+        .zip(&scores)
+        .filter(|(_, &s)| s >= 0.5 * best_score)
+        .map(|(&k, _)| k)
+        .collect();
+    let Some(&first) = edges.first() else {
+        return grid;
+    };
+    let e1 = vec(first);
+    let Some(e2) = edges.iter().map(|&k| vec(k)).find(|v| {
+        let c = (v[0] * e1[0] + v[1] * e1[1]) / (v[0].hypot(v[1]) * e1[0].hypot(e1[1]) + 1e-12);
+        c.abs() < 0.95
+    }) else {
+        return grid;
+    };
+    let mut owner: HashMap<usize, (i64, i64)> = HashMap::new();
+    let mut queue = VecDeque::new();
+    grid.insert((0, 0), seed);
+    owner.insert(seed, (0, 0));
+    queue.push_back(((0i64, 0i64), seed, e1, e2));
+    while let Some(((i, j), k, a, b)) = queue.pop_front() {
+        let p = pts[k];
+        for (di, dj, d) in [(1, 0, a), (-1, 0, [-a[0], -a[1]]), (0, 1, b), (0, -1, [-b[0], -b[1]])] {
+            let key = (i + di, j + dj);
+            if grid.contains_key(&key) {
+                continue;
+            }
+            let q = [p[0] + d[0], p[1] + d[1]];
+            let tol = 0.3 * a[0].hypot(a[1]).min(b[0].hypot(b[1]));
+            let best = (0..n)
+                .filter(|&m| d2(pts[m], q) < tol * tol)
+                .min_by(|&x, &y| d2(pts[x], q).total_cmp(&d2(pts[y], q)));
+            let Some(m) = best else { continue };
+            if owner.contains_key(&m) {
+                continue;
+            }
+            grid.insert(key, m);
+            owner.insert(m, key);
+            let step = [pts[m][0] - p[0], pts[m][1] - p[1]];
+            let (na, nb) = match (di, dj) {
+                (1, 0) => (step, b),
+                (-1, 0) => ([-step[0], -step[1]], b),
+                (0, 1) => (a, step),
+                _ => (a, [-step[0], -step[1]]),
+            };
+            queue.push_back((key, m, na, nb));
+        }
+    }
+    grid
+}
+
+/// cornerSubPix-style refinement: solve Σ w g gᵀ q = Σ w g gᵀ p over the pixels within
+/// `win` of the current estimate, iterated. The gradients are taken at pixel centres by
+/// central differences of the original pixels (no resampling: bilinear interpolation is
+/// not shift-invariant and biases the result by a few hundredths of a pixel); the
+/// Gaussian weights follow the estimate, so the window stays centred on it. `None` if it
+/// does not converge or wanders off by more than the window.
+fn refine_corner(g: &Gray, start: [f64; 2], win: usize) -> Option<[f64; 2]> {
+    let mut q = Vector2::new(start[0], start[1]);
+    let reach = win as isize + 1;
+    let sigma = win as f64 * 0.6;
+    let (w, h) = (g.w as isize, g.h as isize);
+    for _ in 0..50 {
+        let (ci, cj) = ((q.x - 0.5).round() as isize, (q.y - 0.5).round() as isize);
+        let mut a = Matrix2::zeros();
+        let mut bv = Vector2::zeros();
+        for y in cj - reach..=cj + reach {
+            for x in ci - reach..=ci + reach {
+                if x < 1 || y < 1 || x >= w - 1 || y >= h - 1 {
+                    continue;
+                }
+                let p = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+                let r2 = (p - q).norm_squared();
+                if r2 > ((win as f64) + 0.5).powi(2) {
+                    continue;
+                }
+                let (xu, yu) = (x as usize, y as usize);
+                let gx = 0.5 * (g.at(xu + 1, yu) - g.at(xu - 1, yu)) as f64;
+                let gy = 0.5 * (g.at(xu, yu + 1) - g.at(xu, yu - 1)) as f64;
+                let wt = (-r2 / (2.0 * sigma * sigma)).exp();
+                let gg = Matrix2::new(gx * gx, gx * gy, gx * gy, gy * gy) * wt;
+                a += gg;
+                bv += gg * p;
+            }
+        }
+        let next = a.try_inverse().map(|inv| inv * bv)?;
+        if !(next.x.is_finite() && next.y.is_finite()) {
+            return None;
+        }
+        let shift = (next - q).norm();
+        q = next;
+        if (q.x - start[0]).hypot(q.y - start[1]) > win as f64 {
+            return None;
+        }
+        if shift < 1e-5 {
+            break;
+        }
+    }
+    Some([q.x, q.y])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testutil::{gaussian_blur as blur_rgb, pose, rig_intrinsics, Rng};
+    use crate::Homography;
+
+    const SPEC: CheckerboardSpec = CheckerboardSpec {
+        cols: 11,
+        rows: 11,
+        pitch_mm: 5.0,
+    };
+
+    /// Render the 60 mm board (12 × 12 squares of 5 mm, dark square at x, y ∈ [0, 5)) on a
+    /// white 10 mm frame with black background, box-filtered over each pixel.
+    fn render(h: &Homography, w: usize, ht: usize, ss: usize, level: (f32, f32)) -> RgbImage {
+        let inv = h.inverse().unwrap();
+        let mut img = RgbImage::new(w, ht);
+        for y in 0..ht {
+            for x in 0..w {
+                let mut acc = 0.0f32;
+                for k in 0..ss * ss {
+                    let u = x as f64 + ((k % ss) as f64 + 0.5) / ss as f64;
+                    let v = y as f64 + ((k / ss) as f64 + 0.5) / ss as f64;
+                    let val = match inv.apply(u, v) {
+                        Some((px, py)) if px.abs() < 30.0 && py.abs() < 30.0 => {
+                            let (a, b) = ((px / 5.0).floor() as i64, (py / 5.0).floor() as i64);
+                            if (a + b).rem_euclid(2) == 0 {
+                                level.0
+                            } else {
+                                level.1
+                            }
+                        }
+                        Some((px, py)) if px.abs() < 40.0 && py.abs() < 40.0 => level.1,
+                        _ => 0.0,
+                    };
+                    acc += val;
+                }
+                let v = acc / (ss * ss) as f32;
+                img.set(x, y, [v, v, v]);
+            }
+        }
+        img
+    }
+
+    fn check(theta: f64, phi: f64, blur: f64, noise: f32, tol: f64) -> f64 {
+        let intr = rig_intrinsics();
+        let h = Homography::from_pose(&intr, &pose(theta, phi));
+        let mut img = render(&h, 768, 640, 6, (0.04, 0.8));
+        if blur > 0.0 {
+            blur_rgb(&mut img, blur);
+        }
+        if noise > 0.0 {
+            let mut rng = Rng::new(5);
+            for v in img.data.iter_mut() {
+                *v += noise * rng.normal() as f32;
+            }
+        }
+        let d = detect_checkerboard(&img, &SPEC, &CheckerboardOptions::default()).unwrap();
+        assert_eq!(d.image.len(), 121);
+        // The grid may be any proper rotation of the board (the board is symmetric): take
+        // the rotation that fits each corner best.
+        let mut worst: f64 = 0.0;
+        let mut sum = 0.0;
+        for (o, i) in d.object.iter().zip(&d.image) {
+            let best = (0..4)
+                .map(|r| {
+                    let (x, y) = match r {
+                        0 => (o[0], o[1]),
+                        1 => (-o[1], o[0]),
+                        2 => (-o[0], -o[1]),
+                        _ => (o[1], -o[0]),
+                    };
+                    let (u, v) = h.apply(x, y).unwrap();
+                    (u - i[0]).hypot(v - i[1])
+                })
+                .fold(f64::INFINITY, f64::min);
+            worst = worst.max(best);
+            sum += best * best;
+        }
+        let rms = (sum / 121.0).sqrt();
+        assert!(rms < tol, "θ={theta} φ={phi}: rms {rms} worst {worst}");
+        rms
+    }
+
+    #[test]
+    fn noiseless_views_are_subpixel_exact() {
+        for &(t, p) in &[(0.0, 0.0), (30.0, 40.0), (50.0, 200.0), (65.0, 120.0)] {
+            check(t, p, 0.0, 0.0, if t > 60.0 { 0.08 } else { 0.05 });
+        }
+    }
+
+    #[test]
+    fn robust_to_blur_and_noise() {
+        check(20.0, 10.0, 1.5, 0.02, 0.08);
+        check(45.0, 300.0, 1.0, 0.03, 0.12);
+    }
+
+    #[test]
+    fn empty_and_saturated_frames_are_diagnosed() {
+        let black = RgbImage::new(200, 150);
+        assert!(matches!(
+            detect_checkerboard(&black, &SPEC, &CheckerboardOptions::default()),
+            Err(CheckerboardError::Empty { .. })
+        ));
+        let mut white = RgbImage::new(200, 150);
+        white.data.iter_mut().for_each(|v| *v = 1.0);
+        assert!(matches!(
+            detect_checkerboard(&white, &SPEC, &CheckerboardOptions::default()),
+            Err(CheckerboardError::Saturated { .. })
+        ));
+        // A board rendered so bright that both colours clip.
+        let h = Homography::from_pose(&rig_intrinsics(), &pose(10.0, 0.0));
+        let img = render(&h, 768, 640, 2, (1.0, 1.0));
+        let e = detect_checkerboard(&img, &SPEC, &CheckerboardOptions::default()).unwrap_err();
+        assert!(matches!(e, CheckerboardError::Saturated { .. }), "{e}");
+    }
+
+    #[test]
+    fn wrong_spec_or_partial_board_is_not_found() {
+        let h = Homography::from_pose(&rig_intrinsics(), &pose(20.0, 0.0));
+        let img = render(&h, 768, 640, 2, (0.04, 0.8));
+        let spec = CheckerboardSpec { cols: 9, ..SPEC };
+        assert!(matches!(
+            detect_checkerboard(&img, &spec, &CheckerboardOptions::default()),
+            Err(CheckerboardError::NotFound { .. })
+        ));
+        // occlude a band across the board
+        let mut img = img;
+        for y in 300..330 {
+            for x in 0..768 {
+                img.set(x, y, [0.4, 0.4, 0.4]);
+            }
+        }
+        assert!(matches!(
+            detect_checkerboard(&img, &SPEC, &CheckerboardOptions::default()),
+            Err(CheckerboardError::NotFound { .. })
+        ));
+    }
+}

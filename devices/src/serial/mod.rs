@@ -1,0 +1,642 @@
+//! Serial motor controllers: Zaber ASCII (protocol v2) and Newport ESP300/ESP301.
+//!
+//! Layers, bottom up:
+//! - [`Transport`]: raw bytes with a read timeout. [`SerialTransport`] is a real port (crate
+//!   `serialport`, built without libudev), [`testing::ScriptedTransport`] an in-memory fake
+//!   that answers with canned, garbled, late or missing replies so every error path can be
+//!   tested without hardware.
+//! - [`Link`]: line framing on top of a transport, plus the "dirty" flag that makes the next
+//!   command discard whatever late bytes a failed exchange left in the input buffer.
+//! - Protocol ports ([`zaber::ZaberPort`], [`esp300::EspPort`]): one per serial port, shared
+//!   by every axis on it (a daisy chain or a multi-axis controller) through a mutex, so one
+//!   request/reply exchange is never interleaved with another axis' exchange.
+//! - Per-axis drivers implementing [`policy::Driver`]; [`policy::PolicyAxis`] turns a driver
+//!   into a `gonio_devices::Axis` with the motion policy (settle, deadband, backlash,
+//!   retries, timeouts from the motion model, stall detection).
+//!
+//! All I/O is blocking and runs on tokio's blocking pool (`spawn_blocking`), because serial
+//! ports are file descriptors with termios timeouts, not async sources.
+
+pub mod esp300;
+pub mod list;
+pub mod policy;
+pub mod zaber;
+
+use crate::rig::AxisSpec;
+use crate::{Axis, DeviceError};
+use std::collections::{BTreeMap, HashMap};
+use std::io;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use thiserror::Error;
+
+/// Raw bytes with a read timeout.
+pub trait Transport: Send {
+    fn write_all(&mut self, data: &[u8]) -> io::Result<()>;
+    /// Read what is available, waiting at most `timeout`; `Ok(0)` means nothing arrived.
+    fn read_some(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize>;
+    /// Try to open the port again after an I/O error (a USB adapter that re-enumerated, an
+    /// emulator that restarted on the same path). The default cannot.
+    fn reopen(&mut self) -> io::Result<()> {
+        Err(io::Error::new(
+            io::ErrorKind::Unsupported,
+            "this transport cannot reopen",
+        ))
+    }
+}
+
+/// A real serial port (or a pty: the emulators in `gonio-simulator` serve one).
+pub struct SerialTransport {
+    path: String,
+    baud: u32,
+    port: Option<Box<dyn serialport::SerialPort>>,
+}
+
+impl SerialTransport {
+    pub fn open(path: &str, baud: u32) -> io::Result<SerialTransport> {
+        let mut t = SerialTransport {
+            path: path.to_string(),
+            baud,
+            port: None,
+        };
+        t.reopen()?;
+        Ok(t)
+    }
+
+    fn port(&mut self) -> io::Result<&mut Box<dyn serialport::SerialPort>> {
+        match self.port {
+            Some(ref mut p) => Ok(p),
+            None => Err(io::Error::new(io::ErrorKind::NotConnected, "port is closed")),
+        }
+    }
+}
+
+fn serial_to_io(e: serialport::Error) -> io::Error {
+    match e.kind {
+        serialport::ErrorKind::Io(kind) => io::Error::new(kind, e.description),
+        serialport::ErrorKind::NoDevice => io::Error::new(io::ErrorKind::NotFound, e.description),
+        _ => io::Error::other(e.description),
+    }
+}
+
+impl Transport for SerialTransport {
+    fn write_all(&mut self, data: &[u8]) -> io::Result<()> {
+        let r = self.port().and_then(|p| {
+            p.write_all(data)?;
+            p.flush()
+        });
+        if r.is_err() {
+            self.port = None;
+        }
+        r
+    }
+
+    fn read_some(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        let p = self.port()?;
+        p.set_timeout(timeout.max(Duration::from_millis(1)))
+            .map_err(serial_to_io)?;
+        match p.read(buf) {
+            Ok(0) => {
+                // A tty read returning 0 bytes after a poll said "readable" is a hang-up.
+                self.port = None;
+                Err(io::Error::new(io::ErrorKind::UnexpectedEof, "port hung up"))
+            }
+            Ok(n) => Ok(n),
+            Err(e) if e.kind() == io::ErrorKind::TimedOut || e.kind() == io::ErrorKind::WouldBlock => Ok(0),
+            Err(e) => {
+                self.port = None;
+                Err(e)
+            }
+        }
+    }
+
+    fn reopen(&mut self) -> io::Result<()> {
+        self.port = None;
+        let port = serialport::new(&self.path, self.baud)
+            .timeout(Duration::from_millis(100))
+            .open()
+            .map_err(serial_to_io)?;
+        self.port = Some(port);
+        Ok(())
+    }
+}
+
+/// Line framing over a transport. Lines end with `\n`; a trailing `\r` is removed (both
+/// protocols terminate replies with CR LF).
+pub struct Link {
+    transport: Box<dyn Transport>,
+    buf: Vec<u8>,
+    /// The last exchange failed part-way: late bytes may still arrive and must be dropped
+    /// before the next command so they are not taken as its reply.
+    dirty: bool,
+    /// The transport failed with an I/O error; try `reopen` before the next command.
+    broken: bool,
+}
+
+/// What went wrong on a link, before the protocol layer names the axis and the command.
+#[derive(Debug)]
+pub enum LinkError {
+    Timeout,
+    Io(io::Error),
+}
+
+impl Link {
+    pub fn new(transport: Box<dyn Transport>) -> Link {
+        Link {
+            transport,
+            buf: Vec::new(),
+            dirty: false,
+            broken: false,
+        }
+    }
+
+    /// Prepare for a new exchange: reopen a broken transport, drop stale input.
+    pub fn begin(&mut self) -> Result<(), LinkError> {
+        if self.broken {
+            self.transport.reopen().map_err(LinkError::Io)?;
+            self.broken = false;
+            self.dirty = true;
+        }
+        if self.dirty {
+            self.drain(Duration::from_millis(30), Duration::from_millis(300))?;
+            self.dirty = false;
+        }
+        Ok(())
+    }
+
+    /// Mark the link so the next exchange starts by draining late bytes.
+    pub fn mark_dirty(&mut self) {
+        self.dirty = true;
+    }
+
+    pub fn send(&mut self, line: &str) -> Result<(), LinkError> {
+        tracing::trace!(target: "gonio::serial", "-> {:?}", line);
+        self.transport.write_all(line.as_bytes()).map_err(|e| {
+            self.broken = true;
+            LinkError::Io(e)
+        })
+    }
+
+    /// The next complete line, waiting until `deadline`.
+    pub fn read_line(&mut self, deadline: Instant) -> Result<String, LinkError> {
+        loop {
+            if let Some(pos) = self.buf.iter().position(|&b| b == b'\n') {
+                let mut line: Vec<u8> = self.buf.drain(..=pos).collect();
+                line.pop();
+                while line.last() == Some(&b'\r') {
+                    line.pop();
+                }
+                let s = String::from_utf8_lossy(&line).into_owned();
+                tracing::trace!(target: "gonio::serial", "<- {:?}", s);
+                return Ok(s);
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(LinkError::Timeout);
+            }
+            let mut chunk = [0u8; 256];
+            match self.transport.read_some(&mut chunk, deadline - now) {
+                Ok(n) => self.buf.extend_from_slice(&chunk[..n]),
+                Err(e) => {
+                    self.broken = true;
+                    return Err(LinkError::Io(e));
+                }
+            }
+        }
+    }
+
+    /// Discard input until nothing arrived for `quiet` (at most `max` in total).
+    pub fn drain(&mut self, quiet: Duration, max: Duration) -> Result<usize, LinkError> {
+        let end = Instant::now() + max;
+        let mut dropped = self.buf.len();
+        self.buf.clear();
+        let mut chunk = [0u8; 256];
+        while Instant::now() < end {
+            match self.transport.read_some(&mut chunk, quiet) {
+                Ok(0) => break,
+                Ok(n) => dropped += n,
+                Err(e) => {
+                    self.broken = true;
+                    return Err(LinkError::Io(e));
+                }
+            }
+        }
+        if dropped > 0 {
+            tracing::debug!(target: "gonio::serial", "dropped {dropped} stale bytes");
+        }
+        Ok(dropped)
+    }
+}
+
+/// Convert a link failure into the typed error naming the axis and the command.
+pub fn link_error(device: &str, command: &str, timeout: Duration, e: LinkError) -> DeviceError {
+    match e {
+        LinkError::Timeout => DeviceError::Timeout {
+            device: device.to_string(),
+            command: command.to_string(),
+            seconds: timeout.as_secs_f64(),
+        },
+        LinkError::Io(e) => DeviceError::Disconnected {
+            device: device.to_string(),
+            command: command.to_string(),
+            reason: e.to_string(),
+        },
+    }
+}
+
+/// An invalid `options` entry of a serial axis in the rig file.
+#[derive(Debug, Error)]
+pub enum SerialConfigError {
+    #[error("axis {axis}: options.{key}: {message}")]
+    Invalid { axis: String, key: String, message: String },
+    #[error("axis {axis}: cannot open serial port {port}: {source}")]
+    Open {
+        axis: String,
+        port: String,
+        source: io::Error,
+    },
+    #[error("axis {axis}: backend `{backend}` is not a serial backend (zaber, esp300)")]
+    Backend { axis: String, backend: String },
+}
+
+/// Typed access to an axis' `options` table. String values may name environment variables
+/// as `${NAME}` (e.g. `port = "${GONIO_PORT_0}"`): a pty path is only known when the
+/// emulator runs, and a lab may keep port names out of shared rig files.
+pub struct Options<'a> {
+    axis: &'a str,
+    map: &'a BTreeMap<String, toml::Value>,
+}
+
+impl<'a> Options<'a> {
+    pub fn new(axis: &'a str, map: &'a BTreeMap<String, toml::Value>) -> Self {
+        Options { axis, map }
+    }
+
+    fn invalid(&self, key: &str, message: String) -> SerialConfigError {
+        SerialConfigError::Invalid {
+            axis: self.axis.to_string(),
+            key: key.to_string(),
+            message,
+        }
+    }
+
+    pub fn string(&self, key: &str) -> Result<Option<String>, SerialConfigError> {
+        match self.map.get(key) {
+            None => Ok(None),
+            Some(toml::Value::String(s)) => substitute_env(s).map(Some).map_err(|m| self.invalid(key, m)),
+            Some(v) => Err(self.invalid(key, format!("{v}: expected a string"))),
+        }
+    }
+
+    pub fn f64(&self, key: &str) -> Result<Option<f64>, SerialConfigError> {
+        match self.map.get(key) {
+            None => Ok(None),
+            Some(toml::Value::Float(x)) if x.is_finite() => Ok(Some(*x)),
+            Some(toml::Value::Integer(i)) => Ok(Some(*i as f64)),
+            Some(toml::Value::String(s)) => {
+                let t = substitute_env(s).map_err(|m| self.invalid(key, m))?;
+                t.trim()
+                    .parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite())
+                    .map(Some)
+                    .ok_or_else(|| self.invalid(key, format!("{t:?}: expected a number")))
+            }
+            Some(v) => Err(self.invalid(key, format!("{v}: expected a number"))),
+        }
+    }
+
+    pub fn positive(&self, key: &str, default: f64) -> Result<f64, SerialConfigError> {
+        let x = self.f64(key)?.unwrap_or(default);
+        if x > 0.0 {
+            Ok(x)
+        } else {
+            Err(self.invalid(key, format!("{x}: must be > 0")))
+        }
+    }
+
+    pub fn non_negative(&self, key: &str, default: f64) -> Result<f64, SerialConfigError> {
+        let x = self.f64(key)?.unwrap_or(default);
+        if x >= 0.0 {
+            Ok(x)
+        } else {
+            Err(self.invalid(key, format!("{x}: must be ≥ 0")))
+        }
+    }
+
+    pub fn int(&self, key: &str, default: i64, min: i64, max: i64) -> Result<i64, SerialConfigError> {
+        let x = match self.f64(key)? {
+            None => default,
+            Some(x) if x.fract() == 0.0 => x as i64,
+            Some(x) => return Err(self.invalid(key, format!("{x}: expected an integer"))),
+        };
+        if (min..=max).contains(&x) {
+            Ok(x)
+        } else {
+            Err(self.invalid(key, format!("{x}: must be in [{min}, {max}]")))
+        }
+    }
+
+    pub fn bool(&self, key: &str, default: bool) -> Result<bool, SerialConfigError> {
+        match self.map.get(key) {
+            None => Ok(default),
+            Some(toml::Value::Boolean(b)) => Ok(*b),
+            Some(v) => Err(self.invalid(key, format!("{v}: expected true or false"))),
+        }
+    }
+
+    /// Reject keys this backend does not know (a typo must not silently fall back to a default).
+    pub fn deny_unknown(&self, known: &[&str]) -> Result<(), SerialConfigError> {
+        for k in self.map.keys() {
+            if !known.contains(&k.as_str()) {
+                return Err(self.invalid(k, format!("unknown option (known: {})", known.join(", "))));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Replace `${NAME}` with the environment variable's value; an unset variable is an error
+/// that names it.
+pub fn substitute_env(s: &str) -> Result<String, String> {
+    let mut out = String::new();
+    let mut rest = s;
+    while let Some(start) = rest.find("${") {
+        out.push_str(&rest[..start]);
+        let after = &rest[start + 2..];
+        let end = after.find('}').ok_or_else(|| format!("{s:?}: unterminated `${{`"))?;
+        let name = &after[..end];
+        let value = std::env::var(name).map_err(|_| format!("{s:?}: environment variable {name} is not set"))?;
+        out.push_str(&value);
+        rest = &after[end + 1..];
+    }
+    out.push_str(rest);
+    Ok(out)
+}
+
+/// The backends this module provides, as named in rig files.
+pub const BACKENDS: &[&str] = &["zaber", "esp300"];
+
+/// Opens each serial port once, however many axes of the rig file use it.
+#[derive(Default)]
+pub struct PortRegistry {
+    zaber: HashMap<String, Arc<zaber::ZaberPort>>,
+    esp: HashMap<String, Arc<esp300::EspPort>>,
+}
+
+impl PortRegistry {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Build the axis described by `spec` (backend `zaber` or `esp300`).
+    pub fn build_axis(&mut self, spec: &AxisSpec) -> Result<Arc<dyn Axis>, SerialConfigError> {
+        let opts = Options::new(&spec.name, &spec.options);
+        let open_err = |port: &str, source: io::Error| SerialConfigError::Open {
+            axis: spec.name.clone(),
+            port: port.to_string(),
+            source,
+        };
+        match spec.backend.as_str() {
+            "zaber" => {
+                let cfg = zaber::ZaberAxisConfig::from_options(&opts)?;
+                let port = match self.zaber.get(&cfg.port) {
+                    Some(p) => p.clone(),
+                    None => {
+                        let p = Arc::new(
+                            zaber::ZaberPort::open(&cfg.port, cfg.baud, cfg.port_config())
+                                .map_err(|e| open_err(&cfg.port, e))?,
+                        );
+                        self.zaber.insert(cfg.port.clone(), p.clone());
+                        p
+                    }
+                };
+                let policy = policy::MotionPolicy::from_options(&opts, spec)?;
+                let driver = zaber::ZaberAxis::new(&spec.name, port, cfg.device, cfg.axis, cfg.units_per_rad());
+                Ok(Arc::new(policy::PolicyAxis::new(
+                    &spec.name,
+                    spec.limits(),
+                    spec.motion(),
+                    policy,
+                    driver,
+                )))
+            }
+            "esp300" => {
+                let cfg = esp300::EspAxisConfig::from_options(&opts)?;
+                let port = match self.esp.get(&cfg.port) {
+                    Some(p) => p.clone(),
+                    None => {
+                        let p = Arc::new(
+                            esp300::EspPort::open(&cfg.port, cfg.baud, cfg.reply_timeout)
+                                .map_err(|e| open_err(&cfg.port, e))?,
+                        );
+                        self.esp.insert(cfg.port.clone(), p.clone());
+                        p
+                    }
+                };
+                let policy = policy::MotionPolicy::from_options(&opts, spec)?;
+                let driver = esp300::EspAxis::new(&spec.name, port, cfg.axis, cfg.units_per_rad());
+                Ok(Arc::new(policy::PolicyAxis::new(
+                    &spec.name,
+                    spec.limits(),
+                    spec.motion(),
+                    policy,
+                    driver,
+                )))
+            }
+            other => Err(SerialConfigError::Backend {
+                axis: spec.name.clone(),
+                backend: other.to_string(),
+            }),
+        }
+    }
+}
+
+/// Test support: an in-memory transport with scripted replies.
+pub mod testing {
+    use super::Transport;
+    use std::collections::VecDeque;
+    use std::io;
+    use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
+
+    /// What the fake device does in answer to one command line.
+    #[derive(Clone, Debug)]
+    pub enum ScriptReply {
+        /// Send these bytes.
+        Bytes(Vec<u8>),
+        /// The bytes after this arrive `Duration` later (a slow device).
+        Delay(Duration),
+        /// The port goes away (reads and writes fail from then on).
+        Disconnect,
+    }
+
+    impl ScriptReply {
+        pub fn line(s: &str) -> ScriptReply {
+            ScriptReply::Bytes(format!("{s}\r\n").into_bytes())
+        }
+    }
+
+    type Responder = Box<dyn FnMut(&str) -> Vec<ScriptReply> + Send>;
+
+    /// A fake port: every complete command line written is logged and handed to the
+    /// responder, whose replies become readable (possibly later).
+    pub struct ScriptedTransport {
+        responder: Responder,
+        inbox: VecDeque<(Instant, Vec<u8>)>,
+        partial: Vec<u8>,
+        disconnect_at: Option<Instant>,
+        log: Arc<Mutex<Vec<String>>>,
+    }
+
+    impl ScriptedTransport {
+        pub fn new(responder: impl FnMut(&str) -> Vec<ScriptReply> + Send + 'static) -> Self {
+            ScriptedTransport {
+                responder: Box::new(responder),
+                inbox: VecDeque::new(),
+                partial: Vec::new(),
+                disconnect_at: None,
+                log: Arc::new(Mutex::new(Vec::new())),
+            }
+        }
+
+        /// The command lines written so far (shared: stays readable after the transport
+        /// moved into a port).
+        pub fn log(&self) -> Arc<Mutex<Vec<String>>> {
+            self.log.clone()
+        }
+
+        fn gone(&self) -> bool {
+            self.disconnect_at.is_some_and(|t| Instant::now() >= t)
+        }
+    }
+
+    fn hung_up() -> io::Error {
+        io::Error::new(io::ErrorKind::BrokenPipe, "scripted port disconnected")
+    }
+
+    impl Transport for ScriptedTransport {
+        fn write_all(&mut self, data: &[u8]) -> io::Result<()> {
+            if self.gone() {
+                return Err(hung_up());
+            }
+            self.partial.extend_from_slice(data);
+            while let Some(pos) = self.partial.iter().position(|&b| b == b'\n' || b == b'\r') {
+                let line: Vec<u8> = self.partial.drain(..=pos).collect();
+                let line = String::from_utf8_lossy(&line).trim().to_string();
+                if line.is_empty() {
+                    continue;
+                }
+                self.log.lock().expect("log poisoned").push(line.clone());
+                let mut at = Instant::now();
+                for r in (self.responder)(&line) {
+                    match r {
+                        ScriptReply::Bytes(b) => self.inbox.push_back((at, b)),
+                        ScriptReply::Delay(d) => at += d,
+                        ScriptReply::Disconnect => self.disconnect_at = Some(at),
+                    }
+                }
+            }
+            Ok(())
+        }
+
+        fn read_some(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+            let deadline = Instant::now() + timeout;
+            loop {
+                let now = Instant::now();
+                if let Some(t) = self.disconnect_at {
+                    let before_data = self.inbox.front().is_none_or(|(at, _)| *at >= t);
+                    if now >= t && before_data {
+                        return Err(hung_up());
+                    }
+                }
+                if let Some((at, _)) = self.inbox.front() {
+                    if *at <= now {
+                        let (at, mut bytes) = self.inbox.pop_front().expect("front exists");
+                        let n = bytes.len().min(buf.len());
+                        buf[..n].copy_from_slice(&bytes[..n]);
+                        if n < bytes.len() {
+                            bytes.drain(..n);
+                            self.inbox.push_front((at, bytes));
+                        }
+                        return Ok(n);
+                    }
+                }
+                if now >= deadline {
+                    return Ok(0);
+                }
+                let next = self.inbox.front().map(|(at, _)| *at).unwrap_or(deadline).min(deadline);
+                let next = self.disconnect_at.map_or(next, |t| next.min(t.max(now)));
+                std::thread::sleep(next.saturating_duration_since(now).min(Duration::from_millis(5)));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::*;
+    use super::*;
+
+    #[test]
+    fn link_splits_lines_and_strips_cr() {
+        let t = ScriptedTransport::new(|_| vec![ScriptReply::Bytes(b"a\r\nb\n".to_vec())]);
+        let mut l = Link::new(Box::new(t));
+        l.send("x\n").unwrap();
+        let d = Instant::now() + Duration::from_millis(100);
+        assert_eq!(l.read_line(d).unwrap(), "a");
+        assert_eq!(l.read_line(d).unwrap(), "b");
+        assert!(matches!(
+            l.read_line(Instant::now() + Duration::from_millis(20)),
+            Err(LinkError::Timeout)
+        ));
+    }
+
+    #[test]
+    fn dirty_link_drops_late_bytes_before_next_command() {
+        let t = ScriptedTransport::new(|l| {
+            if l == "first" {
+                vec![ScriptReply::Delay(Duration::from_millis(60)), ScriptReply::line("late")]
+            } else {
+                vec![ScriptReply::line("fresh")]
+            }
+        });
+        let mut l = Link::new(Box::new(t));
+        l.send("first\n").unwrap();
+        assert!(matches!(
+            l.read_line(Instant::now() + Duration::from_millis(20)),
+            Err(LinkError::Timeout)
+        ));
+        l.mark_dirty();
+        std::thread::sleep(Duration::from_millis(60));
+        l.begin().unwrap();
+        l.send("second\n").unwrap();
+        assert_eq!(
+            l.read_line(Instant::now() + Duration::from_millis(100)).unwrap(),
+            "fresh"
+        );
+    }
+
+    #[test]
+    fn env_substitution_names_missing_variable() {
+        std::env::set_var("GONIO_TEST_SERIAL_PORT_X", "/dev/pts/7");
+        assert_eq!(substitute_env("${GONIO_TEST_SERIAL_PORT_X}").unwrap(), "/dev/pts/7");
+        assert_eq!(substitute_env("a${GONIO_TEST_SERIAL_PORT_X}b").unwrap(), "a/dev/pts/7b");
+        let e = substitute_env("${GONIO_TEST_SURELY_UNSET_VAR}").unwrap_err();
+        assert!(e.contains("GONIO_TEST_SURELY_UNSET_VAR"), "{e}");
+        assert!(substitute_env("${OOPS").is_err());
+    }
+
+    #[test]
+    fn options_are_typed_and_unknown_keys_rejected() {
+        let mut m = BTreeMap::new();
+        m.insert("device".to_string(), toml::Value::Integer(3));
+        m.insert("units_per_deg".to_string(), toml::Value::Float(-1.0));
+        let o = Options::new("turntable", &m);
+        assert_eq!(o.int("device", 1, 1, 99).unwrap(), 3);
+        let e = o.positive("units_per_deg", 1.0).unwrap_err().to_string();
+        assert!(e.contains("turntable") && e.contains("units_per_deg"), "{e}");
+        let e = o.deny_unknown(&["device"]).unwrap_err().to_string();
+        assert!(e.contains("units_per_deg"), "{e}");
+    }
+}

@@ -1,0 +1,534 @@
+//! Scripted calibration: run a [`Recipe`] on a [`Rig`] and write a versioned result.
+//!
+//! The runner drives the rig only through the engine's `Rig` (axes via the `Axis` trait,
+//! camera via `Camera`), so a recipe runs the same on the simulator and on hardware. On a
+//! simulated rig the result also carries the simulator's truth and the error of every
+//! estimate against it.
+//!
+//! Result file (`calibration.json`, format [`RESULT_FORMAT`]): `id` (a hash of the rest of
+//! the file, so an acquisition can reference exactly this calibration), gonio version, rig
+//! name, recipe, estimates, one-sigma uncertainties, diagnostics, and on the simulator
+//! `truth` and `errors`. An intrinsics run also writes `corners.json` (detected image
+//! points and target points per view), the input an independent oracle (OpenCV) needs.
+
+pub mod recipe;
+
+use crate::engine::{self, frame_to_linear, Rig};
+use gonio_calibration::checkerboard::{detect_checkerboard, CheckerboardError};
+use gonio_calibration::intrinsics::{
+    calibrate_intrinsics, CameraModel, IntrinsicsCalibration, IntrinsicsError, TargetView,
+};
+use gonio_devices::Direction;
+pub use recipe::{Recipe, RecipeError, RecipeKind};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::time::Instant;
+use thiserror::Error;
+
+/// Version tag of the result file layout.
+pub const RESULT_FORMAT: &str = "gonio-calibration/1";
+
+#[derive(Debug, Error)]
+pub enum CalibrateError {
+    #[error("recipe `{recipe}`: kind `{kind}` is not implemented yet (implemented: intrinsics)")]
+    NotImplemented { recipe: String, kind: String },
+    #[error(
+        "recipe `{recipe}`: pose {index} (view {view:?}, light {light:?}) is not reachable on rig `{rig}`: {reason}"
+    )]
+    Unreachable {
+        recipe: String,
+        index: usize,
+        view: [f64; 2],
+        light: [f64; 2],
+        rig: String,
+        reason: String,
+    },
+    #[error("recipe `{recipe}`: rig `{rig}`: {cause}")]
+    Device {
+        recipe: String,
+        rig: String,
+        cause: Box<engine::EngineError>,
+    },
+    #[error("recipe `{recipe}`: rig `{rig}`: {device}: {cause}")]
+    Move {
+        recipe: String,
+        rig: String,
+        device: String,
+        cause: gonio_devices::DeviceError,
+    },
+    #[error("recipe `{recipe}`: pose {index} (view {view:?}): {cause}")]
+    Detection {
+        recipe: String,
+        index: usize,
+        view: [f64; 2],
+        cause: CheckerboardError,
+    },
+    #[error("recipe `{recipe}`: {cause}")]
+    Intrinsics { recipe: String, cause: IntrinsicsError },
+}
+
+/// The corners of every view, as written to `corners.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CornerSet {
+    /// Pixel convention of `image`: gonio's (pixel centres at half-integers); OpenCV's
+    /// coordinates are these minus ½.
+    pub convention: String,
+    pub image_size: [usize; 2],
+    pub views: Vec<TargetView>,
+}
+
+/// Truth of the simulated camera and the estimate's errors against it.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IntrinsicsTruth {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub distortion: [f64; 5],
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct IntrinsicsErrors {
+    /// Relative focal errors (estimate − truth) / truth, in percent.
+    pub fx_percent: f64,
+    pub fy_percent: f64,
+    /// Principal point errors in pixels and relative to the true value in percent.
+    pub cx_px: f64,
+    pub cy_px: f64,
+    pub cx_percent: f64,
+    pub cy_percent: f64,
+    pub distortion_abs: [f64; 5],
+}
+
+/// One row of the error-versus-effort table: the fit repeated on the first `views` views.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EffortRow {
+    pub views: usize,
+    /// Rig time (s) to capture these views (virtual on the simulator).
+    pub capture_s: f64,
+    /// Wall time of the fit (s).
+    pub fit_s: f64,
+    pub rms_px: f64,
+    pub fx: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// Relative focal error against the truth (percent); on real rigs, against the fit
+    /// with all views.
+    pub fx_error_percent: f64,
+    pub cx_error_px: f64,
+    /// Why the fit failed (too few views, degenerate), if it did.
+    pub failure: Option<String>,
+}
+
+/// The versioned result file.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CalibrationResult {
+    pub format: String,
+    /// Hash of the file without this field (hex, 16 digits).
+    pub id: String,
+    pub gonio_version: String,
+    pub created_unix: f64,
+    pub rig: String,
+    pub kind: String,
+    pub recipe: Recipe,
+    pub simulated: bool,
+    pub intrinsics: Option<IntrinsicsCalibration>,
+    pub truth: Option<IntrinsicsTruth>,
+    pub errors: Option<IntrinsicsErrors>,
+    pub effort: Vec<EffortRow>,
+    /// Simulator only: RMS distance (px) of the detected corners from their exact
+    /// projections, per view — the detector's error, which bounds what the fit can do.
+    pub corner_truth_rms_px: Vec<f64>,
+    /// Rig time for the whole run (s).
+    pub rig_time_s: f64,
+}
+
+impl CalibrationResult {
+    /// Fill `id` with the hash of the serialized result (with an empty id).
+    fn seal(mut self) -> Self {
+        self.id.clear();
+        let bytes = serde_json::to_vec(&self).unwrap_or_default();
+        let digest = Sha256::digest(&bytes);
+        self.id = digest.iter().take(8).map(|b| format!("{b:02x}")).collect();
+        self
+    }
+}
+
+/// What [`run`] returns: the result and, for intrinsics, the corners.
+pub struct RunOutput {
+    pub result: CalibrationResult,
+    pub corners: Option<CornerSet>,
+}
+
+/// Run a recipe on a built rig. The rig's sample must be the recipe's target.
+pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
+    match recipe.kind {
+        RecipeKind::Intrinsics => run_intrinsics(recipe, rig).await,
+        other => Err(CalibrateError::NotImplemented {
+            recipe: recipe.name.clone(),
+            kind: other.name().into(),
+        }),
+    }
+}
+
+/// Lens distortion of the simulated camera from the rig file's camera options.
+fn sim_distortion(rig: &Rig) -> [f64; 5] {
+    let mut d = [0.0; 5];
+    for (k, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
+        if let Some(v) = rig.spec.camera.options.get(*key) {
+            d[k] = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).unwrap_or(0.0);
+        }
+    }
+    d
+}
+
+/// RMS distance of detected corners from the exact projection of the target corners
+/// (simulated rigs). The board is symmetric, so the detector's grid may be any proper
+/// rotation of the true one: the best of the four is taken.
+fn corner_truth_rms(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -> f64 {
+    let k = rig.spec.camera.intrinsics();
+    let cam = CameraModel {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        distortion: sim_distortion(rig),
+    };
+    let pose = rig.kinematics.camera_pose(q);
+    (0..4)
+        .map(|r| {
+            let sum: f64 = object
+                .iter()
+                .zip(image)
+                .map(|(o, i)| {
+                    let (x, y) = match r {
+                        0 => (o[0], o[1]),
+                        1 => (-o[1], o[0]),
+                        2 => (-o[0], -o[1]),
+                        _ => (o[1], -o[0]),
+                    };
+                    let c = pose.to_camera(gonio_devices::Vec3::new(x, y, 0.0));
+                    let (u, v) = cam.project_point([c.x, c.y, c.z]);
+                    (u - i[0]).powi(2) + (v - i[1]).powi(2)
+                })
+                .sum();
+            (sum / object.len().max(1) as f64).sqrt()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
+    let name = recipe.name.clone();
+    let rig_name = rig.spec.name.clone();
+    let board = recipe.checkerboard.expect("validated: intrinsics recipes have a board");
+    let t0 = rig.time();
+    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
+        recipe: name.clone(),
+        rig: rig_name.clone(),
+        cause: Box::new(cause),
+    })?;
+    if let Some(e) = recipe.exposure_s {
+        config.exposure = e;
+        config = rig
+            .camera
+            .configure(&config)
+            .await
+            .map_err(|cause| CalibrateError::Move {
+                recipe: name.clone(),
+                rig: rig_name.clone(),
+                device: rig.camera.name().into(),
+                cause,
+            })?;
+    }
+    tracing::info!(recipe = %name, exposure = config.exposure, "intrinsics: capturing {} poses", recipe.poses.len());
+    let mut views = Vec::new();
+    let mut capture_times = Vec::new();
+    let mut corner_truth = Vec::new();
+    let mut prev: Option<Vec<f64>> = None;
+    for (index, pose) in recipe.poses.iter().enumerate() {
+        let light = pose.light.unwrap_or(recipe.light);
+        let sols = rig
+            .kinematics
+            .inverse(
+                Direction::from_degrees(light[0], light[1]),
+                Direction::from_degrees(pose.view[0], pose.view[1]),
+                prev.as_deref(),
+            )
+            .map_err(|e| CalibrateError::Unreachable {
+                recipe: name.clone(),
+                index,
+                view: pose.view,
+                light,
+                rig: rig_name.clone(),
+                reason: e.to_string(),
+            })?;
+        let q = sols.into_iter().next().ok_or_else(|| CalibrateError::Unreachable {
+            recipe: name.clone(),
+            index,
+            view: pose.view,
+            light,
+            rig: rig_name.clone(),
+            reason: "no configuration".into(),
+        })?;
+        for (axis, &target) in rig.axes.iter().zip(&q) {
+            axis.move_abs(target).await.map_err(|cause| CalibrateError::Move {
+                recipe: name.clone(),
+                rig: rig_name.clone(),
+                device: axis.name().into(),
+                cause,
+            })?;
+        }
+        let frame = rig.camera.capture().await.map_err(|cause| CalibrateError::Move {
+            recipe: name.clone(),
+            rig: rig_name.clone(),
+            device: rig.camera.name().into(),
+            cause,
+        })?;
+        let raw = frame_to_linear(&frame);
+        let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
+            recipe: name.clone(),
+            index,
+            view: pose.view,
+            cause,
+        })?;
+        tracing::debug!(index, candidates = det.candidates, "board found");
+        if rig.clock.is_some() {
+            corner_truth.push(corner_truth_rms(rig, &q, &det.object, &det.image));
+        }
+        views.push(TargetView {
+            label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
+            object: det.object,
+            image: det.image,
+        });
+        capture_times.push(rig.time() - t0);
+        prev = Some(q);
+    }
+    let size = (rig.spec.camera.width, rig.spec.camera.height);
+    let fit = calibrate_intrinsics(&views, size, &recipe.estimate).map_err(|cause| CalibrateError::Intrinsics {
+        recipe: name.clone(),
+        cause,
+    })?;
+    let simulated = rig.clock.is_some();
+    let truth = simulated.then(|| {
+        let k = rig.spec.camera.intrinsics();
+        IntrinsicsTruth {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            distortion: sim_distortion(rig),
+        }
+    });
+    let errors = truth.as_ref().map(|t| {
+        let c = &fit.camera;
+        IntrinsicsErrors {
+            fx_percent: 100.0 * (c.fx - t.fx) / t.fx,
+            fy_percent: 100.0 * (c.fy - t.fy) / t.fy,
+            cx_px: c.cx - t.cx,
+            cy_px: c.cy - t.cy,
+            cx_percent: 100.0 * (c.cx - t.cx) / t.cx,
+            cy_percent: 100.0 * (c.cy - t.cy) / t.cy,
+            distortion_abs: std::array::from_fn(|k| (c.distortion[k] - t.distortion[k]).abs()),
+        }
+    });
+    // Error against effort: the same fit on the first k views.
+    let (ref_fx, ref_cx) = truth
+        .as_ref()
+        .map(|t| (t.fx, t.cx))
+        .unwrap_or((fit.camera.fx, fit.camera.cx));
+    let mut effort = Vec::new();
+    for k in 3..=views.len() {
+        let start = Instant::now();
+        let r = calibrate_intrinsics(&views[..k], size, &recipe.estimate);
+        let fit_s = start.elapsed().as_secs_f64();
+        let capture_s = capture_times[k - 1];
+        effort.push(match r {
+            Ok(c) => EffortRow {
+                views: k,
+                capture_s,
+                fit_s,
+                rms_px: c.rms_px,
+                fx: c.camera.fx,
+                cx: c.camera.cx,
+                cy: c.camera.cy,
+                fx_error_percent: 100.0 * (c.camera.fx - ref_fx) / ref_fx,
+                cx_error_px: c.camera.cx - ref_cx,
+                failure: None,
+            },
+            Err(e) => EffortRow {
+                views: k,
+                capture_s,
+                fit_s,
+                rms_px: f64::NAN,
+                fx: f64::NAN,
+                cx: f64::NAN,
+                cy: f64::NAN,
+                fx_error_percent: f64::NAN,
+                cx_error_px: f64::NAN,
+                failure: Some(e.to_string()),
+            },
+        });
+    }
+    let result = CalibrationResult {
+        format: RESULT_FORMAT.into(),
+        id: String::new(),
+        gonio_version: env!("CARGO_PKG_VERSION").into(),
+        created_unix: std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs_f64())
+            .unwrap_or(0.0),
+        rig: rig_name,
+        kind: recipe.kind.name().into(),
+        recipe: recipe.clone(),
+        simulated,
+        intrinsics: Some(fit),
+        truth,
+        errors,
+        effort,
+        corner_truth_rms_px: corner_truth,
+        rig_time_s: rig.time() - t0,
+    }
+    .seal();
+    Ok(RunOutput {
+        result,
+        corners: Some(CornerSet {
+            convention: "gonio: pixel (i, j) has its centre at (i + 0.5, j + 0.5); OpenCV = this − 0.5".into(),
+            image_size: [size.0, size.1],
+            views,
+        }),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gonio_devices::rig::RigSpec;
+    use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+    use std::path::Path;
+
+    fn root() -> &'static Path {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+    }
+
+    fn wide_rig(recipe: &Recipe) -> Rig {
+        let spec = RigSpec::load(&root().join("devices/rigs/wide-lens.toml")).unwrap();
+        let sample = SampleSpec::resolve(&recipe.target).unwrap();
+        let opts = SimOptions {
+            noise: Some(recipe.simulator.noise),
+            quality: RenderQuality {
+                supersample: recipe.simulator.supersample,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        Rig::build(&spec, &sample, &opts).unwrap()
+    }
+
+    fn shipped() -> Recipe {
+        Recipe::load(&root().join("calibration/recipes/intrinsics.toml")).unwrap()
+    }
+
+    // The error is matched by variant in the tests; its size does not matter here.
+    #[allow(clippy::result_large_err)]
+    fn run_blocking(recipe: &Recipe) -> Result<RunOutput, CalibrateError> {
+        let rig = wide_rig(recipe);
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(run(recipe, &rig))
+    }
+
+    /// The targets on noiseless simulated images of a distorting wide-angle lens
+    /// with an off-centre principal point: focal length within 0.1 % of the truth,
+    /// principal point within 0.1 % of the image size, reprojection RMS < 0.1 px.
+    #[test]
+    fn intrinsics_match_the_simulator_truth() {
+        let out = run_blocking(&shipped()).unwrap();
+        let r = &out.result;
+        let c = r.intrinsics.as_ref().unwrap();
+        let t = r.truth.as_ref().unwrap();
+        let e = r.errors.as_ref().unwrap();
+        assert!(c.rms_px < 0.1, "rms {}", c.rms_px);
+        assert!(e.fx_percent.abs() < 0.1 && e.fy_percent.abs() < 0.1, "{e:?}");
+        assert!(e.cx_px.abs() < 0.001 * 768.0 && e.cy_px.abs() < 0.001 * 640.0, "{e:?}");
+        assert!((t.distortion[0] + 0.12).abs() < 1e-12, "truth read from the rig file");
+        // barrel distortion is recovered in sign and rough size over the target's field
+        assert!(
+            (c.camera.distortion[0] - t.distortion[0]).abs() < 0.05,
+            "{:?}",
+            c.camera
+        );
+        assert_eq!(r.id.len(), 16);
+        assert_eq!(out.corners.as_ref().unwrap().views.len(), 12);
+        // the effort table covers 3 ..= 12 views; too few views are refused, not fitted
+        assert_eq!(r.effort.len(), 10);
+        assert!(r.effort[0].failure.is_some(), "{:?}", r.effort[0]);
+    }
+
+    #[test]
+    fn parallel_target_poses_are_refused() {
+        // θ = 0 at several turntable angles: the target only turns about the optical axis,
+        // all target planes are parallel.
+        let mut recipe = shipped();
+        recipe.poses.truncate(0);
+        for phi in [0.0, 70.0, 140.0, 210.0] {
+            recipe.poses.push(recipe::PoseSpec {
+                view: [0.0, phi],
+                light: None,
+            });
+        }
+        let e = run_blocking(&recipe).err().expect("refused");
+        let msg = e.to_string();
+        assert!(
+            matches!(
+                e,
+                CalibrateError::Intrinsics {
+                    cause: IntrinsicsError::Degenerate { .. }
+                        | IntrinsicsError::ClosedForm(_)
+                        | IntrinsicsError::Undetermined { .. },
+                    ..
+                }
+            ),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn black_and_saturated_frames_are_diagnosed() {
+        let mut recipe = shipped();
+        recipe.exposure_s = Some(1e-9);
+        let e = run_blocking(&recipe).err().expect("refused");
+        assert!(
+            matches!(
+                e,
+                CalibrateError::Detection {
+                    index: 0,
+                    cause: CheckerboardError::Empty { .. },
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        recipe.exposure_s = Some(100.0);
+        let e = run_blocking(&recipe).err().expect("refused");
+        assert!(
+            matches!(
+                e,
+                CalibrateError::Detection {
+                    cause: CheckerboardError::Saturated { .. },
+                    ..
+                }
+            ),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn unimplemented_kinds_say_so() {
+        let mut recipe = shipped();
+        recipe.kind = RecipeKind::Response;
+        let e = run_blocking(&recipe).err().expect("refused");
+        assert!(e.to_string().contains("not implemented"), "{e}");
+    }
+}

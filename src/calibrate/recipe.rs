@@ -1,0 +1,225 @@
+//! Calibration recipes: the TOML scripts under `calibration/recipes/`.
+//!
+//! A recipe says what to estimate (`kind`), with which target, at which rig poses or
+//! exposures, and with which fitting options; `gonio calibrate RECIPE --rig R` runs it on
+//! any rig. Unknown keys are errors, so a typo never silently falls back to a default.
+
+use gonio_calibration::checkerboard::{CheckerboardOptions, CheckerboardSpec};
+use gonio_calibration::intrinsics::IntrinsicsOptions;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum RecipeError {
+    #[error("cannot read recipe {file}: {source}")]
+    Io { file: String, source: std::io::Error },
+    #[error("recipe {file}: {message}")]
+    Parse { file: String, message: String },
+    #[error("recipe {file}: key `{key}`: {message}")]
+    Invalid { file: String, key: String, message: String },
+}
+
+/// What a recipe estimates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RecipeKind {
+    /// Camera intrinsics and lens distortion (Zhang) from views of a planar target.
+    Intrinsics,
+    /// Pixel value → BRDF (1/sr) from a white reflectance standard of known albedo.
+    WhiteStandard,
+    /// Dark frame (mean of frames with the light off).
+    Dark,
+    /// Flat field (per-pixel gain).
+    Flat,
+    /// Camera response curve from exposure brackets (Debevec-Malik).
+    Response,
+    /// 3 × 3 colour correction from a colour target.
+    Colour,
+    /// Homing repeatability, backlash, positioning error.
+    Mechanical,
+}
+
+impl RecipeKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            RecipeKind::Intrinsics => "intrinsics",
+            RecipeKind::WhiteStandard => "white-standard",
+            RecipeKind::Dark => "dark",
+            RecipeKind::Flat => "flat",
+            RecipeKind::Response => "response",
+            RecipeKind::Colour => "colour",
+            RecipeKind::Mechanical => "mechanical",
+        }
+    }
+}
+
+/// One capture position: camera (view) and lamp directions `[θ, φ]` in degrees, reached
+/// through the rig's inverse kinematics.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PoseSpec {
+    pub view: [f64; 2],
+    /// Lamp direction; default: the recipe's `light`.
+    #[serde(default)]
+    pub light: Option<[f64; 2]>,
+}
+
+/// Settings of the simulated rig used when the recipe runs on the simulator (ignored on
+/// real hardware).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimulatorSettings {
+    /// Render samples per pixel and axis: target edges need area integration for
+    /// sub-pixel corners (1 = point sampling, aliased edges).
+    pub supersample: usize,
+    /// Sensor noise on.
+    pub noise: bool,
+}
+
+impl Default for SimulatorSettings {
+    fn default() -> Self {
+        SimulatorSettings {
+            supersample: 6,
+            noise: false,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Recipe {
+    pub kind: RecipeKind,
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    /// The target: a built-in sample name or sample file (what the simulator renders; on
+    /// a real rig, what must be mounted).
+    pub target: String,
+    /// Board geometry (intrinsics).
+    #[serde(default)]
+    pub checkerboard: Option<CheckerboardSpec>,
+    #[serde(default)]
+    pub detection: CheckerboardOptions,
+    /// Fitting options (intrinsics).
+    #[serde(default)]
+    pub estimate: IntrinsicsOptions,
+    /// Default lamp direction `[θ, φ]` (degrees).
+    #[serde(default = "default_light")]
+    pub light: [f64; 2],
+    #[serde(default, rename = "pose")]
+    pub poses: Vec<PoseSpec>,
+    /// Camera exposure (s); default: the rig file's.
+    #[serde(default)]
+    pub exposure_s: Option<f64>,
+    #[serde(default)]
+    pub simulator: SimulatorSettings,
+}
+
+fn default_light() -> [f64; 2] {
+    [35.0, 180.0]
+}
+
+impl Recipe {
+    pub fn load(path: &Path) -> Result<Recipe, RecipeError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| RecipeError::Io {
+            file: file.clone(),
+            source,
+        })?;
+        Recipe::parse(&text, &file)
+    }
+
+    pub fn parse(text: &str, file: &str) -> Result<Recipe, RecipeError> {
+        let r: Recipe = toml::from_str(text).map_err(|e| RecipeError::Parse {
+            file: file.into(),
+            message: e.to_string(),
+        })?;
+        r.validate(file)?;
+        Ok(r)
+    }
+
+    fn validate(&self, file: &str) -> Result<(), RecipeError> {
+        let bad = |key: &str, message: String| RecipeError::Invalid {
+            file: file.into(),
+            key: key.into(),
+            message,
+        };
+        let dir_ok = |d: [f64; 2]| d.iter().all(|x| x.is_finite()) && (0.0..=90.0).contains(&d[0]);
+        if !dir_ok(self.light) {
+            return Err(bad("light", format!("{:?}: θ must be in 0 ..= 90°", self.light)));
+        }
+        for (k, p) in self.poses.iter().enumerate() {
+            if !dir_ok(p.view) || !p.light.is_none_or(dir_ok) {
+                return Err(bad(&format!("pose[{k}]"), format!("{p:?}: θ must be in 0 ..= 90°")));
+            }
+        }
+        if let Some(e) = self.exposure_s {
+            if !(e > 0.0 && e.is_finite()) {
+                return Err(bad("exposure_s", format!("{e}: must be > 0")));
+            }
+        }
+        if !(1..=16).contains(&self.simulator.supersample) {
+            return Err(bad(
+                "simulator.supersample",
+                format!("{}: valid range is 1 ..= 16", self.simulator.supersample),
+            ));
+        }
+        if self.kind == RecipeKind::Intrinsics {
+            let Some(cb) = &self.checkerboard else {
+                return Err(bad(
+                    "checkerboard",
+                    "an intrinsics recipe needs [checkerboard] cols, rows, pitch_mm".into(),
+                ));
+            };
+            if cb.cols < 2 || cb.rows < 2 || cb.pitch_mm.is_nan() || cb.pitch_mm <= 0.0 {
+                return Err(bad(
+                    "checkerboard",
+                    format!("{cb:?}: need ≥ 2 × 2 inner corners and pitch_mm > 0"),
+                ));
+            }
+            if self.poses.len() < 3 {
+                return Err(bad(
+                    "pose",
+                    format!("{} poses: Zhang's method needs at least 3 views", self.poses.len()),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_recipes_parse() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("calibration/recipes");
+        let mut n = 0;
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "toml") {
+                Recipe::load(&p).unwrap_or_else(|e| panic!("{e}"));
+                n += 1;
+            }
+        }
+        assert!(n >= 1);
+    }
+
+    #[test]
+    fn typos_and_bad_values_are_errors() {
+        let base = "kind = \"intrinsics\"\nname = \"x\"\ntarget = \"calibration-target\"\n\
+                    checkerboard = { cols = 11, rows = 11, pitch_mm = 5.0 }\n";
+        let poses = "[[pose]]\nview = [0, 0]\n[[pose]]\nview = [20, 0]\n[[pose]]\nview = [20, 90]\n";
+        assert!(Recipe::parse(&format!("{base}{poses}"), "t").is_ok());
+        let e = Recipe::parse(&format!("{base}exposur_s = 0.1\n{poses}"), "t").unwrap_err();
+        assert!(e.to_string().contains("exposur_s"), "{e}");
+        let e = Recipe::parse(&format!("{base}[[pose]]\nview = [0, 0]\n"), "t").unwrap_err();
+        assert!(e.to_string().contains("at least 3"), "{e}");
+        let e = Recipe::parse(&format!("{base}light = [95, 0]\n{poses}"), "t").unwrap_err();
+        assert!(e.to_string().contains("light"), "{e}");
+        let e = Recipe::parse("kind = \"focus\"\nname = \"x\"\ntarget = \"t\"\n", "t").unwrap_err();
+        assert!(e.to_string().contains("focus"), "{e}");
+    }
+}

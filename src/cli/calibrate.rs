@@ -1,0 +1,113 @@
+//! `gonio calibrate RECIPE --rig R --out DIR`: run a calibration recipe and write its
+//! versioned result (`DIR/calibration.json`, plus `DIR/corners.json` for intrinsics).
+
+use super::common::{load_sample, RigArgs};
+use crate::calibrate::{self, Recipe};
+use crate::engine::Rig;
+use anyhow::{Context, Result};
+use gonio_simulator::{RenderQuality, SimOptions};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    /// Recipe TOML (see calibration/recipes/).
+    pub recipe: PathBuf,
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// Output directory (created; existing result files in it are replaced).
+    #[arg(long, default_value = "gonio-calibration")]
+    pub out: PathBuf,
+    /// Override the recipe's simulated sensor noise setting: on.
+    #[arg(long)]
+    pub noise: bool,
+    /// Print the result as JSON on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
+    let recipe = Recipe::load(&a.recipe)?;
+    let spec = a.rig.load()?;
+    let sample = load_sample(&recipe.target)?;
+    let opts = SimOptions {
+        noise: Some(a.noise || recipe.simulator.noise),
+        quality: RenderQuality {
+            supersample: recipe.simulator.supersample,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let rig = Rig::build(&spec, &sample, &opts)?;
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let out = rt.block_on(calibrate::run(&recipe, &rig))?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let path = a.out.join("calibration.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&out.result)?)
+        .with_context(|| format!("writing {}", path.display()))?;
+    if let Some(c) = &out.corners {
+        let p = a.out.join("corners.json");
+        std::fs::write(&p, serde_json::to_string(c)?).with_context(|| format!("writing {}", p.display()))?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&out.result)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let r = &out.result;
+    println!(
+        "calibration {} ({}) on rig `{}`: id {}",
+        recipe.name, r.kind, r.rig, r.id
+    );
+    if let Some(c) = &r.intrinsics {
+        let (m, s) = (&c.camera, &c.sigma);
+        println!(
+            "  fx {:.3} ± {:.3}  fy {:.3} ± {:.3}  cx {:.3} ± {:.3}  cy {:.3} ± {:.3} px",
+            m.fx, s.fx, m.fy, s.fy, m.cx, s.cx, m.cy, s.cy
+        );
+        println!(
+            "  distortion k1 {:.5} k2 {:.5} p1 {:.6} p2 {:.6} k3 {:.5}",
+            m.distortion[0], m.distortion[1], m.distortion[2], m.distortion[3], m.distortion[4]
+        );
+        println!(
+            "  {} views, {} corners, reprojection RMS {:.4} px, condition {:.3e}, {} LM iterations",
+            c.poses.len(),
+            c.points,
+            c.rms_px,
+            c.condition,
+            c.iterations
+        );
+    }
+    if let (Some(t), Some(e)) = (&r.truth, &r.errors) {
+        println!(
+            "  truth fx {:.3} fy {:.3} cx {:.3} cy {:.3}: errors fx {:+.4} % fy {:+.4} % cx {:+.3} px ({:+.4} %) cy {:+.3} px ({:+.4} %)",
+            t.fx, t.fy, t.cx, t.cy, e.fx_percent, e.fy_percent, e.cx_px, e.cx_percent, e.cy_px, e.cy_percent
+        );
+    }
+    if !r.corner_truth_rms_px.is_empty() {
+        let v = &r.corner_truth_rms_px;
+        println!(
+            "  corner error against the simulator's exact projection: RMS per view {:.4} … {:.4} px",
+            v.iter().copied().fold(f64::INFINITY, f64::min),
+            v.iter().copied().fold(0.0, f64::max)
+        );
+    }
+    if !r.effort.is_empty() {
+        println!("  views  capture_s  fit_ms  rms_px   fx_err_%   cx_err_px");
+        for row in &r.effort {
+            match &row.failure {
+                None => println!(
+                    "  {:5}  {:9.1}  {:6.1}  {:6.4}  {:+9.4}  {:+9.3}",
+                    row.views,
+                    row.capture_s,
+                    1e3 * row.fit_s,
+                    row.rms_px,
+                    row.fx_error_percent,
+                    row.cx_error_px
+                ),
+                Some(f) => println!("  {:5}  {:9.1}  refused: {f}", row.views, row.capture_s),
+            }
+        }
+    }
+    println!("  rig time {:.1} s; wrote {}", r.rig_time_s, path.display());
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,661 @@
+//! DFMF: decorrelated full-matrix factorization, the method of Bonn's UBO2014 `.btf` files.
+//!
+//! The whole BTF is one `measurements × texels` matrix per colour channel (rows
+//! `view · L + light`, columns the texels), factorized as `U · (S·V)ᵀ` with `c` components
+//! per channel. "Decorrelated" refers to the colour model the channels are in before the
+//! factorization. Two models exist, because those are the two the public reader
+//! (`btf-extractor` 1.7.0, `btf.hh`, `BTFFetchSpectrum`) decodes:
+//!
+//! * [`ColorModel::Rgb`] (code 0): the linear R, G, B values as they are.
+//! * [`ColorModel::LogYuv`] (code 11): luminance in log space and chroma as ratios to the
+//!   luminance: `c₀ = ln(Y + ε)`, `c₁ = (U − ε) / Y`, `c₂ = (V − ε) / Y` with ε = 1e-5 and
+//!   (Y, U, V) = `M⁻¹ · (R, G, B)`, `M` the reader's YUV → RGB matrix ([`YUV_TO_RGB`]).
+//!   The reader inverts this (`Y = exp(c₀) − ε`, `U = c₁·Y + ε`, …) and **clamps RGB to
+//!   [0, 1]**. Why it is worth it: the log compresses the specular dynamic range so the
+//!   factorization's squared error is spent evenly over dark and bright measurements, and
+//!   the chroma ratios of a material vary little, so they need few components.
+//!   Negative inputs (sensor noise below black) are clamped to 0 before the transform,
+//!   and the chroma denominator is at least ε, so dark texels cannot blow up the ratios.
+//!
+//! The factorization is the streamed randomized SVD of [`super::factor`]'s PCA (Halko,
+//! Martinsson, Tropp 2011) run on the three channel matrices in the same passes over the
+//! dataset: the full matrix (6561 × 65536 per channel at 256²) is never held. The final
+//! small SVD runs in f64 (see the module docs of [`super`] for f32 versus f64).
+//!
+//! [`Dfmf::reconstruct`] mirrors the reader's arithmetic (f32 dot products, the same ε,
+//! the same clamping), so a file decodes to the same images in gonio and in
+//! `btf-extractor` (checked by `tests/interop/check_ubo2014.py`).
+
+use super::data::DatasetViews;
+use super::factor::{truncated_svd, EncodeInfo};
+use super::CompressError;
+use faer::{Mat, MatRef};
+use serde::{Deserialize, Serialize};
+
+/// The ε of the reader's colour model 11 (`drr_eps` in `btf.hh`).
+pub const DRR_EPS: f32 = 1e-5;
+
+/// The reader's YUV → RGB matrix (`YUVToRGB` in `btf.hh`); rows give R, G, B.
+pub const YUV_TO_RGB: [[f32; 3]; 3] = [[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]];
+
+/// Colour model of the factorized channels (the `ColorModel` field of a DFMF file).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorModel {
+    /// Linear RGB, no transform (code 0).
+    Rgb,
+    /// log luminance + chroma / luminance (code 11).
+    LogYuv,
+}
+
+impl ColorModel {
+    /// The code stored in the file.
+    pub fn code(self) -> u32 {
+        match self {
+            ColorModel::Rgb => 0,
+            ColorModel::LogYuv => 11,
+        }
+    }
+    pub fn from_code(code: u32) -> Option<Self> {
+        match code {
+            0 => Some(ColorModel::Rgb),
+            11 => Some(ColorModel::LogYuv),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorModel::Rgb => "rgb",
+            ColorModel::LogYuv => "log-yuv",
+        }
+    }
+    /// Channel names written to the file's header.
+    pub fn channel_names(self) -> [&'static str; 3] {
+        match self {
+            ColorModel::Rgb => ["R", "G", "B"],
+            ColorModel::LogYuv => ["logY", "U/Y", "V/Y"],
+        }
+    }
+}
+
+/// `M⁻¹`, the RGB → YUV matrix exactly inverse to [`YUV_TO_RGB`] (computed in f64).
+pub fn rgb_to_yuv() -> [[f64; 3]; 3] {
+    let m: [[f64; 3]; 3] = YUV_TO_RGB.map(|r| r.map(f64::from));
+    let cof = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let det = m[0][0] * cof(1, 2, 1, 2) - m[0][1] * cof(1, 2, 0, 2) + m[0][2] * cof(1, 2, 0, 1);
+    // Adjugate / determinant.
+    [
+        [cof(1, 2, 1, 2) / det, -cof(0, 2, 1, 2) / det, cof(0, 1, 1, 2) / det],
+        [-cof(1, 2, 0, 2) / det, cof(0, 2, 0, 2) / det, -cof(0, 1, 0, 2) / det],
+        [cof(1, 2, 0, 1) / det, -cof(0, 2, 0, 1) / det, cof(0, 1, 0, 1) / det],
+    ]
+}
+
+/// Linear RGB → the model's channels.
+pub fn encode_color(model: ColorModel, m_inv: &[[f64; 3]; 3], rgb: [f32; 3]) -> [f64; 3] {
+    match model {
+        ColorModel::Rgb => rgb.map(f64::from),
+        ColorModel::LogYuv => {
+            let c = rgb.map(|v| f64::from(v.max(0.0)));
+            let yuv = m_inv.map(|r| r[0] * c[0] + r[1] * c[1] + r[2] * c[2]);
+            let eps = f64::from(DRR_EPS);
+            let y = yuv[0].max(0.0);
+            let den = y.max(eps);
+            [(y + eps).ln(), (yuv[1] - eps) / den, (yuv[2] - eps) / den]
+        }
+    }
+}
+
+/// The model's channels → linear RGB, exactly as `BTFFetchSpectrum` does it (f32).
+#[inline]
+pub fn decode_color(model: ColorModel, c: [f32; 3]) -> [f32; 3] {
+    match model {
+        ColorModel::Rgb => c,
+        ColorModel::LogYuv => {
+            let y = c[0].exp() - DRR_EPS;
+            let yuv = [y, c[1] * y + DRR_EPS, c[2] * y + DRR_EPS];
+            YUV_TO_RGB.map(|r| (r[0] * yuv[0] + r[1] * yuv[1] + r[2] * yuv[2]).clamp(0.0, 1.0))
+        }
+    }
+}
+
+/// Parameters of [`encode`].
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct DfmfParams {
+    pub color_model: ColorModel,
+    /// Components per channel (channel order of the model: R, G, B or logY, U/Y, V/Y).
+    pub components: [usize; 3],
+    /// Seed of the Gaussian sketch.
+    pub seed: u64,
+    pub oversample: usize,
+    /// Power iterations (one more pass over the dataset each).
+    pub power_iters: usize,
+}
+
+impl DfmfParams {
+    pub fn new(color_model: ColorModel, components: usize) -> Self {
+        DfmfParams {
+            color_model,
+            components: [components; 3],
+            seed: 1,
+            oversample: 10,
+            power_iters: 2,
+        }
+    }
+}
+
+/// The factors of one channel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChannelFactors {
+    /// Components.
+    pub c: usize,
+    /// Singular values (informative: the reader skips them).
+    pub sigma: Vec<f32>,
+    /// Row-major `(views · lights) × c`, row `view · L + light`.
+    pub u: Vec<f32>,
+    /// Row-major `texels × c` (S·V), texel `y · W + x` with row 0 the image's top row.
+    pub sxv: Vec<f32>,
+}
+
+/// A DFMF-factorized BTF.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dfmf {
+    pub color_model: ColorModel,
+    pub width: usize,
+    pub height: usize,
+    pub lights_deg: Vec<[f64; 2]>,
+    pub views_deg: Vec<[f64; 2]>,
+    pub channels: Vec<ChannelFactors>,
+}
+
+impl Dfmf {
+    pub fn n_lights(&self) -> usize {
+        self.lights_deg.len()
+    }
+    pub fn n_views(&self) -> usize {
+        self.views_deg.len()
+    }
+    pub fn texels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Check that every block has the size the grid implies.
+    pub fn validate(&self) -> Result<(), CompressError> {
+        let rows = self.n_lights() * self.n_views();
+        if self.channels.len() != 3 {
+            return Err(CompressError::Invalid(format!(
+                "DFMF with {} channels, only 3 are supported",
+                self.channels.len()
+            )));
+        }
+        for (i, ch) in self.channels.iter().enumerate() {
+            if ch.c == 0 || ch.u.len() != rows * ch.c || ch.sxv.len() != self.texels() * ch.c {
+                return Err(CompressError::Invalid(format!(
+                    "DFMF channel {i}: {} components, U has {} values ({rows} rows needed), S·V has {} ({} texels)",
+                    ch.c,
+                    ch.u.len(),
+                    ch.sxv.len(),
+                    self.texels()
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The model-space values of every texel of measurement row `row` blended with
+    /// `weights`: `Σ_k (Σ_r w_r U[r, k]) · SxV[t, k]` per channel. Blending the U rows
+    /// first (not the images) is what makes interpolation cost one decode.
+    fn decode_rows(&self, rows: &[(usize, f32)]) -> Vec<f32> {
+        let t = self.texels();
+        let mut out = vec![0f32; t * 3];
+        for (ch, f) in self.channels.iter().enumerate() {
+            let c = f.c;
+            let mut u = vec![0f32; c];
+            for &(r, w) in rows {
+                for (a, b) in u.iter_mut().zip(&f.u[r * c..(r + 1) * c]) {
+                    *a += w * b;
+                }
+            }
+            for (px, sv) in out.chunks_exact_mut(3).zip(f.sxv.chunks_exact(c)) {
+                let mut s = 0f32;
+                for k in 0..c {
+                    s += u[k] * sv[k];
+                }
+                px[ch] = s;
+            }
+        }
+        for px in out.chunks_exact_mut(3) {
+            let rgb = decode_color(self.color_model, [px[0], px[1], px[2]]);
+            px.copy_from_slice(&rgb);
+        }
+        out
+    }
+
+    /// Linear RGB image (interleaved, top row first) of grid pair (`light`, `view`).
+    pub fn reconstruct(&self, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        self.reconstruct_weighted(&[(light, view, 1.0)])
+    }
+
+    /// Image of a weighted blend of grid pairs, blended in the stored (model) domain.
+    pub fn reconstruct_weighted(&self, weights: &[(usize, usize, f32)]) -> Result<Vec<f32>, CompressError> {
+        let (nl, nv) = (self.n_lights(), self.n_views());
+        let mut rows = Vec::with_capacity(weights.len());
+        for &(l, v, w) in weights {
+            if l >= nl || v >= nv {
+                return Err(CompressError::Invalid(format!(
+                    "pair (light {l}, view {v}) outside the {nl} × {nv} grid"
+                )));
+            }
+            rows.push((v * nl + l, w));
+        }
+        Ok(self.decode_rows(&rows))
+    }
+
+    /// Bytes of the factors at `bytes_per_value`.
+    pub fn factor_values(&self) -> usize {
+        self.channels
+            .iter()
+            .map(|c| c.u.len() + c.sxv.len() + c.sigma.len())
+            .sum()
+    }
+}
+
+/// Three `texels × lights` channel matrices of one view, and its filled `(light, source)` pairs.
+type ChannelMatrices = ([Mat<f64>; 3], Vec<(usize, usize)>);
+
+/// The three channel matrices (`texels × lights`, f64) of one view in the colour model.
+fn channel_matrices(
+    ds: &DatasetViews,
+    view: usize,
+    model: ColorModel,
+    m_inv: &[[f64; 3]; 3],
+) -> Result<ChannelMatrices, CompressError> {
+    let vm = ds.view_matrix(view)?;
+    let (t, nl) = (vm.rows, ds.n_lights());
+    let mut mats = [
+        Mat::<f64>::zeros(t, nl),
+        Mat::<f64>::zeros(t, nl),
+        Mat::<f64>::zeros(t, nl),
+    ];
+    for l in 0..nl {
+        for i in 0..t {
+            let o = i * vm.cols + l * 3;
+            let c = encode_color(model, m_inv, [vm.data[o], vm.data[o + 1], vm.data[o + 2]]);
+            for ch in 0..3 {
+                mats[ch][(i, l)] = c[ch];
+            }
+        }
+    }
+    Ok((mats, vm.filled))
+}
+
+/// Deterministic standard normal number for (seed, row, col): splitmix64 + Box-Muller.
+fn gaussian(seed: u64, row: usize, col: usize) -> f64 {
+    let mix = |k: u64| {
+        let mut z = k.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    };
+    let k = mix(seed ^ mix(((row as u64) << 20) ^ col as u64));
+    let u1 = ((k >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+    let u2 = ((mix(k) >> 11) as f64) / (1u64 << 53) as f64;
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// Budget for keeping all channel matrices (f64) in memory between the passes.
+pub const DFMF_CACHE_BYTES: usize = 1 << 30;
+
+/// Streams the per-view channel matrices, keeping them when they fit the budget.
+struct Stream<'a> {
+    ds: &'a DatasetViews,
+    model: ColorModel,
+    m_inv: [[f64; 3]; 3],
+    cached: Vec<Option<[Mat<f64>; 3]>>,
+    keep: bool,
+    filled: usize,
+    passes: usize,
+}
+
+impl Stream<'_> {
+    fn pass(&mut self, mut f: impl FnMut(usize, [MatRef<'_, f64>; 3])) -> Result<(), CompressError> {
+        let first = self.passes == 0;
+        let mut read = false;
+        for v in 0..self.ds.n_views() {
+            if let Some(m) = &self.cached[v] {
+                f(v, [m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
+                continue;
+            }
+            read = true;
+            let (m, filled) = channel_matrices(self.ds, v, self.model, &self.m_inv)?;
+            if first {
+                self.filled += filled.len();
+            }
+            f(v, [m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
+            if self.keep {
+                self.cached[v] = Some(m);
+            }
+        }
+        if read || first {
+            self.passes += 1;
+        }
+        Ok(())
+    }
+}
+
+/// Factorize `ds` with DFMF.
+pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInfo), CompressError> {
+    if params.components.contains(&0) {
+        return Err(CompressError::Invalid(format!(
+            "DFMF components {:?}: every channel needs at least 1",
+            params.components
+        )));
+    }
+    let (t, nl, nv) = (ds.texels(), ds.n_lights(), ds.n_views());
+    let n = nl * nv;
+    let ks: Vec<usize> = params
+        .components
+        .iter()
+        .map(|&c| (c + params.oversample).min(t).min(n))
+        .collect();
+    let mut s = Stream {
+        ds,
+        model: params.color_model,
+        m_inv: rgb_to_yuv(),
+        cached: vec![None; nv],
+        keep: t * n * 3 * 8 <= DFMF_CACHE_BYTES,
+        filled: 0,
+        passes: 0,
+    };
+    // Y = A Ω per channel (A = texels × measurements), Ω Gaussian, generated per view.
+    let mut y: Vec<Mat<f64>> = ks.iter().map(|&k| Mat::zeros(t, k)).collect();
+    s.pass(|v, a| {
+        for ch in 0..3 {
+            let seed = params.seed.wrapping_add(ch as u64);
+            let omega = Mat::from_fn(nl, ks[ch], |i, j| gaussian(seed, v * nl + i, j));
+            y[ch] += a[ch] * &omega;
+        }
+    })?;
+    for _ in 0..params.power_iters {
+        let q: Vec<Mat<f64>> = y.iter().map(|y| y.qr().compute_thin_Q()).collect();
+        let mut ny: Vec<Mat<f64>> = ks.iter().map(|&k| Mat::zeros(t, k)).collect();
+        s.pass(|_, a| {
+            for ch in 0..3 {
+                let z = a[ch].transpose() * &q[ch];
+                ny[ch] += a[ch] * &z;
+            }
+        })?;
+        y = ny;
+    }
+    let q: Vec<Mat<f64>> = y.iter().map(|y| y.qr().compute_thin_Q()).collect();
+    drop(y);
+    let mut b: Vec<Mat<f64>> = q.iter().map(|q| Mat::zeros(q.ncols(), n)).collect();
+    s.pass(|v, a| {
+        for ch in 0..3 {
+            let bv = q[ch].transpose() * a[ch];
+            b[ch].as_mut().subcols_mut(v * nl, nl).copy_from(&bv);
+        }
+    })?;
+    let mut channels = Vec::with_capacity(3);
+    for ch in 0..3 {
+        let c = params.components[ch];
+        // B = Qᵀ A ≈ U_B S Vᵀ: texel side S·V = Q U_B S, measurement side U = V.
+        let (ubs, vv) = truncated_svd(b[ch].as_ref(), c)?;
+        let sxv = &q[ch] * &ubs;
+        let sigma = (0..c).map(|j| ubs.col(j).norm_l2() as f32).collect();
+        channels.push(ChannelFactors {
+            c,
+            sigma,
+            u: row_major_f32(vv.as_ref()),
+            sxv: row_major_f32(sxv.as_ref()),
+        });
+    }
+    let dfmf = Dfmf {
+        color_model: params.color_model,
+        width: ds.width,
+        height: ds.height,
+        lights_deg: ds.lights_deg.clone(),
+        views_deg: ds.views_deg.clone(),
+        channels,
+    };
+    Ok((
+        dfmf,
+        EncodeInfo {
+            filled: s.filled,
+            passes: s.passes,
+        },
+    ))
+}
+
+fn row_major_f32(m: MatRef<'_, f64>) -> Vec<f32> {
+    let mut out = Vec::with_capacity(m.nrows() * m.ncols());
+    for i in 0..m.nrows() {
+        for j in 0..m.ncols() {
+            out.push(m[(i, j)] as f32);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::super::btf_ubo2014::{self, Precision};
+    use super::*;
+    use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
+    use gonio_devices::image::RgbImage;
+    use std::path::Path;
+
+    /// Write a dataset on the grid `lights` × `views` whose image (light, view) is
+    /// `f(light, view, texel, channel)`; pairs in `skip` are recorded as skipped.
+    pub(crate) fn write_test_dataset(
+        dir: &Path,
+        (w, h): (usize, usize),
+        lights: &[[f64; 2]],
+        views: &[[f64; 2]],
+        skip: &[(usize, usize)],
+        f: impl Fn(usize, usize, usize, usize) -> f32,
+    ) -> DatasetViews {
+        let header = ManifestHeader {
+            format: store::FORMAT.into(),
+            version: store::FORMAT_VERSION,
+            gonio_version: "test".into(),
+            created_unix: 1_700_000_000.0,
+            rig: serde_json::json!({"name": "test rig"}),
+            sample: serde_json::json!({"name": "synthetic"}),
+            sweep: serde_json::json!({"name": "t", "lights_deg": lights, "views_deg": views}),
+            image_width: w,
+            image_height: h,
+            values: "synthetic".into(),
+            seed: 1,
+            raw_frames: false,
+            calibration: None,
+            extra: serde_json::Value::Null,
+        };
+        let mut ds = Dataset::create(dir, &header, false).unwrap();
+        for (v, vd) in views.iter().enumerate() {
+            for (l, ld) in lights.iter().enumerate() {
+                let index = v * lights.len() + l;
+                let mut rec = MeasurementRecord::new(index, index, *ld, *vd);
+                if skip.contains(&(l, v)) {
+                    rec.status = MeasurementStatus::Skipped { reason: "test".into() };
+                    ds.store(rec, None, None).unwrap();
+                    continue;
+                }
+                let mut img = RgbImage::new(w, h);
+                for t in 0..w * h {
+                    for c in 0..3 {
+                        img.data[t * 3 + c] = f(l, v, t, c);
+                    }
+                }
+                ds.store(rec, Some(&img), None).unwrap();
+            }
+        }
+        ds.finish(&serde_json::json!({})).unwrap();
+        DatasetViews::open(dir).unwrap()
+    }
+
+    fn lights() -> Vec<[f64; 2]> {
+        vec![[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [60.0, 90.0]]
+    }
+    fn views() -> Vec<[f64; 2]> {
+        vec![[0.0, 0.0], [45.0, 0.0], [45.0, 180.0], [60.0, 270.0]]
+    }
+    /// Smooth, positive, colourful, values in (0.02, 0.9).
+    fn smooth(l: usize, v: usize, t: usize, c: usize) -> f32 {
+        let x = (t % 7) as f32 / 7.0;
+        0.02 + 0.3 * (1.0 + ((l as f32 + 1.3 * v as f32) * 0.7 + x * 2.0 + c as f32).sin()) * (0.5 + 0.1 * c as f32)
+    }
+
+    #[test]
+    #[allow(clippy::needless_range_loop)] // a matrix product reads best with indices
+    fn rgb_to_yuv_inverts_the_readers_matrix() {
+        let mi = rgb_to_yuv();
+        for (i, row) in YUV_TO_RGB.iter().enumerate() {
+            for j in 0..3 {
+                let p: f64 = (0..3).map(|k| f64::from(row[k]) * mi[k][j]).sum();
+                assert!((p - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12, "({i},{j}) = {p}");
+            }
+        }
+        // Luminance row is BT.601's (0.299, 0.587, 0.114) to the matrix's precision.
+        assert!((mi[0][0] - 0.299).abs() < 1e-3 && (mi[0][1] - 0.587).abs() < 1e-3);
+    }
+
+    #[test]
+    fn log_yuv_colour_round_trip_and_its_limits() {
+        let mi = rgb_to_yuv();
+        for rgb in [
+            [0.5f32, 0.25, 0.125],
+            [0.9, 0.01, 0.3],
+            [1e-3, 2e-3, 5e-4],
+            [0.0, 0.0, 0.0],
+        ] {
+            let c = encode_color(ColorModel::LogYuv, &mi, rgb).map(|x| x as f32);
+            let back = decode_color(ColorModel::LogYuv, c);
+            // The reader adds ε to U and V after scaling by Y, so black decodes to
+            // (1.14, 0, 2.03)·ε: a floor of 2e-5 (0.07 of an 8-bit sRGB code).
+            for k in 0..3 {
+                assert!((back[k] - rgb[k]).abs() < 2.5e-5, "{rgb:?} → {c:?} → {back:?}");
+            }
+        }
+        // Negative noise is clamped to 0; the reader clamps to [0, 1].
+        let c = encode_color(ColorModel::LogYuv, &mi, [-0.1, 0.0, 0.0]);
+        assert!(c.iter().all(|x| x.is_finite()));
+        let hi = decode_color(
+            ColorModel::LogYuv,
+            encode_color(ColorModel::LogYuv, &mi, [3.0, 2.0, 1.5]).map(|x| x as f32),
+        );
+        assert_eq!(hi, [1.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn full_rank_rgb_dfmf_reproduces_every_image_and_the_file_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let ds = write_test_dataset(dir.path(), (6, 5), &lights(), &views(), &[], smooth);
+        // Rank ≤ 20 measurements: c = 20 is exact.
+        let (d, info) = encode(&ds, &DfmfParams::new(ColorModel::Rgb, 20)).unwrap();
+        assert_eq!((info.filled, info.passes), (0, 1));
+        for v in 0..4 {
+            for l in 0..5 {
+                let img = ds.read_image(l, v).unwrap().unwrap();
+                let rec = d.reconstruct(l, v).unwrap();
+                let err = img.iter().zip(&rec).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+                assert!(err < 1e-5, "light {l} view {v}: {err}");
+            }
+        }
+        let bytes = btf_ubo2014::to_bytes(&d, Precision::F32, "<x/>").unwrap();
+        assert!(bytes.starts_with(b"!DFMF08FCR"));
+        let back = btf_ubo2014::from_bytes(&bytes, Path::new("t.btf")).unwrap();
+        // 5 lights, 4 views: one zero view of padding in the file, cut on reading.
+        assert_eq!(back, d);
+        let h = btf_ubo2014::to_bytes(&d, Precision::F16, "").unwrap();
+        let back = btf_ubo2014::from_bytes(&h, Path::new("t.btf")).unwrap();
+        for (a, b) in back.channels.iter().zip(&d.channels) {
+            for (x, y) in a.sxv.iter().zip(&b.sxv).chain(a.u.iter().zip(&b.u)) {
+                assert!((x - y).abs() <= 1e-3 * y.abs() + 1e-7, "{x} vs {y}");
+            }
+        }
+    }
+
+    #[test]
+    fn log_yuv_dfmf_low_rank_is_close_and_deterministic() {
+        let dir = tempfile::tempdir().unwrap();
+        let ds = write_test_dataset(dir.path(), (6, 5), &lights(), &views(), &[(2, 1)], smooth);
+        let p = DfmfParams::new(ColorModel::LogYuv, 6);
+        let (a, info) = encode(&ds, &p).unwrap();
+        let (b, _) = encode(&ds, &p).unwrap();
+        assert_eq!(a, b, "same seed, same factors");
+        assert_eq!(info.filled, 1);
+        let ev = super::super::evaluate(&ds, &a).unwrap();
+        assert_eq!(ev.images, 19);
+        assert!(ev.stats.rmse_linear() < 0.02, "rmse {}", ev.stats.rmse_linear());
+        assert!(ev.truth.is_none());
+    }
+
+    #[test]
+    fn zero_and_constant_inputs_factorize() {
+        let dir = tempfile::tempdir().unwrap();
+        let ds = write_test_dataset(dir.path(), (4, 4), &lights(), &views(), &[], |_, _, _, _| 0.0);
+        let (d, _) = encode(&ds, &DfmfParams::new(ColorModel::LogYuv, 3)).unwrap();
+        let rec = d.reconstruct(1, 1).unwrap();
+        assert!(rec.iter().all(|&x| (0.0..3e-5).contains(&x)), "{rec:?}");
+        let dir2 = tempfile::tempdir().unwrap();
+        let ds = write_test_dataset(dir2.path(), (4, 4), &lights(), &views(), &[], |_, _, _, c| {
+            0.2 + 0.1 * c as f32
+        });
+        let (d, _) = encode(&ds, &DfmfParams::new(ColorModel::LogYuv, 1)).unwrap();
+        let rec = d.reconstruct(3, 2).unwrap();
+        for px in rec.chunks_exact(3) {
+            for c in 0..3 {
+                assert!((px[c] - (0.2 + 0.1 * c as f32)).abs() < 1e-4, "{px:?}");
+            }
+        }
+        assert!(matches!(
+            encode(&ds, &DfmfParams::new(ColorModel::Rgb, 0)),
+            Err(CompressError::Invalid(_))
+        ));
+    }
+
+    #[test]
+    fn malformed_btf_files_are_errors_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let ds = write_test_dataset(dir.path(), (4, 3), &lights(), &views(), &[], smooth);
+        let (d, _) = encode(&ds, &DfmfParams::new(ColorModel::Rgb, 2)).unwrap();
+        let good = btf_ubo2014::to_bytes(&d, Precision::F16, "").unwrap();
+        let p = Path::new("/data/x.btf");
+        let corrupt = |b: &[u8]| match btf_ubo2014::from_bytes(b, p) {
+            Err(CompressError::Corrupt { path, reason }) => {
+                assert_eq!(path, p);
+                reason
+            }
+            other => panic!("expected Corrupt, got {other:?}"),
+        };
+        assert!(corrupt(&good[..good.len() - 1]).contains("truncated"));
+        let mut long = good.clone();
+        long.push(0);
+        assert!(corrupt(&long).contains("trailing"));
+        assert!(corrupt(b"!FMF1....").contains("signature"));
+        let mut bad_model = good.clone();
+        // The colour model: after signature, common header (264 + cosine 4 + XML length 4 +
+        // channel count 4 + names "R", "G", "B" 3 × 5), directions, size, rotations, components.
+        let (nl, nv) = (5, 4);
+        let at = 10 + 291 + 4 + nv * (8 + 4 + nl * 8) + 8 + 4 + 4;
+        assert_eq!(&good[at..at + 4], &0u32.to_le_bytes());
+        bad_model[at] = 7;
+        assert!(corrupt(&bad_model).contains("colour model 7"));
+        // More views than lights cannot be written.
+        let mut wide = d.clone();
+        wide.views_deg = (0..6).map(|i| [40.0, 60.0 * i as f64]).collect();
+        for ch in &mut wide.channels {
+            ch.u = vec![0.0; 6 * 5 * ch.c];
+        }
+        assert!(matches!(
+            btf_ubo2014::to_bytes(&wide, Precision::F32, ""),
+            Err(CompressError::Invalid(m)) if m.contains("views")
+        ));
+        // Values beyond half range are refused in f16, fine in f32.
+        let mut big = d.clone();
+        big.channels[0].sxv[0] = 1e6;
+        assert!(btf_ubo2014::to_bytes(&big, Precision::F16, "").is_err());
+        assert!(btf_ubo2014::to_bytes(&big, Precision::F32, "").is_ok());
+    }
+}

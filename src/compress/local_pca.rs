@@ -1,0 +1,895 @@
+//! Local PCA / PCMF (Müller, Meseth, Klein 2003): the ABRDFs (one per texel: every
+//! measurement × 3 values) are clustered into `k` clusters and each cluster is
+//! represented by its mean and `c` eigen-ABRDFs. Encoding alternates
+//!
+//! 1. per-cluster PCA (mean subtracted; basis by a randomized SVD that streams the
+//!    cluster's rows, final SVD by faer in f64), and
+//! 2. assignment of every ABRDF to the cluster that reconstructs it with the smallest
+//!    squared error (one GEMM of all ABRDFs against all means and bases),
+//!
+//! starting from a k-means++ seeding (D² sampling, deterministic for a fixed seed) and
+//! stopping when at most 0.1 % of the ABRDFs change cluster or after `iters` rounds. Empty clusters are
+//! re-seeded with the worst-reconstructed ABRDF. When the data have fewer distinct
+//! ABRDFs than `k`, seeding stops early and fewer clusters are stored (the header's
+//! `clusters_used` says how many).
+//!
+//! **Memory.** The methods that need whole ABRDFs (this one, median cut, homomorphic
+//! factorization) read the dataset once into an [`Abrdfs`] matrix. It is kept as f32
+//! while it fits [`ABRDF_F32_BUDGET`] (64² × 19683 values: 308 MiB); larger datasets
+//! (256² × 19683 = 4.8 GiB as f32) are kept as **8-bit sRGB codes of the value divided
+//! by its column's maximum** (1.2 GiB at 256², plus one f32 scale per column). 8 bits of
+//! sRGB is the precision the UBO2003 data were published in and what the error
+//! statistics are computed on; the per-column scale keeps values above 1 (highlights).
+//! All arithmetic runs on decoded blocks of a few hundred rows (≤ 32 MiB), so the peak
+//! stays near the size of the code matrix.
+//!
+//! Stored blocks (`.gbtf`, f32): `cluster` (texels × 1, the cluster index as an exact
+//! small integer), `coef` (texels × c), `mean` (k × M) and `basis` (k·c × M, row
+//! `j·c + i` is eigen-ABRDF `i` of cluster `j`), with M = views · lights · 3 and column
+//! `(view · lights + light) · 3 + channel` as for PCA.
+
+use super::container::{BlockInfo, Gbtf, GbtfHeader};
+use super::data::DatasetViews;
+use super::factor::{truncated_svd, EncodeInfo, Method, Params};
+use super::CompressError;
+use faer::{Mat, MatRef};
+use rayon::prelude::*;
+
+/// Largest ABRDF matrix kept as f32; larger ones are kept as 8-bit sRGB codes.
+pub const ABRDF_F32_BUDGET: usize = 1 << 30;
+
+/// Rows decoded at a time (bounded to ~32 MiB of f32).
+fn block_rows(dims: usize) -> usize {
+    ((32usize << 20) / (dims.max(1) * 4)).clamp(1, 4096)
+}
+
+enum Store {
+    F32(Vec<f32>),
+    Srgb8 {
+        codes: Vec<u8>,
+        /// Per-column scale (the column's maximum).
+        scale: Vec<f32>,
+        /// sRGB code → linear value in [0, 1].
+        lut: Box<[f32; 256]>,
+    },
+}
+
+/// All ABRDFs of a dataset: `texels × dims`, dims = views · lights · 3, column
+/// `(view · lights + light) · 3 + channel`.
+pub struct Abrdfs {
+    pub texels: usize,
+    pub dims: usize,
+    /// `[light, view]` pairs filled from the nearest measured light.
+    pub filled: Vec<[usize; 2]>,
+    store: Store,
+}
+
+fn srgb_to_linear(code: u8) -> f32 {
+    let s = code as f32 / 255.0;
+    if s <= 0.04045 {
+        s / 12.92
+    } else {
+        ((s + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+impl Abrdfs {
+    /// Read the dataset once, view by view. f32 when `texels · dims · 4 ≤ budget`, else
+    /// 8-bit sRGB codes with a per-column scale (see the module docs).
+    pub fn load(ds: &DatasetViews, budget: usize) -> Result<Self, CompressError> {
+        let (t, lc, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
+        let dims = lc * nv;
+        let exact = t.saturating_mul(dims).saturating_mul(4) <= budget;
+        let mut filled = Vec::new();
+        let mut f32s = if exact { vec![0f32; t * dims] } else { Vec::new() };
+        let mut codes = if exact { Vec::new() } else { vec![0u8; t * dims] };
+        let mut scale = if exact { Vec::new() } else { vec![0f32; dims] };
+        for v in 0..nv {
+            let vm = ds.view_matrix(v)?;
+            filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
+            let off = v * lc;
+            if exact {
+                f32s.par_chunks_mut(dims)
+                    .zip(vm.data.par_chunks(lc))
+                    .for_each(|(row, src)| row[off..off + lc].copy_from_slice(src));
+            } else {
+                for j in 0..lc {
+                    let m = vm.data.chunks(lc).map(|r| r[j]).fold(0f32, f32::max);
+                    scale[off + j] = if m > 0.0 { m } else { 1.0 };
+                }
+                let sc = &scale[off..off + lc];
+                codes
+                    .par_chunks_mut(dims)
+                    .zip(vm.data.par_chunks(lc))
+                    .for_each(|(row, src)| {
+                        for ((o, &x), &s) in row[off..off + lc].iter_mut().zip(src).zip(sc) {
+                            *o = crate::store::linear_to_srgb8(x / s);
+                        }
+                    });
+            }
+        }
+        let store = if exact {
+            Store::F32(f32s)
+        } else {
+            let mut lut = Box::new([0f32; 256]);
+            for (i, l) in lut.iter_mut().enumerate() {
+                *l = srgb_to_linear(i as u8);
+            }
+            Store::Srgb8 { codes, scale, lut }
+        };
+        tracing::info!(texels = t, dims, exact, "ABRDF matrix loaded");
+        Ok(Abrdfs {
+            texels: t,
+            dims,
+            filled,
+            store,
+        })
+    }
+
+    /// Wrap an in-memory f32 matrix (row-major `texels × dims`).
+    pub fn from_f32(texels: usize, dims: usize, data: Vec<f32>) -> Result<Self, CompressError> {
+        if data.len() != texels * dims {
+            return Err(CompressError::Invalid(format!(
+                "ABRDF matrix {texels}×{dims} needs {} values, got {}",
+                texels * dims,
+                data.len()
+            )));
+        }
+        if let Some(p) = data.iter().position(|v| !v.is_finite()) {
+            return Err(CompressError::Invalid(format!(
+                "ABRDF matrix: non-finite value {} at texel {}, column {}",
+                data[p],
+                p / dims.max(1),
+                p % dims.max(1)
+            )));
+        }
+        Ok(Abrdfs {
+            texels,
+            dims,
+            filled: Vec::new(),
+            store: Store::F32(data),
+        })
+    }
+
+    /// Whether values are kept exactly (f32) rather than as 8-bit codes.
+    pub fn is_exact(&self) -> bool {
+        matches!(self.store, Store::F32(_))
+    }
+
+    /// Bytes held by the matrix.
+    pub fn bytes(&self) -> usize {
+        match &self.store {
+            Store::F32(d) => d.len() * 4,
+            Store::Srgb8 { codes, scale, .. } => codes.len() + scale.len() * 4,
+        }
+    }
+
+    /// Decode row `t` into `out` (length `dims`).
+    pub fn row(&self, t: usize, out: &mut [f32]) {
+        let d = self.dims;
+        match &self.store {
+            Store::F32(v) => out.copy_from_slice(&v[t * d..(t + 1) * d]),
+            Store::Srgb8 { codes, scale, lut } => {
+                for ((o, &c), &s) in out.iter_mut().zip(&codes[t * d..(t + 1) * d]).zip(scale) {
+                    *o = lut[c as usize] * s;
+                }
+            }
+        }
+    }
+
+    /// One value.
+    pub fn value(&self, t: usize, j: usize) -> f32 {
+        match &self.store {
+            Store::F32(v) => v[t * self.dims + j],
+            Store::Srgb8 { codes, scale, lut } => lut[codes[t * self.dims + j] as usize] * scale[j],
+        }
+    }
+
+    /// Decode `rows` into the row-major `buf` (resized), subtracting `mean` if given.
+    pub fn decode_rows(&self, rows: &[u32], mean: Option<&[f32]>, buf: &mut Vec<f32>) {
+        buf.resize(rows.len() * self.dims, 0.0);
+        buf.par_chunks_mut(self.dims.max(1))
+            .zip(rows.par_iter())
+            .for_each(|(out, &r)| {
+                self.row(r as usize, out);
+                if let Some(m) = mean {
+                    for (o, &mm) in out.iter_mut().zip(m) {
+                        *o -= mm;
+                    }
+                }
+            });
+    }
+
+    /// Call `f(offset, block)` for consecutive blocks of `rows` (decoded, `mean`
+    /// subtracted); `offset` is the position of the block's first row in `rows`.
+    pub fn for_blocks(
+        &self,
+        rows: &[u32],
+        mean: Option<&[f32]>,
+        mut f: impl FnMut(usize, MatRef<'_, f32>) -> Result<(), CompressError>,
+    ) -> Result<(), CompressError> {
+        let bs = block_rows(self.dims);
+        let mut buf = Vec::new();
+        for (bi, chunk) in rows.chunks(bs).enumerate() {
+            self.decode_rows(chunk, mean, &mut buf);
+            f(bi * bs, MatRef::from_row_major_slice(&buf[..], chunk.len(), self.dims))?;
+        }
+        Ok(())
+    }
+
+    /// Mean (f64 accumulation) of `rows`.
+    pub fn mean_of(&self, rows: &[u32]) -> Vec<f32> {
+        let mut sum = vec![0f64; self.dims];
+        let _ = self.for_blocks(rows, None, |_, b| {
+            for i in 0..b.nrows() {
+                for (s, &x) in sum.iter_mut().zip(b.row(i).iter()) {
+                    *s += x as f64;
+                }
+            }
+            Ok(())
+        });
+        let n = rows.len().max(1) as f64;
+        sum.into_iter().map(|s| (s / n) as f32).collect()
+    }
+}
+
+/// splitmix64: the deterministic generator of seeding and sketches.
+pub(crate) fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Standard normal number for (seed, row, col) (splitmix64 + Box–Muller).
+fn gaussian(seed: u64, row: usize, col: usize) -> f64 {
+    let mut s = seed ^ ((row as u64) << 24) ^ (col as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
+    let (a, b) = (splitmix(&mut s), splitmix(&mut s));
+    let u1 = ((a >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+    let u2 = (b >> 11) as f64 / (1u64 << 53) as f64;
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// Candidates for k-means++ seeding: at most this many rows (evenly strided), so seeding
+/// costs `k · 4096 · dims` however large the image.
+const SEED_CANDIDATES: usize = 4096;
+/// Extra sketch columns of the per-cluster randomized SVD.
+const OVERSAMPLE: usize = 10;
+/// Power iterations of the per-cluster randomized SVD.
+const POWER_ITERS: usize = 2;
+
+/// A fitted local-PCA model.
+#[derive(Clone, Debug)]
+pub struct LocalPca {
+    pub k: usize,
+    pub c: usize,
+    pub dims: usize,
+    pub assign: Vec<u32>,
+    /// texels × c.
+    pub coef: Vec<f32>,
+    /// k × dims.
+    pub means: Vec<f32>,
+    /// (k · c) × dims.
+    pub basis: Vec<f32>,
+    /// Alternation rounds run.
+    pub rounds: usize,
+    /// Sum of squared reconstruction errors over all ABRDF values (linear).
+    pub sse: f64,
+}
+
+/// k-means++ centers (decoded rows) among evenly strided candidate rows.
+fn seed_centers(a: &Abrdfs, k: usize, seed: u64) -> Result<Vec<Vec<f32>>, CompressError> {
+    let stride = a.texels.div_ceil(SEED_CANDIDATES).max(1);
+    let cand: Vec<u32> = (0..a.texels).step_by(stride).map(|t| t as u32).collect();
+    let mut rng = seed ^ 0x5eed_5eed_1234_5678;
+    let mut row = vec![0f32; a.dims];
+    a.row(
+        cand[(splitmix(&mut rng) % cand.len() as u64) as usize] as usize,
+        &mut row,
+    );
+    let mut centers = vec![row.clone()];
+    let mut d2 = vec![f64::INFINITY; cand.len()];
+    loop {
+        let c = centers.last().expect("at least one center");
+        a.for_blocks(&cand, None, |off, b| {
+            let d: Vec<f64> = (0..b.nrows())
+                .into_par_iter()
+                .map(|i| b.row(i).iter().zip(c).map(|(&x, &y)| ((x - y) as f64).powi(2)).sum())
+                .collect();
+            for (o, v) in d2[off..off + d.len()].iter_mut().zip(d) {
+                *o = o.min(v);
+            }
+            Ok(())
+        })?;
+        if centers.len() >= k {
+            break;
+        }
+        let total: f64 = d2.iter().sum();
+        if total <= 0.0 {
+            break; // fewer distinct candidate ABRDFs than k
+        }
+        let r = (splitmix(&mut rng) >> 11) as f64 / (1u64 << 53) as f64 * total;
+        let mut acc = 0.0;
+        let mut pick = None;
+        for (i, &d) in d2.iter().enumerate() {
+            if d > 0.0 {
+                acc += d;
+                pick = Some(i);
+                if acc >= r {
+                    break;
+                }
+            }
+        }
+        let Some(i) = pick else { break };
+        a.row(cand[i] as usize, &mut row);
+        centers.push(row.clone());
+    }
+    Ok(centers)
+}
+
+/// Orthonormal basis (dims × c, zero columns where the cluster's rank is below c) of the
+/// centered rows `members`, by randomized SVD streaming the rows.
+fn cluster_basis(a: &Abrdfs, members: &[u32], mean: &[f32], c: usize, seed: u64) -> Result<Mat<f64>, CompressError> {
+    let (n, dims) = (members.len(), a.dims);
+    let kp = (c + OVERSAMPLE).min(n).min(dims);
+    if c == 0 || kp == 0 {
+        return Ok(Mat::zeros(dims, c));
+    }
+    let omega = Mat::<f32>::from_fn(dims, kp, |i, j| gaussian(seed, i, j) as f32);
+    let mut y = Mat::<f64>::zeros(n, kp);
+    let fill_y = |y: &mut Mat<f64>, m: &Mat<f32>| -> Result<(), CompressError> {
+        a.for_blocks(members, Some(mean), |off, b| {
+            let yb = b * m;
+            for i in 0..yb.nrows() {
+                for j in 0..kp {
+                    y[(off + i, j)] = yb[(i, j)] as f64;
+                }
+            }
+            Ok(())
+        })
+    };
+    fill_y(&mut y, &omega)?;
+    // Xᵀ Q accumulated block by block in f64.
+    let xt_q = |q: &Mat<f64>| -> Result<Mat<f64>, CompressError> {
+        let qf = Mat::<f32>::from_fn(n, kp, |i, j| q[(i, j)] as f32);
+        let mut z = Mat::<f64>::zeros(dims, kp);
+        a.for_blocks(members, Some(mean), |off, b| {
+            let zb = b.transpose() * qf.as_ref().subrows(off, b.nrows());
+            z += Mat::<f64>::from_fn(dims, kp, |i, j| zb[(i, j)] as f64);
+            Ok(())
+        })?;
+        Ok(z)
+    };
+    for _ in 0..POWER_ITERS {
+        let q = y.qr().compute_thin_Q();
+        let z = xt_q(&q)?;
+        let zq = z.qr().compute_thin_Q();
+        let zf = Mat::<f32>::from_fn(dims, kp, |i, j| zq[(i, j)] as f32);
+        fill_y(&mut y, &zf)?;
+    }
+    let q = y.qr().compute_thin_Q();
+    let bt = xt_q(&q)?; // (Qᵀ X)ᵀ: dims × kp
+    let (us, _) = truncated_svd(bt.as_ref(), c)?;
+    let norms: Vec<f64> = (0..c).map(|j| us.col(j).norm_l2()).collect();
+    let top = norms.iter().cloned().fold(0.0, f64::max);
+    Ok(Mat::from_fn(dims, c, |i, j| {
+        if norms[j] > top * 1e-9 && norms[j] > 0.0 {
+            us[(i, j)] / norms[j]
+        } else {
+            0.0
+        }
+    }))
+}
+
+/// Result of one assignment pass.
+struct Assignment {
+    assign: Vec<u32>,
+    coef: Vec<f32>,
+    err: Vec<f64>,
+    sse: f64,
+}
+
+/// Assign every row to the cluster (mean `means[j]`, basis `bases[j]`) with the smallest
+/// reconstruction error; coefficients are the projections on that basis.
+fn assign(a: &Abrdfs, means: &[Vec<f32>], bases: &[Mat<f64>], c: usize) -> Result<Assignment, CompressError> {
+    let (k, dims) = (means.len(), a.dims);
+    let w = Mat::<f32>::from_fn(dims, k * (c + 1), |i, col| {
+        if col < k {
+            means[col][i]
+        } else {
+            let (j, q) = ((col - k) / c, (col - k) % c);
+            bases[j][(i, q)] as f32
+        }
+    });
+    let mu_sq: Vec<f64> = means
+        .iter()
+        .map(|m| m.iter().map(|&x| (x as f64).powi(2)).sum())
+        .collect();
+    let bmu: Vec<Vec<f64>> = (0..k)
+        .map(|j| {
+            (0..c)
+                .map(|q| (0..dims).map(|i| bases[j][(i, q)] * means[j][i] as f64).sum())
+                .collect()
+        })
+        .collect();
+    let all: Vec<u32> = (0..a.texels as u32).collect();
+    let mut out = Assignment {
+        assign: vec![0; a.texels],
+        coef: vec![0.0; a.texels * c],
+        err: vec![0.0; a.texels],
+        sse: 0.0,
+    };
+    a.for_blocks(&all, None, |off, b| {
+        let p = b * &w;
+        let res: Vec<(u32, f64)> = (0..b.nrows())
+            .into_par_iter()
+            .map(|i| {
+                let xsq: f64 = b.row(i).iter().map(|&x| (x as f64).powi(2)).sum();
+                let mut best = (0u32, f64::INFINITY);
+                for j in 0..k {
+                    let mut e = xsq - 2.0 * p[(i, j)] as f64 + mu_sq[j];
+                    for q in 0..c {
+                        let cq = p[(i, k + j * c + q)] as f64 - bmu[j][q];
+                        e -= cq * cq;
+                    }
+                    if e < best.1 {
+                        best = (j as u32, e);
+                    }
+                }
+                (best.0, best.1.max(0.0))
+            })
+            .collect();
+        for (i, (j, e)) in res.into_iter().enumerate() {
+            let t = off + i;
+            out.assign[t] = j;
+            out.err[t] = e;
+            out.sse += e;
+            for q in 0..c {
+                out.coef[t * c + q] = (p[(i, k + j as usize * c + q)] as f64 - bmu[j as usize][q]) as f32;
+            }
+        }
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// Fit `k` clusters with `c` eigen-ABRDFs each, at most `iters` alternation rounds.
+pub fn fit(a: &Abrdfs, k: usize, c: usize, iters: usize, seed: u64) -> Result<LocalPca, CompressError> {
+    if k == 0 {
+        return Err(CompressError::Invalid("local PCA needs at least 1 cluster".into()));
+    }
+    if a.texels == 0 || a.dims == 0 {
+        return Err(CompressError::Invalid("local PCA of an empty ABRDF matrix".into()));
+    }
+    let centers = seed_centers(a, k, seed)?;
+    let k = centers.len();
+    let none: Vec<Mat<f64>> = (0..k).map(|_| Mat::zeros(a.dims, 0)).collect();
+    let mut cur = assign(a, &centers, &none, 0)?;
+    let mut means = centers;
+    let mut bases = none;
+    let mut coef = Vec::new();
+    let mut rounds = 0;
+    for round in 0..iters.max(1) {
+        rounds = round + 1;
+        let mut members: Vec<Vec<u32>> = vec![Vec::new(); k];
+        for (t, &j) in cur.assign.iter().enumerate() {
+            members[j as usize].push(t as u32);
+        }
+        // Re-seed empty clusters with the worst-reconstructed rows of clusters that keep
+        // at least one member.
+        if members.iter().any(|m| m.is_empty()) {
+            let mut order: Vec<usize> = (0..a.texels).collect();
+            order.sort_by(|&x, &y| cur.err[y].total_cmp(&cur.err[x]).then(x.cmp(&y)));
+            let mut next = order.into_iter();
+            for j in 0..k {
+                if !members[j].is_empty() {
+                    continue;
+                }
+                for t in next.by_ref() {
+                    let from = cur.assign[t] as usize;
+                    if members[from].len() > 1 && cur.err[t] > 0.0 {
+                        members[from].retain(|&r| r as usize != t);
+                        members[j].push(t as u32);
+                        cur.assign[t] = j as u32;
+                        break;
+                    }
+                }
+            }
+        }
+        means = members
+            .iter()
+            .map(|m| if m.is_empty() { vec![0f32; a.dims] } else { a.mean_of(m) })
+            .collect();
+        bases = members
+            .iter()
+            .zip(&means)
+            .enumerate()
+            .map(|(j, (m, mu))| cluster_basis(a, m, mu, c, seed ^ (j as u64 + 1).wrapping_mul(0x9e37)))
+            .collect::<Result<_, _>>()?;
+        let next = assign(a, &means, &bases, c)?;
+        let changed = next.assign.iter().zip(&cur.assign).filter(|(x, y)| x != y).count();
+        tracing::debug!(round, changed, sse = next.sse, "local PCA round");
+        cur = next;
+        coef = std::mem::take(&mut cur.coef);
+        // Converged when at most 0.1 % of the ABRDFs moved: with randomized bases a
+        // handful of borderline ABRDFs can flip back and forth for many rounds while the
+        // error no longer changes.
+        if changed * 1000 <= a.texels {
+            break;
+        }
+    }
+    let mut basis = vec![0f32; k * c * a.dims];
+    for (j, b) in bases.iter().enumerate() {
+        for q in 0..c {
+            for i in 0..a.dims {
+                basis[(j * c + q) * a.dims + i] = b[(i, q)] as f32;
+            }
+        }
+    }
+    Ok(LocalPca {
+        k,
+        c,
+        dims: a.dims,
+        assign: cur.assign,
+        coef,
+        means: means.concat(),
+        basis,
+        rounds,
+        sse: cur.sse,
+    })
+}
+
+/// `gonio compress --method local-pca`.
+pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    let Method::LocalPca { clusters, iters } = params.method else {
+        return Err(CompressError::Invalid(
+            "local_pca::compress called for another method".into(),
+        ));
+    };
+    let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
+    let m = fit(&a, clusters, params.components, iters, params.seed)?;
+    let c = params.components;
+    let infos = vec![
+        BlockInfo {
+            name: "cluster".into(),
+            rows: a.texels,
+            cols: 1,
+        },
+        BlockInfo {
+            name: "coef".into(),
+            rows: a.texels,
+            cols: c,
+        },
+        BlockInfo {
+            name: "mean".into(),
+            rows: m.k,
+            cols: a.dims,
+        },
+        BlockInfo {
+            name: "basis".into(),
+            rows: m.k * c,
+            cols: a.dims,
+        },
+    ];
+    let blocks = vec![m.assign.iter().map(|&j| j as f32).collect(), m.coef, m.means, m.basis];
+    let mut header = super::factor::header_for(ds, params, a.filled.clone(), infos);
+    if let Some(o) = header.params.as_object_mut() {
+        o.insert("clusters_used".into(), m.k.into());
+        o.insert("rounds".into(), m.rounds.into());
+        o.insert(
+            "abrdf_storage".into(),
+            if a.is_exact() { "f32" } else { "srgb8" }.into(),
+        );
+    }
+    let info = EncodeInfo {
+        filled: a.filled.len(),
+        passes: 1,
+    };
+    Ok((Gbtf { header, blocks }, info))
+}
+
+/// Check the block shapes of a local-PCA file; returns (k, c).
+pub fn validate(h: &GbtfHeader) -> Result<(usize, usize), CompressError> {
+    let t = h.width * h.height;
+    let dims = h.lights_deg.len() * h.views_deg.len() * 3;
+    let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
+    let (k, c) = match got.as_slice() {
+        [_, (_, c), (k, _), _] => (*k, *c),
+        _ => (0, 0),
+    };
+    if k == 0 || got != [(t, 1), (t, c), (k, dims), (k * c, dims)] {
+        return Err(CompressError::Invalid(format!(
+            ".gbtf local-pca: block shapes {got:?} do not match the header's grid"
+        )));
+    }
+    Ok((k, c))
+}
+
+/// Check that every texel's index block entry is an integer in `0..n`.
+pub(crate) fn check_indices(idx: &[f32], n: usize, what: &str) -> Result<(), CompressError> {
+    if let Some((t, v)) = idx
+        .iter()
+        .enumerate()
+        .find(|(_, &v)| v.is_nan() || v < 0.0 || v.fract() != 0.0 || v as usize >= n)
+    {
+        return Err(CompressError::Invalid(format!(
+            ".gbtf: {what} index {v} of texel {t} is not an integer in 0..{n}"
+        )));
+    }
+    Ok(())
+}
+
+/// Reconstruct image (`light`, `view`) of a validated local-PCA file.
+pub fn reconstruct(g: &Gbtf, k: usize, c: usize, light: usize, view: usize) -> Vec<f32> {
+    let h = &g.header;
+    let dims = h.lights_deg.len() * h.views_deg.len() * 3;
+    let col = (view * h.lights_deg.len() + light) * 3;
+    let (cluster, coef, mean, basis) = (&g.blocks[0], &g.blocks[1], &g.blocks[2], &g.blocks[3]);
+    // Per cluster: 3 mean values then c × 3 basis values of this pair's columns.
+    let mut table = vec![0f32; k * (c + 1) * 3];
+    for j in 0..k {
+        let tj = &mut table[j * (c + 1) * 3..(j + 1) * (c + 1) * 3];
+        tj[..3].copy_from_slice(&mean[j * dims + col..j * dims + col + 3]);
+        for q in 0..c {
+            let r = (j * c + q) * dims + col;
+            tj[3 + q * 3..6 + q * 3].copy_from_slice(&basis[r..r + 3]);
+        }
+    }
+    let t = h.width * h.height;
+    let mut out = vec![0f32; t * 3];
+    for (i, px) in out.chunks_exact_mut(3).enumerate() {
+        let j = cluster[i] as usize;
+        let tj = &table[j * (c + 1) * 3..(j + 1) * (c + 1) * 3];
+        let (mut r, mut gg, mut b) = (tj[0], tj[1], tj[2]);
+        for (q, &w) in coef[i * c..(i + 1) * c].iter().enumerate() {
+            r += w * tj[3 + q * 3];
+            gg += w * tj[4 + q * 3];
+            b += w * tj[5 + q * 3];
+        }
+        px[0] = r;
+        px[1] = gg;
+        px[2] = b;
+    }
+    out
+}
+
+/// Small synthetic datasets for the tests of the ABRDF methods.
+#[cfg(test)]
+pub(crate) mod testdata {
+    use crate::compress::{compress, CompressedBtf, DatasetViews, Gbtf, Params};
+    use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord};
+    use gonio_devices::image::RgbImage;
+    use std::path::Path;
+
+    pub const W: usize = 8;
+    pub const H: usize = 6;
+
+    pub fn lights() -> Vec<[f64; 2]> {
+        vec![[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [60.0, 90.0]]
+    }
+    pub fn views() -> Vec<[f64; 2]> {
+        vec![[0.0, 0.0], [45.0, 0.0], [45.0, 180.0], [60.0, 270.0]]
+    }
+
+    /// Write a dataset of `w × h` texels on the given grid whose image (light, view) is
+    /// `f(light, view, texel, channel)`, and open it.
+    pub fn write_grid(
+        dir: &Path,
+        w: usize,
+        h: usize,
+        ls: &[[f64; 2]],
+        vs: &[[f64; 2]],
+        f: impl Fn(usize, usize, usize, usize) -> f32,
+    ) -> DatasetViews {
+        let header = ManifestHeader {
+            format: store::FORMAT.into(),
+            version: store::FORMAT_VERSION,
+            gonio_version: "test".into(),
+            created_unix: 1_700_000_000.0,
+            rig: serde_json::json!({"name": "test rig"}),
+            sample: serde_json::json!({"name": "synthetic"}),
+            sweep: serde_json::json!({"name": "t", "lights_deg": ls, "views_deg": vs}),
+            image_width: w,
+            image_height: h,
+            values: "synthetic".into(),
+            seed: 1,
+            raw_frames: false,
+            calibration: None,
+            extra: serde_json::Value::Null,
+        };
+        let mut ds = Dataset::create(dir, &header, false).unwrap();
+        for (v, vd) in vs.iter().enumerate() {
+            for (l, ld) in ls.iter().enumerate() {
+                let index = v * ls.len() + l;
+                let mut img = RgbImage::new(w, h);
+                for t in 0..w * h {
+                    for c in 0..3 {
+                        img.data[t * 3 + c] = f(l, v, t, c);
+                    }
+                }
+                ds.store(MeasurementRecord::new(index, index, *ld, *vd), Some(&img), None)
+                    .unwrap();
+            }
+        }
+        ds.finish(&serde_json::json!({})).unwrap();
+        DatasetViews::open(dir).unwrap()
+    }
+
+    /// [`write_grid`] on the default 8 × 6 texel, 5 light × 4 view grid.
+    pub fn write(dir: &Path, f: impl Fn(usize, usize, usize, usize) -> f32) -> DatasetViews {
+        write_grid(dir, W, H, &lights(), &views(), f)
+    }
+
+    /// Largest absolute difference between the stored images and the reconstruction.
+    pub fn max_err(ds: &DatasetViews, m: &CompressedBtf) -> f32 {
+        let mut e = 0f32;
+        for v in 0..ds.n_views() {
+            for l in 0..ds.n_lights() {
+                let orig = ds.read_image(l, v).unwrap().unwrap();
+                let rec = m.reconstruct(l, v).unwrap();
+                for (a, b) in orig.iter().zip(&rec) {
+                    assert!(b.is_finite());
+                    e = e.max((a - b).abs());
+                }
+            }
+        }
+        e
+    }
+
+    /// Compress, write, read back (every CRC), compare and wrap.
+    pub fn round_trip(ds: &DatasetViews, p: &Params, file: &Path) -> (Gbtf, CompressedBtf) {
+        let (g, _) = compress(ds, p).unwrap();
+        g.write(file).unwrap();
+        let back = Gbtf::read(file).unwrap();
+        assert_eq!(back, g);
+        (g, CompressedBtf::new(back).unwrap())
+    }
+
+    /// Deterministic hash in [0, 1).
+    pub fn hash(a: usize, b: usize) -> f32 {
+        let mut s = (a as u64) << 32 ^ b as u64;
+        (super::splitmix(&mut s) >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testdata::{self, hash, max_err, round_trip};
+    use super::*;
+    use crate::compress::{evaluate, CompressedBtf};
+
+    fn params(k: usize, c: usize, seed: u64) -> Params {
+        Params {
+            seed,
+            ..Params::new(Method::LocalPca { clusters: k, iters: 20 }, c)
+        }
+    }
+
+    /// Three well separated groups of texels, each an affine rank-1 family
+    /// base_g + s_t · dir_g: local PCA with k = 3, c = 1 represents it exactly.
+    fn three_groups(l: usize, v: usize, t: usize, c: usize) -> f32 {
+        let g = (t * 7) % 3;
+        let col = (v * 5 + l) * 3 + c;
+        let base = 0.2 + 0.6 * g as f32 + 0.1 * hash(g, col);
+        let dir = hash(g + 10, col) - 0.5;
+        base + 0.2 * hash(99, t) * dir
+    }
+
+    #[test]
+    fn round_trip_reproduces_piecewise_affine_rank1_data() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), three_groups);
+        let (g, m) = round_trip(&ds, &params(3, 1, 1), &tmp.path().join("a.gbtf"));
+        assert_eq!(g.header.params["clusters_used"], 3);
+        // Exact up to the half-float rounding of the stored images (values ≤ 1.4: half
+        // an ulp ≤ 5e-4, which is not on the rank-1 lines).
+        let e = max_err(&ds, &m);
+        assert!(e < 1.5e-3, "k = 3, c = 1: max error {e}");
+        // One cluster cannot: the three groups are not one affine line.
+        let (_, m1) = round_trip(&ds, &params(1, 1, 1), &tmp.path().join("b.gbtf"));
+        assert!(max_err(&ds, &m1) > 1e-2);
+        // Errors are reported like every other method's.
+        let ev = evaluate(&ds, &m).unwrap();
+        assert_eq!(ev.images, 20);
+        assert!(ev.stats.rmse_linear() < 5e-4);
+    }
+
+    #[test]
+    fn same_seed_same_file_and_more_clusters_fit_better() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| {
+            0.3 * hash(t % 5, (v * 5 + l) * 3 + c) + 0.05 * hash(t, l * 3 + c)
+        });
+        let a = compress(&ds, &params(4, 2, 7)).unwrap().0;
+        let b = compress(&ds, &params(4, 2, 7)).unwrap().0;
+        assert_eq!(a, b, "same seed, same result");
+        let abr = Abrdfs::load(&ds, ABRDF_F32_BUDGET).unwrap();
+        let sse = |k: usize| fit(&abr, k, 2, 20, 7).unwrap().sse;
+        let (s1, s5) = (sse(1), sse(5));
+        assert!(s5 < 0.5 * s1, "k = 5: {s5}, k = 1: {s1}");
+    }
+
+    #[test]
+    fn constant_and_rank_deficient_input() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), |_, _, _, _| 0.25);
+        let (g, m) = round_trip(&ds, &params(4, 3, 1), &tmp.path().join("a.gbtf"));
+        assert_eq!(g.header.params["clusters_used"], 1, "one distinct ABRDF, one cluster");
+        assert_eq!(max_err(&ds, &m), 0.0);
+        assert!(g.blocks.iter().flatten().all(|v| v.is_finite()));
+        // All zeros.
+        let ds0 = testdata::write(&tmp.path().join("z"), |_, _, _, _| 0.0);
+        let (_, m0) = round_trip(&ds0, &params(2, 2, 1), &tmp.path().join("z.gbtf"));
+        assert_eq!(max_err(&ds0, &m0), 0.0);
+    }
+
+    #[test]
+    fn more_clusters_than_distinct_abrdfs() {
+        let tmp = tempfile::tempdir().unwrap();
+        // Two distinct ABRDFs; ask for 10 clusters of c = 2.
+        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| hash(t % 2, (v * 5 + l) * 3 + c));
+        let (g, m) = round_trip(&ds, &params(10, 2, 3), &tmp.path().join("a.gbtf"));
+        let used = g.header.params["clusters_used"].as_u64().unwrap();
+        assert!((1..=2).contains(&used), "{used} clusters for 2 distinct ABRDFs");
+        assert!(max_err(&ds, &m) < 1e-5);
+    }
+
+    #[test]
+    fn eight_bit_storage_is_within_its_quantization() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), three_groups);
+        let exact = Abrdfs::load(&ds, ABRDF_F32_BUDGET).unwrap();
+        let q = Abrdfs::load(&ds, 0).unwrap();
+        assert!(exact.is_exact() && !q.is_exact());
+        assert!(q.bytes() * 3 < exact.bytes());
+        let (mut a, mut b) = (vec![0f32; q.dims], vec![0f32; q.dims]);
+        for t in 0..q.texels {
+            exact.row(t, &mut a);
+            q.row(t, &mut b);
+            for j in 0..q.dims {
+                // 8-bit sRGB step relative to the column maximum (< 1.3 here) is ≤ 1.2 %.
+                assert!(
+                    (a[j] - b[j]).abs() <= 0.012 * 1.3,
+                    "texel {t} column {j}: {} vs {}",
+                    a[j],
+                    b[j]
+                );
+            }
+        }
+        // Local PCA on the 8-bit copy still separates the three groups.
+        let m = fit(&q, 3, 1, 20, 1).unwrap();
+        let mut groups = std::collections::BTreeSet::new();
+        for t in 0..q.texels {
+            groups.insert(((t * 7) % 3, m.assign[t]));
+        }
+        assert_eq!(groups.len(), 3, "each group is one cluster: {groups:?}");
+    }
+
+    #[test]
+    fn non_finite_input_is_rejected_naming_the_measurement() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("ds");
+        testdata::write(&dir, three_groups);
+        let mut img = gonio_devices::image::RgbImage::new(testdata::W, testdata::H);
+        img.data[4] = f32::INFINITY;
+        crate::store::write_exr(&dir.join("images/00006.exr"), &img).unwrap();
+        let ds = DatasetViews::open(&dir).unwrap();
+        let e = compress(&ds, &params(2, 1, 1)).unwrap_err();
+        assert!(
+            matches!(e, CompressError::NonFinite { index: 6, texel: 1, .. }),
+            "{e:?}"
+        );
+        assert!(e.to_string().contains("00006.exr"), "{e}");
+    }
+
+    #[test]
+    fn corrupt_cluster_index_is_rejected() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), three_groups);
+        let (mut g, _) = compress(&ds, &params(3, 1, 1)).unwrap();
+        g.blocks[0][5] = 7.0;
+        let e = CompressedBtf::new(g).unwrap_err();
+        assert!(e.to_string().contains("texel 5"), "{e}");
+    }
+}

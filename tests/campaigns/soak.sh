@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# Soak campaign: the full default acquisition (Bonn 81 × 81) with its four axes on an
+# emulated Zaber daisy chain over a pty, in real-time pacing (`--realtime`: every move,
+# settle, exposure and readout takes its real duration), for a bounded period. Resident
+# memory and open file descriptors of the acquiring process are sampled from /proc. During
+# the warm-up (default 60 s) memory rises to its working set (rayon threads, shadow maps
+# cached per light, the sample's height field: measured ≈ 85 MiB after ~55 s); after it the
+# process must be flat: descriptors at the end no more than at the start of the window, and
+# memory grown by at most 2 MiB plus 2 KiB per measurement stored in the window (the
+# dataset keeps every record in memory for the final manifest, ≈ 1.2 KiB each measured).
+# Then the run is paused with SIGINT (a clean pause, exit code 3), the dataset verified,
+# and resumed for a few more measurements against the same emulator.
+#
+# Usage: tests/campaigns/soak.sh [SECONDS]   (default 120, warm-up included; a long soak:
+#        3600 or more; GONIO_SOAK_WARMUP=S changes the warm-up, GONIO_SOAK_TRACE=1 prints samples)
+# Prints: `soak: S s, N measurements, RSS A → B MiB, fds C → D, flat`.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+seconds=${1:-${GONIO_SOAK_SECONDS:-120}}
+warmup=${GONIO_SOAK_WARMUP:-60}
+
+cargo build --quiet --bin gonio
+gonio=$PWD/target/debug/gonio
+work=$(mktemp -d)
+pids=()
+cleanup() {
+  for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done
+  rm -rf "$work"
+}
+trap cleanup EXIT
+
+"$gonio" --quiet sim serve-stage --protocol zaber --axes 4 --range -200,200 --json > "$work/stage.json" 2> "$work/stage.log" &
+pids+=($!)
+for _ in $(seq 100); do
+  [ -s "$work/stage.json" ] && break
+  sleep 0.1
+done
+port=$(sed -n 's/.*"path": *"\([^"]*\)".*/\1/p' "$work/stage.json")
+[ -n "$port" ] || { echo "soak: the emulator printed no path" >&2; cat "$work/stage.log" >&2; exit 1; }
+
+GONIO_ZABER_PORT=$port "$gonio" --quiet acquire --rig devices/rigs/emulated-zaber.toml --realtime \
+  --size 64x64 --plan-time 0.5 --out "$work/ds" --json > "$work/summary.json" 2> "$work/acquire.log" &
+acq=$!
+pids+=($acq)
+
+sample() { # prints "rss_kib fds"
+  local rss fds
+  rss=$(awk '/^VmRSS:/ {print $2}' "/proc/$acq/status")
+  fds=$(ls "/proc/$acq/fd" | wc -l)
+  echo "$rss $fds"
+}
+sleep "$warmup"
+kill -0 "$acq" 2>/dev/null || { echo "soak: acquisition ended during warm-up" >&2; cat "$work/acquire.log" >&2; exit 1; }
+read -r rss0 fd0 < <(sample)
+n0=$(ls "$work/ds/images" | wc -l)
+max_rss=$rss0
+max_fd=$fd0
+end=$((SECONDS + seconds - warmup))
+while [ $SECONDS -lt $end ]; do
+  sleep 5
+  kill -0 "$acq" 2>/dev/null || { echo "soak: acquisition ended early" >&2; cat "$work/acquire.log" >&2; exit 1; }
+  read -r rss fd < <(sample)
+  echo "$((SECONDS)) $rss $fd" >> "$work/samples"
+  [ -n "${GONIO_SOAK_TRACE:-}" ] && echo "soak trace: t=${SECONDS}s rss=${rss} KiB fds=$fd"
+  [ "$rss" -gt "$max_rss" ] && max_rss=$rss
+  [ "$fd" -gt "$max_fd" ] && max_fd=$fd
+done
+read -r rss1 fd1 < <(sample)
+kill -INT "$acq"
+set +e
+wait "$acq"
+code=$?
+set -e
+[ "$code" -eq 3 ] || { echo "soak: a paused acquisition exits 3, got $code" >&2; cat "$work/acquire.log" >&2; exit 1; }
+n=$(ls "$work/ds/images" | wc -l)
+"$gonio" --quiet verify "$work/ds" --json > "$work/verify.json"
+grep -q '"damaged": \[\]' "$work/verify.json" || { echo "soak: verify found damage" >&2; cat "$work/verify.json" >&2; exit 1; }
+
+# Resume against the same emulator for a few more measurements.
+GONIO_ZABER_PORT=$port "$gonio" --quiet acquire --resume "$work/ds" --limit 3 --json > "$work/resume.json" 2>> "$work/acquire.log" || code=$?
+n2=$(ls "$work/ds/images" | wc -l)
+[ "$n2" -gt "$n" ] || { echo "soak: resume stored nothing ($n → $n2)" >&2; cat "$work/acquire.log" >&2; exit 1; }
+
+mib() { awk -v k="$1" 'BEGIN { printf "%.1f", k / 1024 }'; }
+window=$((n - n0))
+allow=$((2048 + 2 * window))
+flat=yes
+[ "$fd1" -le "$fd0" ] || flat=no
+[ $((rss1 - rss0)) -le "$allow" ] || flat=no
+echo "soak: ${seconds} s (${warmup} s warm-up), $n measurements ($window in the window, +$((n2 - n)) after resume), RSS $(mib "$rss0") → $(mib "$rss1") MiB (allowed +$(mib "$allow"), max $(mib "$max_rss")), fds $fd0 → $fd1 (max $max_fd), $([ $flat = yes ] && echo flat || echo GROWING)"
+[ "$flat" = yes ]

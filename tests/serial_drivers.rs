@@ -1,0 +1,400 @@
+//! gonio's serial drivers (Zaber ASCII, Newport ESP300) against the controller emulators of
+//! `gonio_simulator::emulate`, over real ptys: normal motion, every injected fault (each
+//! ends in the right typed error or a successful retry), and a full `gonio acquire` on the
+//! default rig's geometry with its axes on an emulated Zaber chain.
+//!
+//! Run: `cargo test --test serial_drivers -- --nocapture`.
+
+mod common;
+
+use gonio_devices::rig::AxisSpec;
+use gonio_devices::serial::PortRegistry;
+use gonio_devices::{Axis, DeviceError};
+use gonio_simulator::emulate::{spawn_pty, EmulatorConfig, EmulatorHandle, FaultPlan, Protocol};
+use std::path::Path;
+use std::sync::Arc;
+
+fn emulator(protocol: Protocol, axes: usize, faults: &[&str]) -> EmulatorHandle {
+    let cfg = EmulatorConfig::new(protocol, axes).with_faults(FaultPlan::parse(faults).unwrap());
+    spawn_pty(cfg).unwrap()
+}
+
+/// An axis spec for `backend` on `port` with extra `options` (TOML inline-table body).
+fn axis_spec(name: &str, backend: &str, port: &Path, options: &str) -> AxisSpec {
+    let text = format!(
+        r#"name = "{name}"
+role = "sample_rotation"
+backend = "{backend}"
+min_deg = -170.0
+max_deg = 170.0
+max_velocity_deg_s = 90.0
+acceleration_deg_s2 = 720.0
+settle_s = 0.02
+options = {{ port = "{}", poll_ms = 5, {options} }}
+"#,
+        port.display()
+    );
+    toml::from_str(&text).unwrap()
+}
+
+fn zaber_axis(ports: &mut PortRegistry, h: &EmulatorHandle, axis: u8, extra: &str) -> Arc<dyn Axis> {
+    let opts = format!("device = 1, axis = {axis}, units_per_deg = 1000.0, reply_timeout_ms = 150{extra}");
+    ports
+        .build_axis(&axis_spec(&format!("zaber{axis}"), "zaber", h.path(), &opts))
+        .unwrap()
+}
+
+fn esp_axis(ports: &mut PortRegistry, h: &EmulatorHandle, axis: u8, extra: &str) -> Arc<dyn Axis> {
+    let opts = format!("axis = {axis}, reply_timeout_ms = 150{extra}");
+    ports
+        .build_axis(&axis_spec(&format!("esp{axis}"), "esp300", h.path(), &opts))
+        .unwrap()
+}
+
+const DEG: f64 = std::f64::consts::PI / 180.0;
+
+async fn move_and_check(a: &dyn Axis, deg: f64) {
+    let rb = a.move_abs(deg * DEG).await.unwrap();
+    assert!(
+        (rb / DEG - deg).abs() <= 0.0011,
+        "{}: read back {}°, wanted {deg}°",
+        a.name(),
+        rb / DEG
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_daisy_chain_axes_home_move_and_read_back() {
+    let h = emulator(Protocol::Zaber, 2, &[]);
+    let mut ports = PortRegistry::new();
+    let a1 = zaber_axis(&mut ports, &h, 1, "");
+    let a2 = zaber_axis(&mut ports, &h, 2, "");
+    assert!(matches!(a1.start_move(0.1).await, Err(DeviceError::NotHomed { .. })));
+    a1.home().await.unwrap();
+    a2.home().await.unwrap();
+    // both axes share one port: start both, then wait for both
+    a1.start_move(30.0 * DEG).await.unwrap();
+    a2.start_move(-45.5 * DEG).await.unwrap();
+    let r1 = a1.wait_idle().await.unwrap();
+    let r2 = a2.wait_idle().await.unwrap();
+    assert!(
+        (r1 / DEG - 30.0).abs() < 0.0011 && (r2 / DEG + 45.5).abs() < 0.0011,
+        "{r1} {r2}"
+    );
+    move_and_check(&*a1, -10.0).await;
+    // the emulator's travel is ±180°: with the rig's ±170° the rig limits stay in force
+    assert!(matches!(
+        a1.start_move(171.0 * DEG).await,
+        Err(DeviceError::SoftLimit { .. })
+    ));
+    let rx = h.received();
+    assert!(
+        rx.iter()
+            .any(|l| l.starts_with("/1 1 ") && l.contains("move abs 30000:")),
+        "{rx:?}"
+    );
+    assert!(
+        rx.iter()
+            .any(|l| l.starts_with("/1 2 ") && l.contains("move abs -45500:")),
+        "{rx:?}"
+    );
+    assert!(rx.iter().any(|l| l.contains("get limit.max")), "limits read at home");
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_backlash_approaches_from_below() {
+    let h = emulator(Protocol::Zaber, 1, &[]);
+    let mut ports = PortRegistry::new();
+    let a = zaber_axis(&mut ports, &h, 1, ", backlash_deg = 0.5");
+    a.home().await.unwrap();
+    move_and_check(&*a, 20.0).await;
+    move_and_check(&*a, 10.0).await; // from above: via 9.5°
+    let moves: Vec<String> = h.received().into_iter().filter(|l| l.contains("move abs")).collect();
+    assert_eq!(moves.len(), 3, "{moves:?}");
+    assert!(
+        moves[1].contains("move abs 9500:") && moves[2].contains("move abs 10000:"),
+        "{moves:?}"
+    );
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_reply_faults_are_retried() {
+    // every 5th reply garbled, one reply dropped, one reply late (250 ms > the 150 ms reply
+    // timeout: retried, and the late reply is then dropped as stale by its message id)
+    let h = emulator(
+        Protocol::Zaber,
+        1,
+        &["garble:every=5", "drop:at=7", "slow:ms=250,at=12"],
+    );
+    let mut ports = PortRegistry::new();
+    let a = zaber_axis(&mut ports, &h, 1, ", retries = 3");
+    if let Err(e) = a.home().await {
+        panic!("{e}; the emulator received {:?}", h.received());
+    }
+    for deg in [15.0, -20.0, 5.0] {
+        move_and_check(&*a, deg).await;
+    }
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_garbled_beyond_retries_is_typed() {
+    let h = emulator(Protocol::Zaber, 1, &["garble:every=1"]);
+    let mut ports = PortRegistry::new();
+    let a = zaber_axis(&mut ports, &h, 1, "");
+    match a.home().await.unwrap_err() {
+        DeviceError::Garbled { device, command, .. } => {
+            assert_eq!(device, "zaber1");
+            assert_eq!(command, "warnings clear");
+        }
+        e => panic!("{e}"),
+    }
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_motion_faults_end_in_typed_errors() {
+    for (fault, want) in [
+        ("stall:at-move=2", "stall"),
+        ("limit:at-move=2", "limit"),
+        ("disconnect:at-move=2", "disconnect"),
+    ] {
+        let h = emulator(Protocol::Zaber, 1, &[fault]);
+        let mut ports = PortRegistry::new();
+        let a = zaber_axis(&mut ports, &h, 1, ", stall_s = 0.3");
+        a.home().await.unwrap();
+        move_and_check(&*a, 10.0).await;
+        let e = a.move_abs(90.0 * DEG).await.unwrap_err();
+        let ok = match want {
+            "stall" => matches!(&e, DeviceError::Stall { command, .. } if command == "move abs 90000"),
+            "limit" => matches!(&e, DeviceError::LimitSwitch { command, .. } if command == "move abs 90000"),
+            _ => matches!(&e, DeviceError::Disconnected { .. }),
+        };
+        assert!(ok, "{fault}: {e}");
+        assert_eq!(e.device(), "zaber1");
+        eprintln!("{fault:>22} -> {e}");
+        h.stop();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn esp_axes_enable_home_move_and_read_back() {
+    let h = emulator(Protocol::Esp300, 2, &[]);
+    let mut ports = PortRegistry::new();
+    let a1 = esp_axis(&mut ports, &h, 1, "");
+    let a2 = esp_axis(&mut ports, &h, 2, "");
+    a1.home().await.unwrap();
+    a2.home().await.unwrap();
+    a1.start_move(12.5 * DEG).await.unwrap();
+    a2.start_move(-33.25 * DEG).await.unwrap();
+    let r1 = a1.wait_idle().await.unwrap();
+    let r2 = a2.wait_idle().await.unwrap();
+    assert!(
+        (r1 / DEG - 12.5).abs() < 1e-3 && (r2 / DEG + 33.25).abs() < 1e-3,
+        "{r1} {r2}"
+    );
+    let rx = h.received();
+    for cmd in ["1MO", "1OR", "1PA12.5", "2PA-33.25", "1MD?", "1TP", "TB?"] {
+        assert!(rx.iter().any(|l| l == cmd), "{cmd} not sent: {rx:?}");
+    }
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn esp_reply_faults_are_retried() {
+    let h = emulator(Protocol::Esp300, 1, &["garble:every=5", "drop:at=8"]);
+    let mut ports = PortRegistry::new();
+    let a = esp_axis(&mut ports, &h, 1, ", retries = 3");
+    a.home().await.unwrap();
+    for deg in [15.0, -20.0, 5.0] {
+        move_and_check(&*a, deg).await;
+    }
+    h.stop();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn esp_motion_faults_end_in_typed_errors() {
+    for (fault, want) in [
+        ("stall:at-move=2", "stall"),
+        ("limit:at-move=2", "limit"),
+        ("disconnect:at-move=2", "disconnect"),
+    ] {
+        let h = emulator(Protocol::Esp300, 1, &[fault]);
+        let mut ports = PortRegistry::new();
+        let a = esp_axis(&mut ports, &h, 1, ", stall_s = 0.3");
+        a.home().await.unwrap();
+        move_and_check(&*a, 10.0).await;
+        let e = a.move_abs(90.0 * DEG).await.unwrap_err();
+        let ok = match want {
+            "stall" => matches!(&e, DeviceError::Stall { command, .. } if command == "1PA90"),
+            "limit" => matches!(&e, DeviceError::LimitSwitch { command, .. } if command == "1PA90"),
+            _ => matches!(&e, DeviceError::Disconnected { .. } | DeviceError::Timeout { .. }),
+        };
+        assert!(ok, "{fault}: {e}");
+        eprintln!("{fault:>22} -> {e}");
+        h.stop();
+    }
+}
+
+/// The emulated-zaber rig file with its camera reduced like `common::write_scene`'s.
+fn small_emulated_rig(dir: &Path) -> std::path::PathBuf {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("devices/rigs/emulated-zaber.toml");
+    let mut text = std::fs::read_to_string(&src).unwrap();
+    for (from, to) in [
+        ("width = 768", "width = 192"),
+        ("height = 640", "height = 160"),
+        ("focal_length_px = 4300.0", "focal_length_px = 1075.0"),
+    ] {
+        assert!(text.contains(from), "{} lacks `{from}`", src.display());
+        text = text.replacen(from, to, 1);
+    }
+    let p = dir.join("rig_emulated_zaber.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn acquire_end_to_end_on_emulated_zaber_rig() {
+    let dir = std::env::temp_dir().join(format!("gonio-serial-e2e-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (_, sweep) = common::write_scene(&dir);
+    let rig = small_emulated_rig(&dir);
+    let mut cfg = EmulatorConfig::new(Protocol::Zaber, 4);
+    cfg.range_deg = (-200.0, 200.0);
+    let h = spawn_pty(cfg).unwrap();
+    let out = dir.join("ds");
+    let o = std::process::Command::new(common::bin())
+        .arg("acquire")
+        .arg("--rig")
+        .arg(&rig)
+        .arg("--sweep")
+        .arg(&sweep)
+        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
+        .arg(&out)
+        .env("GONIO_ZABER_PORT", h.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "acquire failed: {}\n{stdout}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap_or("{}"))
+        .or_else(|_| serde_json::from_str(&stdout))
+        .unwrap_or_else(|e| panic!("--json output is not JSON ({e}): {stdout}"));
+    eprintln!("acquire on the emulated Zaber chain: {report}");
+    let rx = h.received();
+    let moves = rx.iter().filter(|l| l.contains("move abs")).count();
+    assert!(moves >= 4, "the axes moved over the pty: {moves} moves");
+    for axis in 1..=4 {
+        assert!(
+            rx.iter()
+                .any(|l| l.starts_with(&format!("/1 {axis} ")) && l.contains("home")),
+            "axis {axis} homed"
+        );
+    }
+    // every measured image is in the dataset
+    let journal = std::fs::read_to_string(out.join("journal.jsonl")).unwrap_or_default();
+    assert!(
+        journal.lines().count() >= 10,
+        "journal has {} lines",
+        journal.lines().count()
+    );
+    h.stop();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A disconnect at move N stops the acquisition with a typed error and nothing stored is
+/// lost; after the emulator restarts (new pty, positions kept in its state file) `--resume`
+/// measures only what is missing.
+#[test]
+fn disconnect_stops_cleanly_and_resume_continues_after_emulator_restart() {
+    let dir = std::env::temp_dir().join(format!("gonio-serial-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (_, sweep) = common::write_scene(&dir);
+    let rig = small_emulated_rig(&dir);
+    let state = dir.join("emulator-state.json");
+    let config = |faults: &[&str]| {
+        let mut cfg = EmulatorConfig::new(Protocol::Zaber, 4).with_faults(FaultPlan::parse(faults).unwrap());
+        cfg.range_deg = (-200.0, 200.0);
+        cfg.state_file = Some(state.clone());
+        cfg
+    };
+    let out = dir.join("ds");
+    let journal_lines = || {
+        std::fs::read_to_string(out.join("journal.jsonl"))
+            .map(|j| j.lines().count())
+            .unwrap_or(0)
+    };
+    // 4 homing commands are not moves; move 40 is in the 10th-or-so measurement
+    let h = spawn_pty(config(&["disconnect:at-move=40"])).unwrap();
+    let o = std::process::Command::new(common::bin())
+        .arg("acquire")
+        .arg("--rig")
+        .arg(&rig)
+        .arg("--sweep")
+        .arg(&sweep)
+        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
+        .arg(&out)
+        .env("GONIO_ZABER_PORT", h.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "the disconnect must stop the run");
+    assert!(
+        stderr.contains("disconnected"),
+        "typed error names the disconnect: {stderr}"
+    );
+    let stored = journal_lines();
+    assert!(stored >= 3, "measurements before the disconnect are kept: {stored}");
+    eprintln!(
+        "first run stopped after {stored} stored measurements: {}",
+        stderr.trim()
+    );
+    h.stop();
+    // restart on a new pty; the rig file's ${GONIO_ZABER_PORT} points at it
+    let h2 = spawn_pty(config(&[])).unwrap();
+    let o = std::process::Command::new(common::bin())
+        .args(["acquire", "--json", "--resume"])
+        .arg(&out)
+        .env("GONIO_ZABER_PORT", h2.path())
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "resume failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["complete"], true, "{summary}");
+    // one journal line per pair of the 6 × 6 sweep (30 measured + 6 skipped), none twice
+    assert_eq!(journal_lines(), 36, "{summary}");
+    let resumed_moves = h2.received().iter().filter(|l| l.contains("move abs")).count();
+    assert!(resumed_moves > 0, "the resumed run moved the restarted emulator's axes");
+    h2.stop();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn devices_probe_identifies_both_emulators() {
+    for (protocol, want) in [(Protocol::Zaber, "zaber"), (Protocol::Esp300, "esp300")] {
+        let h = emulator(protocol, 1, &[]);
+        let o = std::process::Command::new(common::bin())
+            .args(["devices", "probe", "--json"])
+            .arg(h.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["protocol"], want, "{r}");
+        if protocol == Protocol::Zaber {
+            assert_eq!(r["devices"], serde_json::json!([1]), "{r}");
+        }
+        h.stop();
+    }
+}
