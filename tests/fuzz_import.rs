@@ -11,22 +11,17 @@
 //! CI budget: `GONIO_FUZZ_CASES` cases (default 256, a few seconds).
 //! Long campaign: `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_import -- --nocapture`.
 
+mod fuzzing;
+
+use fuzzing::{cases, guarded};
 use gonio::store::import_ubo2003::{import_ubo2003, ImportError, ImportLimits};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
 use std::io::{Cursor, Write};
 use std::path::Path;
-use std::sync::mpsc;
 use std::time::Duration;
 
 const TIME_LIMIT: Duration = Duration::from_secs(30);
-
-fn cases() -> u32 {
-    std::env::var("GONIO_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(256)
-}
 
 /// An 8×8 test image, encoded as JPEG or PNG.
 fn image_bytes(seed: u8, png: bool, w: u32, h: u32) -> Vec<u8> {
@@ -100,32 +95,6 @@ fn import(bytes: &[u8], limits: ImportLimits) -> Result<(), ImportError> {
     Ok(())
 }
 
-/// Run on a helper thread; Err describes a panic or a hang.
-fn guarded<F: FnOnce() + Send + 'static>(f: F) -> Result<(), String> {
-    let (tx, rx) = mpsc::channel();
-    let h = std::thread::spawn(move || {
-        f();
-        let _ = tx.send(());
-    });
-    match rx.recv_timeout(TIME_LIMIT) {
-        Ok(()) => {
-            let _ = h.join();
-            Ok(())
-        }
-        Err(mpsc::RecvTimeoutError::Disconnected) => Err(match h.join() {
-            Err(p) => format!(
-                "panicked: {}",
-                p.downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_default()
-            ),
-            Ok(()) => "thread ended without reporting".into(),
-        }),
-        Err(mpsc::RecvTimeoutError::Timeout) => Err(format!("no answer within {TIME_LIMIT:?} (hang)")),
-    }
-}
-
 #[derive(Clone, Debug)]
 enum Mutation {
     Flip { at: usize, xor: u8 },
@@ -170,7 +139,7 @@ fn the_seed_archive_imports() {
 fn fuzz_ubo2003_archives_never_panic_or_hang() {
     let seed = seed_archive();
     let mut runner = TestRunner::new(Config {
-        cases: cases(),
+        cases: cases(256),
         failure_persistence: None,
         ..Config::default()
     });
@@ -180,7 +149,7 @@ fn fuzz_ubo2003_archives_never_panic_or_hang() {
         .run(&prop::collection::vec(mutation(), 1..6), move |ms| {
             let bytes = apply(seed.clone(), &ms);
             let c = c2.clone();
-            guarded(move || {
+            guarded(TIME_LIMIT, move || {
                 let r = import(&bytes, ImportLimits::default());
                 let mut g = c.lock().unwrap();
                 if r.is_ok() {
@@ -202,7 +171,7 @@ fn fuzz_ubo2003_archives_never_panic_or_hang() {
 #[test]
 fn fuzz_entry_names_never_panic() {
     let mut runner = TestRunner::new(Config {
-        cases: cases(),
+        cases: cases(256),
         failure_persistence: None,
         ..Config::default()
     });
@@ -213,7 +182,7 @@ fn fuzz_entry_names_never_panic() {
             let Some(bytes) = try_zip_bytes(&entries) else {
                 return Ok(());
             };
-            guarded(move || {
+            guarded(TIME_LIMIT, move || {
                 let _ = import(&bytes, ImportLimits::default());
             })
             .map_err(TestCaseError::fail)

@@ -14,6 +14,9 @@
 //! CI budget: `GONIO_FUZZ_CASES` cases per target (default 1024, about 10 s in all).
 //! Long campaign: `GONIO_FUZZ_CASES=200000 cargo test --release --test fuzz_inputs -- --nocapture`.
 
+mod fuzzing;
+
+use fuzzing::{cases, guarded};
 use gonio::plan::{Plan, PlanOptions};
 use gonio::sweep::Sweep;
 use gonio_devices::rig::RigSpec;
@@ -22,17 +25,9 @@ use gonio_simulator::SampleSpec;
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
 use std::time::Duration;
 
 const TIME_LIMIT: Duration = Duration::from_secs(30);
-
-fn cases() -> u32 {
-    std::env::var("GONIO_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(1024)
-}
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -52,32 +47,6 @@ fn seeds(shipped: &[PathBuf], sub: &str) -> Vec<String> {
     }
     assert!(!out.is_empty());
     out
-}
-
-/// Run `f` on a helper thread; Err describes a panic or a hang.
-fn guarded<F: FnOnce() + Send + 'static>(f: F) -> Result<(), String> {
-    let (tx, rx) = mpsc::channel();
-    let h = std::thread::spawn(move || {
-        f();
-        let _ = tx.send(());
-    });
-    match rx.recv_timeout(TIME_LIMIT) {
-        Ok(()) => {
-            let _ = h.join();
-            Ok(())
-        }
-        Err(mpsc::RecvTimeoutError::Disconnected) => Err(match h.join() {
-            Err(p) => format!(
-                "panicked: {}",
-                p.downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_default()
-            ),
-            Ok(()) => "thread ended without reporting".into(),
-        }),
-        Err(mpsc::RecvTimeoutError::Timeout) => Err(format!("no answer within {TIME_LIMIT:?} (hang)")),
-    }
 }
 
 const GARBAGE: &[&str] = &[
@@ -261,7 +230,7 @@ where
     F: Fn(String) + Send + Sync + Clone + 'static,
 {
     let mut runner = TestRunner::new(Config {
-        cases: cases(),
+        cases: cases(1024),
         failure_persistence: None,
         // Shrinking a hang costs TIME_LIMIT per step: report the first failing input.
         max_shrink_iters: 16,
@@ -284,9 +253,14 @@ where
         };
         let f = f.clone();
         let input = text.clone();
-        guarded(move || f(input)).map_err(|e| TestCaseError::fail(format!("{e}\n--- input ---\n{text}\n---")))
+        guarded(TIME_LIMIT, move || f(input))
+            .map_err(|e| TestCaseError::fail(format!("{e}\n--- input ---\n{text}\n---")))
     });
-    println!("fuzz {name}: {} cases in {:.1} s", cases(), t0.elapsed().as_secs_f64());
+    println!(
+        "fuzz {name}: {} cases in {:.1} s",
+        cases(1024),
+        t0.elapsed().as_secs_f64()
+    );
     if let Err(e) = result {
         panic!("fuzz {name}: {e}");
     }
@@ -352,7 +326,7 @@ fn fuzz_rig_toml_then_plan() {
 #[test]
 fn gimbal_rig_with_huge_settle_time_plans_in_bounded_time() {
     let text = std::fs::read_to_string(root().join("tests/campaigns/corpus/rig/gimbal_settle_1e300.toml")).unwrap();
-    let r = guarded(move || {
+    let r = guarded(TIME_LIMIT, move || {
         if let Ok(rig) = RigSpec::parse(&text, "gimbal_settle_1e300.toml") {
             plan_small(&rig);
         }
@@ -393,16 +367,16 @@ fn corpus_inputs_do_not_panic() {
         for text in seeds(&[], sub) {
             n += 1;
             let r = match sub {
-                "rig" => guarded(move || {
+                "rig" => guarded(TIME_LIMIT, move || {
                     let _ = RigSpec::parse(&text, "corpus.toml");
                 }),
-                "sample" => guarded(move || {
+                "sample" => guarded(TIME_LIMIT, move || {
                     let _ = SampleSpec::parse(&text, "corpus.toml", None);
                 }),
-                "sweep_toml" => guarded(move || {
+                "sweep_toml" => guarded(TIME_LIMIT, move || {
                     let _ = Sweep::parse_toml(&text, "corpus.toml", "c");
                 }),
-                _ => guarded(move || {
+                _ => guarded(TIME_LIMIT, move || {
                     let _ = Sweep::parse_csv(&text, "corpus.csv", "c");
                 }),
             };

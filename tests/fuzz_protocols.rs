@@ -14,6 +14,9 @@
 //! CI budget: `GONIO_FUZZ_CASES` (default 512 per target). Long campaign:
 //! `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_protocols -- --nocapture`.
 
+mod fuzzing;
+
+use fuzzing::cases;
 use gonio::calibrate::recipe::Recipe;
 use gonio::compress::btf_ubo2014;
 use gonio::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
@@ -23,51 +26,21 @@ use gonio_devices::serial::zaber::{self, PortConfig, ZaberPort};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
 use std::path::Path;
-use std::sync::mpsc;
 use std::time::Duration;
 
 const TIME_LIMIT: Duration = Duration::from_secs(20);
 
-fn cases() -> u32 {
-    std::env::var("GONIO_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(512)
+/// One case on a helper thread with the time limit (a panic or hang fails the case).
+fn guarded<F: FnOnce() + Send + 'static>(f: F) -> Result<(), TestCaseError> {
+    fuzzing::guarded(TIME_LIMIT, f).map_err(TestCaseError::fail)
 }
 
 fn runner() -> TestRunner {
     TestRunner::new(Config {
-        cases: cases(),
+        cases: cases(512),
         failure_persistence: None,
         ..Config::default()
     })
-}
-
-/// Run on a helper thread; Err describes a panic or a hang.
-fn guarded<F: FnOnce() + Send + 'static>(f: F) -> Result<(), TestCaseError> {
-    let (tx, rx) = mpsc::channel();
-    let h = std::thread::spawn(move || {
-        f();
-        let _ = tx.send(());
-    });
-    match rx.recv_timeout(TIME_LIMIT) {
-        Ok(()) => {
-            let _ = h.join();
-            Ok(())
-        }
-        Err(mpsc::RecvTimeoutError::Disconnected) => {
-            let why = match h.join() {
-                Err(p) => p
-                    .downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_default(),
-                Ok(()) => "thread ended without reporting".into(),
-            };
-            Err(TestCaseError::fail(format!("panicked: {why}")))
-        }
-        Err(mpsc::RecvTimeoutError::Timeout) => Err(TestCaseError::fail(format!("hang: no answer in {TIME_LIMIT:?}"))),
-    }
 }
 
 /// Byte mutations of a seed: (position, xor) flips, a truncation and an insertion.
@@ -132,7 +105,7 @@ fn fuzz_zaber_reply_lines() {
 fn fuzz_zaber_port_with_a_garbling_device() {
     // Every bad reply costs a reply timeout (and retries): a quarter of the cases.
     let mut r = TestRunner::new(Config {
-        cases: cases().div_ceil(4),
+        cases: cases(512).div_ceil(4),
         failure_persistence: None,
         ..Config::default()
     });
@@ -175,7 +148,7 @@ const ESP_REPLIES: &[&str] = &[
 #[test]
 fn fuzz_esp300_port_with_a_garbling_device() {
     let mut r = TestRunner::new(Config {
-        cases: cases().div_ceil(4),
+        cases: cases(512).div_ceil(4),
         failure_persistence: None,
         ..Config::default()
     });

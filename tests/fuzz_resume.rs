@@ -12,18 +12,13 @@
 
 use gonio::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
 use gonio_devices::image::RgbImage;
+mod fuzzing;
+
+use fuzzing::cases;
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
 use std::time::Duration;
-
-fn cases() -> u32 {
-    std::env::var("GONIO_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(512)
-}
 
 fn header() -> ManifestHeader {
     ManifestHeader {
@@ -172,64 +167,43 @@ fn crc32(data: &[u8]) -> u32 {
 /// Resume `dir` on a helper thread with a time limit and check the properties above.
 /// Returns a description of the violation, if any.
 fn check_resume(dir: PathBuf, original: Vec<MeasurementRecord>) -> Result<&'static str, String> {
-    let (tx, rx) = mpsc::channel();
-    let h = std::thread::spawn(move || {
-        let outcome = (|| -> Result<&'static str, String> {
-            let (ds, _, kept) = match Dataset::resume(&dir) {
-                Ok(v) => v,
-                Err(e) => {
-                    let msg = e.to_string();
-                    if msg.trim().is_empty() {
-                        return Err("empty error message".into());
-                    }
-                    return Ok("err");
+    fuzzing::guarded(Duration::from_secs(10), move || -> Result<&'static str, String> {
+        let (ds, _, kept) = match Dataset::resume(&dir) {
+            Ok(v) => v,
+            Err(e) => {
+                let msg = e.to_string();
+                if msg.trim().is_empty() {
+                    return Err("empty error message".into());
                 }
-            };
-            let repaired = !ds.recovery().is_clean();
-            let mut seen = std::collections::HashSet::new();
-            for r in &kept {
-                if !seen.insert(r.index) {
-                    return Err(format!("resume kept index {} twice", r.index));
-                }
-                // A kept record must be one that was stored (byte corruption that passes the
-                // CRC and parses is what the CRC is for; we only accept exact originals).
-                if !original.iter().any(|o| o == r) {
-                    return Err(format!("resume kept a record that was never stored: {r:?}"));
-                }
+                return Ok("err");
             }
-            drop(ds);
-            let rep = store::verify(&dir).map_err(|e| format!("verify after resume failed: {e}"))?;
-            if !rep.damaged.is_empty() || !rep.duplicates.is_empty() || !rep.orphans.is_empty() {
-                return Err(format!("after resume: {rep}"));
+        };
+        let repaired = !ds.recovery().is_clean();
+        let mut seen = std::collections::HashSet::new();
+        for r in &kept {
+            if !seen.insert(r.index) {
+                return Err(format!("resume kept index {} twice", r.index));
             }
-            let (ds2, _, kept2) = Dataset::resume(&dir).map_err(|e| format!("second resume failed: {e}"))?;
-            if !ds2.recovery().is_clean() {
-                return Err(format!("second resume still repaired: {:?}", ds2.recovery()));
+            // A kept record must be one that was stored (byte corruption that passes the
+            // CRC and parses is what the CRC is for; we only accept exact originals).
+            if !original.iter().any(|o| o == r) {
+                return Err(format!("resume kept a record that was never stored: {r:?}"));
             }
-            if kept2 != kept {
-                return Err("second resume kept other records".into());
-            }
-            Ok(if repaired { "ok, repaired" } else { "ok, clean" })
-        })();
-        let _ = tx.send(outcome);
-    });
-    match rx.recv_timeout(Duration::from_secs(10)) {
-        Ok(r) => {
-            let _ = h.join();
-            r
         }
-        Err(mpsc::RecvTimeoutError::Disconnected) => Err(match h.join() {
-            Err(p) => format!(
-                "panicked: {}",
-                p.downcast_ref::<String>()
-                    .cloned()
-                    .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                    .unwrap_or_default()
-            ),
-            Ok(()) => "no outcome".into(),
-        }),
-        Err(mpsc::RecvTimeoutError::Timeout) => Err("resume did not return within 10 s (hang)".into()),
-    }
+        drop(ds);
+        let rep = store::verify(&dir).map_err(|e| format!("verify after resume failed: {e}"))?;
+        if !rep.damaged.is_empty() || !rep.duplicates.is_empty() || !rep.orphans.is_empty() {
+            return Err(format!("after resume: {rep}"));
+        }
+        let (ds2, _, kept2) = Dataset::resume(&dir).map_err(|e| format!("second resume failed: {e}"))?;
+        if !ds2.recovery().is_clean() {
+            return Err(format!("second resume still repaired: {:?}", ds2.recovery()));
+        }
+        if kept2 != kept {
+            return Err("second resume kept other records".into());
+        }
+        Ok(if repaired { "ok, repaired" } else { "ok, clean" })
+    })?
 }
 
 fn fuzz_file(file: &'static str) {
@@ -242,7 +216,7 @@ fn fuzz_file(file: &'static str) {
     }
     let (_, original) = store::load(&bases[0]).unwrap();
     let mut runner = TestRunner::new(Config {
-        cases: cases(),
+        cases: cases(512),
         failure_persistence: None,
         ..Config::default()
     });
@@ -277,7 +251,7 @@ fn fuzz_file(file: &'static str) {
     );
     println!(
         "fuzz resume/{file}: {} cases in {:.1} s, outcomes {:?}",
-        cases(),
+        cases(512),
         t0.elapsed().as_secs_f64(),
         outcomes.lock().unwrap()
     );
