@@ -30,6 +30,17 @@ pub fn positions(rig: &RigSpec, light: Direction, view: Direction) -> (Vec3, Vec
     )
 }
 
+/// The rig's lamp at `position`: its intensity, and its disc radius
+/// (`light.options.radius_mm`; callers validate the rig with `build_sim_rig`, which refuses
+/// a bad radius, so a bad one here is taken as a point lamp).
+pub fn lamp_at(rig: &RigSpec, position: Vec3) -> PointLight {
+    PointLight {
+        position,
+        intensity: rig.light.intensity_w_sr,
+        radius: gonio_simulator::lamp_radius_mm(rig).unwrap_or(0.0),
+    }
+}
+
 /// Render every pair of `sweep` view by view; `sink(view, light, image)` receives each
 /// image (view-major, lights in sweep order) and may stop the run by returning an error.
 /// `scale` converts radiance into the output units (see [`truth_scale`]).
@@ -46,13 +57,7 @@ pub fn render_btf<E>(
         let traced = renderer.truth_view(camera, size, size);
         for (li, &light) in sweep.lights.iter().enumerate() {
             let (_, lamp) = positions(rig, light, view);
-            let mut img = renderer.shade_truth(
-                &traced,
-                &PointLight {
-                    position: lamp,
-                    intensity: rig.light.intensity_w_sr,
-                },
-            );
+            let mut img = renderer.shade_truth(&traced, &lamp_at(rig, lamp));
             if scale != 1.0 {
                 img.data.iter_mut().for_each(|v| *v *= scale);
             }
@@ -88,15 +93,7 @@ mod tests {
         let mut n = 0;
         render_btf(&r, &rig, &sweep, 32, 1.0, |vi, li, img| {
             let (cam, lamp) = positions(&rig, sweep.lights[li], sweep.views[vi]);
-            let direct = r.render_truth(
-                cam,
-                32,
-                32,
-                &PointLight {
-                    position: lamp,
-                    intensity: rig.light.intensity_w_sr,
-                },
-            );
+            let direct = r.render_truth(cam, 32, 32, &lamp_at(&rig, lamp));
             assert_eq!(img.data, direct.data, "view {vi} light {li}");
             n += 1;
             Ok::<(), ()>(())

@@ -164,6 +164,8 @@ pub struct SimWorld {
     pub renderer: Arc<Renderer>,
     pub light: Arc<SimLight>,
     pub light_intensity_w_sr: f64,
+    /// Radius of the lamp's disc (rig file `light.options.radius_mm`; 0 = point lamp).
+    pub lamp_radius_mm: f64,
     pub intrinsics: Intrinsics,
     pub sensor: Mutex<SensorModel>,
     pub clock: Arc<SimClock>,
@@ -191,6 +193,7 @@ impl SimWorld {
         PointLight {
             position: self.kinematics.light_position(q),
             intensity: if on { k * self.light_intensity_w_sr } else { 0.0 },
+            radius: self.lamp_radius_mm,
         }
     }
 
@@ -322,11 +325,28 @@ pub struct SimOptions {
 
 /// Errors building a simulated rig (bad sensor options).
 #[derive(Debug, thiserror::Error)]
-#[error("rig {rig}: camera.options.{key}: {message}")]
+#[error("rig {rig}: {key}: {message}")]
 pub struct SimRigError {
     pub rig: String,
     pub key: String,
     pub message: String,
+}
+
+/// The lamp's disc radius from the rig file (`light.options.radius_mm`, default 0 = a
+/// point lamp); at most half the lamp's distance from the sample, so the disc stays a lamp.
+pub fn lamp_radius_mm(spec: &RigSpec) -> Result<f64, SimRigError> {
+    let Some(v) = spec.light.options.get("radius_mm") else {
+        return Ok(0.0);
+    };
+    let max = spec.geometry.light_distance_mm / 2.0;
+    v.as_float()
+        .or_else(|| v.as_integer().map(|i| i as f64))
+        .filter(|r| r.is_finite() && *r >= 0.0 && *r <= max)
+        .ok_or(SimRigError {
+            rig: spec.name.clone(),
+            key: "light.options.radius_mm".into(),
+            message: format!("{v}: must be a number of millimetres in [0, {max}] (half the lamp distance)"),
+        })
 }
 
 pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions) -> Result<SimRig, SimRigError> {
@@ -345,7 +365,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
                 .filter(|x| x.is_finite() && *x >= 0.0)
                 .ok_or(SimRigError {
                     rig: spec.name.clone(),
-                    key: key.into(),
+                    key: format!("camera.options.{key}"),
                     message: format!("{v}: must be a number ≥ 0"),
                 }),
         }
@@ -371,6 +391,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         renderer,
         light: light.clone(),
         light_intensity_w_sr: spec.light.intensity_w_sr,
+        lamp_radius_mm: lamp_radius_mm(spec)?,
         intrinsics: spec.camera.intrinsics(),
         sensor: Mutex::new(sensor),
         clock: clock.clone(),
@@ -388,7 +409,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
                         .filter(|x| x.is_finite() && x.abs() < 10.0)
                         .ok_or(SimRigError {
                             rig: spec.name.clone(),
-                            key: (*key).into(),
+                            key: format!("camera.options.{key}"),
                             message: format!("{v}: must be a number with |value| < 10"),
                         })?;
                 }
@@ -401,7 +422,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
             Some(other) => {
                 return Err(SimRigError {
                     rig: spec.name.clone(),
-                    key: "roi".into(),
+                    key: "camera.options.roi".into(),
                     message: format!("`{other}`: use \"holder\" (default) or \"full\""),
                 })
             }

@@ -20,6 +20,6 @@ pub mod render;
 pub mod sample;
 pub mod sensor;
 
-pub use devices::{build_sim_rig, SimOptions, SimRig, SimWorld};
+pub use devices::{build_sim_rig, lamp_radius_mm, SimOptions, SimRig, SimWorld};
 pub use render::{PointLight, RenderQuality, Renderer};
 pub use sample::{Sample, SampleSpec};

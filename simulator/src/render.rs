@@ -20,14 +20,36 @@ use rayon::prelude::*;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-/// A point lamp.
+/// The lamp: a point, or (with `radius` > 0) a disc facing the sample centre.
+///
+/// A disc lamp is rendered as [`RenderQuality::area_samples`] isotropic point emitters
+/// spread evenly over the disc (a Vogel spiral), each with `intensity / samples`: that
+/// gives the soft shadow edges and the near-field falloff of a real lamp's finite size.
+/// Each emitter has its own shadow map, so the cost grows with the samples; a point lamp
+/// (`radius` 0, the default) pays nothing for it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PointLight {
-    /// Position in the sample frame (mm).
+    /// Position (the disc's centre) in the sample frame (mm).
     pub position: Vec3,
-    /// Radiant intensity (W/sr).
+    /// Radiant intensity (W/sr) of the whole lamp.
     pub intensity: f64,
+    /// Disc radius (mm); 0 = a point lamp.
+    pub radius: f64,
 }
+
+impl PointLight {
+    /// A point lamp.
+    pub fn point(position: Vec3, intensity: f64) -> Self {
+        PointLight {
+            position,
+            intensity,
+            radius: 0.0,
+        }
+    }
+}
+
+/// One emitter of a lamp with its shadow map (`None` on flat samples).
+type Emitter = (PointLight, Option<Arc<ShadowMap>>);
 
 /// OpenCV's radial-tangential lens distortion `[k1, k2, p1, p2, k3]` of the simulated
 /// camera (rig file `camera.options`: `k1`, `k2`, `p1`, `p2`, `k3`; default 0 = pinhole).
@@ -81,6 +103,8 @@ pub struct RenderQuality {
     /// Samples per texel and axis of the ground truth: a texel's true value is the mean
     /// over its area (what an ideal, alias-free rectification delivers).
     pub truth_supersample: usize,
+    /// Point emitters a disc lamp is sampled with (ignored for point lamps).
+    pub area_samples: usize,
 }
 
 impl Default for RenderQuality {
@@ -89,6 +113,7 @@ impl Default for RenderQuality {
             supersample: 1,
             shadow_scale: 1,
             truth_supersample: 1,
+            area_samples: 16,
         }
     }
 }
@@ -110,8 +135,10 @@ pub struct Renderer {
 /// Samples per axis for pixels that see the holder frame rather than the sample.
 const FRAME_SS: usize = 4;
 
-/// Maximum number of cached shadow maps (81 Bonn light directions fit).
-const SHADOW_CACHE: usize = 256;
+/// Maximum number of cached shadow maps (81 Bonn light directions × 16 disc emitters fit).
+const SHADOW_CACHE: usize = 4096;
+/// Memory the cached shadow maps may take (81 lights × 16 disc emitters of a 256² map fit).
+const SHADOW_CACHE_BYTES: usize = 96 << 20;
 
 #[derive(Clone, Copy, Debug)]
 enum Hit {
@@ -296,7 +323,9 @@ impl Renderer {
         }
         let map = Arc::new(self.build_shadow_map(g, light));
         let mut cache = self.shadows.lock().expect("shadow cache poisoned");
-        if cache.len() >= SHADOW_CACHE {
+        // Bounded by count and by bytes (disc lamps need one map per emitter and light).
+        let bytes_each = map.lit.len().max(1);
+        if cache.len() >= SHADOW_CACHE || (cache.len() + 1) * bytes_each > SHADOW_CACHE_BYTES {
             cache.clear();
         }
         cache.insert(key, map.clone());
@@ -349,8 +378,55 @@ impl Renderer {
 
     /// Radiance (W m⁻² sr⁻¹, RGB) arriving at `origin` along unit `dir`.
     #[inline]
-    fn radiance_along(&self, origin: Vec3, dir: Vec3, light: &PointLight, shadow: Option<&ShadowMap>) -> [f64; 3] {
-        self.shade(&self.trace(origin, dir), dir, light, shadow)
+    fn radiance_along(&self, origin: Vec3, dir: Vec3, lamp: &[Emitter]) -> [f64; 3] {
+        self.shade_all(&self.trace(origin, dir), dir, lamp)
+    }
+
+    /// [`Self::shade`] summed over a lamp's emitters.
+    #[inline]
+    fn shade_all(&self, hit: &Hit, dir: Vec3, lamp: &[Emitter]) -> [f64; 3] {
+        if let [(light, shadow)] = lamp {
+            return self.shade(hit, dir, light, shadow.as_deref());
+        }
+        let mut acc = [0.0; 3];
+        for (light, shadow) in lamp {
+            let r = self.shade(hit, dir, light, shadow.as_deref());
+            acc[0] += r[0];
+            acc[1] += r[1];
+            acc[2] += r[2];
+        }
+        acc
+    }
+
+    /// The emitters a lamp is rendered with, each with its shadow map: the lamp itself if
+    /// it is a point, else `area_samples` points on its disc (see [`PointLight`]).
+    fn emitters(&self, light: &PointLight) -> Vec<Emitter> {
+        let k = self.quality.area_samples.max(1);
+        if light.radius <= 0.0 || k == 1 {
+            let p = PointLight::point(light.position, light.intensity);
+            return vec![(p, self.shadow_for(&p))];
+        }
+        // The disc faces the sample centre: two unit vectors spanning its plane.
+        let n = (Vec3::ZERO - light.position).normalized();
+        let helper = if n.z.abs() < 0.9 {
+            Vec3::Z
+        } else {
+            Vec3::new(1.0, 0.0, 0.0)
+        };
+        let u = helper.cross(n).normalized();
+        let v = n.cross(u);
+        const GOLDEN_ANGLE: f64 = 2.399_963_229_728_653;
+        (0..k)
+            .map(|i| {
+                let r = light.radius * ((i as f64 + 0.5) / k as f64).sqrt();
+                let a = i as f64 * GOLDEN_ANGLE;
+                let p = PointLight::point(
+                    light.position + u * (r * a.cos()) + v * (r * a.sin()),
+                    light.intensity / k as f64,
+                );
+                (p, self.shadow_for(&p))
+            })
+            .collect()
     }
 
     /// Radiance leaving the surface point `hit` (found along unit `dir`) toward the ray's
@@ -440,7 +516,7 @@ impl Renderer {
         light: &PointLight,
     ) -> RgbImage {
         let mut img = RgbImage::new(width, height);
-        let shadow = self.shadow_for(light);
+        let lamp = self.emitters(light);
         let (x0, y0, x1, y1) = if lens.is_zero() {
             self.pixel_bounds(intr, pose, width, height)
         } else {
@@ -487,7 +563,7 @@ impl Renderer {
                     let u = col as f64 + (sx as f64 + (sy as f64 + 0.5) / n as f64) / n as f64;
                     let v = row as f64 + (sy as f64 + (sx as f64 + 0.5) / n as f64) / n as f64;
                     let d = if n == 1 { centre } else { ray(u, v) };
-                    let r = self.radiance_along(pose.position, d, light, shadow.as_deref());
+                    let r = self.radiance_along(pose.position, d, &lamp);
                     acc[0] += r[0];
                     acc[1] += r[1];
                     acc[2] += r[2];
@@ -633,7 +709,7 @@ impl Renderer {
     pub fn shade_truth(&self, view: &TruthView, light: &PointLight) -> RgbImage {
         let (width, n) = (view.width, view.samples);
         let mut img = RgbImage::new(width, view.height);
-        let shadow = self.shadow_for(light);
+        let lamp = self.emitters(light);
         let w = 1.0 / (n * n) as f64;
         let per_row = width * n * n;
         img.data.par_chunks_mut(width * 3).enumerate().for_each(|(j, out)| {
@@ -641,7 +717,7 @@ impl Renderer {
             for i in 0..width {
                 let mut acc = [0.0; 3];
                 for (hit, d) in &row[i * n * n..(i + 1) * n * n] {
-                    let r = self.shade(hit, *d, light, shadow.as_deref());
+                    let r = self.shade_all(hit, *d, &lamp);
                     acc[0] += r[0];
                     acc[1] += r[1];
                     acc[2] += r[2];
@@ -699,5 +775,80 @@ mod lens_tests {
         let zero = LensDistortion::default();
         assert!(zero.is_zero());
         assert_eq!(zero.undistort(0.3, -0.2), (0.3, -0.2));
+    }
+}
+
+#[cfg(test)]
+mod disc_lamp_tests {
+    use super::{PointLight, RenderQuality, Renderer};
+    use crate::SampleSpec;
+    use gonio_devices::Vec3;
+    use std::sync::Arc;
+
+    fn renderer(sample: &str, area_samples: usize) -> Renderer {
+        let s = Arc::new(SampleSpec::resolve(sample).unwrap().build().unwrap());
+        Renderer::new(
+            s,
+            RenderQuality {
+                area_samples,
+                ..Default::default()
+            },
+        )
+    }
+
+    fn mean(img: &gonio_devices::image::RgbImage) -> f64 {
+        img.data.iter().map(|&v| v as f64).sum::<f64>() / img.data.len() as f64
+    }
+
+    /// A small disc far away is a point: same total intensity, positions within r ≪ d.
+    #[test]
+    fn a_small_disc_on_a_flat_sample_matches_the_point_lamp() {
+        let r = renderer("white-standard", 16);
+        let cam = Vec3::new(0.0, 0.0, 1000.0);
+        let pos = Vec3::new(600.0, 0.0, 1039.2);
+        let point = r.render_truth(cam, 32, 32, &PointLight::point(pos, 50.0));
+        let disc = r.render_truth(
+            cam,
+            32,
+            32,
+            &PointLight {
+                position: pos,
+                intensity: 50.0,
+                radius: 10.0,
+            },
+        );
+        let rel = (mean(&disc) / mean(&point) - 1.0).abs();
+        // (r/d)² ≈ 7e-5: the disc's emitters are slightly farther than its centre.
+        assert!(rel < 2e-4, "relative difference {rel}");
+        assert_eq!(r.shadow_maps_built(), 0, "a flat sample builds no shadow maps");
+    }
+
+    /// On a relief at a grazing light, a disc softens shadows: the hard point-lamp shadow
+    /// mask (0 or lit) becomes partial, and one emitter equals the point lamp exactly.
+    #[test]
+    fn a_disc_lamp_softens_shadows_and_one_emitter_is_the_point() {
+        let cam = Vec3::new(0.0, 0.0, 1000.0);
+        let pos = Vec3::new(1150.0, 0.0, 310.0); // θ ≈ 75°
+        let lamp = PointLight {
+            position: pos,
+            intensity: 50.0,
+            radius: 150.0,
+        };
+        let point = renderer("corduroy", 1).render_truth(cam, 64, 64, &PointLight::point(pos, 50.0));
+        let one = renderer("corduroy", 1).render_truth(cam, 64, 64, &lamp);
+        assert_eq!(one.data, point.data);
+        let r16 = renderer("corduroy", 16);
+        let soft = r16.render_truth(cam, 64, 64, &lamp);
+        assert!(r16.shadow_maps_built() == 16, "one shadow map per emitter");
+        let dark = |img: &gonio_devices::image::RgbImage| img.data.iter().filter(|&&v| v == 0.0).count();
+        assert!(dark(&point) > 0, "the point lamp casts hard shadows here");
+        assert!(
+            dark(&soft) < dark(&point),
+            "penumbrae replace part of the umbra: {} vs {}",
+            dark(&soft),
+            dark(&point)
+        );
+        let rel = (mean(&soft) / mean(&point) - 1.0).abs();
+        assert!(rel < 0.2, "same lamp power, similar mean: {rel}");
     }
 }

@@ -38,6 +38,10 @@ pub struct RenderBenchArgs {
     /// Samples per pixel and axis of the reference.
     #[arg(long, default_value_t = 8)]
     pub reference: usize,
+    /// Radius (mm) of a disc lamp to render with (default: the rig's
+    /// `light.options.radius_mm`, else a point lamp); adds rows for its emitter count.
+    #[arg(long)]
+    pub lamp_radius: Option<f64>,
     #[arg(long)]
     pub json: bool,
 }
@@ -68,9 +72,18 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
     let spec = load_sample(&a.sample)?;
     let sample = Arc::new(spec.build()?);
     let intr = rig.camera.intrinsics();
+    let radius = match a.lamp_radius {
+        Some(r) if r.is_finite() && r >= 0.0 && r <= rig.geometry.light_distance_mm / 2.0 => r,
+        Some(r) => anyhow::bail!(
+            "--lamp-radius {r}: must be between 0 and {} mm (half the lamp distance)",
+            rig.geometry.light_distance_mm / 2.0
+        ),
+        None => gonio_simulator::lamp_radius_mm(&rig)?,
+    };
     let light = |q: &[f64]| PointLight {
         position: kin.light_position(q),
         intensity: rig.light.intensity_w_sr,
+        radius,
     };
     let raw = |quality: RenderQuality| {
         let r = Renderer::new(sample.clone(), quality);
@@ -109,15 +122,20 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
         }
         (sq / n as f64).sqrt() / (sum / n as f64).max(1e-30)
     };
-    let q = |supersample, shadow_scale, truth_supersample| RenderQuality {
+    let q = |supersample, shadow_scale, truth_supersample, area_samples| RenderQuality {
         supersample,
         shadow_scale,
         truth_supersample,
+        area_samples,
     };
+    // A disc lamp's emitters are a knob too (reference: 64); a point lamp has none.
+    let (area_ref, area_knobs): (usize, &[usize]) = if radius > 0.0 { (64, &[1, 4, 16]) } else { (1, &[]) };
     let mut rows = Vec::new();
-    let (raw_ref, _) = raw(q(a.reference, 4, 1));
+    // Pixel and shadow knobs are measured with a point lamp (each disc emitter would
+    // multiply the reference's cost); the disc's emitter count has its own reference.
+    let (raw_ref, _) = raw(q(a.reference, 4, 1, 1));
     for (ss, sh) in [(1, 1), (2, 1), (4, 1), (1, 2), (1, 4), (2, 2)] {
-        let (imgs, ms) = raw(q(ss, sh, 1));
+        let (imgs, ms) = raw(q(ss, sh, 1, 1));
         rows.push(RenderRow {
             image: "raw",
             knob: format!("supersample {ss}, shadow map ×{sh}"),
@@ -125,15 +143,28 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
             relative_rmse: rel_rmse(&imgs, &raw_ref),
         });
     }
-    let (truth_ref, _) = truth(q(1, 4, a.reference));
+    let (truth_ref, _) = truth(q(1, 4, a.reference, 1));
     for (ts, sh) in [(1, 1), (2, 1), (4, 1), (1, 4)] {
-        let (imgs, ms) = truth(q(1, sh, ts));
+        let (imgs, ms) = truth(q(1, sh, ts, 1));
         rows.push(RenderRow {
             image: "truth",
             knob: format!("samples/texel {ts}², shadow map ×{sh}"),
             ms_per_image: ms,
             relative_rmse: rel_rmse(&imgs, &truth_ref),
         });
+    }
+    if !area_knobs.is_empty() {
+        // Truth images (1 sample per texel): what the disc's emitter count alone costs.
+        let (area_ref_imgs, _) = truth(q(1, 1, 1, area_ref));
+        for &k in area_knobs {
+            let (imgs, ms) = truth(q(1, 1, 1, k));
+            rows.push(RenderRow {
+                image: "truth",
+                knob: format!("disc lamp r = {radius} mm, {k} emitters (ref. {area_ref})"),
+                ms_per_image: ms,
+                relative_rmse: rel_rmse(&imgs, &area_ref_imgs),
+            });
+        }
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&rows)?);
@@ -287,10 +318,7 @@ fn sim(a: SimBenchArgs) -> Result<ExitCode> {
         let r = Renderer::new(sample, RenderQuality::default());
         let lights: Vec<PointLight> = pairs
             .iter()
-            .map(|q| PointLight {
-                position: kin.light_position(q),
-                intensity: 50.0,
-            })
+            .map(|q| PointLight::point(kin.light_position(q), 50.0))
             .collect();
         let t = Instant::now();
         let mut last = None;

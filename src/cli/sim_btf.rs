@@ -153,15 +153,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         'outer: for (vi, &view) in sweep.views.iter().enumerate() {
             for (li, &light) in sweep.lights.iter().enumerate() {
                 let (cam, lamp) = synth::positions(&rig, light, view);
-                let mut img = renderer.render_truth(
-                    cam,
-                    a.size,
-                    a.size,
-                    &gonio_simulator::PointLight {
-                        position: lamp,
-                        intensity: rig.light.intensity_w_sr,
-                    },
-                );
+                let mut img = renderer.render_truth(cam, a.size, a.size, &synth::lamp_at(&rig, lamp));
                 img.data.iter_mut().for_each(|v| *v *= scale);
                 render_s += last.elapsed().as_secs_f64();
                 if let Err(e) = send(vi, li, img) {
