@@ -6,8 +6,13 @@
 # the warm-up (default 60 s) memory rises to its working set (rayon threads, shadow maps
 # cached per light, the sample's height field: measured ≈ 85 MiB after ~55 s); after it the
 # process must be flat: descriptors at the end no more than at the start of the window, and
-# memory grown by at most 2 MiB plus 2 KiB per measurement stored in the window (the
-# dataset keeps every record in memory for the final manifest, ≈ 1.2 KiB each measured).
+# memory grown by no more than what the bounded structures can still take: 2 MiB of
+# allocator slack, 2 KiB per measurement stored in the window (the dataset keeps every
+# record in memory for the final manifest, ≈ 1.2 KiB each measured), and the shadow-map
+# cache of the default sample (one 256² byte map per light position, 81 × 64 KiB, filled
+# as the plan reaches lights it has not lit before; a CI run saw +2.9 MiB in a 43-
+# measurement window while it filled). A leak grows without these bounds: a long soak
+# (3600 s) makes it stand out.
 # Then the run is paused with SIGINT (a clean pause, exit code 3), the dataset verified,
 # and resumed for a few more measurements against the same emulator.
 #
@@ -83,7 +88,7 @@ n2=$(ls "$work/ds/images" | wc -l)
 
 mib() { awk -v k="$1" 'BEGIN { printf "%.1f", k / 1024 }'; }
 window=$((n - n0))
-allow=$((2048 + 2 * window))
+allow=$((2048 + 2 * window + 81 * 64))
 flat=yes
 [ "$fd1" -le "$fd0" ] || flat=no
 [ $((rss1 - rss0)) -le "$allow" ] || flat=no
