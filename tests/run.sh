@@ -16,9 +16,11 @@ echo "== cargo clippy (warnings denied)"
 cargo clippy --workspace --all-targets -- -D warnings
 echo "== cargo test"
 cargo test --workspace
-echo "== campaign figures (kill -9, faults)"
-cargo test -q -p gonio --test campaign_kill9 --test campaign_faults -- --nocapture 2>&1 \
-  | grep -E "^(kill9:|fault|\||[a-z-]+ +\|)" || true
+echo "== campaign figures (kill -9, storage and serial faults)"
+# (one test thread: the rows of a table must not interleave; -q prints progress dots
+# in front of a row, hence grep -o)
+cargo test -q -p gonio --test campaign_kill9 --test campaign_faults --test serial_drivers -- --nocapture \
+  --test-threads=1 2>&1 | grep -oE "(kill9|faults): .*" || true
 echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh
 echo "== interop"

@@ -14,6 +14,11 @@ use gonio_simulator::emulate::{spawn_pty, EmulatorConfig, EmulatorHandle, FaultP
 use std::path::Path;
 use std::sync::Arc;
 
+/// One row of the campaign table `tests/run.sh` prints (same columns as campaign_faults).
+fn fault_row(fault: &str, lost: &str, outcome: &str) {
+    println!("faults: {fault:<58} | {lost:<5} | {outcome}");
+}
+
 fn emulator(protocol: Protocol, axes: usize, faults: &[&str]) -> EmulatorHandle {
     let cfg = EmulatorConfig::new(protocol, axes).with_faults(FaultPlan::parse(faults).unwrap());
     spawn_pty(cfg).unwrap()
@@ -136,6 +141,11 @@ async fn zaber_reply_faults_are_retried() {
     for deg in [15.0, -20.0, 5.0] {
         move_and_check(&*a, deg).await;
     }
+    fault_row(
+        "zaber garble every 5th, drop 1, slow 1 reply",
+        "n/a",
+        "retried: home + 3 moves reached their targets",
+    );
     h.stop();
 }
 
@@ -148,6 +158,11 @@ async fn zaber_garbled_beyond_retries_is_typed() {
         DeviceError::Garbled { device, command, .. } => {
             assert_eq!(device, "zaber1");
             assert_eq!(command, "warnings clear");
+            fault_row(
+                "zaber every reply garbled",
+                "n/a",
+                &format!("typed error after the retries: {device}: garbled reply to `{command}`"),
+            );
         }
         e => panic!("{e}"),
     }
@@ -174,7 +189,7 @@ async fn zaber_motion_faults_end_in_typed_errors() {
         };
         assert!(ok, "{fault}: {e}");
         assert_eq!(e.device(), "zaber1");
-        eprintln!("{fault:>22} -> {e}");
+        fault_row(&format!("zaber {fault} (axis move)"), "n/a", &e.to_string());
         h.stop();
     }
 }
@@ -211,6 +226,11 @@ async fn esp_reply_faults_are_retried() {
     for deg in [15.0, -20.0, 5.0] {
         move_and_check(&*a, deg).await;
     }
+    fault_row(
+        "esp300 garble every 5th, drop 1 reply",
+        "n/a",
+        "retried: home + 3 moves reached their targets",
+    );
     h.stop();
 }
 
@@ -233,7 +253,7 @@ async fn esp_motion_faults_end_in_typed_errors() {
             _ => matches!(&e, DeviceError::Disconnected { .. } | DeviceError::Timeout { .. }),
         };
         assert!(ok, "{fault}: {e}");
-        eprintln!("{fault:>22} -> {e}");
+        fault_row(&format!("esp300 {fault} (axis move)"), "n/a", &e.to_string());
         h.stop();
     }
 }
@@ -352,6 +372,7 @@ fn disconnect_stops_cleanly_and_resume_continues_after_emulator_restart() {
     );
     let stored = journal_lines();
     assert!(stored >= 3, "measurements before the disconnect are kept: {stored}");
+    let before = std::fs::read_to_string(out.join("journal.jsonl")).unwrap();
     eprintln!(
         "first run stopped after {stored} stored measurements: {}",
         stderr.trim()
@@ -376,6 +397,17 @@ fn disconnect_stops_cleanly_and_resume_continues_after_emulator_restart() {
     assert_eq!(journal_lines(), 36, "{summary}");
     let resumed_moves = h2.received().iter().filter(|l| l.contains("move abs")).count();
     assert!(resumed_moves > 0, "the resumed run moved the restarted emulator's axes");
+    // Every line stored before the disconnect is still in the journal, unchanged.
+    let after = std::fs::read_to_string(out.join("journal.jsonl")).unwrap();
+    let lost = before.lines().filter(|l| !after.lines().any(|a| a == *l)).count();
+    assert_eq!(lost, 0, "stored measurements lost across the disconnect and resume");
+    fault_row(
+        "zaber controller disconnect mid-acquisition",
+        "0",
+        &format!(
+            "run stopped with a typed error after {stored} stored; resume on a restarted emulator completed 36/36"
+        ),
+    );
     h2.stop();
     let _ = std::fs::remove_dir_all(&dir);
 }
