@@ -92,6 +92,18 @@ struct SweepFile {
 
 impl Sweep {
     /// Every light × view pair, in canonical index order.
+    /// The sweep as a dataset manifest records it (`name`, `lights_deg`, `views_deg` in
+    /// degrees, and the policy for pairs the rig cannot measure).
+    pub fn manifest_json(&self, policy: impl Serialize) -> serde_json::Value {
+        let deg = |v: &[Direction]| v.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>();
+        serde_json::json!({
+            "name": self.name,
+            "lights_deg": deg(&self.lights),
+            "views_deg": deg(&self.views),
+            "policy": policy,
+        })
+    }
+
     pub fn pairs(&self) -> Vec<Pair> {
         let l = self.lights.len();
         let mut out = Vec::with_capacity(l * self.views.len());

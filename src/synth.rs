@@ -30,14 +30,13 @@ pub fn positions(rig: &RigSpec, light: Direction, view: Direction) -> (Vec3, Vec
     )
 }
 
-/// The rig's lamp at `position`: its intensity, and its disc radius
-/// (`light.options.radius_mm`; callers validate the rig with `build_sim_rig`, which refuses
-/// a bad radius, so a bad one here is taken as a point lamp).
-pub fn lamp_at(rig: &RigSpec, position: Vec3) -> PointLight {
+/// The rig's lamp at `position`, with its disc radius (`gonio_simulator::lamp_radius_mm`,
+/// validated once by the caller).
+pub fn lamp_at(rig: &RigSpec, radius: f64, position: Vec3) -> PointLight {
     PointLight {
         position,
         intensity: rig.light.intensity_w_sr,
-        radius: gonio_simulator::lamp_radius_mm(rig).unwrap_or(0.0),
+        radius,
     }
 }
 
@@ -47,6 +46,7 @@ pub fn lamp_at(rig: &RigSpec, position: Vec3) -> PointLight {
 pub fn render_btf<E>(
     renderer: &Renderer,
     rig: &RigSpec,
+    radius: f64,
     sweep: &Sweep,
     size: usize,
     scale: f32,
@@ -57,7 +57,7 @@ pub fn render_btf<E>(
         let traced = renderer.truth_view(camera, size, size);
         for (li, &light) in sweep.lights.iter().enumerate() {
             let (_, lamp) = positions(rig, light, view);
-            let mut img = renderer.shade_truth(&traced, &lamp_at(rig, lamp));
+            let mut img = renderer.shade_truth(&traced, &lamp_at(rig, radius, lamp));
             if scale != 1.0 {
                 img.data.iter_mut().for_each(|v| *v *= scale);
             }
@@ -91,9 +91,9 @@ mod tests {
         let r = Renderer::new(sample, RenderQuality::default());
         let sweep = Sweep::resolve("fibonacci:4").unwrap();
         let mut n = 0;
-        render_btf(&r, &rig, &sweep, 32, 1.0, |vi, li, img| {
+        render_btf(&r, &rig, 0.0, &sweep, 32, 1.0, |vi, li, img| {
             let (cam, lamp) = positions(&rig, sweep.lights[li], sweep.views[vi]);
-            let direct = r.render_truth(cam, 32, 32, &lamp_at(&rig, lamp));
+            let direct = r.render_truth(cam, 32, 32, &lamp_at(&rig, 0.0, lamp));
             assert_eq!(img.data, direct.data, "view {vi} light {li}");
             n += 1;
             Ok::<(), ()>(())

@@ -101,39 +101,46 @@ fn fuzz_zaber_reply_lines() {
     .unwrap();
 }
 
-#[test]
-fn fuzz_zaber_port_with_a_garbling_device() {
-    // Every bad reply costs a reply timeout (and retries): a quarter of the cases.
+/// Run `session` against a device that answers the n-th command with the n-th of 1–3
+/// mutated reply lines (cycling), drawn from `seeds`. Every bad reply costs a reply
+/// timeout (and retries), hence a quarter of the usual cases.
+fn with_garbling_device(seeds: &'static [&'static str], session: fn(ScriptedTransport)) {
     let mut r = TestRunner::new(Config {
         cases: cases(512).div_ceil(4),
         failure_persistence: None,
         ..Config::default()
     });
     let strat = prop::collection::vec(
-        prop::sample::select(ZABER_REPLIES.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
+        prop::sample::select(seeds.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
         1..4,
     );
     r.run(&strat, |replies| {
         guarded(move || {
             let mut k = 0;
-            let t = ScriptedTransport::new(move |_cmd| {
+            session(ScriptedTransport::new(move |_cmd| {
                 k += 1;
                 vec![ScriptReply::Bytes(replies[k % replies.len()].clone())]
-            });
-            let port = ZaberPort::with_transport(
-                "fuzz",
-                Box::new(t),
-                PortConfig {
-                    reply_timeout: Duration::from_millis(20),
-                    checksums: true,
-                },
-            );
-            for cmd in ["get pos", "move abs 1000", "home", "stop"] {
-                let _ = port.command("fuzz-axis", 1, 1, cmd);
-            }
+            }))
         })
     })
     .unwrap();
+}
+
+#[test]
+fn fuzz_zaber_port_with_a_garbling_device() {
+    with_garbling_device(ZABER_REPLIES, |t| {
+        let port = ZaberPort::with_transport(
+            "fuzz",
+            Box::new(t),
+            PortConfig {
+                reply_timeout: Duration::from_millis(20),
+                checksums: true,
+            },
+        );
+        for cmd in ["get pos", "move abs 1000", "home", "stop"] {
+            let _ = port.command("fuzz-axis", 1, 1, cmd);
+        }
+    });
 }
 
 const ESP_REPLIES: &[&str] = &[
@@ -147,29 +154,12 @@ const ESP_REPLIES: &[&str] = &[
 
 #[test]
 fn fuzz_esp300_port_with_a_garbling_device() {
-    let mut r = TestRunner::new(Config {
-        cases: cases(512).div_ceil(4),
-        failure_persistence: None,
-        ..Config::default()
+    with_garbling_device(ESP_REPLIES, |t| {
+        let port = EspPort::with_transport("fuzz", Box::new(t), Duration::from_millis(20));
+        let _ = port.query_number("fuzz-axis", "1TP");
+        let _ = port.query("fuzz-axis", "1MD?");
+        let _ = port.error("fuzz-axis");
     });
-    let strat = prop::collection::vec(
-        prop::sample::select(ESP_REPLIES.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
-        1..4,
-    );
-    r.run(&strat, |replies| {
-        guarded(move || {
-            let mut k = 0;
-            let t = ScriptedTransport::new(move |_cmd| {
-                k += 1;
-                vec![ScriptReply::Bytes(replies[k % replies.len()].clone())]
-            });
-            let port = EspPort::with_transport("fuzz", Box::new(t), Duration::from_millis(20));
-            let _ = port.query_number("fuzz-axis", "1TP");
-            let _ = port.query("fuzz-axis", "1MD?");
-            let _ = port.error("fuzz-axis");
-        })
-    })
-    .unwrap();
 }
 
 /// A valid small DFMF file: 3 lights × 2 views of 4 × 3 texels, 2 components.

@@ -272,30 +272,17 @@ fn create_new(args: &AcquireArgs) -> Result<Opened> {
         raw: args.raw,
         store_truth: args.store_truth,
     };
-    let header = ManifestHeader {
-        format: store::FORMAT.into(),
-        version: store::FORMAT_VERSION,
-        gonio_version: env!("CARGO_PKG_VERSION").into(),
-        created_unix: std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_secs_f64())
-            .unwrap_or(0.0),
-        rig: serde_json::to_value(&rig)?,
-        sample: serde_json::to_value(&sample)?,
-        sweep: serde_json::json!({
-            "name": sweep.name,
-            "lights_deg": sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
-            "views_deg": sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
-            "policy": plan.policy,
-        }),
-        image_width: settings.width,
-        image_height: settings.height,
-        values: "linear normalised sensor signal (DN / max DN), radiometrically uncalibrated".into(),
-        seed: settings.seed.unwrap_or(1),
-        raw_frames: settings.raw,
-        calibration: None,
-        extra: serde_json::json!({ "run_settings": settings }),
-    };
+    let mut header = ManifestHeader::new(
+        serde_json::to_value(&rig)?,
+        serde_json::to_value(&sample)?,
+        sweep.manifest_json(plan.policy),
+        settings.width,
+        settings.height,
+        "linear normalised sensor signal (DN / max DN), radiometrically uncalibrated",
+    );
+    header.seed = settings.seed.unwrap_or(1);
+    header.raw_frames = settings.raw;
+    header.extra = serde_json::json!({ "run_settings": settings });
     let dataset = Dataset::create(&args.out, &header, args.force).with_context(|| {
         format!(
             "creating dataset {} (use --force to replace a dataset, --resume to continue one)",

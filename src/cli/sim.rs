@@ -109,22 +109,7 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     if let Some(path) = &a.scene_json {
         write_scene_json(path, &spec, &rig, &sample, a.light, a.view)?;
     }
-    if kind == RenderKind::Radiance {
-        let img = render_radiance(&spec, &sample, &opts, &rig, a.light, a.view)?;
-        write_image(&a.out, &img)?;
-        eprintln!(
-            "wrote {} ({}×{}, radiance W m⁻² sr⁻¹)",
-            a.out.display(),
-            img.width,
-            img.height
-        );
-        return Ok(ExitCode::SUCCESS);
-    }
-    let sols = rig
-        .kinematics
-        .inverse(a.light, a.view, None)
-        .map_err(|e| anyhow::anyhow!("rig `{}` cannot measure this pair: {e}", spec.name))?;
-    let q = sols[0].clone();
+    let q = configuration(&rig, a.light, a.view)?;
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let img = rt.block_on(async {
         crate::engine::prepare(&rig).await?;
@@ -132,9 +117,13 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
             axis.move_abs(t).await.map_err(crate::engine::EngineError::Setup)?;
         }
         match kind {
-            RenderKind::Truth => {
+            RenderKind::Truth | RenderKind::Radiance => {
                 let t = rig.truth.as_ref().expect("simulated rig has truth");
-                Ok::<RgbImage, anyhow::Error>(t.truth(&q, a.size, a.size))
+                Ok::<RgbImage, anyhow::Error>(if kind == RenderKind::Truth {
+                    t.truth(&q, a.size, a.size)
+                } else {
+                    t.radiance(&q)
+                })
             }
             _ => {
                 let frame = rig.camera.capture().await.map_err(crate::engine::EngineError::Setup)?;
@@ -156,7 +145,12 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
         }
     })?;
     write_image(&a.out, &img)?;
-    eprintln!("wrote {} ({}×{})", a.out.display(), img.width, img.height);
+    let unit = if kind == RenderKind::Radiance {
+        ", radiance W m⁻² sr⁻¹"
+    } else {
+        ""
+    };
+    eprintln!("wrote {} ({}×{}{unit})", a.out.display(), img.width, img.height);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -167,25 +161,6 @@ fn configuration(rig: &Rig, light: Direction, view: Direction) -> Result<Vec<f64
         .inverse(light, view, None)
         .map_err(|e| anyhow::anyhow!("rig `{}` cannot measure this pair: {e}", rig.spec.name))?;
     Ok(sols[0].clone())
-}
-
-/// The radiance the camera sees at the pair's configuration, before any sensor effect.
-fn render_radiance(
-    spec: &gonio_devices::rig::RigSpec,
-    sample: &gonio_simulator::SampleSpec,
-    opts: &SimOptions,
-    rig: &Rig,
-    light: Direction,
-    view: Direction,
-) -> Result<RgbImage> {
-    let q = configuration(rig, light, view)?;
-    let built = std::sync::Arc::new(sample.clone().build()?);
-    let renderer = std::sync::Arc::new(gonio_simulator::Renderer::new(built, opts.quality));
-    let sim = gonio_simulator::build_sim_rig(spec, renderer, opts)?;
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-    rt.block_on(sim.light.set(true, 1.0))
-        .map_err(crate::engine::EngineError::Setup)?;
-    Ok(sim.world.raw_radiance(&q))
 }
 
 /// The scene of one measurement as JSON (see `--scene-json`).

@@ -2,7 +2,7 @@
 //! simulating the acquisition (see `crate::synth`).
 
 use super::common::{load_sample, RigArgs};
-use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord};
+use crate::store::{Dataset, ManifestHeader, MeasurementRecord};
 use crate::sweep::Sweep;
 use crate::synth;
 use anyhow::{bail, Context, Result};
@@ -75,13 +75,11 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         truth_supersample: a.supersample,
         ..Default::default()
     };
-    let renderer = Renderer::new(Arc::new(spec.clone().build()?), quality);
-    // The acquisition's truth units come from the rig's sensor model.
-    let sim = gonio_simulator::build_sim_rig(
-        &rig,
-        Arc::new(Renderer::new(renderer.sample.clone(), quality)),
-        &SimOptions::default(),
-    )?;
+    let renderer = Arc::new(Renderer::new(Arc::new(spec.clone().build()?), quality));
+    // The acquisition's truth units come from the rig's sensor model; building the sim rig
+    // also validates the rig's lamp (`light.options.radius_mm`).
+    let sim = gonio_simulator::build_sim_rig(&rig, renderer.clone(), &SimOptions::default())?;
+    let radius = sim.world.lamp_radius_mm;
     let scale = synth::truth_scale(&sim.world.sensor.lock().expect("sensor lock"));
 
     // The store thread: EXR encoding and fsyncs overlap the rendering.
@@ -89,32 +87,16 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
     let store_thread = match &a.out {
         None => None,
         Some(out) => {
-            let header = ManifestHeader {
-                format: store::FORMAT.into(),
-                version: store::FORMAT_VERSION,
-                gonio_version: env!("CARGO_PKG_VERSION").into(),
-                created_unix: std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map(|d| d.as_secs_f64())
-                    .unwrap_or(0.0),
-                rig: serde_json::to_value(&rig)?,
-                sample: serde_json::to_value(&spec)?,
-                sweep: serde_json::json!({
-                    "name": sweep.name,
-                    "lights_deg": sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
-                    "views_deg": sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>(),
-                    "policy": "skip",
-                }),
-                image_width: a.size,
-                image_height: a.size,
-                values: "ground truth, linear normalised sensor signal (DN / max DN) of the rig's sensor, \
-                         no noise (synthetic BTF, `gonio sim btf`)"
-                    .into(),
-                seed: 0,
-                raw_frames: false,
-                calibration: None,
-                extra: serde_json::json!({ "synthetic": { "ideal_rig": true, "supersample": a.supersample } }),
-            };
+            let mut header = ManifestHeader::new(
+                serde_json::to_value(&rig)?,
+                serde_json::to_value(&spec)?,
+                sweep.manifest_json("skip"),
+                a.size,
+                a.size,
+                "ground truth, linear normalised sensor signal (DN / max DN) of the rig's sensor, \
+                 no noise (synthetic BTF, `gonio sim btf`)",
+            );
+            header.extra = serde_json::json!({ "synthetic": { "ideal_rig": true, "supersample": a.supersample } });
             let mut ds = Dataset::create(out, &header, a.force)
                 .with_context(|| format!("creating the dataset {}", out.display()))?;
             let nl = sweep.lights.len();
@@ -153,7 +135,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         'outer: for (vi, &view) in sweep.views.iter().enumerate() {
             for (li, &light) in sweep.lights.iter().enumerate() {
                 let (cam, lamp) = synth::positions(&rig, light, view);
-                let mut img = renderer.render_truth(cam, a.size, a.size, &synth::lamp_at(&rig, lamp));
+                let mut img = renderer.render_truth(cam, a.size, a.size, &synth::lamp_at(&rig, radius, lamp));
                 img.data.iter_mut().for_each(|v| *v *= scale);
                 render_s += last.elapsed().as_secs_f64();
                 if let Err(e) = send(vi, li, img) {
@@ -165,7 +147,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         }
         r
     } else {
-        synth::render_btf(&renderer, &rig, &sweep, a.size, scale, |vi, li, img| {
+        synth::render_btf(&renderer, &rig, radius, &sweep, a.size, scale, |vi, li, img| {
             render_s += last.elapsed().as_secs_f64();
             send(vi, li, img)?;
             last = Instant::now();

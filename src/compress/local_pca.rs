@@ -658,8 +658,6 @@ pub fn reconstruct(g: &Gbtf, k: usize, c: usize, light: usize, view: usize) -> V
 #[cfg(test)]
 pub(crate) mod testdata {
     use crate::compress::{compress, CompressedBtf, DatasetViews, Gbtf, Params};
-    use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord};
-    use gonio_devices::image::RgbImage;
     use std::path::Path;
 
     pub const W: usize = 8;
@@ -682,38 +680,7 @@ pub(crate) mod testdata {
         vs: &[[f64; 2]],
         f: impl Fn(usize, usize, usize, usize) -> f32,
     ) -> DatasetViews {
-        let header = ManifestHeader {
-            format: store::FORMAT.into(),
-            version: store::FORMAT_VERSION,
-            gonio_version: "test".into(),
-            created_unix: 1_700_000_000.0,
-            rig: serde_json::json!({"name": "test rig"}),
-            sample: serde_json::json!({"name": "synthetic"}),
-            sweep: serde_json::json!({"name": "t", "lights_deg": ls, "views_deg": vs}),
-            image_width: w,
-            image_height: h,
-            values: "synthetic".into(),
-            seed: 1,
-            raw_frames: false,
-            calibration: None,
-            extra: serde_json::Value::Null,
-        };
-        let mut ds = Dataset::create(dir, &header, false).unwrap();
-        for (v, vd) in vs.iter().enumerate() {
-            for (l, ld) in ls.iter().enumerate() {
-                let index = v * ls.len() + l;
-                let mut img = RgbImage::new(w, h);
-                for t in 0..w * h {
-                    for c in 0..3 {
-                        img.data[t * 3 + c] = f(l, v, t, c);
-                    }
-                }
-                ds.store(MeasurementRecord::new(index, index, *ld, *vd), Some(&img), None)
-                    .unwrap();
-            }
-        }
-        ds.finish(&serde_json::json!({})).unwrap();
-        DatasetViews::open(dir).unwrap()
+        crate::compress::dfmf::tests::write_test_dataset(dir, (w, h), ls, vs, &[], f)
     }
 
     /// [`write_grid`] on the default 8 × 6 texel, 5 light × 4 view grid.

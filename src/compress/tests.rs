@@ -1,7 +1,7 @@
 //! Tests of the compression pipeline on small synthetic datasets written with `store`.
 
 use super::*;
-use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
+use crate::store;
 use faer::Mat;
 use gonio_devices::image::RgbImage;
 use std::path::Path;
@@ -16,49 +16,10 @@ fn views() -> Vec<[f64; 2]> {
     vec![[0.0, 0.0], [45.0, 0.0], [45.0, 180.0], [60.0, 270.0]]
 }
 
-fn header(w: usize, h: usize) -> ManifestHeader {
-    ManifestHeader {
-        format: store::FORMAT.into(),
-        version: store::FORMAT_VERSION,
-        gonio_version: "test".into(),
-        created_unix: 1_700_000_000.0,
-        rig: serde_json::json!({"name": "test rig"}),
-        sample: serde_json::json!({"name": "synthetic"}),
-        sweep: serde_json::json!({"name": "t", "lights_deg": lights(), "views_deg": views()}),
-        image_width: w,
-        image_height: h,
-        values: "synthetic".into(),
-        seed: 1,
-        raw_frames: false,
-        calibration: None,
-        extra: serde_json::Value::Null,
-    }
-}
-
 /// Write a dataset whose image (light, view) is `f(light, view, texel, channel)`;
 /// pairs in `skip` are recorded as skipped.
 fn write_dataset(dir: &Path, skip: &[(usize, usize)], f: impl Fn(usize, usize, usize, usize) -> f32) {
-    let mut ds = Dataset::create(dir, &header(W, H), false).unwrap();
-    let (ls, vs) = (lights(), views());
-    for (v, vd) in vs.iter().enumerate() {
-        for (l, ld) in ls.iter().enumerate() {
-            let index = v * ls.len() + l;
-            let mut rec = MeasurementRecord::new(index, index, *ld, *vd);
-            if skip.contains(&(l, v)) {
-                rec.status = MeasurementStatus::Skipped { reason: "test".into() };
-                ds.store(rec, None, None).unwrap();
-                continue;
-            }
-            let mut img = RgbImage::new(W, H);
-            for t in 0..W * H {
-                for c in 0..3 {
-                    img.data[t * 3 + c] = f(l, v, t, c);
-                }
-            }
-            ds.store(rec, Some(&img), None).unwrap();
-        }
-    }
-    ds.finish(&serde_json::json!({})).unwrap();
+    super::dfmf::tests::write_test_dataset(dir, (W, H), &lights(), &views(), skip, f);
 }
 
 /// An exactly rank-3 BTF whose values are exact in half float (multiples of 1/128 below

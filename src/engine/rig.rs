@@ -15,16 +15,22 @@ use gonio_simulator::devices::SimAxis;
 use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions, SimWorld};
 use std::sync::Arc;
 
-/// What the simulator knows that a real rig does not: the exact rectified image.
+/// What the simulator knows that a real rig does not: the exact rectified image, and the
+/// radiance the camera sees before its sensor.
 pub trait GroundTruth: Send + Sync {
     /// Ground truth for axis configuration `q` (radians) in the units of the rectified
     /// images (normalised sensor signal, not clipped).
     fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage;
+    /// The camera's radiance image (W m⁻² sr⁻¹) at configuration `q`, no sensor effects.
+    fn radiance(&self, q: &[f64]) -> RgbImage;
 }
 
 impl GroundTruth for SimWorld {
     fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage {
         SimWorld::truth(self, q, width, height)
+    }
+    fn radiance(&self, q: &[f64]) -> RgbImage {
+        self.raw_radiance(q)
     }
 }
 

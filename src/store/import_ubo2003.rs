@@ -26,7 +26,7 @@
 //! continues an interrupted import where it stopped.
 
 use super::manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
-use super::{Dataset, StoreError, FORMAT, FORMAT_VERSION};
+use super::{Dataset, StoreError};
 use gonio_devices::image::RgbImage;
 use rayon::prelude::*;
 use std::collections::{BTreeMap, HashSet};
@@ -396,25 +396,15 @@ pub fn import_ubo2003(
         let done = records.iter().map(|r| r.index).collect();
         (ds, done)
     } else {
-        let header = ManifestHeader {
-            format: FORMAT.into(),
-            version: FORMAT_VERSION,
-            gonio_version: env!("CARGO_PKG_VERSION").into(),
-            created_unix: std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_secs_f64())
-                .unwrap_or(0.0),
-            rig: serde_json::json!({ "name": "imported", "imported_from": "ubo2003" }),
-            sample: serde_json::json!({ "name": archive_name }),
+        let mut header = ManifestHeader::new(
+            serde_json::json!({ "name": "imported", "imported_from": "ubo2003" }),
+            serde_json::json!({ "name": archive_name }),
             sweep,
-            image_width: width,
-            image_height: height,
-            values: "linear sRGB from 8-bit images (UBO2003 import); radiometric scale of the source".into(),
-            seed: 0,
-            raw_frames: false,
-            calibration: None,
-            extra: serde_json::json!({ "import": { "format": "ubo2003", "archive": archive_name } }),
-        };
+            width,
+            height,
+            "linear sRGB from 8-bit images (UBO2003 import); radiometric scale of the source",
+        );
+        header.extra = serde_json::json!({ "import": { "format": "ubo2003", "archive": archive_name } });
         (Dataset::create(out, &header, force)?, HashSet::new())
     };
 

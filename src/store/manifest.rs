@@ -45,6 +45,39 @@ pub struct ManifestHeader {
     pub extra: serde_json::Value,
 }
 
+impl ManifestHeader {
+    /// A header of this gonio's format and version, created now, with the given content;
+    /// seed 0, no raw frames, no calibration, nothing extra (callers set what differs).
+    pub fn new(
+        rig: serde_json::Value,
+        sample: serde_json::Value,
+        sweep: serde_json::Value,
+        image_width: usize,
+        image_height: usize,
+        values: impl Into<String>,
+    ) -> ManifestHeader {
+        ManifestHeader {
+            format: super::FORMAT.into(),
+            version: super::FORMAT_VERSION,
+            gonio_version: env!("CARGO_PKG_VERSION").into(),
+            created_unix: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs_f64())
+                .unwrap_or(0.0),
+            rig,
+            sample,
+            sweep,
+            image_width,
+            image_height,
+            values: values.into(),
+            seed: 0,
+            raw_frames: false,
+            calibration: None,
+            extra: serde_json::Value::Null,
+        }
+    }
+}
+
 /// What happened to one planned (light, view) pair.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(tag = "kind", rename_all = "snake_case")]
