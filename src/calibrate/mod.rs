@@ -144,6 +144,31 @@ pub struct CalibrationResult {
 }
 
 impl CalibrationResult {
+    /// An empty result for `recipe` on the rig named `rig`: every estimate `None`. Each
+    /// recipe kind fills in its own parts (`..CalibrationResult::new(..)`), so adding a kind
+    /// adds one optional field here and touches no other kind.
+    pub fn new(recipe: &Recipe, rig: String, simulated: bool) -> Self {
+        CalibrationResult {
+            format: RESULT_FORMAT.into(),
+            id: String::new(),
+            gonio_version: env!("CARGO_PKG_VERSION").into(),
+            created_unix: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs_f64())
+                .unwrap_or(0.0),
+            rig,
+            kind: recipe.kind.name().into(),
+            recipe: recipe.clone(),
+            simulated,
+            intrinsics: None,
+            truth: None,
+            errors: None,
+            effort: Vec::new(),
+            corner_truth_rms_px: Vec::new(),
+            rig_time_s: 0.0,
+        }
+    }
+
     /// Fill `id` with the hash of the serialized result (with an empty id).
     fn seal(mut self) -> Self {
         self.id.clear();
@@ -370,23 +395,13 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         });
     }
     let result = CalibrationResult {
-        format: RESULT_FORMAT.into(),
-        id: String::new(),
-        gonio_version: env!("CARGO_PKG_VERSION").into(),
-        created_unix: std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_secs_f64())
-            .unwrap_or(0.0),
-        rig: rig_name,
-        kind: recipe.kind.name().into(),
-        recipe: recipe.clone(),
-        simulated,
         intrinsics: Some(fit),
         truth,
         errors,
         effort,
         corner_truth_rms_px: corner_truth,
         rig_time_s: rig.time() - t0,
+        ..CalibrationResult::new(recipe, rig_name, simulated)
     }
     .seal();
     Ok(RunOutput {
