@@ -42,6 +42,9 @@ pub struct RenderBenchArgs {
     /// `light.options.radius_mm`, else a point lamp); adds rows for its emitter count.
     #[arg(long)]
     pub lamp_radius: Option<f64>,
+    /// Write the error-versus-time plot (SVG, log–log, one line per knob) to this file.
+    #[arg(long)]
+    pub plot: Option<std::path::PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -49,6 +52,8 @@ pub struct RenderBenchArgs {
 #[derive(Serialize)]
 struct RenderRow {
     image: &'static str,
+    /// Which knob this row turns (the rows of one family share the plot's line).
+    family: &'static str,
     knob: String,
     ms_per_image: f64,
     /// RMSE against the reference, relative to the reference's mean value.
@@ -138,6 +143,11 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
         let (imgs, ms) = raw(q(ss, sh, 1, 1));
         rows.push(RenderRow {
             image: "raw",
+            family: match (ss, sh) {
+                (_, 1) => "raw: pixel supersampling",
+                (1, _) => "raw: shadow-map resolution",
+                _ => "raw: both",
+            },
             knob: format!("supersample {ss}, shadow map ×{sh}"),
             ms_per_image: ms,
             relative_rmse: rel_rmse(&imgs, &raw_ref),
@@ -148,6 +158,11 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
         let (imgs, ms) = truth(q(1, sh, ts, 1));
         rows.push(RenderRow {
             image: "truth",
+            family: if sh == 1 {
+                "truth: samples per texel"
+            } else {
+                "truth: shadow-map resolution"
+            },
             knob: format!("samples/texel {ts}², shadow map ×{sh}"),
             ms_per_image: ms,
             relative_rmse: rel_rmse(&imgs, &truth_ref),
@@ -160,11 +175,16 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
             let (imgs, ms) = truth(q(1, 1, 1, k));
             rows.push(RenderRow {
                 image: "truth",
+                family: "truth: disc-lamp emitters",
                 knob: format!("disc lamp r = {radius} mm, {k} emitters (ref. {area_ref})"),
                 ms_per_image: ms,
                 relative_rmse: rel_rmse(&imgs, &area_ref_imgs),
             });
         }
+    }
+    if let Some(path) = &a.plot {
+        std::fs::write(path, render_plot(&a.sample, &rows))
+            .map_err(|e| anyhow::anyhow!("--plot {}: cannot write the plot: {e}", path.display()))?;
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&rows)?);
@@ -184,6 +204,32 @@ fn render(a: RenderBenchArgs) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Error against time, one line per knob family. A family's first setting (1 sample,
+/// shadow map ×1) is also the start of the other families, so each line starts there.
+fn render_plot(sample: &str, rows: &[RenderRow]) -> String {
+    use super::svg_plot::{log_log, Series};
+    let mut series: Vec<Series> = Vec::new();
+    for r in rows {
+        let point = (r.ms_per_image, r.relative_rmse, r.knob.clone());
+        match series.iter_mut().find(|s| s.name == r.family) {
+            Some(s) => s.points.push(point),
+            None => series.push(Series {
+                name: r.family.into(),
+                points: vec![point],
+            }),
+        }
+    }
+    for s in &mut series {
+        s.points.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    log_log(
+        &format!("gonio bench render · sample {sample}: error against a high-sample reference"),
+        "ms per image",
+        "relative RMSE",
+        &series,
+    )
 }
 
 #[derive(clap::Args, Debug)]

@@ -19,6 +19,7 @@ mod plan;
 mod serve_stage;
 mod sim;
 mod sim_btf;
+mod svg_plot;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
