@@ -145,22 +145,22 @@ fn fuzz_ubo2003_archives_never_panic_or_hang() {
     });
     let counts = std::sync::Arc::new(std::sync::Mutex::new((0usize, 0usize)));
     let c2 = counts.clone();
-    runner
-        .run(&prop::collection::vec(mutation(), 1..6), move |ms| {
-            let bytes = apply(seed.clone(), &ms);
-            let c = c2.clone();
-            guarded(TIME_LIMIT, move || {
-                let r = import(&bytes, ImportLimits::default());
-                let mut g = c.lock().unwrap();
-                if r.is_ok() {
-                    g.0 += 1
-                } else {
-                    g.1 += 1
-                }
-            })
-            .map_err(TestCaseError::fail)
+    let seed2 = seed.clone();
+    let result = runner.run(&prop::collection::vec(mutation(), 1..6), move |ms| {
+        let bytes = apply(seed.clone(), &ms);
+        let c = c2.clone();
+        guarded(TIME_LIMIT, move || {
+            let r = import(&bytes, ImportLimits::default());
+            let mut g = c.lock().unwrap();
+            if r.is_ok() {
+                g.0 += 1
+            } else {
+                g.1 += 1
+            }
         })
-        .unwrap();
+        .map_err(TestCaseError::fail)
+    });
+    fuzzing::check("ubo2003_zip", result, |ms| apply(seed2.clone(), ms));
     let (ok, err) = *counts.lock().unwrap();
     println!(
         "fuzz_import: {} cases, {ok} imported, {err} refused with an error, 0 panics, 0 hangs",
@@ -176,18 +176,21 @@ fn fuzz_entry_names_never_panic() {
         ..Config::default()
     });
     let img = image_bytes(3, false, 8, 8);
-    runner
-        .run(&prop::collection::vec("[a-z0-9_ ./]{0,40}", 1..5), move |names| {
-            let entries: Vec<(String, Vec<u8>)> = names.iter().map(|n| (n.clone(), img.clone())).collect();
-            let Some(bytes) = try_zip_bytes(&entries) else {
-                return Ok(());
-            };
-            guarded(TIME_LIMIT, move || {
-                let _ = import(&bytes, ImportLimits::default());
-            })
-            .map_err(TestCaseError::fail)
+    let zip_of = move |names: &Vec<String>| {
+        let entries: Vec<(String, Vec<u8>)> = names.iter().map(|n| (n.clone(), img.clone())).collect();
+        try_zip_bytes(&entries)
+    };
+    let zip2 = zip_of.clone();
+    let result = runner.run(&prop::collection::vec("[a-z0-9_ ./]{0,40}", 1..5), move |names| {
+        let Some(bytes) = zip_of(&names) else {
+            return Ok(());
+        };
+        guarded(TIME_LIMIT, move || {
+            let _ = import(&bytes, ImportLimits::default());
         })
-        .unwrap();
+        .map_err(TestCaseError::fail)
+    });
+    fuzzing::check("ubo2003_names", result, |names| zip2(names).unwrap_or_default());
 }
 
 fn expect_entry_error(bytes: &[u8], limits: ImportLimits, needle: &str) {

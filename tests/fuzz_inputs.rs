@@ -245,12 +245,15 @@ where
         any::<bool>(),
     );
     let t0 = std::time::Instant::now();
-    let result = runner.run(&strategy, |(s, muts, pick, action, structured)| {
-        let text = if structured {
-            structural(&seeds[s], pick, action).unwrap_or_else(|| apply(&seeds[s], &muts))
+    let input_of = |(s, muts, pick, action, structured): &(usize, Vec<Mutation>, usize, usize, bool)| {
+        if *structured {
+            structural(&seeds[*s], *pick, *action).unwrap_or_else(|| apply(&seeds[*s], muts))
         } else {
-            apply(&seeds[s], &muts)
-        };
+            apply(&seeds[*s], muts)
+        }
+    };
+    let result = runner.run(&strategy, |case| {
+        let text = input_of(&case);
         let f = f.clone();
         let input = text.clone();
         guarded(TIME_LIMIT, move || f(input))
@@ -261,9 +264,8 @@ where
         cases(1024),
         t0.elapsed().as_secs_f64()
     );
-    if let Err(e) = result {
-        panic!("fuzz {name}: {e}");
-    }
+    let target = name.replace([' ', '+'], "_");
+    fuzzing::check(&target, result, |case| input_of(case).into_bytes());
 }
 
 fn toml_files(dir: &Path) -> Vec<PathBuf> {

@@ -6,7 +6,10 @@
 //! - ESP300: an `EspPort` whose device answers queries with fuzzed bytes.
 //! - `.btf`: `btf_ubo2014::from_bytes` on a valid small file mutated (flips, truncation,
 //!   insertions, huge counts written into the header).
-//! - Recipes: `Recipe::parse` on the shipped recipe mutated byte-wise.
+//! - Recipes: `Recipe::parse` on every shipped recipe and the recipe corpus, mutated byte-wise.
+//!
+//! Seeds live in `tests/campaigns/corpus/{zaber_reply,esp300_reply,recipe}/`; a failing input
+//! is kept under `target/tmp/fuzz-failures/<target>/` to be committed there once fixed.
 //!
 //! Property everywhere: Ok or a typed error within the time limit; never a panic, a hang or
 //! an allocation the input's size does not justify.
@@ -16,7 +19,7 @@
 
 mod fuzzing;
 
-use fuzzing::cases;
+use fuzzing::{cases, check, corpus};
 use gonio::calibrate::recipe::Recipe;
 use gonio::compress::btf_ubo2014;
 use gonio::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
@@ -72,49 +75,47 @@ fn mutated(seed: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
         })
 }
 
-const ZABER_REPLIES: &[&str] = &[
-    "@01 1 OK IDLE -- 0",
-    "@01 1 12 OK BUSY -- 0:E4",
-    "@01 1 OK IDLE WR 0",
-    "@01 0 RJ IDLE -- BADDATA",
-    "@01 1 OK IDLE FS 12345",
-    "#01 1 cmd",
-    "!01 1 IDLE --",
-];
+/// Reply lines (one per file, no line end) of `tests/campaigns/corpus/<sub>/`.
+fn reply_corpus(sub: &str) -> Vec<String> {
+    corpus(sub)
+        .into_iter()
+        .map(|b| String::from_utf8_lossy(&b).trim_end_matches(['\r', '\n']).to_string())
+        .collect()
+}
 
 #[test]
 fn fuzz_zaber_reply_lines() {
-    for seed in ZABER_REPLIES {
-        assert!(zaber::parse_message(seed).is_ok(), "seed {seed:?} parses");
-    }
+    let seeds = reply_corpus("zaber_reply");
+    let valid = seeds.iter().filter(|s| zaber::parse_message(s).is_ok()).count();
+    assert!(valid >= 5, "the Zaber corpus keeps its valid replies ({valid} parse)");
     let mut r = runner();
     let strat = prop_oneof![
-        3 => prop::sample::select(ZABER_REPLIES.to_vec()).prop_flat_map(|s| mutated(s.as_bytes().to_vec())),
+        3 => prop::sample::select(seeds).prop_flat_map(|s| mutated(s.into_bytes())),
         1 => prop::collection::vec(any::<u8>(), 0..80),
     ];
-    r.run(&strat, |bytes| {
+    let result = r.run(&strat, |bytes| {
         guarded(move || {
             let line = String::from_utf8_lossy(&bytes).into_owned();
             let _ = zaber::parse_message(&line);
         })
-    })
-    .unwrap();
+    });
+    check("zaber_reply", result, |b| b.clone());
 }
 
 /// Run `session` against a device that answers the n-th command with the n-th of 1–3
 /// mutated reply lines (cycling), drawn from `seeds`. Every bad reply costs a reply
 /// timeout (and retries), hence a quarter of the usual cases.
-fn with_garbling_device(seeds: &'static [&'static str], session: fn(ScriptedTransport)) {
+fn with_garbling_device(target: &str, seeds: Vec<String>, session: fn(ScriptedTransport)) {
     let mut r = TestRunner::new(Config {
         cases: cases(512).div_ceil(4),
         failure_persistence: None,
         ..Config::default()
     });
     let strat = prop::collection::vec(
-        prop::sample::select(seeds.to_vec()).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
+        prop::sample::select(seeds).prop_flat_map(|s| mutated(format!("{s}\r\n").into_bytes())),
         1..4,
     );
-    r.run(&strat, |replies| {
+    let result = r.run(&strat, |replies| {
         guarded(move || {
             let mut k = 0;
             session(ScriptedTransport::new(move |_cmd| {
@@ -122,13 +123,14 @@ fn with_garbling_device(seeds: &'static [&'static str], session: fn(ScriptedTran
                 vec![ScriptReply::Bytes(replies[k % replies.len()].clone())]
             }))
         })
-    })
-    .unwrap();
+    });
+    // The kept file holds the device's replies in the order it gave them.
+    check(target, result, |replies| replies.concat());
 }
 
 #[test]
 fn fuzz_zaber_port_with_a_garbling_device() {
-    with_garbling_device(ZABER_REPLIES, |t| {
+    with_garbling_device("zaber_port", reply_corpus("zaber_reply"), |t| {
         let port = ZaberPort::with_transport(
             "fuzz",
             Box::new(t),
@@ -143,18 +145,9 @@ fn fuzz_zaber_port_with_a_garbling_device() {
     });
 }
 
-const ESP_REPLIES: &[&str] = &[
-    "12.500",
-    "-30.0000",
-    "1",
-    "0, 451, 0",
-    "ESP300 Version 3.08 09/09/02",
-    "106, 0, 0",
-];
-
 #[test]
 fn fuzz_esp300_port_with_a_garbling_device() {
-    with_garbling_device(ESP_REPLIES, |t| {
+    with_garbling_device("esp300_port", reply_corpus("esp300_reply"), |t| {
         let port = EspPort::with_transport("fuzz", Box::new(t), Duration::from_millis(20));
         let _ = port.query_number("fuzz-axis", "1TP");
         let _ = port.query("fuzz-axis", "1MD?");
@@ -191,7 +184,7 @@ fn fuzz_btf_files_on_read() {
     let counts = std::sync::Arc::new(std::sync::Mutex::new((0u32, 0u32)));
     let c2 = counts.clone();
     let mut r = runner();
-    r.run(&mutated(seed), move |bytes| {
+    let result = r.run(&mutated(seed), move |bytes| {
         let c = c2.clone();
         guarded(move || {
             let res = btf_ubo2014::from_bytes(&bytes, Path::new("fuzz.btf"));
@@ -204,8 +197,8 @@ fn fuzz_btf_files_on_read() {
                 g.1 += 1;
             }
         })
-    })
-    .unwrap();
+    });
+    check("btf", result, |b| b.clone());
     let g = *counts.lock().unwrap();
     ok += g.0;
     err += g.1;
@@ -215,16 +208,55 @@ fn fuzz_btf_files_on_read() {
     );
 }
 
+/// Seeds: every shipped recipe plus the recipe corpus; each mutated byte-wise.
 #[test]
 fn fuzz_calibration_recipes() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/calibration/recipes/intrinsics.toml");
-    let text = std::fs::read(path).unwrap();
-    Recipe::parse(&String::from_utf8_lossy(&text), path).expect("the shipped recipe parses");
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/calibration/recipes");
+    let mut shipped: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    shipped.sort();
+    let mut seeds = Vec::new();
+    for path in &shipped {
+        let text = std::fs::read(path).unwrap();
+        Recipe::parse(&String::from_utf8_lossy(&text), &path.display().to_string())
+            .unwrap_or_else(|e| panic!("the shipped recipe {} parses: {e}", path.display()));
+        seeds.push(text);
+    }
+    seeds.extend(corpus("recipe"));
     let mut r = runner();
-    r.run(&mutated(text), |bytes| {
+    let strat = prop::sample::select(seeds).prop_flat_map(mutated);
+    let result = r.run(&strat, |bytes| {
         guarded(move || {
             let _ = Recipe::parse(&String::from_utf8_lossy(&bytes), "fuzz.toml");
         })
-    })
-    .unwrap();
+    });
+    check("recipe", result, |b| b.clone());
+}
+
+/// The harness keeps what it finds: a property that fails leaves its shrunk input in a file
+/// named by the panic message, byte for byte.
+#[test]
+fn a_failing_case_is_kept_as_a_file() {
+    let mut r = TestRunner::new(Config {
+        cases: 256,
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let result = r.run(&prop::collection::vec(any::<u8>(), 0..64), |b| {
+        prop_assert!(!b.contains(&0x2a), "contains '*'");
+        Ok(())
+    });
+    let panic = std::panic::catch_unwind(|| check("harness_self_test", result, |b| b.clone()))
+        .expect_err("a failing property must fail the target");
+    let msg = panic.downcast_ref::<String>().cloned().unwrap_or_default();
+    let path = msg
+        .split("failing input kept in ")
+        .nth(1)
+        .and_then(|rest| rest.split(' ').next())
+        .unwrap_or_else(|| panic!("no kept file named in {msg:?}"));
+    // Shrinking leaves the one offending byte.
+    assert_eq!(std::fs::read(path).unwrap(), vec![0x2a]);
 }

@@ -255,9 +255,14 @@ fn fuzz_file(file: &'static str) {
         t0.elapsed().as_secs_f64(),
         outcomes.lock().unwrap()
     );
-    if let Err(e) = result {
-        panic!("fuzz resume/{file}: {e}");
-    }
+    // The kept file is the mutated `file` (replay it into a copy of the small dataset).
+    fuzzing::check(&format!("resume_{file}"), result, |(finished, muts)| {
+        let mut bytes = std::fs::read(bases[*finished as usize].join(file)).unwrap_or_default();
+        for m in muts {
+            apply(&mut bytes, m);
+        }
+        bytes
+    });
 }
 
 #[test]
