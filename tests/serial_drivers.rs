@@ -169,29 +169,48 @@ async fn zaber_garbled_beyond_retries_is_typed() {
     h.stop();
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn zaber_motion_faults_end_in_typed_errors() {
+/// Stall, limit switch and disconnect at the second move: each ends in a typed error
+/// that names the axis and the move command the controller was given (`move_cmd`, the
+/// protocol's spelling of "move to 90°"). An ESP300 that stops answering may also be
+/// reported as a reply timeout: the port cannot tell a dead line from a slow one.
+async fn motion_faults_end_in_typed_errors(
+    protocol: Protocol,
+    name: &str,
+    axis: fn(&mut PortRegistry, &EmulatorHandle, u8, &str) -> Arc<dyn Axis>,
+    move_cmd: &str,
+) {
     for (fault, want) in [
         ("stall:at-move=2", "stall"),
         ("limit:at-move=2", "limit"),
         ("disconnect:at-move=2", "disconnect"),
     ] {
-        let h = emulator(Protocol::Zaber, 1, &[fault]);
+        let h = emulator(protocol, 1, &[fault]);
         let mut ports = PortRegistry::new();
-        let a = zaber_axis(&mut ports, &h, 1, ", stall_s = 0.3");
+        let a = axis(&mut ports, &h, 1, ", stall_s = 0.3");
         a.home().await.unwrap();
         move_and_check(&*a, 10.0).await;
         let e = a.move_abs(90.0 * DEG).await.unwrap_err();
         let ok = match want {
-            "stall" => matches!(&e, DeviceError::Stall { command, .. } if command == "move abs 90000"),
-            "limit" => matches!(&e, DeviceError::LimitSwitch { command, .. } if command == "move abs 90000"),
-            _ => matches!(&e, DeviceError::Disconnected { .. }),
+            "stall" => matches!(&e, DeviceError::Stall { command, .. } if command == move_cmd),
+            "limit" => matches!(&e, DeviceError::LimitSwitch { command, .. } if command == move_cmd),
+            _ => matches!(&e, DeviceError::Disconnected { .. } | DeviceError::Timeout { .. }),
         };
-        assert!(ok, "{fault}: {e}");
-        assert_eq!(e.device(), "zaber1");
-        fault_row(&format!("zaber {fault} (axis move)"), "n/a", &e.to_string());
+        assert!(ok, "{name} {fault}: {e}");
+        assert_eq!(e.device(), format!("{name}1"), "{fault}: the error names the axis");
+        let kind = if name == "esp" { "esp300" } else { name };
+        fault_row(&format!("{kind} {fault} (axis move)"), "n/a", &e.to_string());
         h.stop();
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zaber_motion_faults_end_in_typed_errors() {
+    motion_faults_end_in_typed_errors(Protocol::Zaber, "zaber", zaber_axis, "move abs 90000").await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn esp_motion_faults_end_in_typed_errors() {
+    motion_faults_end_in_typed_errors(Protocol::Esp300, "esp", esp_axis, "1PA90").await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -232,30 +251,6 @@ async fn esp_reply_faults_are_retried() {
         "retried: home + 3 moves reached their targets",
     );
     h.stop();
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn esp_motion_faults_end_in_typed_errors() {
-    for (fault, want) in [
-        ("stall:at-move=2", "stall"),
-        ("limit:at-move=2", "limit"),
-        ("disconnect:at-move=2", "disconnect"),
-    ] {
-        let h = emulator(Protocol::Esp300, 1, &[fault]);
-        let mut ports = PortRegistry::new();
-        let a = esp_axis(&mut ports, &h, 1, ", stall_s = 0.3");
-        a.home().await.unwrap();
-        move_and_check(&*a, 10.0).await;
-        let e = a.move_abs(90.0 * DEG).await.unwrap_err();
-        let ok = match want {
-            "stall" => matches!(&e, DeviceError::Stall { command, .. } if command == "1PA90"),
-            "limit" => matches!(&e, DeviceError::LimitSwitch { command, .. } if command == "1PA90"),
-            _ => matches!(&e, DeviceError::Disconnected { .. } | DeviceError::Timeout { .. }),
-        };
-        assert!(ok, "{fault}: {e}");
-        fault_row(&format!("esp300 {fault} (axis move)"), "n/a", &e.to_string());
-        h.stop();
-    }
 }
 
 /// The emulated-zaber rig file with its camera reduced like `common::write_scene`'s.

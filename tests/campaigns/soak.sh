@@ -17,15 +17,21 @@
 # and resumed for a few more measurements against the same emulator.
 #
 # Usage: tests/campaigns/soak.sh [SECONDS]   (default 120, warm-up included; a long soak:
-#        3600 or more; GONIO_SOAK_WARMUP=S changes the warm-up, GONIO_SOAK_TRACE=1 prints samples)
+#        3600 or more; GONIO_SOAK_WARMUP=S changes the warm-up, GONIO_SOAK_TRACE=1 prints samples,
+#        GONIO_BIN=path soaks that binary instead of a fresh debug build)
 # Prints: `soak: S s, N measurements, RSS A → B MiB, fds C → D, flat`.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 seconds=${1:-${GONIO_SOAK_SECONDS:-120}}
 warmup=${GONIO_SOAK_WARMUP:-60}
 
-cargo build --quiet --bin gonio
-gonio=$PWD/target/debug/gonio
+# GONIO_BIN: soak an already built binary (e.g. target/release/gonio) instead of building.
+if [ -n "${GONIO_BIN:-}" ]; then
+  gonio=$GONIO_BIN
+else
+  cargo build --quiet --bin gonio
+  gonio=$PWD/target/debug/gonio
+fi
 work=$(mktemp -d)
 pids=()
 cleanup() {
