@@ -2,31 +2,25 @@
 
 use clap::Parser;
 
-/// Stop glibc's malloc from returning every freed image to the kernel.
+/// Stop glibc's malloc from unmapping every freed image.
 ///
 /// gonio allocates and frees a frame-sized buffer (0.8 MiB for a 256² RGB f32 image, 9 MiB
-/// for a 1024 × 768 raw frame) thousands of times, on rayon's threads. With glibc's defaults
-/// each such buffer is either mmapped and unmapped (above the dynamic mmap threshold) or
-/// trimmed from a thread's arena when freed, so every new image page-faults its memory in
-/// again and every unmap stops both cores for a TLB shoot-down: `gonio sim btf` (6561 truth
-/// images of 256²) took 33.5 s on two cores, slower than the 27.4 s of one thread. With
-/// buffers up to 32 MiB served from the heap and up to 128 MiB of freed memory kept, the
-/// same run takes 11–14 s (measured with `MALLOC_MMAP_THRESHOLD_` / `MALLOC_TRIM_THRESHOLD_`,
-/// which this sets from inside; those variables, when given, still win because glibc reads
-/// them first — an explicit `mallopt` is only applied when they are absent).
-/// Memory use stays bounded: the kept memory is reused by the next image.
+/// for a 1024 × 768 raw frame) thousands of times, on rayon's threads. glibc serves such
+/// sizes with mmap and returns them with munmap (its threshold adapts upward only for
+/// allocations of the thread that frees them), so every new image page-faults its memory in
+/// again and every unmap stops both cores for a TLB shoot-down: `gonio sim btf` (6561
+/// truth images of 256²) took 33.5 s on two cores, slower than the 27.4 s of one thread.
+/// With buffers up to 32 MiB served from the heap it takes 11–14 s (measured with
+/// `MALLOC_MMAP_THRESHOLD_`, which glibc reads first and which then still wins).
+/// The trim threshold stays glibc's, so freed heap memory is still given back: keeping
+/// 128 MiB of it as well bought no speed and made the soak campaign's acquisition hold
+/// 90 MiB instead of 43 MiB, with a 12 MiB step after 200 s (`tests/campaigns/soak.sh`).
 fn keep_freed_images_mapped() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    {
-        let user_set = |name: &str| std::env::var_os(name).is_some();
+    if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
         // SAFETY: mallopt only changes allocator parameters; called before any thread exists.
         unsafe {
-            if !user_set("MALLOC_MMAP_THRESHOLD_") {
-                libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-            }
-            if !user_set("MALLOC_TRIM_THRESHOLD_") {
-                libc::mallopt(libc::M_TRIM_THRESHOLD, 128 << 20);
-            }
+            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
         }
     }
 }
