@@ -21,6 +21,10 @@ echo "== campaign figures (kill -9, storage and serial faults)"
 # in front of a row, hence grep -o)
 cargo test -q -p gonio --test campaign_kill9 --test campaign_faults --test serial_drivers -- --nocapture \
   --test-threads=1 2>&1 | grep -oE "(kill9|faults): .*" || true
+# Camera faults (simulated camera's injected faults vs the engine's capture policy): more
+# rows of the same table.
+cargo test -q -p gonio --test campaign_camera_faults -- --nocapture --test-threads=1 2>&1 \
+  | grep -oE "faults: .*" || true
 echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh
 echo "== interop"

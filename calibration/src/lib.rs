@@ -14,7 +14,9 @@ pub mod error;
 pub mod homography;
 pub mod intrinsics;
 pub mod markers;
+pub mod radiometric;
 pub mod rectify;
+pub mod rig_geometry;
 pub mod warp;
 
 pub use error::CalibError;

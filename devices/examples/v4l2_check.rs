@@ -4,8 +4,10 @@
 //! exposure controls with read back, a stalled stream timing out, a corrupt buffer being
 //! skipped and an unplugged device ending in a typed error.
 //!
-//! Usage: `v4l2_check [/dev/video0]`. Prints a PASS/FAIL table and a final line
-//! `V4L2_CHECK pass=N fail=M skip=K`; exits 1 if anything failed.
+//! Usage: `v4l2_check [/dev/video0]`. Prints a PASS/FAIL table, the fault rows in the
+//! `faults:` format of the reliability campaign table (`tests/run.sh`; `tests/vivid/run.sh`
+//! forwards them from the VM) and a final line `V4L2_CHECK pass=N fail=M skip=K`; exits 1
+//! if anything failed.
 //!
 //! The vivid-specific control ids below come from the driver's source
 //! (drivers/media/test-drivers/vivid/vivid-ctrls.c); on another camera the vivid-only rows
@@ -30,6 +32,8 @@ const PAT_RED: i32 = 7;
 
 struct Report {
     rows: Vec<(String, &'static str, String)>,
+    /// Rows of the fault campaign table: (fault, outcome).
+    faults: Vec<(String, String)>,
 }
 
 impl Report {
@@ -41,6 +45,13 @@ impl Report {
     fn check(&mut self, name: impl Into<String>, ok: bool, detail: impl Into<String>) -> bool {
         self.row(name, if ok { "PASS" } else { "FAIL" }, detail);
         ok
+    }
+    /// A checked fault: a PASS/FAIL row plus a `faults:` row. "lost" is `n/a`: a camera
+    /// check stores no measurements (the in-VM `gonio acquire` covers the dataset side).
+    fn fault(&mut self, fault: &str, ok: bool, outcome: String) -> bool {
+        let status = if ok { "" } else { "FAILED: " };
+        self.faults.push((fault.to_string(), format!("{status}{outcome}")));
+        self.check(fault, ok, outcome)
     }
     fn count(&self, s: &str) -> usize {
         self.rows.iter().filter(|r| r.1 == s).count()
@@ -83,7 +94,10 @@ async fn capture_pattern(cam: &V4l2Camera, pattern: i32) -> Result<Frame, Device
 async fn main() {
     let path = std::env::args().nth(1).unwrap_or_else(|| "/dev/video0".into());
     let t0 = Instant::now();
-    let mut r = Report { rows: Vec::new() };
+    let mut r = Report {
+        rows: Vec::new(),
+        faults: Vec::new(),
+    };
     println!("v4l2_check on {path}");
     let mut opts = V4l2Options::new(&path);
     opts.name = format!("vivid {path}");
@@ -344,33 +358,67 @@ async fn main() {
         let t = Instant::now();
         let res = cam.capture().await;
         let took = t.elapsed().as_secs_f64();
-        r.check(
-            "stall -> Timeout",
+        r.fault(
+            "vivid stall (100 % buffers dropped) -> Timeout",
             set == Ok(100)
                 && matches!(&res, Err(DeviceError::Timeout { command, .. }) if command.contains("VIDIOC_DQBUF")),
             match &res {
-                Err(e) => format!("{e} (after {took:.2} s)"),
+                Err(e) => format!("typed error: {e} (after {took:.2} s)"),
                 Ok(f) => format!("got frame seq {}", f.meta.sequence),
             },
         );
         let _ = cam.set_control(VIVID_PERC_DROPPED, 0);
         cam.set_timeout(Duration::from_secs(5));
         match cam.capture().await {
-            Ok(f) => r.check("recovers after stall", true, format!("seq {}", f.meta.sequence)),
-            Err(e) => r.check("recovers after stall", false, e.to_string()),
+            Ok(f) => r.fault(
+                "vivid stall cleared -> next capture",
+                true,
+                format!("recovered: frame seq {}", f.meta.sequence),
+            ),
+            Err(e) => r.fault("vivid stall cleared -> next capture", false, e.to_string()),
         };
+
+        // Half the buffers dropped by the driver: every capture still returns a frame (the
+        // backend waits for the next one), and the gaps show in the sequence numbers.
+        let before = cam.stats();
+        let set = cam.set_control(VIVID_PERC_DROPPED, 50);
+        let mut seqs = Vec::new();
+        let mut failed = None;
+        for _ in 0..8 {
+            match cam.capture().await {
+                Ok(f) => seqs.push(f.meta.sequence),
+                Err(e) => {
+                    failed = Some(e);
+                    break;
+                }
+            }
+        }
+        let _ = cam.set_control(VIVID_PERC_DROPPED, 0);
+        let gaps = seqs.windows(2).filter(|w| w[1] > w[0] + 1).count();
+        let dropped = cam.stats().dropped_by_driver - before.dropped_by_driver;
+        r.fault(
+            "vivid 50 % buffers dropped -> frames still delivered",
+            set == Ok(50) && failed.is_none() && seqs.windows(2).all(|w| w[1] > w[0]),
+            match &failed {
+                Some(e) => format!("capture failed: {e}"),
+                None => format!(
+                    "{} frames, {gaps} sequence gap(s), {dropped} counted dropped by driver",
+                    seqs.len()
+                ),
+            },
+        );
 
         // A buffer flagged V4L2_BUF_FLAG_ERROR is skipped, the next good one returned.
         let before = cam.stats().corrupt_discarded;
         let pressed = cam.press(VIVID_DQBUF_ERROR);
         let res = cam.capture().await;
         let skipped = cam.stats().corrupt_discarded - before;
-        r.check(
-            "corrupt buffer skipped",
+        r.fault(
+            "vivid V4L2_BUF_FLAG_ERROR buffer -> skipped",
             pressed.is_ok() && res.is_ok() && skipped >= 1,
             format!(
-                "{skipped} corrupt buffer(s) skipped; capture {:?}",
-                res.as_ref().map(|f| f.meta.sequence)
+                "{skipped} corrupt buffer(s) skipped, next good frame returned: {:?}",
+                res.as_ref().map(|f| f.meta.sequence).map_err(|e| e.to_string())
             ),
         );
 
@@ -378,11 +426,11 @@ async fn main() {
         let pressed = cam.press(VIVID_DISCONNECT);
         cam.set_timeout(Duration::from_secs(2));
         let res = cam.capture().await;
-        r.check(
-            "disconnect -> Disconnected",
+        r.fault(
+            "vivid disconnect -> Disconnected",
             pressed.is_ok() && matches!(res, Err(DeviceError::Disconnected { .. })),
             match &res {
-                Err(e) => e.to_string(),
+                Err(e) => format!("typed error: {e}"),
                 Ok(f) => format!("got frame seq {}", f.meta.sequence),
             },
         );
@@ -406,6 +454,9 @@ async fn main() {
 }
 
 fn finish(r: &Report, t0: Instant) -> ! {
+    for (fault, outcome) in &r.faults {
+        println!("faults: {fault:<58} | {:<5} | {outcome}", "n/a");
+    }
     let (pass, fail, skip) = (r.count("PASS"), r.count("FAIL"), r.count("SKIP"));
     println!(
         "V4L2_CHECK pass={pass} fail={fail} skip={skip} seconds={:.1}",

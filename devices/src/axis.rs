@@ -48,6 +48,16 @@ pub trait Axis: Send + Sync {
     async fn position(&self) -> Result<f64, DeviceError>;
     async fn status(&self) -> Result<AxisStatus, DeviceError>;
 
+    /// An independent reading of where the load really is (a load-side encoder), in the
+    /// axis' units; `Ok(None)` when the axis has none (the default).
+    ///
+    /// Why it exists: the read-back ([`Axis::position`]) is the controller's own step count,
+    /// which by construction cannot see backlash, homing scatter or drive errors. Mechanical
+    /// calibration (`gonio calibrate` with a `mechanical` recipe) compares the two.
+    async fn reference_position(&self) -> Result<Option<f64>, DeviceError> {
+        Ok(None)
+    }
+
     /// Move to `target` and wait until settled; returns the read-back position.
     async fn move_abs(&self, target: f64) -> Result<f64, DeviceError> {
         self.start_move(target).await?;

@@ -227,6 +227,60 @@ pub struct RigSpec {
     pub light: LightSpec,
     #[serde(rename = "axis")]
     pub axes: Vec<AxisSpec>,
+    /// Calibrated alignment the kinematics apply (`[alignment]`, written by the
+    /// rig-geometry calibration): absent = the ideal mechanism.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<AlignmentSpec>,
+    /// Simulator only: the rig's TRUE misalignment (`[sim_misalignment]`). The simulated
+    /// camera and lamp are placed where this puts them, while the kinematics the planner
+    /// uses know only `alignment`; so a simulated rig can be wrong the way a real one is,
+    /// and a calibration can be checked against the truth. Real backends ignore it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_misalignment: Option<AlignmentSpec>,
+}
+
+/// Deviations of a rig from its ideal kinematics (two-arm rigs).
+///
+/// Why these parameters: they are what target images over many axis positions can
+/// separate. An axis zero offset shifts every position of that axis (the true position is
+/// the commanded one plus the offset). The camera's mounting rotation turns the camera
+/// about its centre of projection (pointing and roll); it changes what the camera sees but
+/// not the view direction. A mounting *translation* along the camera arc is the same as a
+/// camera-arc zero offset and is folded into it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AlignmentSpec {
+    /// Zero offset per axis name (degrees): true position = commanded position + offset.
+    #[serde(default)]
+    pub axis_zero_offset_deg: BTreeMap<String, f64>,
+    /// Camera mounting rotation (degrees): a rotation vector in the nominal camera frame
+    /// (x right, y down, z forward) that turns the nominal camera axes into the true ones.
+    #[serde(default)]
+    pub camera_rotation_deg: [f64; 3],
+}
+
+impl AlignmentSpec {
+    /// Largest accepted offset or mounting angle (degrees): beyond it the rig is not
+    /// misaligned but mis-described, and IK near the limits would stop making sense.
+    pub const MAX_DEG: f64 = 10.0;
+
+    /// Zero offsets in radians, in the rig's axis order (0 for axes not listed).
+    pub fn offsets_rad(&self, axes: &[AxisSpec]) -> Vec<f64> {
+        axes.iter()
+            .map(|a| {
+                self.axis_zero_offset_deg
+                    .get(&a.name)
+                    .copied()
+                    .unwrap_or(0.0)
+                    .to_radians()
+            })
+            .collect()
+    }
+
+    /// True when it changes nothing.
+    pub fn is_identity(&self) -> bool {
+        self.axis_zero_offset_deg.values().all(|v| *v == 0.0) && self.camera_rotation_deg.iter().all(|v| *v == 0.0)
+    }
 }
 
 impl RigSpec {
@@ -253,6 +307,15 @@ impl RigSpec {
         })?;
         spec.validate(file)?;
         Ok(spec)
+    }
+
+    /// The rig as it really is, for the simulator: its mechanism is misaligned by
+    /// `sim_misalignment` (none: ideal), whatever `alignment` the calibration believes in —
+    /// so a calibration applied to a simulated rig corrects the commands, not the mechanism.
+    pub fn simulated_truth(&self) -> RigSpec {
+        let mut r = self.clone();
+        r.alignment = r.sim_misalignment.take();
+        r
     }
 
     /// The axis with a given role, if present.
@@ -293,6 +356,7 @@ impl RigSpec {
             ));
         }
         self.validate_kind_geometry(file)?;
+        self.validate_alignment(file)?;
         let c = &self.camera;
         if !(16..=16384).contains(&c.width) {
             return Err(bad(
@@ -439,6 +503,62 @@ impl RigSpec {
         Ok(())
     }
 
+    /// `[alignment]` and `[sim_misalignment]`: two-arm rigs only (the other kinds would
+    /// silently ignore them), known axis names, finite angles below [`AlignmentSpec::MAX_DEG`].
+    fn validate_alignment(&self, file: &str) -> Result<(), RigError> {
+        for (table, a) in [
+            ("alignment", &self.alignment),
+            ("sim_misalignment", &self.sim_misalignment),
+        ] {
+            let Some(a) = a else { continue };
+            let bad = |key: String, value: String, message: String| RigError::Invalid {
+                file: file.to_string(),
+                key,
+                value,
+                message,
+            };
+            if self.kind != RigKind::TwoArm {
+                return Err(bad(
+                    table.into(),
+                    format!("{:?}", self.kind),
+                    "only `two-arm` rigs have an alignment model".into(),
+                ));
+            }
+            for (name, v) in &a.axis_zero_offset_deg {
+                let key = format!("{table}.axis_zero_offset_deg.{name}");
+                if !self.axes.iter().any(|x| &x.name == name) {
+                    let names: Vec<&str> = self.axes.iter().map(|x| x.name.as_str()).collect();
+                    return Err(bad(
+                        key,
+                        v.to_string(),
+                        format!("no axis of that name; axes: {}", names.join(", ")),
+                    ));
+                }
+                if !(v.is_finite() && v.abs() <= AlignmentSpec::MAX_DEG) {
+                    return Err(bad(
+                        key,
+                        v.to_string(),
+                        format!("valid range is ±{} degrees", AlignmentSpec::MAX_DEG),
+                    ));
+                }
+            }
+            let r = a.camera_rotation_deg;
+            if !(r.iter().all(|x| x.is_finite())
+                && r.iter().map(|x| x * x).sum::<f64>().sqrt() <= AlignmentSpec::MAX_DEG)
+            {
+                return Err(bad(
+                    format!("{table}.camera_rotation_deg"),
+                    format!("{r:?}"),
+                    format!(
+                        "the rotation's angle must be finite and ≤ {} degrees",
+                        AlignmentSpec::MAX_DEG
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Optional geometry keys: the holder rim and the kind-specific ones.
     fn validate_kind_geometry(&self, file: &str) -> Result<(), RigError> {
         let g = &self.geometry;
@@ -579,6 +699,26 @@ mod tests {
         assert!(e.contains("max_velocity_deg_s") && e.contains("valid range"), "{e}");
         let e = RigSpec::parse("name = 1", "x.toml").unwrap_err().to_string();
         assert!(e.contains("x.toml"), "{e}");
+    }
+
+    #[test]
+    fn alignment_tables_are_checked_and_name_the_key() {
+        let ok = format!("{DEFAULT_RIG_TOML}\n[sim_misalignment]\naxis_zero_offset_deg = {{ turntable = 0.5 }}\n");
+        let r = RigSpec::parse(&ok, "r.toml").unwrap();
+        assert!(r.alignment.is_none(), "the truth is not known to the kinematics");
+        assert_eq!(
+            r.simulated_truth().alignment.unwrap().axis_zero_offset_deg["turntable"],
+            0.5
+        );
+        let typo = format!("{DEFAULT_RIG_TOML}\n[alignment]\naxis_zero_offset_deg = {{ turntabel = 0.5 }}\n");
+        let e = RigSpec::parse(&typo, "r.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("alignment.axis_zero_offset_deg.turntabel") && e.contains("turntable"),
+            "{e}"
+        );
+        let big = format!("{DEFAULT_RIG_TOML}\n[alignment]\ncamera_rotation_deg = [0.0, 12.0, 0.0]\n");
+        let e = RigSpec::parse(&big, "r.toml").unwrap_err().to_string();
+        assert!(e.contains("alignment.camera_rotation_deg"), "{e}");
     }
 
     #[test]

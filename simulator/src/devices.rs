@@ -31,6 +31,9 @@ pub struct SimAxis {
     motion: MotionModel,
     clock: Arc<SimClock>,
     state: Mutex<AxisState>,
+    /// Opt-in mechanical error model (rig file `options.mechanical`): the load side then
+    /// differs from the read-back. `None`: the load is exactly where the motor is.
+    mech: Option<Mutex<crate::mechanics::MechanicalState>>,
 }
 
 impl SimAxis {
@@ -47,6 +50,51 @@ impl SimAxis {
                 t_start: 0.0,
                 t_end: 0.0,
             }),
+            mech: None,
+        }
+    }
+
+    /// Give the axis a mechanical error model (see [`crate::mechanics`]); `None` keeps it ideal.
+    pub fn with_mechanics(mut self, model: Option<crate::mechanics::MechanicalErrors>) -> Self {
+        self.mech = model.map(|m| Mutex::new(crate::mechanics::MechanicalState::new(m)));
+        self
+    }
+
+    /// The mechanical error model, if the axis has one.
+    pub fn mechanics(&self) -> Option<crate::mechanics::MechanicalErrors> {
+        self.mech
+            .as_ref()
+            .map(|m| m.lock().expect("axis mechanics poisoned").model)
+    }
+
+    /// Zero offsets (degrees) drawn at every homing so far: the truth for homing repeatability.
+    pub fn home_offsets_deg(&self) -> Vec<f64> {
+        self.mech
+            .as_ref()
+            .map(|m| m.lock().expect("axis mechanics poisoned").home_offsets().to_vec())
+            .unwrap_or_default()
+    }
+
+    /// Where the load really is now (radians): the read-back plus backlash, homing offset
+    /// and positioning error. What the simulated camera sees and a load-side encoder reads.
+    pub fn load_position_now(&self) -> f64 {
+        let p = self.position_now();
+        match &self.mech {
+            None => p,
+            Some(m) => {
+                let m = m.lock().expect("axis mechanics poisoned");
+                if m.model.is_zero() {
+                    p
+                } else {
+                    m.true_deg(p.to_degrees()).to_radians()
+                }
+            }
+        }
+    }
+
+    fn mech_fold(&self, motor: f64) {
+        if let Some(m) = &self.mech {
+            m.lock().expect("axis mechanics poisoned").fold(motor.to_degrees());
         }
     }
 
@@ -82,11 +130,16 @@ impl Axis for SimAxis {
             t_start: end,
             t_end: end,
         };
+        drop(s);
+        if let Some(m) = &self.mech {
+            m.lock().expect("axis mechanics poisoned").home();
+        }
         Ok(())
     }
     async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
         check_limits(&self.name, self.limits, target, "move_abs")?;
         let from = self.position_now();
+        self.mech_fold(from);
         let now = self.clock.now();
         let mut s = self.state.lock().expect("axis state poisoned");
         if !s.homed {
@@ -112,6 +165,7 @@ impl Axis for SimAxis {
     }
     async fn stop(&self) -> Result<(), DeviceError> {
         let p = self.position_now();
+        self.mech_fold(p);
         let now = self.clock.now();
         let mut s = self.state.lock().expect("axis state poisoned");
         s.start = p;
@@ -122,6 +176,13 @@ impl Axis for SimAxis {
     }
     async fn position(&self) -> Result<f64, DeviceError> {
         Ok(self.position_now())
+    }
+    async fn reference_position(&self) -> Result<Option<f64>, DeviceError> {
+        let encoder = self
+            .mech
+            .as_ref()
+            .is_some_and(|m| m.lock().expect("axis mechanics poisoned").model.encoder);
+        Ok(encoder.then(|| self.load_position_now()))
     }
     async fn status(&self) -> Result<AxisStatus, DeviceError> {
         let homed = self.state.lock().expect("axis state poisoned").homed;
@@ -175,6 +236,13 @@ pub struct SimWorld {
     pub roi: Roi,
     /// Lens distortion of the simulated camera (zero = ideal pinhole).
     pub lens: crate::render::LensDistortion,
+    /// Non-linear response and colour crosstalk (rig file `camera.options`
+    /// `response_compression`, `crosstalk`); `None` = the linear colour-clean default.
+    pub response: Option<crate::sensor::SensorResponse>,
+    /// Independent noise in every frame (`camera.options.frame_noise = true`), as a real
+    /// camera has; default: noise seeded by the pose, so a resumed acquisition is
+    /// reproducible — but then repeated frames of one pose (dark and flat frames) are equal.
+    pub frame_noise: bool,
 }
 
 /// Which part of the sensor the simulated camera reads out.
@@ -199,7 +267,9 @@ impl SimWorld {
 
     /// Current axis positions.
     pub fn configuration(&self) -> Vec<f64> {
-        self.axes.iter().map(|a| a.position_now()).collect()
+        // The load side: with a mechanical error model the camera sees where the sample and
+        // arms really are, not where the controller thinks they are.
+        self.axes.iter().map(|a| a.load_position_now()).collect()
     }
 
     /// Ground truth for configuration `q` in normalised sensor units (DN / max DN, not
@@ -224,6 +294,59 @@ impl SimWorld {
 pub struct SimCamera {
     world: Arc<SimWorld>,
     sequence: AtomicU64,
+    /// Opt-in injected fault (rig file `camera.options.fault`, see [`crate::camera_faults`]).
+    fault: Option<crate::camera_faults::CameraFault>,
+    /// The last frame handed out, kept only with a `stale` fault (to hand it out again).
+    last_frame: Mutex<Option<Frame>>,
+}
+
+impl SimCamera {
+    /// The injected fault, if the rig file configured one.
+    pub fn fault(&self) -> Option<&crate::camera_faults::CameraFault> {
+        self.fault.as_ref()
+    }
+
+    /// Apply a fault that replaces the whole capture: `timeout` never returns, `drop`
+    /// fails, `stale` hands out the previous frame. `None`: capture normally.
+    async fn injected(&self, kind: crate::camera_faults::CameraFaultKind) -> Option<Result<Frame, DeviceError>> {
+        use crate::camera_faults::CameraFaultKind as K;
+        match kind {
+            K::Timeout => {
+                tracing::warn!("sim-camera: injected fault `timeout`: the capture hangs");
+                std::future::pending::<()>().await;
+                None
+            }
+            K::Drop => Some(Err(DeviceError::Other {
+                device: "sim-camera".into(),
+                command: "capture".into(),
+                reason: "frame dropped (injected fault `drop`)".into(),
+            })),
+            K::Stale => self.last_frame.lock().expect("last frame poisoned").clone().map(Ok),
+            K::Saturate => None,
+        }
+    }
+
+    /// Apply a fault that alters a rendered frame, and keep the frame if a later `stale`
+    /// fault needs it. Without a fault this is a no-op.
+    fn after_capture(&self, kind: Option<crate::camera_faults::CameraFaultKind>, mut frame: Frame) -> Frame {
+        use crate::camera_faults::CameraFaultKind as K;
+        match kind {
+            Some(K::Saturate) => {
+                let max = frame.max_dn();
+                frame.data.fill(max);
+            }
+            Some(K::Stale) => {
+                // No previous frame to repeat (first capture): a frame from before the rig
+                // started, which every freshness rule must refuse.
+                frame.meta.timestamp = -1.0;
+            }
+            _ => {}
+        }
+        if self.fault.as_ref().is_some_and(|f| f.kind == K::Stale) {
+            *self.last_frame.lock().expect("last frame poisoned") = Some(frame.clone());
+        }
+        frame
+    }
 }
 
 #[async_trait]
@@ -257,6 +380,12 @@ impl Camera for SimCamera {
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
+        let fault = self.fault.as_ref().and_then(|f| f.next_capture());
+        if let Some(kind) = fault {
+            if let Some(result) = self.injected(kind).await {
+                return result;
+            }
+        }
         let world = self.world.clone();
         let seq = self.sequence.fetch_add(1, Ordering::SeqCst);
         let q = world.configuration();
@@ -267,11 +396,24 @@ impl Camera for SimCamera {
         let timestamp = world.clock.now();
         // Noise is seeded by the pose, not the frame counter: the same measurement gets the
         // same noise whether the run was interrupted and resumed or not.
-        let noise_key = q.iter().fold(0u64, |h, x| crate::noise::mix64(h ^ x.to_bits()));
+        let mut noise_key = q.iter().fold(0u64, |h, x| crate::noise::mix64(h ^ x.to_bits()));
+        if world.frame_noise {
+            noise_key = crate::noise::mix64(noise_key ^ seq.wrapping_add(1));
+        }
         let w2 = world.clone();
         let data = tokio::task::spawn_blocking(move || {
             let rad = w2.raw_radiance(&q);
             let sensor = w2.sensor.lock().expect("sensor poisoned").clone();
+            if let Some(r) = &w2.response {
+                let roi = match w2.roi {
+                    Roi::Holder if w2.lens.is_zero() => {
+                        let pose = w2.kinematics.camera_pose(&q);
+                        w2.renderer.pixel_bounds(&w2.intrinsics, &pose, w2.width, w2.height)
+                    }
+                    _ => (0, 0, w2.width, w2.height),
+                };
+                return sensor.expose_roi_response(&rad, noise_key, roi, r);
+            }
             match w2.roi {
                 Roi::Full => sensor.expose(&rad, noise_key),
                 Roi::Holder if !w2.lens.is_zero() => sensor.expose(&rad, noise_key),
@@ -289,7 +431,7 @@ impl Camera for SimCamera {
             reason: e.to_string(),
         })?;
         world.clock.wait(exposure + world.readout_s).await;
-        Ok(Frame {
+        let frame = Frame {
             width: world.width,
             height: world.height,
             data,
@@ -300,7 +442,8 @@ impl Camera for SimCamera {
                 sequence: seq,
                 bit_depth: bits,
             },
-        })
+        };
+        Ok(self.after_capture(fault, frame))
     }
 }
 
@@ -332,6 +475,67 @@ pub struct SimRigError {
     pub message: String,
 }
 
+/// The simulated camera's response and crosstalk from the rig file: `camera.options`
+/// `response_compression = a` (0 ..= 8; 0 = linear) and `crosstalk = [[…], […], […]]`
+/// (3 × 3, entries in −1 ..= 2, invertible). `None` when neither is given. Also what a
+/// calibration run on the simulator compares its estimates with.
+pub fn sensor_response(spec: &RigSpec) -> Result<Option<crate::sensor::SensorResponse>, SimRigError> {
+    let err = |key: &str, message: String| SimRigError {
+        rig: spec.name.clone(),
+        key: format!("camera.options.{key}"),
+        message,
+    };
+    let num = |v: &toml::Value| v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+    let o = &spec.camera.options;
+    let compression = match o.get("response_compression") {
+        None => None,
+        Some(v) => Some(
+            num(v)
+                .filter(|a| a.is_finite() && (0.0..=8.0).contains(a))
+                .ok_or_else(|| {
+                    err(
+                        "response_compression",
+                        format!("{v}: must be a number in 0 ..= 8 (0 = linear)"),
+                    )
+                })?,
+        ),
+    };
+    let crosstalk = match o.get("crosstalk") {
+        None => None,
+        Some(v) => {
+            let bad = || {
+                err(
+                    "crosstalk",
+                    format!("{v}: must be 3 rows of 3 numbers in −1 ..= 2 forming an invertible matrix"),
+                )
+            };
+            let rows = v.as_array().filter(|r| r.len() == 3).ok_or_else(bad)?;
+            let mut m = [[0.0; 3]; 3];
+            for (i, row) in rows.iter().enumerate() {
+                let row = row.as_array().filter(|r| r.len() == 3).ok_or_else(bad)?;
+                for (j, x) in row.iter().enumerate() {
+                    m[i][j] = num(x)
+                        .filter(|x| x.is_finite() && (-1.0..=2.0).contains(x))
+                        .ok_or_else(bad)?;
+                }
+            }
+            let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+                - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+            if det.abs() < 1e-3 {
+                return Err(bad());
+            }
+            Some(m)
+        }
+    };
+    Ok(
+        (compression.is_some() || crosstalk.is_some()).then(|| crate::sensor::SensorResponse {
+            compression: compression.unwrap_or(0.0),
+            crosstalk,
+        }),
+    )
+}
+
 /// The lamp's disc radius from the rig file (`light.options.radius_mm`, default 0 = a
 /// point lamp); at most half the lamp's distance from the sample, so the disc stays a lamp.
 pub fn lamp_radius_mm(spec: &RigSpec) -> Result<f64, SimRigError> {
@@ -354,8 +558,17 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
     let axes: Vec<Arc<SimAxis>> = spec
         .axes
         .iter()
-        .map(|a| Arc::new(SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone())))
-        .collect();
+        .map(|a| {
+            let mech = crate::mechanics::MechanicalErrors::from_options(&a.options).map_err(|e| SimRigError {
+                rig: spec.name.clone(),
+                key: format!("axis {}: {}", a.name, e.key),
+                message: e.message,
+            })?;
+            Ok(Arc::new(
+                SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone()).with_mechanics(mech),
+            ))
+        })
+        .collect::<Result<_, SimRigError>>()?;
     let opt = |key: &str, default: f64| -> Result<f64, SimRigError> {
         match spec.camera.options.get(key) {
             None => Ok(default),
@@ -387,7 +600,9 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
     });
     let world = Arc::new(SimWorld {
         axes: axes.clone(),
-        kinematics: kinematics::for_rig(spec),
+        // The simulator places the camera and lamp where they really are: with the rig's
+        // true misalignment (`sim_misalignment`), which the planner's kinematics do not know.
+        kinematics: kinematics::for_rig(&spec.simulated_truth()),
         renderer,
         light: light.clone(),
         light_intensity_w_sr: spec.light.intensity_w_sr,
@@ -416,6 +631,15 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
             }
             crate::render::LensDistortion(c)
         },
+        response: sensor_response(spec)?,
+        frame_noise: match spec.camera.options.get("frame_noise") {
+            None => false,
+            Some(v) => v.as_bool().ok_or(SimRigError {
+                rig: spec.name.clone(),
+                key: "camera.options.frame_noise".into(),
+                message: format!("{v}: must be true or false"),
+            })?,
+        },
         roi: match spec.camera.options.get("roi").and_then(|v| v.as_str()) {
             None | Some("holder") => Roi::Holder,
             Some("full") => Roi::Full,
@@ -428,9 +652,24 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
             }
         },
     });
+    let fault = match spec.camera.options.get("fault") {
+        None => None,
+        Some(v) => Some(
+            v.as_str()
+                .ok_or_else(|| format!("{v}: must be a string like \"drop:at=3\""))
+                .and_then(|s| crate::camera_faults::CameraFault::parse(s).map_err(|e| e.to_string()))
+                .map_err(|message| SimRigError {
+                    rig: spec.name.clone(),
+                    key: "camera.options.fault".into(),
+                    message,
+                })?,
+        ),
+    };
     let camera = Arc::new(SimCamera {
         world: world.clone(),
         sequence: AtomicU64::new(0),
+        fault,
+        last_frame: Mutex::new(None),
     });
     Ok(SimRig {
         axes: axes.into_iter().map(|a| a as Arc<dyn Axis>).collect(),

@@ -11,10 +11,12 @@
 //! engine cannot tell it from a real rig.
 
 pub mod brdf;
+pub mod camera_faults;
 pub mod clock;
 pub mod devices;
 #[cfg(feature = "emulate")]
 pub mod emulate;
+pub mod mechanics;
 pub mod noise;
 pub mod render;
 pub mod sample;

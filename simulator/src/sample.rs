@@ -23,6 +23,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("leather", include_str!("../samples/leather.toml")),
     ("white-standard", include_str!("../samples/white-standard.toml")),
     ("calibration-target", include_str!("../samples/calibration-target.toml")),
+    ("colour-target", include_str!("../samples/colour-target.toml")),
 ];
 
 /// The default sample of the main job.
@@ -90,6 +91,10 @@ pub enum MapSpec {
     Emboss { period_mm: f64 },
     /// Squares of `period_mm` alternating materials 0 and 1.
     Checker { period_mm: f64 },
+    /// A colour chart: `cols × rows` square patches of `pitch_mm` centred on the sample,
+    /// patch (column i, row j) — row 0 at the +y edge — is material `j · cols + i`; outside
+    /// the grid the surround, material `cols · rows`.
+    Grid { cols: usize, rows: usize, pitch_mm: f64 },
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -121,6 +126,13 @@ pub struct SampleSpec {
     pub frame_albedo: f64,
     #[serde(default = "default_marker_albedo")]
     pub marker_albedo: f64,
+    /// The sample looks the same when turned about its normal or mirrored (an isotropic
+    /// BRDF with no oriented texture or relief). Declared by the sample file, never
+    /// inferred: `gonio plan --sample` and `gonio acquire` then measure one pair per
+    /// (θ_l, θ_v, |φ_l − φ_v|) class and export reconstructs the others, which is only
+    /// right if it is true.
+    #[serde(default)]
+    pub isotropic: bool,
 }
 
 fn default_resolution() -> usize {
@@ -287,6 +299,20 @@ impl SampleSpec {
         }
         match &self.map {
             MapSpec::Uniform => {}
+            MapSpec::Grid { cols, rows, pitch_mm } => {
+                pos("map.pitch_mm", *pitch_mm)?;
+                let n = cols * rows;
+                if *cols == 0 || *rows == 0 || n + 1 > self.materials.len() {
+                    return Err(bad(
+                        "map",
+                        format!(
+                            "a {cols} × {rows} grid needs {} [[material]] tables (one per patch, then the surround), {} given",
+                            n + 1,
+                            self.materials.len()
+                        ),
+                    ));
+                }
+            }
             MapSpec::Weave { period_mm }
             | MapSpec::Ribs { period_mm }
             | MapSpec::Emboss { period_mm }
@@ -478,6 +504,15 @@ fn material_at(m: &MapSpec, x: f64, y: f64) -> u8 {
             let (a, b) = ((x / period_mm).floor() as i64, (y / period_mm).floor() as i64);
             u8::from((a + b).rem_euclid(2) == 1)
         }
+        MapSpec::Grid { cols, rows, pitch_mm } => {
+            let i = (x / pitch_mm + cols as f64 / 2.0).floor();
+            let j = (rows as f64 / 2.0 - y / pitch_mm).floor();
+            if i >= 0.0 && j >= 0.0 && (i as usize) < cols && (j as usize) < rows {
+                (j as usize * cols + i as usize) as u8
+            } else {
+                (cols * rows).min(255) as u8
+            }
+        }
     }
 }
 
@@ -548,6 +583,21 @@ mod tests {
             }
         }
         assert!(SampleSpec::resolve(DEFAULT_SAMPLE).is_ok());
+    }
+
+    /// `isotropic` is declared per file (default false); only the white standard (flat,
+    /// uniform, Lambertian) declares it among the shipped samples.
+    #[test]
+    fn isotropic_is_declared_only_by_the_white_standard() {
+        for (name, _) in BUILTIN {
+            let s = SampleSpec::resolve(name).unwrap();
+            assert_eq!(s.isotropic, *name == "white-standard", "{name}");
+        }
+        let text = BUILTIN[0]
+            .1
+            .replacen("size_mm = 60.0", "size_mm = 60.0\nisotropic = \"yes\"", 1);
+        let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();
+        assert!(e.contains("w.toml") && e.contains("isotropic"), "{e}");
     }
 
     #[test]

@@ -5,6 +5,11 @@
 //! clipping at the full well, conversion with `gain · (2^bits − 1) / full_well` DN per e⁻,
 //! rounding and clipping to the ADC range.
 //!
+//! Opt-in ([`SensorResponse`], rig file `camera.options.response_compression` and
+//! `crosstalk`): a 3 × 3 colour crosstalk on the radiance and a non-linear response on the
+//! normalised signal just before the ADC — what radiometric calibration has to undo. The
+//! default camera is linear and colour-clean and does not pay for either.
+//!
 //! A noiseless sensor draws no random numbers at all. Noise is seeded per frame and row
 //! from (seed, frame sequence, row), so a frame is reproducible whatever the thread count.
 
@@ -67,11 +72,50 @@ impl SensorModel {
     /// `[x0, x1) × [y0, y1)`; pixels outside it are not read (0), as with a camera's ROI
     /// readout. Noise is reproducible for the same (seed, sequence, ROI).
     pub fn expose_roi(&self, radiance: &RgbImage, sequence: u64, roi: (usize, usize, usize, usize)) -> Vec<u16> {
+        let (conv, max_dn, full) = (self.conversion(), self.max_dn(), self.full_well_e);
+        // x ≥ 0 is rounded by adding ½ and truncating (libm's round is slow).
+        self.expose_with(radiance, sequence, roi, move |e: f64| {
+            ((e.min(full) * conv).clamp(0.0, max_dn) + 0.5) as u16
+        })
+    }
+
+    /// Like [`expose_roi`](Self::expose_roi) through a non-linear camera: `response` maps
+    /// the normalised linear signal (DN / max DN before the ADC) to the ADC's input and
+    /// `response.crosstalk` mixes the colour channels of the radiance first. A separate
+    /// entry point, so a linear colour-clean camera (the default) pays nothing for it.
+    pub fn expose_roi_response(
+        &self,
+        radiance: &RgbImage,
+        sequence: u64,
+        roi: (usize, usize, usize, usize),
+        response: &SensorResponse,
+    ) -> Vec<u16> {
+        let mixed;
+        let radiance = match &response.crosstalk {
+            Some(m) => {
+                mixed = apply_crosstalk(radiance, m);
+                &mixed
+            }
+            None => radiance,
+        };
+        let (conv, max_dn, full) = (self.conversion(), self.max_dn(), self.full_well_e);
+        let r = response.clone();
+        self.expose_with(radiance, sequence, roi, move |e: f64| {
+            let u = (e.min(full) * conv / max_dn).clamp(0.0, 1.0);
+            (r.curve(u) * max_dn + 0.5) as u16
+        })
+    }
+
+    fn expose_with<F: Fn(f64) -> u16 + Sync>(
+        &self,
+        radiance: &RgbImage,
+        sequence: u64,
+        roi: (usize, usize, usize, usize),
+        to_dn: F,
+    ) -> Vec<u16> {
         let (rx0, ry0, rx1, ry1) = (roi.0, roi.1, roi.2.min(radiance.width), roi.3.min(radiance.height));
         let (w, h) = (radiance.width, radiance.height);
         let mut out = vec![0u16; w * h * 3];
-        let conv = self.conversion();
-        let max_dn = self.max_dn();
         let k = self.exposure_s * self.sensitivity_e_per_radiance_s;
         let dark = self.dark_current_e_s * self.exposure_s;
         let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
@@ -81,7 +125,6 @@ impl SensorModel {
         // Pixels with no signal (most of a frame: the background) all have the same
         // Poisson mean; its exp(−mean) is computed once.
         let dark_limit = (-dark).exp();
-        let full = self.full_well_e;
         out.par_chunks_mut(w * 3).enumerate().for_each(|(row, dst)| {
             if row < ry0 || row >= ry1 {
                 return;
@@ -89,8 +132,7 @@ impl SensorModel {
             let src = &radiance.data[row * w * 3..(row + 1) * w * 3];
             let dy = row as f64 + 0.5 - cy;
             let vig_row = self.vignetting * dy * dy / r2_corner;
-            // x ≥ 0 is rounded by adding ½ and truncating (libm's round is slow).
-            let to_dn = |e: f64| ((e.min(full) * conv).clamp(0.0, max_dn) + 0.5) as u16;
+            let to_dn = &to_dn;
             if !self.noise {
                 for col in rx0..rx1 {
                     let dx = col as f64 + 0.5 - cx;
@@ -108,7 +150,11 @@ impl SensorModel {
                 for c in 0..3 {
                     let l = src[col * 3 + c] as f64;
                     let z: f64 = rng.sample(rand_distr::StandardNormal);
-                    let e = if l <= 0.0 {
+                    let e = if l <= 0.0 && dark >= 30.0 {
+                        // Long exposures: Knuth's product would underflow (≈ 745 draws, a
+                        // wrong count); Poisson ≈ Gaussian here as for lit pixels.
+                        dark + (dark + read_var).sqrt() * z
+                    } else if l <= 0.0 {
                         poisson_with_limit(&mut rng, dark_limit) + read_sd * z
                     } else {
                         let mean = l * k * vig + dark;
@@ -124,6 +170,57 @@ impl SensorModel {
             }
         });
         out
+    }
+}
+
+/// The opt-in non-linearity of a simulated camera (rig file `camera.options`
+/// `response_compression` and `crosstalk`): what radiometric calibration must undo.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SensorResponse {
+    /// `a` of the response `f(u) = (1 − e^{−a·u}) / (1 − e^{−a})` applied to the normalised
+    /// linear signal `u ∈ [0, 1]` before the ADC: a smooth, film-like compression of the
+    /// highlights (slope `a / (1 − e^{−a})` at black, `a·e^{−a} / (1 − e^{−a})` at white).
+    /// 0 = linear.
+    pub compression: f64,
+    /// Colour crosstalk: the camera's RGB radiance is `crosstalk · [R, G, B]` (rows: camera
+    /// channels). `None` = colour-clean.
+    pub crosstalk: Option<[[f64; 3]; 3]>,
+}
+
+impl SensorResponse {
+    /// The response `f(u)` (normalised in and out).
+    #[inline]
+    pub fn curve(&self, u: f64) -> f64 {
+        let a = self.compression;
+        if a <= 1e-9 {
+            return u;
+        }
+        (1.0 - (-a * u).exp()) / (1.0 - (-a).exp())
+    }
+
+    /// The inverse `f⁻¹(y)`: the truth a recovered response curve is compared with.
+    pub fn inverse(&self, y: f64) -> f64 {
+        let a = self.compression;
+        if a <= 1e-9 {
+            return y;
+        }
+        -(1.0 - y.clamp(0.0, 1.0) * (1.0 - (-a).exp())).ln() / a
+    }
+}
+
+/// `m · rgb` for every pixel.
+pub fn apply_crosstalk(radiance: &RgbImage, m: &[[f64; 3]; 3]) -> RgbImage {
+    let mut data = radiance.data.clone();
+    for px in data.chunks_exact_mut(3) {
+        let v = [px[0] as f64, px[1] as f64, px[2] as f64];
+        for (c, row) in m.iter().enumerate() {
+            px[c] = (row[0] * v[0] + row[1] * v[1] + row[2] * v[2]) as f32;
+        }
+    }
+    RgbImage {
+        width: radiance.width,
+        height: radiance.height,
+        data,
     }
 }
 
@@ -183,6 +280,37 @@ mod tests {
         assert_eq!(f[3], 4095, "saturated at full well");
         assert_eq!(f[4], 0, "empty stays empty without noise");
         assert!((m.expected_normalized(5.0) * 4095.0 - expect as f64).abs() < 1.0);
+    }
+
+    #[test]
+    fn response_and_crosstalk_are_applied_before_the_adc() {
+        let img = RgbImage {
+            width: 1,
+            height: 1,
+            data: vec![5.0, 2.0, 0.0],
+        };
+        let m = model(false);
+        let lin = m.expose(&img, 0);
+        let identity = SensorResponse {
+            compression: 0.0,
+            crosstalk: None,
+        };
+        assert_eq!(m.expose_roi_response(&img, 0, (0, 0, 1, 1), &identity), lin);
+        let r = SensorResponse {
+            compression: 2.0,
+            crosstalk: Some([[0.8, 0.2, 0.0], [0.0, 1.0, 0.0], [0.1, 0.1, 0.8]]),
+        };
+        let out = m.expose_roi_response(&img, 0, (0, 0, 1, 1), &r);
+        let u = |l: f64| l * 1000.0 * m.conversion() / m.max_dn();
+        for (c, l) in [0.8 * 5.0 + 0.2 * 2.0, 2.0, 0.1 * 5.0 + 0.1 * 2.0].iter().enumerate() {
+            let want = (r.curve(u(*l)) * m.max_dn()).round() as u16;
+            assert_eq!(out[c], want, "channel {c}");
+            assert!(out[c] as f64 > u(*l) * m.max_dn(), "compression lifts mid-tones");
+        }
+        for y in [0.0, 0.1, 0.5, 0.99] {
+            assert!((r.curve(r.inverse(y)) - y).abs() < 1e-12);
+        }
+        assert_eq!(r.curve(1.0), 1.0);
     }
 
     #[test]

@@ -11,7 +11,12 @@
 //! `truth` and `errors`. An intrinsics run also writes `corners.json` (detected image
 //! points and target points per view), the input an independent oracle (OpenCV) needs.
 
+pub mod apply;
+pub mod mechanical;
+pub mod radiometric;
 pub mod recipe;
+pub mod rig_geometry;
+pub mod white;
 
 use crate::engine::{self, frame_to_linear, Rig};
 use gonio_calibration::checkerboard::{detect_checkerboard, CheckerboardError};
@@ -65,6 +70,34 @@ pub enum CalibrateError {
     },
     #[error("recipe `{recipe}`: {cause}")]
     Intrinsics { recipe: String, cause: IntrinsicsError },
+    /// A dark, response, flat or colour fit failed (the cause says what to change).
+    #[error("recipe `{recipe}`: {cause}")]
+    Radiometric {
+        recipe: String,
+        cause: gonio_calibration::radiometric::RadiometricError,
+    },
+    #[error("recipe `{recipe}`: response calibration {path}: {message}")]
+    ResponseInput {
+        recipe: String,
+        path: String,
+        message: String,
+    },
+    #[error("recipe `{recipe}`: key `{key}`: {message}")]
+    RecipeInvalid {
+        recipe: String,
+        key: String,
+        message: String,
+    },
+    /// A mechanical run failed (the error names recipe, axis and command).
+    #[error(transparent)]
+    Mechanical(Box<mechanical::MechanicalError>),
+    #[error("recipe `{recipe}`: white standard: {cause}")]
+    White { recipe: String, cause: white::WhiteError },
+    #[error("recipe `{recipe}`: {cause}")]
+    RigGeometry {
+        recipe: String,
+        cause: gonio_calibration::rig_geometry::RigGeometryError,
+    },
 }
 
 /// The corners of every view, as written to `corners.json`.
@@ -141,6 +174,18 @@ pub struct CalibrationResult {
     pub corner_truth_rms_px: Vec<f64>,
     /// Rig time for the whole run (s).
     pub rig_time_s: f64,
+    /// Dark, response, flat or colour run: estimates, diagnostics, truth errors, effort.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub radiometric: Option<radiometric::RadiometricCalibration>,
+    /// White-standard run: the radiometric conversion to BRDF, residuals, truth errors.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub white_standard: Option<white::WhiteStandardCalibration>,
+    /// Mechanical run: homing repeatability, backlash, positioning error per axis.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mechanical: Option<mechanical::MechanicalCalibration>,
+    /// Rig-geometry run: axis zero offsets, camera mounting rotation, direction errors.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rig_geometry: Option<rig_geometry::RigGeometryCalibration>,
 }
 
 impl CalibrationResult {
@@ -166,6 +211,10 @@ impl CalibrationResult {
             effort: Vec::new(),
             corner_truth_rms_px: Vec::new(),
             rig_time_s: 0.0,
+            radiometric: None,
+            white_standard: None,
+            mechanical: None,
+            rig_geometry: None,
         }
     }
 
@@ -189,10 +238,12 @@ pub struct RunOutput {
 pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
     match recipe.kind {
         RecipeKind::Intrinsics => run_intrinsics(recipe, rig).await,
-        other => Err(CalibrateError::NotImplemented {
-            recipe: recipe.name.clone(),
-            kind: other.name().into(),
-        }),
+        RecipeKind::Dark | RecipeKind::Response | RecipeKind::Flat | RecipeKind::Colour => {
+            radiometric::run_radiometric(recipe, rig).await
+        }
+        RecipeKind::WhiteStandard => white::run_white(recipe, rig).await,
+        RecipeKind::Mechanical => mechanical::run(recipe, rig).await,
+        RecipeKind::RigGeometry => rig_geometry::run_rig_geometry(recipe, rig).await,
     }
 }
 
@@ -537,13 +588,5 @@ mod tests {
             ),
             "{e}"
         );
-    }
-
-    #[test]
-    fn unimplemented_kinds_say_so() {
-        let mut recipe = shipped();
-        recipe.kind = RecipeKind::Response;
-        let e = run_blocking(&recipe).err().expect("refused");
-        assert!(e.to_string().contains("not implemented"), "{e}");
     }
 }

@@ -38,6 +38,9 @@ pub enum RecipeKind {
     Colour,
     /// Homing repeatability, backlash, positioning error.
     Mechanical,
+    /// Axis zero offsets and the camera's mounting rotation (bundle adjustment over
+    /// checkerboard views at many axis positions).
+    RigGeometry,
 }
 
 impl RecipeKind {
@@ -50,6 +53,7 @@ impl RecipeKind {
             RecipeKind::Response => "response",
             RecipeKind::Colour => "colour",
             RecipeKind::Mechanical => "mechanical",
+            RecipeKind::RigGeometry => "rig-geometry",
         }
     }
 }
@@ -114,6 +118,21 @@ pub struct Recipe {
     pub exposure_s: Option<f64>,
     #[serde(default)]
     pub simulator: SimulatorSettings,
+    /// Mechanical run: axes, homing cycles, targets, approach (`kind = "mechanical"`;
+    /// defaults apply when the section is absent).
+    #[serde(default)]
+    pub mechanical: Option<super::mechanical::MechanicalSpec>,
+    /// White standard: its albedo and the fit's texel grid (`kind = "white-standard"`).
+    #[serde(default)]
+    pub white_standard: Option<super::white::WhiteStandardSpec>,
+    /// Dark, response, flat and colour recipes: frames, exposure bracket, fit options,
+    /// colour patches (`[radiometric]`).
+    #[serde(default)]
+    pub radiometric: Option<super::radiometric::RadiometricSpec>,
+    /// Rig geometry: fit options and refusal limits (`kind = "rig-geometry"`; defaults
+    /// apply when the section is absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rig_geometry: Option<gonio_calibration::rig_geometry::RigGeometryOptions>,
 }
 
 fn default_light() -> [f64; 2] {
@@ -164,6 +183,74 @@ impl Recipe {
                 "simulator.supersample",
                 format!("{}: valid range is 1 ..= 16", self.simulator.supersample),
             ));
+        }
+        if matches!(
+            self.kind,
+            RecipeKind::Dark | RecipeKind::Response | RecipeKind::Flat | RecipeKind::Colour
+        ) {
+            if let Some(r) = &self.radiometric {
+                r.validate(self.kind).map_err(|(key, message)| bad(&key, message))?;
+            } else if matches!(self.kind, RecipeKind::Response | RecipeKind::Colour) {
+                return Err(bad(
+                    "radiometric",
+                    "this recipe needs [radiometric] exposures_s = [...] (and patches for colour)".into(),
+                ));
+            }
+        }
+        if self.kind == RecipeKind::WhiteStandard {
+            let Some(w) = &self.white_standard else {
+                return Err(bad(
+                    "white_standard",
+                    "a white-standard recipe needs [white_standard] albedo = [r, g, b]".into(),
+                ));
+            };
+            if w.albedo.iter().any(|a| !(a.is_finite() && *a > 0.0 && *a <= 1.0)) {
+                return Err(bad(
+                    "white_standard.albedo",
+                    format!("{:?}: each channel must be in (0, 1]", w.albedo),
+                ));
+            }
+            if !(4..=1024).contains(&w.texels) {
+                return Err(bad(
+                    "white_standard.texels",
+                    format!("{}: valid range is 4 ..= 1024", w.texels),
+                ));
+            }
+            if self.poses.is_empty() {
+                return Err(bad(
+                    "pose",
+                    "a white-standard recipe needs at least one [[pose]]".into(),
+                ));
+            }
+        }
+        if self.kind == RecipeKind::Mechanical {
+            if let Err((key, message)) = self.mechanical.clone().unwrap_or_default().validate() {
+                return Err(bad(&key, message));
+            }
+        }
+        if self.kind == RecipeKind::RigGeometry {
+            let Some(cb) = &self.checkerboard else {
+                return Err(bad(
+                    "checkerboard",
+                    "a rig-geometry recipe needs [checkerboard] cols, rows, pitch_mm".into(),
+                ));
+            };
+            if cb.cols < 2 || cb.rows < 2 || cb.pitch_mm.is_nan() || cb.pitch_mm <= 0.0 {
+                return Err(bad(
+                    "checkerboard",
+                    format!("{cb:?}: need ≥ 2 × 2 inner corners and pitch_mm > 0"),
+                ));
+            }
+            let min = self.rig_geometry.as_ref().map(|o| o.min_views).unwrap_or(3).max(1);
+            if self.poses.len() < min {
+                return Err(bad(
+                    "pose",
+                    format!(
+                        "{} poses: the rig-geometry fit needs at least {min} views",
+                        self.poses.len()
+                    ),
+                ));
+            }
         }
         if self.kind == RecipeKind::Intrinsics {
             let Some(cb) = &self.checkerboard else {

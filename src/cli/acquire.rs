@@ -63,6 +63,12 @@ pub struct AcquireArgs {
     /// Stop after this many measurements (the run stays resumable).
     #[arg(long)]
     pub limit: Option<usize>,
+    /// Apply the calibration results in DIR (`DIR/calibration.json` and
+    /// `DIR/*/calibration.json`, one per kind, made on this rig): intrinsics undistort and
+    /// rectify, a white standard converts values to BRDF (1/sr). The manifest records their
+    /// ids; copies are kept in the dataset for --resume.
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    pub calibration: Option<PathBuf>,
 }
 
 fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
@@ -118,6 +124,13 @@ pub struct Summary {
     pub stage_seconds: engine::StageSeconds,
     /// Peak resident memory of this process (MiB, from /proc/self/status VmHWM).
     pub peak_rss_mib: Option<f64>,
+    /// Unit of the stored values: `normalized_dn` or (white-standard calibration applied)
+    /// `brdf_per_sr`; the truth error is on the same scale.
+    #[serde(default)]
+    pub value_unit: String,
+    /// Ids of the calibration results applied (comma-separated).
+    #[serde(default)]
+    pub calibration: Option<String>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), for the memory benchmark.
@@ -149,6 +162,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         quality: RenderQuality::default(),
     };
     let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).context("building the rig")?);
+    let calibration = dataset_calibration(dataset.header(), dataset.dir(), &rig_spec.name)?;
     // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
     for s in &plan.skipped {
         if !done.contains(&s.index) {
@@ -197,7 +211,16 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         max_supersample: 8,
     };
     let dir = dataset.dir().to_path_buf();
-    let result = engine::run(rig.clone(), plan_run.clone(), dataset, done.clone(), opts, pause).await;
+    let result = engine::run_calibrated(
+        rig.clone(),
+        plan_run.clone(),
+        dataset,
+        done.clone(),
+        opts,
+        pause,
+        calibration.clone(),
+    )
+    .await;
     let (mut dataset, report) = match result {
         Ok(v) => v,
         Err((_, e)) => {
@@ -236,6 +259,11 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         homography_from_pose: report.homography_from_pose,
         stage_seconds: report.stage_seconds.clone(),
         peak_rss_mib: peak_rss_mib(),
+        value_unit: calibration
+            .as_ref()
+            .map_or(APPLY_UNIT_DN, |c| c.value_unit())
+            .to_string(),
+        calibration: calibration.as_ref().map(|c| c.ids.join(",")),
     };
     if complete {
         dataset
@@ -259,10 +287,22 @@ impl AcquireArgs {
 type Opened = (RigSpec, SampleSpec, Plan, RunSettings, Dataset, HashSet<usize>);
 
 fn create_new(args: &AcquireArgs) -> Result<Opened> {
-    let rig = args.rig.load()?;
+    let mut rig = args.rig.load()?;
+    // A rig-geometry calibration corrects the kinematics before anything is planned.
+    if let Some(dir) = &args.calibration {
+        let results = crate::calibrate::apply::load_dir(dir, &rig.name)?;
+        let (applied, _) = crate::calibrate::apply::AppliedCalibration::from_results(&results)?;
+        applied.correct_rig(&mut rig);
+    }
     let sample = load_sample(&args.sample)?;
     let sweep = args.sweep.load()?;
-    let plan = args.sweep.plan(&rig, &sweep).context("planning the sweep")?;
+    // A sample file that declares `isotropic = true` gets the reduced plan without
+    // `--isotropic`; the plan records it (and the time saved) like the flag does.
+    let sweep_args = SweepArgs {
+        isotropic: args.sweep.isotropic || sample.isotropic,
+        ..args.sweep.clone()
+    };
+    let plan = sweep_args.plan(&rig, &sweep).context("planning the sweep")?;
     let settings = RunSettings {
         width: args.size.0,
         height: args.size.1,
@@ -283,14 +323,112 @@ fn create_new(args: &AcquireArgs) -> Result<Opened> {
     header.seed = settings.seed.unwrap_or(1);
     header.raw_frames = settings.raw;
     header.extra = serde_json::json!({ "run_settings": settings });
+    let calibration = match &args.calibration {
+        Some(dir) => Some(prepare_calibration(dir, &rig.name, &mut header)?),
+        None => None,
+    };
     let dataset = Dataset::create(&args.out, &header, args.force).with_context(|| {
         format!(
             "creating dataset {} (use --force to replace a dataset, --resume to continue one)",
             args.out.display()
         )
     })?;
+    if let Some(results) = &calibration {
+        store_calibration_copies(&args.out, results)?;
+    }
     write_plan(&args.out, &plan)?;
     Ok((rig, sample, plan, settings, dataset, HashSet::new()))
+}
+
+const APPLY_UNIT_DN: &str = crate::calibrate::apply::VALUE_UNIT_DN;
+
+/// Where a dataset keeps the copy of a calibration result it applies.
+fn calibration_copy(kind: &str) -> String {
+    format!("calibration/{kind}.json")
+}
+
+/// Load the results in `dir` for rig `rig_name` and describe them in the header:
+/// `calibration` = the applied ids (comma-separated), `values` and `extra.value_unit` = the
+/// unit of the stored values, `extra.calibrations` = every result found (kind, id, source
+/// file, copy in the dataset, applied or not).
+fn prepare_calibration(
+    dir: &Path,
+    rig_name: &str,
+    header: &mut ManifestHeader,
+) -> Result<Vec<crate::calibrate::apply::LoadedResult>> {
+    use crate::calibrate::apply::{load_dir, AppliedCalibration};
+    let results = load_dir(dir, rig_name)?;
+    let (applied, not_applied) = AppliedCalibration::from_results(&results)?;
+    for kind in &not_applied {
+        tracing::warn!(kind = %kind, "calibration kind is not applied by acquire yet: recorded as not applied");
+    }
+    if !applied.ids.is_empty() {
+        header.calibration = Some(applied.ids.join(","));
+    }
+    if applied.radiometric.is_some() {
+        header.values = "BRDF (1/sr) per texel, radiometrically calibrated with a white standard \
+                         (value / (K · exposure · gain · E(x)), E from the lamp position per texel)"
+            .into();
+    }
+    header.extra["value_unit"] = serde_json::json!(applied.value_unit());
+    header.extra["calibrations"] = serde_json::Value::Array(
+        results
+            .iter()
+            .map(|r| {
+                serde_json::json!({
+                    "kind": r.kind,
+                    "id": r.id,
+                    "source": r.file.display().to_string(),
+                    "file": calibration_copy(&r.kind),
+                    "applied": !not_applied.contains(&r.kind),
+                })
+            })
+            .collect(),
+    );
+    Ok(results)
+}
+
+/// Copy the result files into the dataset (`calibration/KIND.json`).
+fn store_calibration_copies(out: &Path, results: &[crate::calibrate::apply::LoadedResult]) -> Result<()> {
+    let dir = out.join("calibration");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    for r in results {
+        let path = out.join(calibration_copy(&r.kind));
+        store::atomic::write_atomic(&path, &r.bytes, Some(out))
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// The calibration a dataset applies, from its own copies (new run and `--resume` alike);
+/// `None` for an uncalibrated dataset.
+fn dataset_calibration(
+    header: &ManifestHeader,
+    dir: &Path,
+    rig_name: &str,
+) -> Result<Option<Arc<crate::calibrate::apply::AppliedCalibration>>> {
+    use crate::calibrate::apply::{load_files, AppliedCalibration};
+    let Some(list) = header.extra.get("calibrations").and_then(|v| v.as_array()) else {
+        return Ok(None);
+    };
+    let files: Vec<PathBuf> = list
+        .iter()
+        .filter_map(|e| e.get("file").and_then(|f| f.as_str()))
+        .map(|f| dir.join(f))
+        .collect();
+    let results =
+        load_files(&files, rig_name).with_context(|| format!("loading the calibration of {}", dir.display()))?;
+    let (applied, _) = AppliedCalibration::from_results(&results)?;
+    let expected = header.calibration.clone().unwrap_or_default();
+    if applied.ids.join(",") != expected {
+        bail!(
+            "dataset {}: its calibration copies have ids {:?}, the manifest says {:?}",
+            dir.display(),
+            applied.ids.join(","),
+            expected
+        );
+    }
+    Ok(Some(Arc::new(applied)))
 }
 
 fn plan_path(dir: &Path) -> PathBuf {

@@ -242,63 +242,97 @@ pub struct PlanBenchArgs {
     /// Optimizer budgets in seconds.
     #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.5, 1.0, 2.0, 5.0])]
     pub budgets: Vec<f64>,
+    /// Several rig files, comma-separated (e.g. every file in devices/rigs/): one table with
+    /// a row per rig and budget. Takes the place of `--rig`.
+    #[arg(long, value_delimiter = ',')]
+    pub rigs: Vec<std::path::PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
 
 #[derive(Serialize)]
 struct PlanRow {
+    rig: String,
+    measured: usize,
     budget_s: f64,
     canonical_s: f64,
     optimized_s: f64,
     lower_bound_s: f64,
     optimized_over_canonical: f64,
     optimized_over_bound: f64,
+    /// No order can beat this fraction of the canonical duration.
+    bound_over_canonical: f64,
     plan_time_s: f64,
 }
 
 fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
-    let rig = a.rig.load()?;
+    use anyhow::Context;
+    let rigs = if a.rigs.is_empty() {
+        vec![a.rig.load()?]
+    } else {
+        a.rigs
+            .iter()
+            .map(|p| gonio_devices::rig::RigSpec::load(p).with_context(|| format!("loading rig {}", p.display())))
+            .collect::<Result<Vec<_>>>()?
+    };
     let sweep = crate::sweep::Sweep::resolve(&a.sweep)?;
-    let mut rows = Vec::new();
     for &b in &a.budgets {
         anyhow::ensure!(
             b.is_finite() && (0.0..=600.0).contains(&b),
             "--budgets: {b} is not in 0 ..= 600 s"
         );
+    }
+    let mut rows = Vec::new();
+    for (rig, &b) in rigs.iter().flat_map(|r| a.budgets.iter().map(move |b| (r, b))) {
         let opts = crate::plan::PlanOptions {
             time_budget: std::time::Duration::from_secs_f64(b),
             ..Default::default()
         };
-        let p = crate::plan::Plan::build(&rig, &sweep, &opts)?;
+        let p = crate::plan::Plan::build(rig, &sweep, &opts)
+            .with_context(|| format!("planning sweep `{}` on rig `{}`", sweep.name, rig.name))?;
         let d = &p.durations;
         rows.push(PlanRow {
+            rig: rig.name.clone(),
+            measured: p.steps.len(),
             budget_s: b,
             canonical_s: d.canonical_s,
             optimized_s: d.optimized_s,
             lower_bound_s: d.lower_bound_s,
             optimized_over_canonical: d.optimized_s / d.canonical_s,
             optimized_over_bound: d.optimized_s / d.lower_bound_s,
+            bound_over_canonical: d.lower_bound_s / d.canonical_s,
             plan_time_s: p.plan_time_s,
         });
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&rows)?);
     } else {
-        println!("rig {} · sweep {}", rig.name, sweep.name);
+        println!("sweep {}", sweep.name);
         println!(
-            "{:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>10}",
-            "budget s", "canonical s", "optimized s", "bound s", "opt/canon", "opt/bound", "plan s"
+            "{:<20} {:>8} {:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>11} {:>10}",
+            "rig",
+            "measured",
+            "budget s",
+            "canonical s",
+            "optimized s",
+            "bound s",
+            "opt/canon",
+            "opt/bound",
+            "bound/canon",
+            "plan s"
         );
         for r in &rows {
             println!(
-                "{:>8.2} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>10.2}",
+                "{:<20} {:>8} {:>8.2} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>11.3} {:>10.2}",
+                r.rig,
+                r.measured,
                 r.budget_s,
                 r.canonical_s,
                 r.optimized_s,
                 r.lower_bound_s,
                 r.optimized_over_canonical,
                 r.optimized_over_bound,
+                r.bound_over_canonical,
                 r.plan_time_s
             );
         }

@@ -60,9 +60,9 @@ pub fn sweep() -> Vec<(&'static str, Vec<String>)> {
         v.push(("local-pca", a(&format!("--method local-pca --clusters {k} -c 8"))));
     }
     for b in [256, 400, 1024] {
-        v.push(("median-cut", a(&format!("--method median-cut --boxes {b} -c 1"))));
+        v.push(("median-cut", a(&format!("--method median-cut --boxes {b}"))));
     }
-    v.push(("homomorphic", a("--method homomorphic -c 1")));
+    v.push(("homomorphic", a("--method homomorphic")));
     v
 }
 
@@ -353,6 +353,35 @@ mod tests {
         }
     }
 
+    /// Median cut and homomorphic factorization have no components: `gonio compress`
+    /// runs them without `-c`, while the factorizations refuse to guess one.
+    #[test]
+    fn components_are_required_only_by_the_factorizations() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = tmp.path().join("ds");
+        let dirs = [[0.0, 0.0], [40.0, 90.0], [60.0, 200.0]];
+        crate::compress::dfmf::tests::write_test_dataset(&ds, (4, 3), &dirs, &dirs, &[], |l, v, t, c| {
+            0.1 + 0.02 * (l + 2 * v + 3 * c) as f32 + 0.01 * (t % 5) as f32
+        });
+        let out = tmp.path().join("x.gbtf");
+        let run = |extra: &str| {
+            let mut argv = vec![ds.display().to_string(), "--out".into(), out.display().to_string()];
+            argv.extend(extra.split_whitespace().map(String::from));
+            compress_report(&OneRun::try_parse_from(&argv).unwrap().args)
+        };
+        for ok in ["--method median-cut --boxes 2", "--method homomorphic --half-bins 2"] {
+            let r = run(ok).unwrap_or_else(|e| panic!("{ok}: {e:#}"));
+            assert!(r.rmse_8bit.is_some_and(f64::is_finite), "{ok}");
+        }
+        for needs in ["--method pvmf", "--method pca", "--method local-pca", "--method dfmf"] {
+            let e = run(needs).err().unwrap_or_else(|| panic!("{needs} ran without -c"));
+            assert!(format!("{e:#}").contains("-c"), "{needs}: {e:#}");
+        }
+        let r = run("--method pvmf -c 2").unwrap();
+        assert_eq!(r.components, 2);
+        assert!(r.encode_stages.iter().any(|s| s.name == "factorize"));
+    }
+
     #[test]
     fn svg_has_one_marker_per_successful_run_and_panel() {
         let ok = |m: &str, ratio: f64, rmse: f64| Row {
@@ -380,6 +409,7 @@ mod tests {
                 decode_seconds_per_image: None,
                 truth: None,
                 peak_memory_bytes: None,
+                encode_stages: Vec::new(),
             }),
             error: None,
         };
@@ -406,25 +436,48 @@ struct SpeedReport {
     columns: usize,
     views: usize,
     views_timed: usize,
+    /// EXR decode + column-major f64 view matrix (`DatasetViews::view_columns`).
     read_seconds_per_view: f64,
-    /// Householder QR + SVD of R (what PVMF does, `factor::truncated_svd`), c = 8.
+    /// Householder QR + SVD of R (`factor::truncated_svd`, PVMF's fallback), c = 8.
     qr_svd_seconds_per_view: f64,
-    /// Gram matrix AᵀA + its SVD + A·V (an alternative for small c), c = 8.
+    /// Gram path (`factor::gram_truncated`, PVMF's default): AᵀA (lower triangle), its
+    /// eigen-decomposition, A·V; c = 8.
     gram_seconds_per_view: f64,
-    /// Relative Frobenius error difference Gram vs. QR path (should be ~0).
+    /// Views of the timed ones on which the Gram path declined (ill-conditioned for c).
+    gram_declined: usize,
+    /// Relative Frobenius error Gram path / QR path on the timed views (1 = same).
     gram_vs_qr_error_ratio: f64,
-    /// faer f64 GEMM (texels × cols)·(cols × cols), GFLOP/s.
+    /// faer f64 GEMM (texels × cols)·(cols × cols) on this dataset's shape, GFLOP/s.
     gemm_gflops: f64,
     /// FLOPs of the QR path per view (2mn² QR + 2mn² forming Q + 2mnc) over its time.
     qr_path_gflops: f64,
-    /// Factorization of one full-size 65536 × cols view matrix (synthetic values: the cost
-    /// does not depend on them), QR path and Gram path, and faer's GEMM rate on that shape.
+    /// Useful FLOPs of the Gram path per view (m·n·(n+1) for the triangle of AᵀA + 2mnc
+    /// for A·V) over its time (eigen-decomposition included), and the ratio to `gemm_gflops`.
+    gram_path_gflops: f64,
+    gram_path_vs_gemm: f64,
+    /// One full-size 65536 × cols view matrix (synthetic values: the cost does not depend
+    /// on them): QR path, Gram path, and the parts of the Gram path against faer's own
+    /// GEMM on the same shapes.
     full_view_qr_svd_seconds: f64,
     full_view_gram_seconds: f64,
+    /// AᵀA lower triangle (`triangular::matmul`), GFLOP/s counting m·n·(n+1).
+    full_view_gram_product_gflops: f64,
+    /// Plain faer `Aᵀ * A` (all n² entries), GFLOP/s counting 2·m·n².
+    full_view_gemm_ata_gflops: f64,
+    /// Plain faer `A * Y` with Y n × n, GFLOP/s counting 2·m·n².
     full_view_gemm_gflops: f64,
-    /// Reading (EXR decode + assembly) extrapolated linearly in texels to 81 views × 256².
+    /// `factor::gram_lower` with b column blocks: (b, seconds), the rejected alternative
+    /// to the triangular product PVMF uses (`full_view_triangular_gram_seconds`).
+    full_view_gram_blocked_seconds: Vec<(usize, f64)>,
+    full_view_triangular_gram_seconds: f64,
+    /// Gram product rate over the plain AᵀA GEMM rate (same flop count convention).
+    full_view_gram_product_vs_gemm: f64,
+    /// Whole Gram path (useful flops as above over its time) over the plain GEMM rate.
+    full_view_gram_path_vs_gemm: f64,
+    /// Reading extrapolated linearly in texels to 81 views × 256².
     extrapolated_full_read_seconds: f64,
-    /// 81 × (read + factorization) at 256², per path.
+    /// 81 × (read + factorization) at 256², per path, without overlap (PVMF overlaps
+    /// reading and factorizing; `gonio compress --json`'s `encode_stages` shows how much).
     extrapolated_full_encode_seconds_qr: f64,
     extrapolated_full_encode_seconds_gram: f64,
     /// Decode of one 256² image with c = 8 (RGB model: 3 dot products per texel, like PVMF/PCA).
@@ -439,7 +492,8 @@ struct SpeedReport {
 
 fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     use crate::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
-    use crate::compress::factor::truncated_svd;
+    use crate::compress::factor::{gram_truncated, truncated_svd};
+    use faer::linalg::matmul::triangular::{matmul as tri_matmul, BlockStructure};
     use faer::Mat;
     use std::time::Instant;
     let ds =
@@ -447,29 +501,27 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     let (t, n, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
     let c = 8;
     let timed = nv.min(6);
-    let (mut read_s, mut qr_s, mut gram_s, mut ratio) = (0.0, 0.0, 0.0, 0.0);
+    let (mut read_s, mut qr_s, mut gram_s, mut ratio, mut declined) = (0.0, 0.0, 0.0, 0.0, 0);
     for k in 0..timed {
         let v = k * nv / timed;
         let t0 = Instant::now();
-        let vm = ds.view_matrix(v)?;
-        let m = Mat::from_fn(vm.rows, vm.cols, |i, j| vm.data[i * vm.cols + j] as f64);
-        drop(vm);
+        let (m, _) = ds.view_columns(v)?;
         read_s += t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let (us, vv) = truncated_svd(m.as_ref(), c)?;
         qr_s += t1.elapsed().as_secs_f64();
         let t2 = Instant::now();
-        let g = m.transpose() * &m;
-        let svd = g
-            .thin_svd()
-            .map_err(|e| anyhow::anyhow!("SVD of the Gram matrix: {e:?}"))?;
-        let vg = svd.V().subcols(0, c).to_owned();
-        let usg = &m * &vg;
+        let gram = gram_truncated(m.as_ref(), c)?;
         gram_s += t2.elapsed().as_secs_f64();
         let err = |us: &Mat<f64>, vv: &Mat<f64>| (&m - us * vv.transpose()).norm_l2();
-        ratio += err(&usg, &vg) / err(&us, &vv).max(1e-300) / timed as f64;
+        match gram {
+            Some((usg, vg)) => ratio += err(&usg, &vg) / err(&us, &vv).max(1e-300),
+            None => declined += 1,
+        }
     }
     let per = |x: f64| x / timed as f64;
+    let ratio = ratio / (timed - declined).max(1) as f64;
+    let useful_gram_flops = |m: usize| (m * n * (n + 1)) as f64 + 2.0 * (m * n * c) as f64;
     // faer GEMM rate on the view matrix shape.
     let x = Mat::from_fn(t, n, |i, j| ((i * 31 + j * 17) % 101) as f64 * 0.01);
     let y = Mat::from_fn(n, n, |i, j| ((i * 7 + j * 13) % 97) as f64 * 0.01);
@@ -481,6 +533,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     }
     let gemm_s = tg.elapsed().as_secs_f64() / reps as f64;
     let gemm_gflops = 2.0 * (t * n * n) as f64 / gemm_s / 1e9;
+    drop(x);
     let qr_flops = 4.0 * (t * n * n) as f64 + 2.0 * (t * n * c) as f64;
     let scale = 81.0 * 65536.0 / t as f64;
     // One full-size view matrix.
@@ -491,15 +544,50 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     std::hint::black_box(truncated_svd(big.as_ref(), c)?);
     let full_qr = tb.elapsed().as_secs_f64();
     let tb = Instant::now();
-    let g = big.transpose() * &big;
-    let svd = g
-        .thin_svd()
-        .map_err(|e| anyhow::anyhow!("SVD of the Gram matrix: {e:?}"))?;
-    std::hint::black_box(&big * svd.V().subcols(0, c));
+    std::hint::black_box(gram_truncated(big.as_ref(), c)?);
     let full_gram = tb.elapsed().as_secs_f64();
-    let tb = Instant::now();
-    std::hint::black_box(&big * &y);
-    let full_gemm = 2.0 * (65536 * n * n) as f64 / tb.elapsed().as_secs_f64() / 1e9;
+    // Best of 3 for the products: they are short and the machine is shared.
+    let best = |f: &mut dyn FnMut()| {
+        (0..3)
+            .map(|_| {
+                let t0 = Instant::now();
+                f();
+                t0.elapsed().as_secs_f64()
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut g = Mat::<f64>::zeros(n, n);
+    let tri_s = best(&mut || {
+        tri_matmul(
+            g.as_mut(),
+            BlockStructure::TriangularLower,
+            faer::Accum::Replace,
+            big.transpose(),
+            BlockStructure::Rectangular,
+            big.as_ref(),
+            BlockStructure::Rectangular,
+            1.0,
+            faer::get_global_parallelism(),
+        )
+    });
+    let ata_s = best(&mut || {
+        std::hint::black_box(big.transpose() * &big);
+    });
+    let ay_s = best(&mut || {
+        std::hint::black_box(&big * &y);
+    });
+    let blocked: Vec<(usize, f64)> = [1, 3, 9]
+        .into_iter()
+        .map(|b| {
+            let s = best(&mut || {
+                std::hint::black_box(crate::compress::factor::gram_lower(big.as_ref(), b));
+            });
+            (b, s)
+        })
+        .collect();
+    let tri_gflops = (65536 * n * (n + 1)) as f64 / tri_s / 1e9;
+    let ata_gflops = 2.0 * (65536 * n * n) as f64 / ata_s / 1e9;
+    let full_gemm = 2.0 * (65536 * n * n) as f64 / ay_s / 1e9;
     drop(big);
     // Decode timing on synthetic 256² factors.
     let synth = |model| {
@@ -537,12 +625,21 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
         read_seconds_per_view: per(read_s),
         qr_svd_seconds_per_view: per(qr_s),
         gram_seconds_per_view: per(gram_s),
+        gram_declined: declined,
         gram_vs_qr_error_ratio: ratio,
         gemm_gflops,
         qr_path_gflops: qr_flops / per(qr_s) / 1e9,
+        gram_path_gflops: useful_gram_flops(t) / per(gram_s) / 1e9,
+        gram_path_vs_gemm: useful_gram_flops(t) / per(gram_s) / 1e9 / gemm_gflops,
         full_view_qr_svd_seconds: full_qr,
         full_view_gram_seconds: full_gram,
+        full_view_gram_product_gflops: tri_gflops,
+        full_view_gemm_ata_gflops: ata_gflops,
         full_view_gemm_gflops: full_gemm,
+        full_view_gram_blocked_seconds: blocked,
+        full_view_triangular_gram_seconds: tri_s,
+        full_view_gram_product_vs_gemm: tri_gflops / ata_gflops,
+        full_view_gram_path_vs_gemm: useful_gram_flops(65536) / full_gram / 1e9 / ata_gflops,
         extrapolated_full_read_seconds: per(read_s) * scale,
         extrapolated_full_encode_seconds_qr: per(read_s) * scale + 81.0 * full_qr,
         extrapolated_full_encode_seconds_gram: per(read_s) * scale + 81.0 * full_gram,

@@ -108,6 +108,70 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
             }
         }
     }
+    if let Some(w) = &r.white_standard {
+        let k = &w.radiometric.k;
+        println!(
+            "  K (value per W m⁻² sr⁻¹ · s · gain) R {:.6e} G {:.6e} B {:.6e}; lamp {} W/sr, radius {} mm",
+            k[0], k[1], k[2], w.radiometric.lamp.intensity_w_sr, w.radiometric.lamp.radius_mm
+        );
+        println!(
+            "  {} poses × {}² texels, residual |measured/model − 1|: RMS {:.5}, max {:.5}",
+            w.poses.len(),
+            w.texels,
+            w.residual_rms,
+            w.residual_max
+        );
+        if let (Some(t), Some(e)) = (&w.truth_k, &w.k_error_percent) {
+            println!(
+                "  truth K {:.6e}: errors R {:+.4} % G {:+.4} % B {:+.4} %",
+                t[0], e[0], e[1], e[2]
+            );
+        }
+        println!("  poses  capture_s  K error %");
+        for row in &w.effort {
+            println!("  {:5}  {:9.1}  {:9.4}", row.poses, row.capture_s, row.k_error_percent);
+        }
+    }
+    if let Some(x) = &r.radiometric {
+        print!("{}", x.table());
+    }
+    if let Some(m) = &r.mechanical {
+        println!("  axis         repeat_°   backlash_°  offset_°    scale      resid_rms_°  (reference − read-back, approach {} °)", m.approach_deg);
+        for a in &m.axes {
+            println!(
+                "  {:<11} {:9.5}  {:9.5}  {:+9.5}  {:+10.3e}  {:9.5}",
+                a.axis,
+                a.homing.repeatability_deg,
+                a.backlash.mean_deg,
+                a.positioning.offset_deg,
+                a.positioning.scale_error,
+                a.positioning.residual_rms_deg
+            );
+            if let (Some(t), Some(e)) = (&a.truth, &a.errors) {
+                println!(
+                    "    truth: backlash {:.5} (error {:+.2e}), repeatability σ {:.5} drawn {:.5} (error {:+.2e}), scale {:+.3e} (error {:+.2e}), residual error {:+.2e}",
+                    t.model.backlash_deg,
+                    e.backlash_deg,
+                    t.model.home_sigma_deg,
+                    t.realized_repeatability_deg,
+                    e.repeatability_vs_realized_deg,
+                    t.fit.scale_error,
+                    e.scale_error,
+                    e.residual_rms_deg
+                );
+            }
+            for row in a
+                .effort
+                .iter()
+                .filter(|r| r.used == 2 || r.used == 5 || r.stage == "bidirectional" || r.used % 10 == 0)
+            {
+                println!(
+                    "    {:<13} {:4} used  rig {:8.1} s  estimate {:.5}°  error {:+.2e}°",
+                    row.stage, row.used, row.rig_time_s, row.estimate_deg, row.error_deg
+                );
+            }
+        }
+    }
     println!("  rig time {:.1} s; wrote {}", r.rig_time_s, path.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -57,9 +57,11 @@ pub struct CompressArgs {
     pub dataset: PathBuf,
     #[arg(long, value_enum)]
     pub method: MethodArg,
-    /// Components kept (per view for PVMF, in total for PCA).
+    /// Components kept (per view for PVMF, in total for PCA, per cluster for local PCA,
+    /// luminance for DFMF). Required by those methods; median cut and homomorphic
+    /// factorization have no components and ignore it.
     #[arg(long, short = 'c')]
-    pub components: usize,
+    pub components: Option<usize>,
     /// Output `.gbtf` file.
     #[arg(long)]
     pub out: PathBuf,
@@ -162,6 +164,9 @@ pub(crate) struct Report {
     /// Against the simulator's ground truth (datasets acquired with --store-truth).
     pub(crate) truth: Option<TruthReport>,
     pub(crate) peak_memory_bytes: Option<u64>,
+    /// Where the encode time went (PVMF: reader wait, factorization, views per path).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub(crate) encode_stages: Vec<compress::Stage>,
 }
 
 /// Errors against the simulator's ground truth; same scales as the main figures.
@@ -202,6 +207,12 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
             "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
         );
     }
+    let needs_c = !matches!(args.method, MethodArg::MedianCut | MethodArg::Homomorphic);
+    let components = match (args.components, needs_c) {
+        (Some(c), _) => c,
+        (None, false) => 1,
+        (None, true) => anyhow::bail!("this --method needs -c (components); only median-cut and homomorphic do not"),
+    };
     let params = Params {
         method: match args.method {
             MethodArg::Pca => Method::Pca,
@@ -221,12 +232,12 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
                 sweeps: args.sweeps,
             },
         },
-        components: args.components,
+        components,
         seed: args.seed,
         oversample: args.oversample,
         power_iters: args.power_iters,
     };
-    let (gbtf, info) =
+    let (gbtf, mut info) =
         compress::compress(&ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
     let stored = gbtf
         .write(&args.out)
@@ -258,6 +269,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         decode_seconds_per_image: None,
         truth: None,
         peak_memory_bytes: None,
+        encode_stages: std::mem::take(&mut info.stages),
     };
     finish_report(args, &ds, &mut r)?;
     Ok(r)
@@ -299,7 +311,7 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
         PrecisionArg::F16 => Precision::F16,
         PrecisionArg::F32 => Precision::F32,
     };
-    let c = args.components;
+    let c = args.components.context("--method dfmf needs -c (components)")?;
     let cc = args.chroma_components.unwrap_or(c);
     let params = DfmfParams {
         color_model,
@@ -345,6 +357,7 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
         decode_seconds_per_image: None,
         truth: None,
         peak_memory_bytes: None,
+        encode_stages: Vec::new(),
     };
     finish_report(args, ds, &mut r)?;
     Ok(r)

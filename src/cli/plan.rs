@@ -1,6 +1,6 @@
 //! `gonio plan`: plan a sweep for a rig and print it, moving nothing.
 
-use super::common::{RigArgs, SweepArgs};
+use super::common::{load_sample, RigArgs, SweepArgs};
 use crate::plan::{Plan, PlanCounts};
 use anyhow::Result;
 use serde::Serialize;
@@ -18,11 +18,21 @@ pub struct PlanArgs {
     /// In text mode, list this many steps of the optimized order.
     #[arg(long, default_value_t = 10)]
     pub show: usize,
+    /// Sample to plan for (built-in name or TOML file). A sample that declares
+    /// `isotropic = true` is planned as with `--isotropic`, as `gonio acquire` does.
+    #[arg(long)]
+    pub sample: Option<String>,
 }
 
 #[derive(Serialize)]
 struct PlanJson<'a> {
     counts: PlanCounts,
+    /// Lower bound ÷ canonical duration: no order can be faster than this fraction of the
+    /// canonical one, so it shows which "× canonical" targets are reachable at all.
+    bound_over_canonical: f64,
+    /// Whether the reduced isotropic set was planned because the sample declares it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    isotropic_from_sample: Option<String>,
     #[serde(flatten)]
     plan: &'a Plan,
 }
@@ -30,13 +40,29 @@ struct PlanJson<'a> {
 pub fn run(args: PlanArgs) -> Result<ExitCode> {
     let rig = args.rig.load()?;
     let sweep = args.sweep.load()?;
-    let plan = args.sweep.plan(&rig, &sweep)?;
+    let sample = args.sample.as_deref().map(load_sample).transpose()?;
+    let from_sample = sample
+        .as_ref()
+        .filter(|s| s.isotropic && !args.sweep.isotropic)
+        .map(|s| s.name.clone());
+    let sweep_args = SweepArgs {
+        isotropic: args.sweep.isotropic || from_sample.is_some(),
+        ..args.sweep.clone()
+    };
+    let plan = sweep_args.plan(&rig, &sweep)?;
     let counts = plan.counts();
+    let d = &plan.durations;
+    let bound_over_canonical = d.lower_bound_s / d.canonical_s;
     if args.json {
-        println!("{}", serde_json::to_string(&PlanJson { counts, plan: &plan })?);
+        let out = PlanJson {
+            counts,
+            bound_over_canonical,
+            isotropic_from_sample: from_sample,
+            plan: &plan,
+        };
+        println!("{}", serde_json::to_string(&out)?);
         return Ok(ExitCode::SUCCESS);
     }
-    let d = &plan.durations;
     println!(
         "rig {} · sweep {} · {} pairs · policy {:?}",
         plan.rig, plan.sweep, plan.pairs, plan.policy
@@ -65,8 +91,14 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         d.lower_bound_s / 3600.0,
         d.optimized_s / d.lower_bound_s
     );
+    println!(
+        "  bound / canonical         {bound_over_canonical:>9.3}   (no order beats this fraction of the canonical time)"
+    );
     println!("  capture per measurement   {:>9.2} s", d.capture_per_measurement_s);
     if let Some(iso) = &plan.isotropic {
+        if let Some(name) = &from_sample {
+            println!("  isotropic because sample `{name}` declares it (isotropic = true)");
+        }
         println!(
             "  isotropic: {} classes ({} unreachable), {} pairs measured, {} reconstructed on export",
             iso.classes,

@@ -64,6 +64,24 @@ pub struct ServeStageArgs {
     /// Print `{"path": …, …}` instead of the bare path.
     #[arg(long)]
     pub json: bool,
+    /// Mechanical error model of every axis (Zaber), as the body of a TOML inline table,
+    /// e.g. `backlash_deg = 0.08, home_sigma_deg = 0.02, scale_error = 5e-4, seed = 3`:
+    /// `get encoder.pos` then reads the load side (keys: simulator/src/mechanics.rs; axis k
+    /// uses seed + k). For `gonio calibrate calibration/recipes/mechanical.toml`.
+    #[arg(long)]
+    pub mechanical: Option<String>,
+}
+
+/// `--mechanical` body → model.
+fn parse_mechanical(s: &str) -> Result<gonio_simulator::mechanics::MechanicalErrors> {
+    #[derive(serde::Deserialize)]
+    struct W {
+        m: gonio_simulator::mechanics::MechanicalErrors,
+    }
+    let w: W = toml::from_str(&format!("m = {{ {s} }}"))
+        .map_err(|e| anyhow::anyhow!("--mechanical `{s}`: {}", e.message()))?;
+    w.m.validate().map_err(|e| anyhow::anyhow!("--mechanical `{s}`: {e}"))?;
+    Ok(w.m)
 }
 
 fn parse_range(s: &str) -> Result<(f64, f64)> {
@@ -93,6 +111,9 @@ pub fn run(a: ServeStageArgs) -> Result<ExitCode> {
     cfg.state_file = a.state.clone();
     cfg.link = a.link.clone();
     cfg.reconnect_after = a.reconnect_after_ms.map(Duration::from_millis);
+    if let Some(m) = &a.mechanical {
+        cfg.mechanical = Some(parse_mechanical(m)?);
+    }
     let faults: Vec<String> = cfg.faults.faults.iter().map(|f| f.to_string()).collect();
     let units_per_deg = cfg.units_per_deg;
     let handle = emulate::spawn_pty(cfg).with_context(|| format!("starting the {protocol} emulator"))?;

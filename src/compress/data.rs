@@ -9,6 +9,7 @@
 
 use super::CompressError;
 use crate::store::{self, ManifestHeader, MeasurementRecord, MeasurementStatus};
+use faer::Mat;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -26,6 +27,10 @@ pub struct DatasetViews {
     /// Image path (relative to `dir`) of each canonical index, `None` if not measured.
     images: Vec<Option<String>>,
 }
+
+/// [`DatasetViews::view_columns`]: the column-major f64 view matrix and the
+/// `(light, filled from)` list of its unmeasured pairs.
+pub type ViewColumns = (Mat<f64>, Vec<(usize, usize)>);
 
 /// All lights of one view.
 #[derive(Debug, Clone)]
@@ -154,6 +159,125 @@ impl DatasetViews {
             });
         }
         Ok(Some(img.data))
+    }
+
+    /// Read one measured image as three planes (R, G, B; `texels` values each, row 0 of
+    /// the image first); `Ok(None)` if not measured. Same checks as [`Self::read_image`].
+    ///
+    /// Why not `store::read_exr`: that decoder hands every pixel to a closure and
+    /// interleaves RGB, which costs about as much as the ZIP inflate itself on 256²
+    /// images; PVMF wants one column per channel anyway, so the EXR's flat channel
+    /// buffers are taken as they are (`tests::planes_match_read_image` checks both agree).
+    pub fn read_planes(&self, light: usize, view: usize) -> Result<Option<[Vec<f32>; 3]>, CompressError> {
+        use exr::prelude::{read, FlatSamples, ReadChannels, ReadLayers};
+        let index = view * self.n_lights() + light;
+        let Some(rel) = &self.images[index] else {
+            return Ok(None);
+        };
+        let path = self.dir.join(rel);
+        let bytes = std::fs::read(&path).map_err(|source| CompressError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let bad = |reason: String| CompressError::Dataset {
+            dir: self.dir.clone(),
+            reason: format!("{}: {reason}", path.display()),
+        };
+        let image = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .non_parallel()
+            .from_buffered(std::io::Cursor::new(bytes))
+            .map_err(|e| bad(format!("EXR: {e}")))?;
+        let layer = image.layer_data;
+        if layer.size.width() != self.width || layer.size.height() != self.height {
+            return Err(bad(format!(
+                "is {}×{}, the manifest says {}×{}",
+                layer.size.width(),
+                layer.size.height(),
+                self.width,
+                self.height
+            )));
+        }
+        let plane = |name: &str| -> Result<Vec<f32>, CompressError> {
+            let ch = layer
+                .channel_data
+                .list
+                .iter()
+                .find(|c| c.name.eq(name))
+                .ok_or_else(|| bad(format!("no {name} channel")))?;
+            Ok(match &ch.sample_data {
+                FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+                FlatSamples::F32(v) => v.clone(),
+                FlatSamples::U32(v) => v.iter().map(|&x| x as f32).collect(),
+            })
+        };
+        let planes = [plane("R")?, plane("G")?, plane("B")?];
+        for (c, p) in planes.iter().enumerate() {
+            if p.len() != self.texels() {
+                return Err(bad(format!(
+                    "channel {c} holds {} samples, not {}",
+                    p.len(),
+                    self.texels()
+                )));
+            }
+            if let Some(pos) = p.iter().position(|v| !v.is_finite()) {
+                return Err(CompressError::NonFinite {
+                    path,
+                    index,
+                    light_deg: self.lights_deg[light],
+                    view_deg: self.views_deg[view],
+                    texel: pos,
+                    value: p[pos],
+                });
+            }
+        }
+        Ok(Some(planes))
+    }
+
+    /// The view matrix of `view` as a column-major f64 `texels × (lights · 3)` matrix
+    /// (column `light · 3 + channel`), unmeasured pairs filled like [`Self::view_matrix`];
+    /// also returns the `(light, filled from)` list.
+    ///
+    /// Built column by column straight from the decoded planes: converting the row-major
+    /// f32 [`ViewMatrix`] to a column-major faer matrix is a strided transpose of 16 M
+    /// values per 256² view, which measurably added to PVMF's encode time.
+    pub fn view_columns(&self, view: usize) -> Result<ViewColumns, CompressError> {
+        let (rows, nl) = (self.texels(), self.n_lights());
+        let images: Vec<Option<[Vec<f32>; 3]>> = (0..nl)
+            .into_par_iter()
+            .map(|l| self.read_planes(l, view))
+            .collect::<Result<_, _>>()?;
+        let mut src = Vec::with_capacity(nl);
+        let mut filled = Vec::new();
+        for (l, img) in images.iter().enumerate() {
+            if img.is_some() {
+                src.push(l);
+            } else {
+                let s = self.nearest_measured(l, view).ok_or_else(|| CompressError::Dataset {
+                    dir: self.dir.clone(),
+                    reason: format!("view {view} {:?}° has no measured image at all", self.views_deg[view]),
+                })?;
+                filled.push((l, s));
+                src.push(s);
+            }
+        }
+        let mut m = Mat::<f64>::zeros(rows, nl * 3);
+        for j in 0..nl * 3 {
+            // `src` names measured lights only, so the image is always there.
+            let Some(plane) = images[src[j / 3]].as_ref().map(|p| &p[j % 3]) else {
+                continue;
+            };
+            let col = m.col_mut(j).try_as_col_major_mut().map(|c| c.as_slice_mut());
+            match col {
+                Some(col) => col.iter_mut().zip(plane).for_each(|(d, &s)| *d = s as f64),
+                None => (0..rows).for_each(|i| m[(i, j)] = plane[i] as f64),
+            }
+        }
+        Ok((m, filled))
     }
 
     /// Nearest measured light of `view` to `light` (angle between directions).

@@ -423,6 +423,7 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
         EncodeInfo {
             filled: s.filled,
             passes: s.passes,
+            ..Default::default()
         },
     ))
 }

@@ -77,6 +77,20 @@ pub struct EncodeInfo {
     /// [`PCA_CACHE_BYTES`] as f64 (they are kept in memory for the later passes), else
     /// `2 + power_iters`.
     pub passes: usize,
+    /// Where the encode time went (timing spans; empty for methods that do not report
+    /// them). PVMF: `read_wait` (time the factorization waited for the reader),
+    /// `factorize`, and the counts of views factorized by each path.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stages: Vec<Stage>,
+}
+
+/// One timing span or count of an encode.
+#[derive(Serialize, Clone, Debug, Default, PartialEq)]
+pub struct Stage {
+    pub name: String,
+    pub value: f64,
+    /// `s` for seconds, `views` for counts.
+    pub unit: &'static str,
 }
 
 fn to_faer(v: &ViewMatrix) -> Mat<f64> {
@@ -116,6 +130,97 @@ pub fn truncated_svd(a: MatRef<'_, f64>, c: usize) -> Result<(Mat<f64>, Mat<f64>
     let us = Mat::from_fn(m, c, |i, j| if j < k { u[(i, j)] * s[j] } else { 0.0 });
     let vv = Mat::from_fn(n, c, |i, j| if j < k { v[(i, j)] } else { 0.0 });
     Ok((us, vv))
+}
+
+/// `(U·S, V)` of a rank-`c` factorization.
+pub type Factors = (Mat<f64>, Mat<f64>);
+
+/// Smallest `λ_c / λ_1` (eigenvalues of `AᵀA`, i.e. `(σ_c / σ_1)²`) for which PVMF trusts
+/// the Gram path; below it the view is factorized by [`truncated_svd`].
+///
+/// Why: forming `G = AᵀA` squares the condition number. In f64 the eigenvalues of `G`
+/// carry an absolute error of about `n · ε · λ_1` (n = 243 columns, ε = 2.2e-16, so
+/// ≈ 5e-14 · λ_1). At `λ_c ≥ 1e-8 · λ_1` (σ_c ≥ 1e-4 · σ_1) that is a relative error of
+/// at most ~5e-6 on `λ_c`, and the rank-`c` subspace is as good as the SVD's for the
+/// reconstruction error (`tests::gram_path_matches_the_svd_path` measures it). Below
+/// that — rank-deficient or constant views, or c beyond the data's numerical rank — the
+/// squared spectrum would be dominated by rounding, so the backward-stable QR + SVD path
+/// is used. Half-float images carry ~5e-4 relative noise, so real view matrices rarely
+/// have σ_c below 1e-4 · σ_1 for the c values that matter.
+pub const GRAM_MIN_EIGEN_RATIO: f64 = 1e-8;
+
+/// `AᵀA` with its lower triangle (and the diagonal blocks in full) computed as plain
+/// faer GEMMs over `blocks` column blocks; the rest is left zero. Only `gonio bench
+/// compress --speed` uses it, as the alternative that was measured and rejected: on a
+/// 65536 × 243 view (release, 2 cores at load ≈ 6) b = 1 took 1.08 s, b = 3 2.23 s,
+/// b = 9 1.82 s, against 1.05 s for faer's triangular product that
+/// [`gram_truncated`] uses (which itself runs at ~0.55× faer's plain GEMM rate).
+pub fn gram_lower(a: MatRef<'_, f64>, blocks: usize) -> Mat<f64> {
+    let n = a.ncols();
+    let nb = blocks.clamp(1, n.max(1));
+    let edge = |b: usize| b * n / nb;
+    let mut g = Mat::<f64>::zeros(n, n);
+    for bi in 0..nb {
+        let (i0, i1) = (edge(bi), edge(bi + 1));
+        for bj in 0..=bi {
+            let (j0, j1) = (edge(bj), edge(bj + 1));
+            faer::linalg::matmul::matmul(
+                g.as_mut().submatrix_mut(i0, j0, i1 - i0, j1 - j0),
+                faer::Accum::Replace,
+                a.subcols(i0, i1 - i0).transpose(),
+                a.subcols(j0, j1 - j0),
+                1.0,
+                faer::get_global_parallelism(),
+            );
+        }
+    }
+    g
+}
+
+/// Rank-`c` factorization `A ≈ (A·V)·Vᵀ` from the eigen-decomposition of the Gram matrix
+/// `G = AᵀA` (all in f64): `V` = the eigenvectors of the `c` largest eigenvalues, which are
+/// the right singular vectors of `A`, and `A·V = U·S`. Returns `None` when the Gram
+/// matrix is too ill-conditioned for `c` (see [`GRAM_MIN_EIGEN_RATIO`]); the caller then
+/// uses [`truncated_svd`].
+///
+/// Why: for a tall `m × n` view matrix (65536 × 243) the Gram matrix is one symmetric
+/// product (`m·n²` flops: faer's triangular matmul computes the lower triangle only) and
+/// `A·V` another `2·m·n·c`;
+/// the QR path costs `4·m·n²` (factorization plus forming Q). The eigen-decomposition of
+/// the 243 × 243 Gram matrix is negligible.
+pub fn gram_truncated(a: MatRef<'_, f64>, c: usize) -> Result<Option<Factors>, CompressError> {
+    use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+    let (m, n) = (a.nrows(), a.ncols());
+    let k = c.min(m).min(n);
+    if k == 0 {
+        return Ok(None);
+    }
+    let mut g = Mat::<f64>::zeros(n, n);
+    matmul(
+        g.as_mut(),
+        BlockStructure::TriangularLower,
+        faer::Accum::Replace,
+        a.transpose(),
+        BlockStructure::Rectangular,
+        a,
+        BlockStructure::Rectangular,
+        1.0,
+        faer::get_global_parallelism(),
+    );
+    let eig = g
+        .self_adjoint_eigen(faer::Side::Lower)
+        .map_err(|e| CompressError::Svd(format!("Gram eigen-decomposition: {e:?}")))?;
+    // Eigenvalues ascending: the largest is the last.
+    let lam = eig.S().column_vector();
+    let top = lam[n - 1];
+    let kth = lam[n - k];
+    if !(top.is_finite() && top > 0.0 && kth >= GRAM_MIN_EIGEN_RATIO * top) {
+        return Ok(None);
+    }
+    let u = eig.U();
+    let vv = Mat::from_fn(n, c, |i, j| if j < k { u[(i, n - 1 - j)] } else { 0.0 });
+    let us = a * &vv;
+    Ok(Some((us, vv)))
 }
 
 /// Deterministic standard normal number for (seed, row, col): splitmix64 + Box-Muller.
@@ -175,34 +280,83 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     }
 }
 
+/// PVMF. The reader runs on its own thread one view ahead of the factorization (bounded
+/// channel of one matrix), so decoding view `k + 1`'s EXRs overlaps with factorizing
+/// view `k`; both use the rayon pool, so on a small machine this fills the gaps of each
+/// stage rather than doubling the throughput. At most three view matrices (f64, 127 MiB
+/// each at 256² × 243) are alive at once.
 fn compress_pvmf(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    use std::sync::mpsc::sync_channel;
+    use std::time::Instant;
     let c = params.components;
-    let (t, cols) = (ds.texels(), ds.n_lights() * 3);
-    let mut blocks = Vec::with_capacity(2 * ds.n_views());
-    let mut infos = Vec::with_capacity(2 * ds.n_views());
+    let (t, cols, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
+    let mut blocks = Vec::with_capacity(2 * nv);
+    let mut infos = Vec::with_capacity(2 * nv);
     let mut filled = Vec::new();
-    for v in 0..ds.n_views() {
-        let vm = ds.view_matrix(v)?;
-        filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
-        let a = to_faer(&vm);
-        drop(vm);
-        let (us, vv) = truncated_svd(a.as_ref(), c)?;
-        blocks.push(row_major_f32(us.as_ref()));
-        infos.push(BlockInfo {
-            name: format!("us{v}"),
-            rows: t,
-            cols: c,
+    let (mut wait_s, mut factor_s, mut gram_views, mut svd_views) = (0.0, 0.0, 0usize, 0usize);
+    std::thread::scope(|scope| -> Result<(), CompressError> {
+        let (tx, rx) = sync_channel(1);
+        scope.spawn(move || {
+            for v in 0..nv {
+                let r = ds.view_columns(v);
+                let failed = r.is_err();
+                // A closed channel means the factorization stopped (error): stop too.
+                if tx.send(r).is_err() || failed {
+                    break;
+                }
+            }
         });
-        blocks.push(row_major_f32(vv.as_ref()));
-        infos.push(BlockInfo {
-            name: format!("v{v}"),
-            rows: cols,
-            cols: c,
-        });
-    }
+        for v in 0..nv {
+            let t0 = Instant::now();
+            let (a, vf) = rx
+                .recv()
+                .map_err(|_| CompressError::Invalid(format!("PVMF reader thread ended before view {v}")))??;
+            wait_s += t0.elapsed().as_secs_f64();
+            filled.extend(vf.iter().map(|&(l, _)| [l, v]));
+            let t1 = Instant::now();
+            let (us, vv) = match gram_truncated(a.as_ref(), c)? {
+                Some(f) => {
+                    gram_views += 1;
+                    f
+                }
+                None => {
+                    svd_views += 1;
+                    tracing::debug!(view = v, c, "PVMF: Gram matrix ill-conditioned, QR + SVD path");
+                    truncated_svd(a.as_ref(), c)?
+                }
+            };
+            drop(a);
+            blocks.push(row_major_f32(us.as_ref()));
+            infos.push(BlockInfo {
+                name: format!("us{v}"),
+                rows: t,
+                cols: c,
+            });
+            blocks.push(row_major_f32(vv.as_ref()));
+            infos.push(BlockInfo {
+                name: format!("v{v}"),
+                rows: cols,
+                cols: c,
+            });
+            factor_s += t1.elapsed().as_secs_f64();
+        }
+        Ok(())
+    })?;
+    tracing::info!(wait_s, factor_s, gram_views, svd_views, "PVMF encoded");
+    let stage = |name: &str, value: f64, unit| Stage {
+        name: name.into(),
+        value,
+        unit,
+    };
     let info = EncodeInfo {
         filled: filled.len(),
         passes: 1,
+        stages: vec![
+            stage("read_wait", wait_s, "s"),
+            stage("factorize", factor_s, "s"),
+            stage("gram_path", gram_views as f64, "views"),
+            stage("svd_path", svd_views as f64, "views"),
+        ],
     };
     let header = header_for(ds, params, filled, infos);
     Ok((Gbtf { header, blocks }, info))
@@ -308,6 +462,7 @@ fn compress_pca(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let info = EncodeInfo {
         filled: cache.filled.len(),
         passes: cache.passes,
+        ..Default::default()
     };
     let header = header_for(ds, params, std::mem::take(&mut cache.filled), infos);
     Ok((Gbtf { header, blocks }, info))

@@ -585,6 +585,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let info = EncodeInfo {
         filled: a.filled.len(),
         passes: 1,
+        ..Default::default()
     };
     Ok((Gbtf { header, blocks }, info))
 }

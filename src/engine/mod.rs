@@ -12,9 +12,11 @@
 //! is synced (see `store`), so a crash at any moment loses at most the frame in flight,
 //! which `--resume` measures again.
 
+pub mod capture;
 pub mod metrics;
 pub mod rig;
 
+use crate::calibrate::apply::AppliedCalibration;
 use crate::plan::{Plan, Step, StepStatus};
 use crate::rectify::{self, HomographySource, RectifyParams};
 use crate::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
@@ -33,6 +35,13 @@ use thiserror::Error;
 pub enum EngineError {
     #[error("device error at measurement {index}")]
     Device { index: usize, source: DeviceError },
+    /// The camera failed every attempt the capture policy allows (see [`capture`]).
+    #[error("camera failed at measurement {index} after {attempts} attempt(s)")]
+    Capture {
+        index: usize,
+        attempts: u32,
+        source: DeviceError,
+    },
     #[error("device error while preparing the rig: {0}")]
     Setup(DeviceError),
     #[error("storing measurement {index} failed")]
@@ -41,6 +50,11 @@ pub enum EngineError {
     Rectify { index: usize, message: String },
     #[error("the store thread stopped unexpectedly")]
     StoreThread,
+    #[error("applying the calibration to measurement {index} failed: {source}")]
+    Calibration {
+        index: usize,
+        source: crate::calibrate::apply::ApplyError,
+    },
 }
 
 #[derive(Clone, Debug)]
@@ -99,6 +113,8 @@ struct Job {
     q_read: Vec<f64>,
     rig_time: f64,
     wall_time: f64,
+    /// Retries, discarded frames, saturation: written into the record.
+    notes: capture::CaptureNotes,
 }
 
 fn unix_now() -> f64 {
@@ -159,6 +175,22 @@ pub async fn run(
     opts: RunOptions,
     pause: Arc<AtomicBool>,
 ) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
+    run_calibrated(rig, plan, dataset, done, opts, pause, None).await
+}
+
+/// [`run`], applying calibration results in the store thread (see
+/// `calibrate::apply`): undistortion and calibrated intrinsics before rectification, the
+/// radiometric conversion to BRDF after it. The ground truth is converted the same way, so
+/// the truth error stays on the scale of the stored values.
+pub async fn run_calibrated(
+    rig: Arc<Rig>,
+    plan: Arc<Plan>,
+    dataset: Dataset,
+    done: HashSet<usize>,
+    opts: RunOptions,
+    pause: Arc<AtomicBool>,
+    calibration: Option<Arc<AppliedCalibration>>,
+) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
     let t_wall = Instant::now();
     let rig_t0 = rig.time();
     let todo: Vec<(usize, &Step)> = plan
@@ -177,15 +209,18 @@ pub async fn run(
         let failed = failed.clone();
         std::thread::Builder::new()
             .name("gonio-store".into())
-            .spawn(move || store_loop(rig, dataset, rx, opts, failed))
+            .spawn(move || store_loop(rig, dataset, rx, opts, failed, calibration))
             .map_err(|_| (None, EngineError::StoreThread))?
     };
     let mut drive_err = None;
     let mut paused = false;
     let mut drive_times = StageSeconds::default();
-    if let Err(e) = prepare(&rig).await {
-        drive_err = Some(e);
-    }
+    // The capture policy (retries, timeout, saturation) and the camera's actual settings.
+    let setup = match capture::CapturePolicy::from_spec(&rig.spec.camera).map_err(EngineError::Setup) {
+        Ok(policy) => prepare(&rig).await.map(|config| (policy, config)),
+        Err(e) => Err(e),
+    };
+    let setup = setup.map_err(|e| drive_err = Some(e)).ok();
     for (order, step) in todo.iter().copied() {
         if drive_err.is_some() || failed.load(Ordering::SeqCst) {
             break;
@@ -194,8 +229,11 @@ pub async fn run(
             paused = true;
             break;
         }
-        match drive_step(&rig, step, &mut drive_times).await {
-            Ok((frame, q_cmd, q_read)) => {
+        let Some((policy, camera_config)) = &setup else {
+            break;
+        };
+        match drive_step(&rig, step, &mut drive_times, policy, camera_config).await {
+            Ok((frame, notes, q_cmd, q_read)) => {
                 let job = Job {
                     order,
                     step: step.clone(),
@@ -204,18 +242,14 @@ pub async fn run(
                     q_read,
                     rig_time: rig.time(),
                     wall_time: unix_now(),
+                    notes,
                 };
                 if tx.send(job).await.is_err() {
                     break; // store thread ended (failed): its error is reported below
                 }
                 bar.inc(1);
             }
-            Err(e) => {
-                drive_err = Some(EngineError::Device {
-                    index: step.index,
-                    source: e,
-                })
-            }
+            Err(e) => drive_err = Some(e),
         }
     }
     drop(tx);
@@ -255,29 +289,48 @@ pub async fn run(
     ))
 }
 
-/// Move all axes to the step's targets (concurrently), wait until settled, capture.
+/// What the drive loop hands on per step: frame, capture notes, commanded and read-back axes.
+type Driven = (Frame, capture::CaptureNotes, Vec<f64>, Vec<f64>);
+
+/// Move all axes to the step's targets (concurrently), wait until settled, capture (under
+/// the capture policy: bounded retries, stale frames discarded, saturation handled).
 async fn drive_step(
     rig: &Rig,
     step: &Step,
     times: &mut StageSeconds,
-) -> Result<(Frame, Vec<f64>, Vec<f64>), DeviceError> {
+    policy: &capture::CapturePolicy,
+    camera_config: &CameraConfig,
+) -> Result<Driven, EngineError> {
+    let index = step.index;
+    let device = |source: DeviceError| EngineError::Device { index, source };
     let t0 = Instant::now();
     let q: Vec<f64> = step.axes_deg.iter().map(|d| d.to_radians()).collect();
     for (axis, &target) in rig.axes.iter().zip(&q) {
-        axis.start_move(target).await?;
+        axis.start_move(target).await.map_err(device)?;
     }
     // Every axis is already moving; waiting one after the other ends with the slowest.
     let mut read = Vec::with_capacity(q.len());
     for axis in &rig.axes {
-        read.push(axis.wait_idle().await?);
+        read.push(axis.wait_idle().await.map_err(device)?);
     }
     // A streaming camera must not hand out frames exposed during the move.
     rig.camera.rig_still();
+    // Only the simulated camera stamps frames on the rig clock, so only its frames can be
+    // judged here (a V4L2 camera stamps CLOCK_MONOTONIC and applies its own rule after
+    // `rig_still`, also when the axes are simulated).
+    let sim_camera = rig.clock.is_some() && rig.spec.camera.backend == "sim";
+    let still_at = sim_camera.then(|| rig.time());
     let t1 = Instant::now();
-    let frame = rig.camera.capture().await?;
+    let (frame, notes) = capture::capture_measurement(rig.camera.as_ref(), policy, camera_config, still_at)
+        .await
+        .map_err(|f| EngineError::Capture {
+            index,
+            attempts: f.attempts,
+            source: f.source,
+        })?;
     times.motion += (t1 - t0).as_secs_f64();
     times.capture += t1.elapsed().as_secs_f64();
-    Ok((frame, q, read))
+    Ok((frame, notes, q, read))
 }
 
 struct StoreStats {
@@ -296,6 +349,7 @@ fn store_loop(
     mut rx: tokio::sync::mpsc::Receiver<Job>,
     opts: RunOptions,
     failed: Arc<AtomicBool>,
+    calibration: Option<Arc<AppliedCalibration>>,
 ) -> StoreResult {
     let mut stats = StoreStats {
         times: StageSeconds::default(),
@@ -310,14 +364,27 @@ fn store_loop(
         sample_mm: rig.sample_mm,
         max_supersample: opts.max_supersample,
     };
-    let intr = rig.spec.camera.intrinsics();
+    let intr = match &calibration {
+        Some(c) => c.intrinsics(&rig.spec.camera.intrinsics()),
+        None => rig.spec.camera.intrinsics(),
+    };
+    let undistort = calibration.as_ref().and_then(|c| c.camera);
+    let radiometric = calibration.as_ref().and_then(|c| c.radiometric);
     while let Some(job) = rx.blocking_recv() {
         let index = job.step.index;
         let pose = rig.kinematics.camera_pose(&job.q_read);
         let ((rect, t_rect), (truth, t_truth)) = rayon::join(
             || {
                 let t = Instant::now();
-                let raw = frame_to_linear(&job.frame);
+                let mut raw = frame_to_linear(&job.frame);
+                if let (Some(k), None) = (job.notes.exposure_scale, &radiometric) {
+                    // Re-exposed after saturating: back to the nominal exposure's scale (a
+                    // radiometric calibration divides by each frame's own exposure instead).
+                    raw.data.iter_mut().for_each(|v| *v *= k);
+                }
+                if let Some(cam) = &undistort {
+                    raw = crate::calibrate::apply::undistort_frame(&raw, cam);
+                }
                 (
                     rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
                     t.elapsed().as_secs_f64(),
@@ -334,7 +401,7 @@ fn store_loop(
         );
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
-        let rect = match rect {
+        let mut rect = match rect {
             Ok(r) => r,
             Err(e) => {
                 failed.store(true, Ordering::SeqCst);
@@ -345,6 +412,21 @@ fn store_loop(
                 return Err(Box::new((dataset, err)));
             }
         };
+        let mut truth = truth;
+        if let Some(r) = &radiometric {
+            // HOOK (corrected kinematics): with a rig-geometry calibration the lamp position
+            // must come from the corrected kinematics.
+            let lamp = rig.kinematics.light_position(&job.q_read);
+            let (t, g) = (job.frame.meta.exposure, job.frame.meta.gain);
+            let mut converted = r.to_brdf(&mut rect.image, lamp, &params, t, g);
+            if let (Ok(()), Some(img)) = (&converted, truth.as_mut()) {
+                converted = r.to_brdf(img, lamp, &params, t, g);
+            }
+            if let Err(source) = converted {
+                failed.store(true, Ordering::SeqCst);
+                return Err(Box::new((dataset, EngineError::Calibration { index, source })));
+            }
+        }
         match rect.source {
             HomographySource::Markers => stats.markers += 1,
             HomographySource::Pose => stats.pose += 1,
@@ -393,6 +475,7 @@ fn store_loop(
                 reason: reason.to_string(),
             },
         };
+        job.notes.write_extra(&mut extra);
         rec.extra = extra;
         let raw_frame = if opts.raw_frames { Some(&job.frame) } else { None };
         let t_store = Instant::now();

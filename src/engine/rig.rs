@@ -23,6 +23,12 @@ pub trait GroundTruth: Send + Sync {
     fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage;
     /// The camera's radiance image (W m⁻² sr⁻¹) at configuration `q`, no sensor effects.
     fn radiance(&self, q: &[f64]) -> RgbImage;
+    /// The homing offsets (degrees) the simulator's mechanical error model drew for axis
+    /// `index` so far, oldest first: the truth that mechanical calibration's homing
+    /// repeatability is checked against. Empty without a model.
+    fn home_offsets_deg(&self, _index: usize) -> Vec<f64> {
+        Vec::new()
+    }
 }
 
 impl GroundTruth for SimWorld {
@@ -31,6 +37,9 @@ impl GroundTruth for SimWorld {
     }
     fn radiance(&self, q: &[f64]) -> RgbImage {
         self.raw_radiance(q)
+    }
+    fn home_offsets_deg(&self, index: usize) -> Vec<f64> {
+        self.axes.get(index).map(|a| a.home_offsets_deg()).unwrap_or_default()
     }
 }
 
@@ -260,6 +269,9 @@ impl Axis for MirroredAxis {
     }
     async fn position(&self) -> Result<f64, DeviceError> {
         self.real.position().await
+    }
+    async fn reference_position(&self) -> Result<Option<f64>, DeviceError> {
+        self.real.reference_position().await
     }
     async fn status(&self) -> Result<AxisStatus, DeviceError> {
         self.real.status().await

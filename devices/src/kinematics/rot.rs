@@ -20,6 +20,21 @@ impl Mat3 {
         let (s, c) = a.sin_cos();
         Mat3([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     }
+    /// The rotation about `v`'s direction by `|v|` radians (Rodrigues' formula).
+    pub fn from_rotation_vector(v: Vec3) -> Mat3 {
+        let a = v.norm();
+        if a < 1e-300 {
+            return Mat3([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+        }
+        let k = v * (1.0 / a);
+        let (s, c) = a.sin_cos();
+        let t = 1.0 - c;
+        Mat3([
+            [c + k.x * k.x * t, k.x * k.y * t - k.z * s, k.x * k.z * t + k.y * s],
+            [k.y * k.x * t + k.z * s, c + k.y * k.y * t, k.y * k.z * t - k.x * s],
+            [k.z * k.x * t - k.y * s, k.z * k.y * t + k.x * s, c + k.z * k.z * t],
+        ])
+    }
     pub fn mul(&self, o: &Mat3) -> Mat3 {
         let mut r = [[0.0; 3]; 3];
         for (i, row) in r.iter_mut().enumerate() {

@@ -6,6 +6,7 @@
 //! `Rz(−α) w` in the sample frame. Negative elevations put a device on the far side of the
 //! pole; that doubles the solutions and lets the planner avoid long turntable moves.
 
+use super::rot::Mat3;
 use super::{CameraPose, Infeasibility, Kinematics};
 use crate::geometry::{wrap_pi, Direction, Vec3, POLE_EPS};
 use crate::rig::RigSpec;
@@ -33,6 +34,12 @@ pub struct TwoArm {
     camera_distance: f64,
     light_distance: f64,
     block_radius: f64,
+    /// Axis zero offsets (rad, axis order): true position = commanded + offset. `limits`
+    /// are stored in true positions (the commanded limits shifted by the offsets), so IK
+    /// works on the true mechanism and returns commanded positions.
+    offsets: Vec<f64>,
+    /// Camera mounting rotation (columns: true camera axes in the nominal camera frame).
+    mount: Option<Mat3>,
 }
 
 impl TwoArm {
@@ -42,17 +49,40 @@ impl TwoArm {
                 .map(|(i, _)| i)
                 .expect("rig validated: role present")
         };
+        let alignment = rig.alignment.clone().unwrap_or_default();
+        let offsets = alignment.offsets_rad(&rig.axes);
+        let r = alignment.camera_rotation_deg;
+        let mount = (r != [0.0; 3])
+            .then(|| Mat3::from_rotation_vector(Vec3::new(r[0].to_radians(), r[1].to_radians(), r[2].to_radians())));
         TwoArm {
             n: rig.axes.len(),
             i_turn: idx("sample_rotation"),
             i_cam: idx("camera_elevation"),
             i_lbase: idx("light_azimuth"),
             i_larc: idx("light_elevation"),
-            limits: rig.axes.iter().map(|a| a.limits()).collect(),
+            limits: rig
+                .axes
+                .iter()
+                .zip(&offsets)
+                .map(|(a, o)| {
+                    let l = a.limits();
+                    SoftLimits {
+                        min: l.min + o,
+                        max: l.max + o,
+                    }
+                })
+                .collect(),
+            offsets,
+            mount,
             camera_distance: rig.geometry.camera_distance_mm,
             light_distance: rig.geometry.light_distance_mm,
             block_radius: rig.geometry.camera_body_radius_mm + rig.geometry.clearance_mm,
         }
+    }
+
+    /// True axis positions for commanded ones.
+    fn true_q(&self, q: &[f64]) -> Vec<f64> {
+        q.iter().zip(&self.offsets).map(|(x, o)| x + o).collect()
     }
 
     /// All values `base + k·2π` inside the limits of an axis (see [`super::wraps`]).
@@ -87,6 +117,7 @@ impl Kinematics for TwoArm {
     }
 
     fn forward(&self, q: &[f64]) -> (Direction, Direction) {
+        let q = &self.true_q(q);
         let alpha = q[self.i_turn];
         let (tc, tl, b) = (q[self.i_cam], q[self.i_larc], q[self.i_lbase]);
         let view_w = Vec3::new(tc.sin(), 0.0, tc.cos());
@@ -98,6 +129,7 @@ impl Kinematics for TwoArm {
     }
 
     fn camera_pose(&self, q: &[f64]) -> CameraPose {
+        let q = &self.true_q(q);
         let alpha = q[self.i_turn];
         let tc = q[self.i_cam];
         let dir_w = Vec3::new(tc.sin(), 0.0, tc.cos());
@@ -106,15 +138,28 @@ impl Kinematics for TwoArm {
         // The camera is fixed to its arm with image x along world +y (the arc's axis).
         let right = Vec3::new(0.0, 1.0, 0.0).rotate_z(-alpha);
         let down = forward.cross(right);
-        CameraPose {
-            position,
-            right,
-            down,
-            forward,
+        match &self.mount {
+            None => CameraPose {
+                position,
+                right,
+                down,
+                forward,
+            },
+            Some(m) => {
+                // True axis k = Σ_j m[j][k] · nominal axis j (column k of the mount matrix).
+                let axis = |k: usize| right * m.0[0][k] + down * m.0[1][k] + forward * m.0[2][k];
+                CameraPose {
+                    position,
+                    right: axis(0),
+                    down: axis(1),
+                    forward: axis(2),
+                }
+            }
         }
     }
 
     fn light_position(&self, q: &[f64]) -> Vec3 {
+        let q = &self.true_q(q);
         let (alpha, tl, b) = (q[self.i_turn], q[self.i_larc], q[self.i_lbase]);
         Vec3::new(tl.sin() * b.cos(), tl.sin() * b.sin(), tl.cos()).rotate_z(-alpha) * self.light_distance
     }
@@ -132,6 +177,9 @@ impl Kinematics for TwoArm {
     }
 
     fn inverse(&self, light: Direction, view: Direction, prev: Option<&[f64]>) -> Result<Vec<Vec<f64>>, Infeasibility> {
+        // Work in true axis positions; convert back to commanded ones at the end.
+        let prev_true = prev.map(|p| self.true_q(p));
+        let prev = prev_true.as_deref();
         let clearance = self.light_clearance(light.vector(), view.vector());
         if clearance <= 0.0 {
             return Err(Infeasibility::LightBlockedByCamera {
@@ -182,6 +230,12 @@ impl Kinematics for TwoArm {
                     q[self.i_larc] = tl;
                     out.push(q);
                 }
+            }
+        }
+        for q in &mut out {
+            for ((x, o), l) in q.iter_mut().zip(&self.offsets).zip(&self.limits) {
+                // (clamped: subtracting the offset may round a value at a limit just past it)
+                *x = (*x - o).clamp(l.min - o, l.max - o);
             }
         }
         if out.is_empty() {
@@ -298,6 +352,57 @@ mod tests {
         assert!(c.x.abs() < 1e-9 && c.y.abs() < 1e-9 && (c.z - 1000.0).abs() < 1e-9);
         let (_, v) = k.forward(&q);
         assert!(angle(pose.position, v.vector()) < 1e-12);
+    }
+
+    /// With an alignment, IK returns commanded positions whose FK (which adds the zero
+    /// offsets) reproduces every pair, inside the commanded limits; the mount rotation turns
+    /// the camera axes but not its position (the view direction).
+    #[test]
+    fn alignment_offsets_round_trip_and_mount_turns_only_the_axes() {
+        let mut rig = RigSpec::default_rig();
+        let ideal = for_rig(&rig);
+        rig.alignment = Some(crate::rig::AlignmentSpec {
+            axis_zero_offset_deg: [
+                ("turntable".to_string(), 0.7),
+                ("camera_arc".to_string(), -0.4),
+                ("light_arc".to_string(), 0.2),
+            ]
+            .into_iter()
+            .collect(),
+            camera_rotation_deg: [0.3, -0.2, 0.5],
+        });
+        let k = for_rig(&rig);
+        let dirs = bonn();
+        let mut worst: f64 = 0.0;
+        let mut n = 0;
+        for v in dirs.iter().step_by(5) {
+            for l in dirs.iter().step_by(7) {
+                let Ok(sols) = k.inverse(*l, *v, None) else { continue };
+                for q in sols {
+                    for (i, a) in rig.axes.iter().enumerate() {
+                        assert!(a.limits().contains(q[i]), "{} out of limits", a.name);
+                    }
+                    let (lf, vf) = k.forward(&q);
+                    worst = worst.max(lf.angle_to(*l)).max(vf.angle_to(*v));
+                    n += 1;
+                }
+            }
+        }
+        assert!(n > 100 && worst < 1e-9, "{n} solutions, worst {worst}");
+        // the ideal kinematics at the same commanded q are off by the offsets
+        let q = vec![0.3, 0.5, 0.1, 0.4];
+        let (_, v_ideal) = ideal.forward(&q);
+        let (_, v_true) = k.forward(&q);
+        let d = v_ideal.angle_to(v_true).to_degrees();
+        assert!(d > 0.3 && d < 1.2, "{d}");
+        let (p, p0) = (
+            k.camera_pose(&q),
+            ideal.camera_pose(&[0.3 + 0.7f64.to_radians(), 0.5 - 0.4f64.to_radians(), 0.0, 0.0]),
+        );
+        assert!((p.position - p0.position).norm() < 1e-9);
+        let turn = angle(p.forward, p0.forward).to_degrees();
+        assert!((turn - (0.3f64.powi(2) + 0.2f64.powi(2)).sqrt()).abs() < 1e-3, "{turn}");
+        assert!(p.right.cross(p.down).dot(p.forward) > 0.999_999, "still right-handed");
     }
 
     fn angle(a: Vec3, b: Vec3) -> f64 {

@@ -412,7 +412,8 @@ impl PortRegistry {
                     }
                 };
                 let policy = policy::MotionPolicy::from_options(&opts, spec)?;
-                let driver = zaber::ZaberAxis::new(&spec.name, port, cfg.device, cfg.axis, cfg.units_per_rad());
+                let driver = zaber::ZaberAxis::new(&spec.name, port, cfg.device, cfg.axis, cfg.units_per_rad())
+                    .with_encoder(cfg.encoder);
                 Ok(Arc::new(policy::PolicyAxis::new(
                     &spec.name,
                     spec.limits(),

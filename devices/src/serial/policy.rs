@@ -62,6 +62,11 @@ pub trait Driver: Send + Sync + 'static {
     fn resolution(&self) -> f64;
     /// The command text for a move to `target`, for error messages.
     fn describe_move(&self, target: f64) -> String;
+    /// A load-side reference reading (encoder) in axis units, if the device has one
+    /// configured; see [`crate::Axis::reference_position`].
+    fn reference(&self) -> Result<Option<f64>, DeviceError> {
+        Ok(None)
+    }
 }
 
 /// Policy parameters; see the module documentation.
@@ -438,6 +443,10 @@ impl<D: Driver> Axis for PolicyAxis<D> {
         let p = self.poll("get position").await?;
         self.lock().last = Some(p.position);
         Ok(p.position)
+    }
+
+    async fn reference_position(&self) -> Result<Option<f64>, DeviceError> {
+        self.call("get reference", |d| d.reference()).await
     }
 
     async fn status(&self) -> Result<AxisStatus, DeviceError> {

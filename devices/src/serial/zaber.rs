@@ -282,6 +282,9 @@ pub struct ZaberAxisConfig {
     pub units_per_deg: f64,
     pub checksums: bool,
     pub reply_timeout: Duration,
+    /// The stage has a load-side encoder (`get encoder.pos`), used as the independent
+    /// reference of mechanical calibration.
+    pub encoder: bool,
 }
 
 /// Option keys of a Zaber axis besides the policy's.
@@ -293,6 +296,7 @@ pub const ZABER_KEYS: &[&str] = &[
     "units_per_deg",
     "checksums",
     "reply_timeout_ms",
+    "encoder",
 ];
 
 impl ZaberAxisConfig {
@@ -324,6 +328,7 @@ impl ZaberAxisConfig {
             units_per_deg: units,
             checksums: o.bool("checksums", true)?,
             reply_timeout: Duration::from_millis(o.int("reply_timeout_ms", 500, 1, 60_000)? as u64),
+            encoder: o.bool("encoder", false)?,
         })
     }
 
@@ -347,6 +352,7 @@ pub struct ZaberAxis {
     device: u8,
     axis: u8,
     units_per_rad: f64,
+    encoder: bool,
 }
 
 impl ZaberAxis {
@@ -357,7 +363,16 @@ impl ZaberAxis {
             device,
             axis,
             units_per_rad,
+            encoder: false,
         }
+    }
+
+    /// Declare a load-side encoder (rig option `encoder = true`): [`Driver::reference`]
+    /// then reads `get encoder.pos`. The encoder counts in the same native units as the
+    /// motor on the stages this is meant for (and on the emulator).
+    pub fn with_encoder(mut self, encoder: bool) -> Self {
+        self.encoder = encoder;
+        self
     }
 
     fn native(&self, x: f64) -> i64 {
@@ -476,6 +491,14 @@ impl Driver for ZaberAxis {
 
     fn describe_move(&self, target: f64) -> String {
         format!("move abs {}", self.native(target))
+    }
+
+    fn reference(&self) -> Result<Option<f64>, DeviceError> {
+        if !self.encoder {
+            return Ok(None);
+        }
+        let r = self.ok("get encoder.pos")?;
+        Ok(Some(self.number("get encoder.pos", &r)? / self.units_per_rad))
     }
 }
 

@@ -156,6 +156,8 @@ impl V4l2Options {
                             as i32,
                     );
                 }
+                // The engine's capture policy (gonio `engine::capture`), validated there.
+                "capture_timeout_s" | "capture_retries" | "saturation" | "saturation_fraction" => {}
                 other => {
                     return Err(bad(
                         other,

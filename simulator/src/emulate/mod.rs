@@ -79,6 +79,11 @@ pub struct EmulatorConfig {
     /// After an injected disconnect, open a new pty after this delay (and re-point `link`)
     /// instead of ending the emulator.
     pub reconnect_after: Option<Duration>,
+    /// Opt-in mechanical error model of every axis (Zaber only; see [`crate::mechanics`]):
+    /// `get encoder.pos` then reads the load side while `get pos` stays the step count.
+    /// Axis `k` of the chain (0-based, in state-file order) uses seed `seed + k`, so the
+    /// axes scatter independently.
+    pub mechanical: Option<crate::mechanics::MechanicalErrors>,
 }
 
 impl EmulatorConfig {
@@ -105,6 +110,7 @@ impl EmulatorConfig {
             state_file: None,
             link: None,
             reconnect_after: None,
+            mechanical: None,
         }
     }
 
@@ -238,6 +244,8 @@ pub(crate) struct EmuAxis {
     pub min: f64,
     pub max: f64,
     events: Vec<AxisEvent>,
+    /// Mechanical error model (load side vs. step count); `None`: ideal.
+    mech: Option<crate::mechanics::MechanicalState>,
 }
 
 impl EmuAxis {
@@ -253,6 +261,29 @@ impl EmuAxis {
             min: cfg.range_deg.0 * cfg.units_per_deg,
             max: cfg.range_deg.1 * cfg.units_per_deg,
             events: Vec::new(),
+            mech: None,
+        }
+    }
+
+    /// Give this axis a mechanical error model.
+    pub(crate) fn set_mechanics(&mut self, model: crate::mechanics::MechanicalErrors) {
+        self.mech = Some(crate::mechanics::MechanicalState::new(model));
+    }
+
+    /// A homing cycle for the error model: a new zero offset (call after the homing move
+    /// has been started).
+    pub(crate) fn home_mechanics(&mut self) {
+        if let Some(m) = &mut self.mech {
+            m.home();
+        }
+    }
+
+    /// The load-side position in controller units (what a load-side encoder counts).
+    pub(crate) fn encoder_position(&self, now: Instant) -> f64 {
+        let p = self.position(now);
+        match &self.mech {
+            Some(m) if !m.model.is_zero() => m.true_deg(p / self.upd) * self.upd,
+            _ => p,
         }
     }
 
@@ -331,6 +362,9 @@ impl EmuAxis {
         let was = self.motion.is_some();
         self.pos = self.position(now);
         self.motion = None;
+        if let Some(m) = &mut self.mech {
+            m.fold(self.pos / self.upd);
+        }
         was
     }
 

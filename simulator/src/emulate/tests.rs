@@ -452,3 +452,33 @@ fn config_is_validated() {
         assert!(spawn_pty(cfg).is_err());
     }
 }
+
+/// `get encoder.pos` reads the load side of the mechanical error model while `get pos`
+/// stays the step count: a target approached from below ends backlash/2 short, from above
+/// backlash/2 past; without a model both readings agree.
+#[test]
+fn zaber_encoder_reads_the_load_side_of_the_error_model() {
+    let mut cfg = EmulatorConfig::new(Protocol::Zaber, 1);
+    cfg.mechanical = Some(crate::mechanics::MechanicalErrors {
+        backlash_deg: 0.1,
+        ..Default::default()
+    });
+    let mut z = controller(&cfg, None).unwrap();
+    let t0 = Instant::now();
+    let value = |r: String| -> i64 { r.rsplit(' ').next().unwrap().parse().unwrap() };
+    one(z.as_mut(), "/1 1 home", t0);
+    one(z.as_mut(), "/1 1 move abs 10000", t0);
+    let t1 = secs(t0, 2.0);
+    assert_eq!(value(one(z.as_mut(), "/1 1 get pos", t1)), 10_000);
+    assert_eq!(value(one(z.as_mut(), "/1 1 get encoder.pos", t1)), 9_950);
+    one(z.as_mut(), "/1 1 move abs 11000", t1);
+    one(z.as_mut(), "/1 1 move abs 10000", secs(t0, 4.0));
+    let t2 = secs(t0, 6.0);
+    assert_eq!(value(one(z.as_mut(), "/1 1 get pos", t2)), 10_000);
+    assert_eq!(value(one(z.as_mut(), "/1 1 get encoder.pos", t2)), 10_050);
+
+    let mut ideal = zaber(1, &[]);
+    one(ideal.as_mut(), "/1 1 home", t0);
+    one(ideal.as_mut(), "/1 1 move abs 10000", t0);
+    assert_eq!(value(one(ideal.as_mut(), "/1 1 get encoder.pos", t1)), 10_000);
+}

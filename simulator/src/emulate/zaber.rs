@@ -109,9 +109,16 @@ impl Zaber {
             .map(|d| Device {
                 address: d as u8,
                 axes: (0..cfg.axes)
-                    .map(|_| {
+                    .map(|k| {
                         let mut axis = EmuAxis::new(cfg, saved.next());
                         axis.enabled = true;
+                        if let Some(m) = cfg.mechanical {
+                            let index = ((d - 1) * cfg.axes + k) as u64;
+                            axis.set_mechanics(crate::mechanics::MechanicalErrors {
+                                seed: m.seed.wrapping_add(index),
+                                ..m
+                            });
+                        }
                         ZAxis {
                             axis,
                             stalled: false,
@@ -265,6 +272,7 @@ impl Zaber {
                 for i in targets {
                     let a = &mut d.axes[i];
                     a.interrupted |= a.axis.start(0.0, now, None);
+                    a.axis.home_mechanics();
                     a.axis.homed = true;
                     a.limit_hit = false;
                     a.stalled = false;
@@ -348,7 +356,9 @@ fn get(d: &Device, axis: u8, setting: &str, now: Instant) -> Option<String> {
     };
     let units = |a: &ZAxis| a.axis.units_per_deg();
     Some(match setting {
-        "pos" | "encoder.pos" => per_axis(&|a| format!("{}", a.axis.position(now).round() as i64)),
+        "pos" => per_axis(&|a| format!("{}", a.axis.position(now).round() as i64)),
+        // The load-side encoder: equal to `pos` unless a mechanical error model is set.
+        "encoder.pos" => per_axis(&|a| format!("{}", a.axis.encoder_position(now).round() as i64)),
         "limit.min" => per_axis(&|a| format!("{}", a.axis.min.round() as i64)),
         "limit.max" => per_axis(&|a| format!("{}", a.axis.max.round() as i64)),
         "limit.home.pos" => per_axis(&|_| "0".into()),

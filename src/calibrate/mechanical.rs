@@ -1,0 +1,686 @@
+//! Mechanical calibration: homing repeatability, backlash and positioning error per axis.
+//!
+//! The read-back of an axis is the controller's step count; it cannot see backlash, homing
+//! scatter or drive errors. This run therefore needs an independent reference of where the
+//! load really is: [`gonio_devices::Axis::reference_position`] (a load-side encoder; on the
+//! simulator, the `options.mechanical` error model's load side). An axis without one is
+//! refused with a clear error rather than "measured" as perfect.
+//!
+//! The scripted run, for each axis of the recipe's `[mechanical]` section:
+//!
+//! 1. **Homing**: `home_cycles` times: move `home_away_deg` away, home, read reference and
+//!    read-back. Repeatability = sample standard deviation of (reference − read-back).
+//! 2. **Bidirectional targets**, `repetitions` passes: each target is approached from below
+//!    (`target − approach_deg` first) and from above (`target + approach_deg` first); at each
+//!    arrival the deviation (reference − read-back) is recorded. Backlash = deviation from
+//!    above − deviation from below, averaged over targets and passes.
+//! 3. **Positioning error**: the mean of both approaches (backlash cancels) per target, fitted
+//!    by offset + scale × position (least squares); the residual is the non-linear part
+//!    (periodic error). The offset includes the last homing's zero offset.
+//!
+//! On a simulated rig every estimate is compared with the rig file's error model (and the
+//! homing offsets the simulator actually drew), and an effort table gives the estimate
+//! errors against the number of cycles / passes used and the rig time they took.
+
+use super::recipe::Recipe;
+use crate::engine::Rig;
+use gonio_devices::{Axis, DeviceError};
+use gonio_simulator::mechanics::MechanicalErrors;
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+use thiserror::Error;
+
+/// The recipe's `[mechanical]` section.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MechanicalSpec {
+    /// Axes by rig-file name; empty: every axis of the rig.
+    pub axes: Vec<String>,
+    /// Homing cycles for the repeatability (≥ 2).
+    pub home_cycles: usize,
+    /// How far (degrees, positive side) each homing cycle first moves away from home, so
+    /// every homing is a real search from a distance.
+    pub home_away_deg: f64,
+    /// Bidirectional passes over the targets (≥ 1).
+    pub repetitions: usize,
+    /// Explicit targets in degrees (every axis); empty: `target_count` targets spread
+    /// evenly over the central `span` fraction of each axis' soft range.
+    pub targets_deg: Vec<f64>,
+    pub target_count: usize,
+    pub span: f64,
+    /// Approach distance (degrees): each target is reached after a move from this far below
+    /// or above; it must exceed the backlash to take the play up.
+    pub approach_deg: f64,
+}
+
+impl Default for MechanicalSpec {
+    fn default() -> Self {
+        MechanicalSpec {
+            axes: Vec::new(),
+            home_cycles: 10,
+            home_away_deg: 10.0,
+            repetitions: 2,
+            targets_deg: Vec::new(),
+            target_count: 9,
+            span: 0.8,
+            approach_deg: 1.0,
+        }
+    }
+}
+
+impl MechanicalSpec {
+    /// Check ranges; `Err((key, message))`.
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        let bad = |k: &str, m: String| Err((format!("mechanical.{k}"), m));
+        if !(2..=10_000).contains(&self.home_cycles) {
+            return bad(
+                "home_cycles",
+                format!("{}: valid range is 2 ..= 10000 (a spread needs two)", self.home_cycles),
+            );
+        }
+        if !(1..=1000).contains(&self.repetitions) {
+            return bad(
+                "repetitions",
+                format!("{}: valid range is 1 ..= 1000", self.repetitions),
+            );
+        }
+        if !(self.approach_deg.is_finite() && self.approach_deg > 0.0 && self.approach_deg <= 90.0) {
+            return bad(
+                "approach_deg",
+                format!("{}: must be in (0, 90] degrees", self.approach_deg),
+            );
+        }
+        if !(self.home_away_deg.is_finite() && self.home_away_deg >= 0.0 && self.home_away_deg <= 360.0) {
+            return bad(
+                "home_away_deg",
+                format!("{}: must be in [0, 360] degrees", self.home_away_deg),
+            );
+        }
+        if !(self.span.is_finite() && self.span > 0.0 && self.span <= 1.0) {
+            return bad("span", format!("{}: must be in (0, 1]", self.span));
+        }
+        if self.targets_deg.is_empty() {
+            if !(3..=1000).contains(&self.target_count) {
+                return bad(
+                    "target_count",
+                    format!(
+                        "{}: valid range is 3 ..= 1000 (a line fit with a residual needs 3)",
+                        self.target_count
+                    ),
+                );
+            }
+        } else {
+            if self.targets_deg.len() < 3 {
+                return bad(
+                    "targets_deg",
+                    format!(
+                        "{} targets: a line fit with a residual needs at least 3",
+                        self.targets_deg.len()
+                    ),
+                );
+            }
+            if let Some(t) = self.targets_deg.iter().find(|t| !t.is_finite()) {
+                return bad("targets_deg", format!("{t}: not a number of degrees"));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum MechanicalError {
+    #[error(
+        "recipe `{recipe}`: axis `{axis}` has no independent position reference (no load-side encoder): \
+         its read-back cannot see backlash or homing scatter. Give it one (Zaber: options.encoder = true on a \
+         stage with an encoder; simulated axes: options.mechanical) or leave it out of mechanical.axes"
+    )]
+    NoReference { recipe: String, axis: String },
+    #[error("recipe `{recipe}`: mechanical.axes: rig `{rig}` has no axis `{axis}` (axes: {available})")]
+    UnknownAxis {
+        recipe: String,
+        rig: String,
+        axis: String,
+        available: String,
+    },
+    #[error(
+        "recipe `{recipe}`: axis `{axis}`: target {target_deg}° ± approach {approach_deg}° leaves the soft limits [{min_deg}°, {max_deg}°]"
+    )]
+    TargetOutOfRange {
+        recipe: String,
+        axis: String,
+        target_deg: f64,
+        approach_deg: f64,
+        min_deg: f64,
+        max_deg: f64,
+    },
+    #[error("recipe `{recipe}`: axis `{axis}`: {command}: {cause}")]
+    Device {
+        recipe: String,
+        axis: String,
+        command: String,
+        cause: DeviceError,
+    },
+}
+
+/// Homing repeatability of one axis.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct HomingStats {
+    pub cycles: usize,
+    /// Reference − read-back after each homing (degrees).
+    pub deviations_deg: Vec<f64>,
+    pub mean_deg: f64,
+    /// Sample standard deviation of the deviations: the homing repeatability (1 σ).
+    pub repeatability_deg: f64,
+    /// Largest − smallest deviation.
+    pub range_deg: f64,
+}
+
+/// One target of the bidirectional run (averaged over passes).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TargetRow {
+    pub target_deg: f64,
+    /// Mean read-back at the target (degrees).
+    pub read_back_deg: f64,
+    /// Reference − read-back arriving from below / from above (degrees, mean over passes).
+    pub deviation_below_deg: f64,
+    pub deviation_above_deg: f64,
+    /// Above − below: this target's backlash.
+    pub backlash_deg: f64,
+    /// Mean of both approaches minus the fitted line.
+    pub residual_deg: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct BacklashStats {
+    /// Samples (targets × passes).
+    pub samples: usize,
+    pub mean_deg: f64,
+    /// Sample standard deviation of the individual samples.
+    pub std_deg: f64,
+}
+
+/// Positioning error (reference − read-back, both approaches averaged) fitted as
+/// `offset + scale_error × read-back`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PositioningFit {
+    pub offset_deg: f64,
+    pub scale_error: f64,
+    /// RMS and largest absolute residual after the line: the non-linear (periodic) error.
+    pub residual_rms_deg: f64,
+    pub residual_max_deg: f64,
+}
+
+/// The simulator's truth for one axis (rig file `options.mechanical` + the drawn offsets).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AxisTruth {
+    pub model: MechanicalErrors,
+    /// Sample standard deviation of the homing offsets drawn during this run's cycles.
+    pub realized_repeatability_deg: f64,
+    /// The drive's positioning error at the targets fitted the same way as the estimate
+    /// (the model's scale error is only the linear part of it over a finite set of targets).
+    pub fit: PositioningFit,
+}
+
+/// Estimate − truth for one axis.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AxisErrors {
+    pub backlash_deg: f64,
+    /// Against the homing offsets actually drawn in this run, and against the model's σ.
+    pub repeatability_vs_realized_deg: f64,
+    pub repeatability_vs_model_deg: f64,
+    pub offset_deg: f64,
+    pub scale_error: f64,
+    pub scale_error_vs_model: f64,
+    pub residual_rms_deg: f64,
+}
+
+/// One row of the error-versus-effort table.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EffortRow {
+    /// `homing` (rows per cycle count) or `bidirectional` (rows per pass count).
+    pub stage: String,
+    /// Cycles or passes used.
+    pub used: usize,
+    /// Rig time spent on this stage up to here (s; virtual on the simulator).
+    pub rig_time_s: f64,
+    /// The estimate from the first `used` cycles / passes.
+    pub estimate_deg: f64,
+    /// Its error against the truth (simulator: the model's homing σ, the model's backlash)
+    /// or against the estimate from everything (real rigs).
+    pub error_deg: f64,
+    /// Bidirectional rows: scale error estimate and its error.
+    pub scale_error: Option<f64>,
+    pub scale_error_error: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AxisMechanics {
+    pub axis: String,
+    /// Where the reference came from (`encoder`).
+    pub reference: String,
+    pub homing: HomingStats,
+    pub backlash: BacklashStats,
+    pub positioning: PositioningFit,
+    pub targets: Vec<TargetRow>,
+    pub truth: Option<AxisTruth>,
+    pub errors: Option<AxisErrors>,
+    pub effort: Vec<EffortRow>,
+    pub rig_time_s: f64,
+}
+
+/// The `mechanical` part of `calibration.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct MechanicalCalibration {
+    pub approach_deg: f64,
+    pub axes: Vec<AxisMechanics>,
+}
+
+fn mean(x: &[f64]) -> f64 {
+    if x.is_empty() {
+        return f64::NAN;
+    }
+    x.iter().sum::<f64>() / x.len() as f64
+}
+
+/// Sample standard deviation (n − 1); 0 for fewer than two values.
+fn sample_std(x: &[f64]) -> f64 {
+    if x.len() < 2 {
+        return 0.0;
+    }
+    let m = mean(x);
+    (x.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt()
+}
+
+/// Least-squares line `y = a + b x`; residual RMS and max. Needs ≥ 2 distinct x.
+pub fn fit_line(x: &[f64], y: &[f64]) -> PositioningFit {
+    let mx = mean(x);
+    let my = mean(y);
+    let sxx: f64 = x.iter().map(|v| (v - mx).powi(2)).sum();
+    let sxy: f64 = x.iter().zip(y).map(|(a, b)| (a - mx) * (b - my)).sum();
+    let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    let a = my - b * mx;
+    let res: Vec<f64> = x.iter().zip(y).map(|(u, v)| v - a - b * u).collect();
+    PositioningFit {
+        offset_deg: a,
+        scale_error: b,
+        residual_rms_deg: (res.iter().map(|r| r * r).sum::<f64>() / res.len().max(1) as f64).sqrt(),
+        residual_max_deg: res.iter().fold(0.0, |m, r| m.max(r.abs())),
+    }
+}
+
+/// The targets (degrees) for an axis with soft limits `[lo, hi]` (degrees).
+fn targets_for(spec: &MechanicalSpec, lo: f64, hi: f64) -> Vec<f64> {
+    if !spec.targets_deg.is_empty() {
+        return spec.targets_deg.clone();
+    }
+    let c = 0.5 * (lo + hi);
+    let half = 0.5 * (hi - lo) * spec.span - spec.approach_deg;
+    let n = spec.target_count;
+    (0..n)
+        .map(|i| c - half + 2.0 * half * i as f64 / (n - 1) as f64)
+        .map(|t| (t * 1e6).round() / 1e6)
+        .collect()
+}
+
+/// One arrival: read-back and reference (degrees).
+struct Arrival {
+    read_back: f64,
+    reference: f64,
+}
+
+struct AxisRun<'a> {
+    recipe: &'a str,
+    axis: &'a Arc<dyn Axis>,
+    rig: &'a Rig,
+}
+
+impl AxisRun<'_> {
+    fn err(&self, command: &str, cause: DeviceError) -> MechanicalError {
+        MechanicalError::Device {
+            recipe: self.recipe.into(),
+            axis: self.axis.name().into(),
+            command: command.into(),
+            cause,
+        }
+    }
+
+    /// Move to `deg` degrees; returns the read-back in radians (the axis' unit).
+    async fn move_to(&self, deg: f64) -> Result<f64, MechanicalError> {
+        self.axis
+            .move_abs(deg.to_radians())
+            .await
+            .map_err(|e| self.err(&format!("move to {deg}°"), e))
+    }
+
+    async fn read(&self, read_back_rad: f64) -> Result<Arrival, MechanicalError> {
+        let reference = self
+            .axis
+            .reference_position()
+            .await
+            .map_err(|e| self.err("read reference", e))?
+            .ok_or_else(|| MechanicalError::NoReference {
+                recipe: self.recipe.into(),
+                axis: self.axis.name().into(),
+            })?;
+        Ok(Arrival {
+            read_back: read_back_rad.to_degrees(),
+            reference: reference.to_degrees(),
+        })
+    }
+
+    async fn home(&self) -> Result<Arrival, MechanicalError> {
+        self.axis.home().await.map_err(|e| self.err("home", e))?;
+        let p = self.axis.position().await.map_err(|e| self.err("read position", e))?;
+        self.read(p).await
+    }
+}
+
+/// Run the mechanical recipe.
+pub async fn run_mechanical(
+    recipe: &Recipe,
+    spec: &MechanicalSpec,
+    rig: &Rig,
+) -> Result<MechanicalCalibration, MechanicalError> {
+    let names: Vec<String> = if spec.axes.is_empty() {
+        rig.axes.iter().map(|a| a.name().to_string()).collect()
+    } else {
+        spec.axes.clone()
+    };
+    let mut indices = Vec::new();
+    for n in &names {
+        let i = rig
+            .axes
+            .iter()
+            .position(|a| a.name() == n)
+            .ok_or_else(|| MechanicalError::UnknownAxis {
+                recipe: recipe.name.clone(),
+                rig: rig.spec.name.clone(),
+                axis: n.clone(),
+                available: rig.axes.iter().map(|a| a.name()).collect::<Vec<_>>().join(", "),
+            })?;
+        indices.push(i);
+    }
+    // Check every target before anything moves.
+    let mut plans = Vec::new();
+    for &i in &indices {
+        let axis = &rig.axes[i];
+        let lim = axis.limits();
+        let (lo, hi) = (lim.min.to_degrees(), lim.max.to_degrees());
+        let targets = targets_for(spec, lo, hi);
+        let eps = 1e-9;
+        for &t in &targets {
+            if t - spec.approach_deg < lo - eps || t + spec.approach_deg > hi + eps {
+                return Err(MechanicalError::TargetOutOfRange {
+                    recipe: recipe.name.clone(),
+                    axis: axis.name().into(),
+                    target_deg: t,
+                    approach_deg: spec.approach_deg,
+                    min_deg: lo,
+                    max_deg: hi,
+                });
+            }
+        }
+        plans.push((i, targets));
+    }
+    let mut axes = Vec::new();
+    for (i, targets) in plans {
+        axes.push(run_axis(recipe, spec, rig, i, &targets).await?);
+    }
+    Ok(MechanicalCalibration {
+        approach_deg: spec.approach_deg,
+        axes,
+    })
+}
+
+/// `gonio calibrate` entry: run the recipe's `[mechanical]` section (defaults if absent)
+/// and build the versioned result.
+pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<super::RunOutput, super::CalibrateError> {
+    let spec = recipe.mechanical.clone().unwrap_or_default();
+    let t0 = rig.time();
+    let m = run_mechanical(recipe, &spec, rig)
+        .await
+        .map_err(|e| super::CalibrateError::Mechanical(Box::new(e)))?;
+    let result = super::CalibrationResult {
+        mechanical: Some(m),
+        rig_time_s: rig.time() - t0,
+        ..super::CalibrationResult::new(recipe, rig.spec.name.clone(), rig.clock.is_some())
+    }
+    .seal();
+    Ok(super::RunOutput { result, corners: None })
+}
+
+/// The rig file's error model of axis `index` when the rig is simulated (the truth).
+fn sim_model(rig: &Rig, index: usize) -> Option<MechanicalErrors> {
+    rig.clock.as_ref()?;
+    let a = rig.spec.axes.get(index)?;
+    if a.backend != "sim" {
+        return None;
+    }
+    MechanicalErrors::from_options(&a.options).ok().flatten()
+}
+
+async fn run_axis(
+    recipe: &Recipe,
+    spec: &MechanicalSpec,
+    rig: &Rig,
+    index: usize,
+    targets: &[f64],
+) -> Result<AxisMechanics, MechanicalError> {
+    let axis = &rig.axes[index];
+    let run = AxisRun {
+        recipe: &recipe.name,
+        axis,
+        rig,
+    };
+    let name = axis.name().to_string();
+    let t0 = rig.time();
+    let lim = axis.limits();
+    let hi = lim.max.to_degrees();
+    tracing::info!(axis = %name, cycles = spec.home_cycles, targets = targets.len(), passes = spec.repetitions, "mechanical calibration");
+
+    // 1. Homing repeatability.
+    let first_home_index = rig.truth.as_ref().map(|t| t.home_offsets_deg(index).len()).unwrap_or(0);
+    // A first homing so that moves are allowed; it is not one of the cycles.
+    run.home().await?;
+    let first_home_index = first_home_index + 1;
+    let mut deviations = Vec::new();
+    let mut home_times = Vec::new();
+    let away = spec.home_away_deg.min(hi);
+    for _ in 0..spec.home_cycles {
+        if away > 0.0 {
+            run.move_to(away).await?;
+        }
+        let a = run.home().await?;
+        deviations.push(a.reference - a.read_back);
+        home_times.push(run.rig.time() - t0);
+    }
+    let homing = HomingStats {
+        cycles: deviations.len(),
+        mean_deg: mean(&deviations),
+        repeatability_deg: sample_std(&deviations),
+        range_deg: deviations.iter().fold(f64::NEG_INFINITY, |m, v| m.max(*v))
+            - deviations.iter().fold(f64::INFINITY, |m, v| m.min(*v)),
+        deviations_deg: deviations,
+    };
+    let t_home_end = rig.time();
+
+    // 2. Bidirectional approach to every target, `repetitions` passes.
+    // below[pass][target], above[pass][target]: (read-back, deviation)
+    let mut below = Vec::new();
+    let mut above = Vec::new();
+    let mut pass_times = Vec::new();
+    for _ in 0..spec.repetitions {
+        let mut b = Vec::new();
+        let mut a = Vec::new();
+        for &t in targets {
+            run.move_to(t - spec.approach_deg).await?;
+            let rb = run.move_to(t).await?;
+            let x = run.read(rb).await?;
+            b.push((x.read_back, x.reference - x.read_back));
+            run.move_to(t + spec.approach_deg).await?;
+            let rb = run.move_to(t).await?;
+            let x = run.read(rb).await?;
+            a.push((x.read_back, x.reference - x.read_back));
+        }
+        below.push(b);
+        above.push(a);
+        pass_times.push(rig.time() - t_home_end);
+    }
+    // Leave the axis at home position (read-back 0) for whatever runs next.
+    run.move_to(0.0f64.clamp(lim.min.to_degrees(), hi)).await?;
+
+    let summarize = |passes: usize| -> (Vec<TargetRow>, BacklashStats, PositioningFit) {
+        let mut rows = Vec::new();
+        let mut samples = Vec::new();
+        for (k, &t) in targets.iter().enumerate() {
+            let lo: Vec<f64> = below[..passes].iter().map(|p| p[k].1).collect();
+            let up: Vec<f64> = above[..passes].iter().map(|p| p[k].1).collect();
+            let rb: Vec<f64> = below[..passes].iter().chain(&above[..passes]).map(|p| p[k].0).collect();
+            samples.extend(lo.iter().zip(&up).map(|(l, u)| u - l));
+            rows.push(TargetRow {
+                target_deg: t,
+                read_back_deg: mean(&rb),
+                deviation_below_deg: mean(&lo),
+                deviation_above_deg: mean(&up),
+                backlash_deg: mean(&up) - mean(&lo),
+                residual_deg: 0.0,
+            });
+        }
+        let x: Vec<f64> = rows.iter().map(|r| r.read_back_deg).collect();
+        let y: Vec<f64> = rows
+            .iter()
+            .map(|r| 0.5 * (r.deviation_below_deg + r.deviation_above_deg))
+            .collect();
+        let fit = fit_line(&x, &y);
+        for (r, (xi, yi)) in rows.iter_mut().zip(x.iter().zip(&y)) {
+            r.residual_deg = yi - fit.offset_deg - fit.scale_error * xi;
+        }
+        let stats = BacklashStats {
+            samples: samples.len(),
+            mean_deg: mean(&samples),
+            std_deg: sample_std(&samples),
+        };
+        (rows, stats, fit)
+    };
+    let (rows, backlash, positioning) = summarize(spec.repetitions);
+
+    // Truth on the simulator.
+    let truth = sim_model(rig, index).map(|model| {
+        let offsets = rig
+            .truth
+            .as_ref()
+            .map(|t| t.home_offsets_deg(index))
+            .unwrap_or_default();
+        let cycles: Vec<f64> = offsets
+            .get(first_home_index..(first_home_index + spec.home_cycles).min(offsets.len()))
+            .map(|s| s.to_vec())
+            .unwrap_or_default();
+        let last_zero = offsets.last().copied().unwrap_or(0.0);
+        // The bidirectional mean at target x: zero + (e(x − b/2) + e(x + b/2)) / 2.
+        let h = 0.5 * model.backlash_deg;
+        let x: Vec<f64> = rows.iter().map(|r| r.read_back_deg).collect();
+        let y: Vec<f64> = x
+            .iter()
+            .map(|&v| last_zero + 0.5 * (model.positioning_error_deg(v - h) + model.positioning_error_deg(v + h)))
+            .collect();
+        (
+            AxisTruth {
+                model,
+                realized_repeatability_deg: sample_std(&cycles),
+                fit: fit_line(&x, &y),
+            },
+            cycles,
+        )
+    });
+    let errors = truth.as_ref().map(|(t, _)| AxisErrors {
+        backlash_deg: backlash.mean_deg - t.model.backlash_deg,
+        repeatability_vs_realized_deg: homing.repeatability_deg - t.realized_repeatability_deg,
+        repeatability_vs_model_deg: homing.repeatability_deg - t.model.home_sigma_deg,
+        offset_deg: positioning.offset_deg - t.fit.offset_deg,
+        scale_error: positioning.scale_error - t.fit.scale_error,
+        scale_error_vs_model: positioning.scale_error - t.model.scale_error,
+        residual_rms_deg: positioning.residual_rms_deg - t.fit.residual_rms_deg,
+    });
+
+    // Error against effort.
+    let mut effort = Vec::new();
+    for k in 2..=homing.cycles {
+        let est = sample_std(&homing.deviations_deg[..k]);
+        // Against the model's σ: how many cycles it takes to know the repeatability (the
+        // estimate matches the offsets actually drawn exactly, see `errors`).
+        let reference = match &truth {
+            Some((t, _)) => t.model.home_sigma_deg,
+            None => homing.repeatability_deg,
+        };
+        effort.push(EffortRow {
+            stage: "homing".into(),
+            used: k,
+            rig_time_s: home_times[k - 1],
+            estimate_deg: est,
+            error_deg: est - reference,
+            scale_error: None,
+            scale_error_error: None,
+        });
+    }
+    for p in 1..=spec.repetitions {
+        let (_, b, f) = summarize(p);
+        let (ref_b, ref_s) = match &truth {
+            Some((t, _)) => (t.model.backlash_deg, t.fit.scale_error),
+            None => (backlash.mean_deg, positioning.scale_error),
+        };
+        effort.push(EffortRow {
+            stage: "bidirectional".into(),
+            used: p,
+            rig_time_s: pass_times[p - 1],
+            estimate_deg: b.mean_deg,
+            error_deg: b.mean_deg - ref_b,
+            scale_error: Some(f.scale_error),
+            scale_error_error: Some(f.scale_error - ref_s),
+        });
+    }
+    Ok(AxisMechanics {
+        axis: name,
+        reference: "encoder".into(),
+        homing,
+        backlash,
+        positioning,
+        targets: rows,
+        truth: truth.map(|(t, _)| t),
+        errors,
+        effort,
+        rig_time_s: rig.time() - t0,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn line_fit_recovers_offset_scale_and_residual() {
+        let x = [-10.0, 0.0, 10.0, 20.0];
+        let y: Vec<f64> = x.iter().map(|v| 0.5 + 1e-3 * v).collect();
+        let f = fit_line(&x, &y);
+        assert!((f.offset_deg - 0.5).abs() < 1e-12 && (f.scale_error - 1e-3).abs() < 1e-12);
+        assert!(f.residual_rms_deg < 1e-12);
+        let y2 = [0.0, 1.0, 0.0, 1.0];
+        let f = fit_line(&x, &y2);
+        assert!(f.residual_rms_deg > 0.4, "{f:?}");
+    }
+
+    #[test]
+    fn default_targets_stay_inside_the_limits_with_the_approach() {
+        let s = MechanicalSpec::default();
+        let t = targets_for(&s, -80.0, 80.0);
+        assert_eq!(t.len(), 9);
+        assert!(t[0] - s.approach_deg >= -80.0 && t[8] + s.approach_deg <= 80.0, "{t:?}");
+        assert!((t[4]).abs() < 1e-9);
+        let mut bad = s.clone();
+        bad.home_cycles = 1;
+        assert!(bad.validate().unwrap_err().0.contains("home_cycles"));
+        bad = s.clone();
+        bad.targets_deg = vec![1.0, f64::NAN, 2.0];
+        assert!(bad.validate().is_err());
+        assert!(s.validate().is_ok());
+    }
+}

@@ -1,0 +1,329 @@
+//! Rig-geometry calibration: axis zero offsets and the camera's mounting rotation from
+//! checkerboard views at many axis positions (`kind = "rig-geometry"`).
+//!
+//! The runner moves the rig to every recipe pose through the rig's own inverse kinematics,
+//! records the *commanded* axis positions and detects the board; the bundle adjustment
+//! ([`gonio_calibration::rig_geometry`]) then explains all views with one set of offsets.
+//! The camera's intrinsics are the rig file's (`focal_length_px`, `principal_point_px`,
+//! distortion `k1 … k3` in the camera options): run the intrinsics recipe first and put
+//! its result there.
+//!
+//! [`RigGeometryCalibration::apply`] writes the estimate into a rig description's
+//! `[alignment]`, so the planner's kinematics reach true directions. On the simulator the
+//! result also carries the truth (`[sim_misalignment]`), the parameter errors, the angular
+//! error of the view and light directions over all Bonn 81 × 81 pairs before and after
+//! applying the estimate, and the error against the number of views.
+
+use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
+use crate::engine::{self, frame_to_linear, Rig};
+use gonio_calibration::checkerboard::detect_checkerboard;
+use gonio_calibration::intrinsics::CameraModel;
+use gonio_calibration::rig_geometry::{estimate_rig_geometry, RigGeometryFit, RigGeometryOptions, RigView};
+use gonio_devices::kinematics;
+use gonio_devices::rig::{AlignmentSpec, RigSpec};
+use gonio_devices::Direction;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Estimate against the simulator's truth, one parameter.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ParameterError {
+    pub name: String,
+    pub estimate_deg: f64,
+    pub truth_deg: f64,
+    pub error_deg: f64,
+    pub sigma_deg: f64,
+}
+
+/// Angular errors (degrees) between the directions asked for and the directions the rig
+/// really reaches, over every (light, view) pair of the Bonn set the planner can reach.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DirectionErrors {
+    pub pairs: usize,
+    pub view_max_deg: f64,
+    pub view_mean_deg: f64,
+    pub light_max_deg: f64,
+    pub light_mean_deg: f64,
+}
+
+/// One row of the error-versus-effort table: the fit on the first `views` views.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RigEffortRow {
+    pub views: usize,
+    /// Rig time (s) to capture these views (virtual on the simulator).
+    pub capture_s: f64,
+    /// Wall time of the fit (s).
+    pub fit_s: f64,
+    pub rms_px: Option<f64>,
+    /// Largest |estimate − truth| over the estimated parameters (simulator), or against
+    /// the fit with all views (real rig).
+    pub max_parameter_error_deg: Option<f64>,
+    /// Largest view-direction error over the Bonn pairs after applying this fit
+    /// (simulator only).
+    pub view_max_error_deg: Option<f64>,
+    /// Why the fit was refused (undetermined parameters, too few views), if it was.
+    pub failure: Option<String>,
+}
+
+/// The `rig_geometry` part of `calibration.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RigGeometryCalibration {
+    pub fit: RigGeometryFit,
+    /// Commanded axis positions (degrees) of every view, in the rig's axis order.
+    pub view_axes_deg: Vec<Vec<f64>>,
+    /// Simulator only: the true misalignment and the estimate's errors.
+    pub truth: Option<AlignmentSpec>,
+    pub errors: Option<Vec<ParameterError>>,
+    /// Simulator only: direction errors with the nominal kinematics and with the estimate
+    /// applied.
+    pub directions_before: Option<DirectionErrors>,
+    pub directions_after: Option<DirectionErrors>,
+    pub effort: Vec<RigEffortRow>,
+}
+
+impl RigGeometryCalibration {
+    /// Feed the estimated offsets and mounting rotation into `rig`'s kinematics
+    /// (`rig.alignment`): after this, IK on `rig` commands the positions that reach the
+    /// asked directions on the real mechanism.
+    pub fn apply(&self, rig: &mut RigSpec) {
+        self.fit.apply(rig);
+    }
+}
+
+/// Direction errors when the planner uses `nominal` and the mechanism is `truth`: each Bonn
+/// pair is solved by `nominal`'s IK (first solution) and evaluated by `truth`'s FK.
+pub fn direction_errors(nominal: &RigSpec, truth: &RigSpec) -> DirectionErrors {
+    let (kn, kt) = (kinematics::for_rig(nominal), kinematics::for_rig(truth));
+    let dirs = crate::sweep::bonn81();
+    let (mut n, mut vmax, mut vsum, mut lmax, mut lsum) = (0usize, 0.0f64, 0.0, 0.0f64, 0.0);
+    for v in &dirs {
+        for l in &dirs {
+            let Ok(sols) = kn.inverse(*l, *v, None) else { continue };
+            let Some(q) = sols.first() else { continue };
+            let (lt, vt) = kt.forward(q);
+            let (ev, el) = (vt.angle_to(*v).to_degrees(), lt.angle_to(*l).to_degrees());
+            n += 1;
+            vmax = vmax.max(ev);
+            lmax = lmax.max(el);
+            vsum += ev;
+            lsum += el;
+        }
+    }
+    let d = n.max(1) as f64;
+    DirectionErrors {
+        pairs: n,
+        view_max_deg: vmax,
+        view_mean_deg: vsum / d,
+        light_max_deg: lmax,
+        light_mean_deg: lsum / d,
+    }
+}
+
+/// The rig file's camera as a calibrated camera model (intrinsics + distortion options).
+fn camera_model(spec: &RigSpec) -> CameraModel {
+    let k = spec.camera.intrinsics();
+    let mut distortion = [0.0; 5];
+    for (i, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
+        if let Some(v) = spec.camera.options.get(*key) {
+            distortion[i] = v.as_float().or_else(|| v.as_integer().map(|x| x as f64)).unwrap_or(0.0);
+        }
+    }
+    CameraModel {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        distortion,
+    }
+}
+
+/// Parameter errors of `fit` against `truth` (absent entries are 0 in the truth).
+fn parameter_errors(fit: &RigGeometryFit, truth: &AlignmentSpec) -> Vec<ParameterError> {
+    fit.parameters
+        .iter()
+        .map(|p| {
+            let t = if let Some(axis) = p.name.strip_prefix("zero_offset.") {
+                truth.axis_zero_offset_deg.get(axis).copied().unwrap_or(0.0)
+            } else {
+                let c = match p.name.as_str() {
+                    "camera_rotation.x" => 0,
+                    "camera_rotation.y" => 1,
+                    _ => 2,
+                };
+                truth.camera_rotation_deg[c]
+            };
+            ParameterError {
+                name: p.name.clone(),
+                estimate_deg: p.value_deg,
+                truth_deg: t,
+                error_deg: p.value_deg - t,
+                sigma_deg: p.sigma_deg,
+            }
+        })
+        .collect()
+}
+
+/// The rig with `fit` applied to a copy of its nominal description.
+fn corrected(nominal: &RigSpec, fit: &RigGeometryFit) -> RigSpec {
+    let mut r = nominal.clone();
+    fit.apply(&mut r);
+    r
+}
+
+pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
+    let name = recipe.name.clone();
+    let rig_name = rig.spec.name.clone();
+    let board = recipe
+        .checkerboard
+        .expect("validated: rig-geometry recipes have a board");
+    let opts: RigGeometryOptions = recipe.rig_geometry.clone().unwrap_or_default();
+    let t0 = rig.time();
+    let dev = |device: String, cause| CalibrateError::Move {
+        recipe: name.clone(),
+        rig: rig_name.clone(),
+        device,
+        cause,
+    };
+    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
+        recipe: name.clone(),
+        rig: rig_name.clone(),
+        cause: Box::new(cause),
+    })?;
+    if let Some(e) = recipe.exposure_s {
+        config.exposure = e;
+        rig.camera
+            .configure(&config)
+            .await
+            .map_err(|c| dev(rig.camera.name().into(), c))?;
+    }
+    tracing::info!(recipe = %name, "rig geometry: capturing {} poses", recipe.poses.len());
+    let mut views = Vec::new();
+    let mut capture_times = Vec::new();
+    let mut prev: Option<Vec<f64>> = None;
+    for (index, pose) in recipe.poses.iter().enumerate() {
+        let light = pose.light.unwrap_or(recipe.light);
+        let unreachable = |reason: String| CalibrateError::Unreachable {
+            recipe: name.clone(),
+            index,
+            view: pose.view,
+            light,
+            rig: rig_name.clone(),
+            reason,
+        };
+        let sols = rig
+            .kinematics
+            .inverse(
+                Direction::from_degrees(light[0], light[1]),
+                Direction::from_degrees(pose.view[0], pose.view[1]),
+                prev.as_deref(),
+            )
+            .map_err(|e| unreachable(e.to_string()))?;
+        let q = sols
+            .into_iter()
+            .next()
+            .ok_or_else(|| unreachable("no configuration".into()))?;
+        for (axis, &target) in rig.axes.iter().zip(&q) {
+            axis.move_abs(target).await.map_err(|c| dev(axis.name().into(), c))?;
+        }
+        let frame = rig
+            .camera
+            .capture()
+            .await
+            .map_err(|c| dev(rig.camera.name().into(), c))?;
+        let raw = frame_to_linear(&frame);
+        let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
+            recipe: name.clone(),
+            index,
+            view: pose.view,
+            cause,
+        })?;
+        views.push(RigView {
+            label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
+            q: q.clone(),
+            object: det.object,
+            image: det.image,
+        });
+        capture_times.push(rig.time() - t0);
+        prev = Some(q);
+    }
+    let camera = camera_model(&rig.spec);
+    let fit_err = |cause| CalibrateError::RigGeometry {
+        recipe: name.clone(),
+        cause,
+    };
+    let fit = estimate_rig_geometry(&rig.spec, &camera, &views, &opts).map_err(fit_err)?;
+    let simulated = rig.clock.is_some();
+    // What the planner used: the rig file without its simulator-only truth.
+    let nominal = {
+        let mut r = rig.spec.clone();
+        r.sim_misalignment = None;
+        r
+    };
+    let truth_spec = simulated.then(|| rig.spec.simulated_truth());
+    let truth = simulated.then(|| rig.spec.sim_misalignment.clone().unwrap_or_default());
+    let errors = truth.as_ref().map(|t| parameter_errors(&fit, t));
+    let directions_before = truth_spec.as_ref().map(|t| direction_errors(&nominal, t));
+    let directions_after = truth_spec
+        .as_ref()
+        .map(|t| direction_errors(&corrected(&nominal, &fit), t));
+    // Error against effort: the same fit on the first k views.
+    let mut effort = Vec::new();
+    for k in opts.min_views.max(1)..=views.len() {
+        let start = Instant::now();
+        let r = estimate_rig_geometry(&rig.spec, &camera, &views[..k], &opts);
+        let fit_s = start.elapsed().as_secs_f64();
+        let capture_s = capture_times[k - 1];
+        effort.push(match r {
+            Ok(f) => {
+                let max_err = |e: Vec<ParameterError>| e.iter().map(|p| p.error_deg.abs()).fold(0.0, f64::max);
+                let max_parameter_error_deg = Some(match &truth {
+                    Some(t) => max_err(parameter_errors(&f, t)),
+                    None => f
+                        .parameters
+                        .iter()
+                        .zip(&fit.parameters)
+                        .map(|(a, b)| (a.value_deg - b.value_deg).abs())
+                        .fold(0.0, f64::max),
+                });
+                RigEffortRow {
+                    views: k,
+                    capture_s,
+                    fit_s,
+                    rms_px: Some(f.rms_px),
+                    max_parameter_error_deg,
+                    view_max_error_deg: truth_spec
+                        .as_ref()
+                        .map(|t| direction_errors(&corrected(&nominal, &f), t).view_max_deg),
+                    failure: None,
+                }
+            }
+            Err(e) => RigEffortRow {
+                views: k,
+                capture_s,
+                fit_s,
+                rms_px: None,
+                max_parameter_error_deg: None,
+                view_max_error_deg: None,
+                failure: Some(e.to_string()),
+            },
+        });
+    }
+    let result = CalibrationResult {
+        rig_geometry: Some(RigGeometryCalibration {
+            view_axes_deg: views
+                .iter()
+                .map(|v| v.q.iter().map(|x| x.to_degrees()).collect())
+                .collect(),
+            fit,
+            truth,
+            errors,
+            directions_before,
+            directions_after,
+            effort,
+        }),
+        rig_time_s: rig.time() - t0,
+        ..CalibrationResult::new(recipe, rig_name, simulated)
+    }
+    .seal();
+    Ok(RunOutput { result, corners: None })
+}
