@@ -247,6 +247,64 @@ pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError
     }
 }
 
+/// Reach one pose of a recipe: the rig's inverse kinematics for (`light`, `view`) in
+/// degrees, the solution nearest `prev` (the previous pose's axes, so a run does not swing
+/// round), every axis moved there. Returns the commanded and the read-back positions.
+/// Shared by every recipe kind, so an unreachable pose or a failing axis reads the same in
+/// all of them: the recipe, the pose index, the rig and the device are named.
+pub(crate) async fn reach_pose(
+    recipe: &Recipe,
+    rig: &Rig,
+    index: usize,
+    view: [f64; 2],
+    light: [f64; 2],
+    prev: Option<&[f64]>,
+) -> Result<(Vec<f64>, Vec<f64>), CalibrateError> {
+    let unreachable = |reason: String| CalibrateError::Unreachable {
+        recipe: recipe.name.clone(),
+        index,
+        view,
+        light,
+        rig: rig.spec.name.clone(),
+        reason,
+    };
+    let q = rig
+        .kinematics
+        .inverse(
+            Direction::from_degrees(light[0], light[1]),
+            Direction::from_degrees(view[0], view[1]),
+            prev,
+        )
+        .map_err(|e| unreachable(e.to_string()))?
+        .into_iter()
+        .next()
+        .ok_or_else(|| unreachable("no configuration".into()))?;
+    let mut q_read = Vec::with_capacity(q.len());
+    for (axis, &target) in rig.axes.iter().zip(&q) {
+        q_read.push(
+            axis.move_abs(target)
+                .await
+                .map_err(|cause| device_error(recipe, rig, axis.name(), cause))?,
+        );
+    }
+    Ok((q, q_read))
+}
+
+/// A device failure during a recipe, naming the recipe, the rig and the device.
+pub(crate) fn device_error(
+    recipe: &Recipe,
+    rig: &Rig,
+    device: &str,
+    cause: gonio_devices::DeviceError,
+) -> CalibrateError {
+    CalibrateError::Move {
+        recipe: recipe.name.clone(),
+        rig: rig.spec.name.clone(),
+        device: device.into(),
+        cause,
+    }
+}
+
 /// Lens distortion of the simulated camera from the rig file's camera options.
 fn sim_distortion(rig: &Rig) -> [f64; 5] {
     let mut d = [0.0; 5];
@@ -323,37 +381,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
     let mut prev: Option<Vec<f64>> = None;
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
-        let sols = rig
-            .kinematics
-            .inverse(
-                Direction::from_degrees(light[0], light[1]),
-                Direction::from_degrees(pose.view[0], pose.view[1]),
-                prev.as_deref(),
-            )
-            .map_err(|e| CalibrateError::Unreachable {
-                recipe: name.clone(),
-                index,
-                view: pose.view,
-                light,
-                rig: rig_name.clone(),
-                reason: e.to_string(),
-            })?;
-        let q = sols.into_iter().next().ok_or_else(|| CalibrateError::Unreachable {
-            recipe: name.clone(),
-            index,
-            view: pose.view,
-            light,
-            rig: rig_name.clone(),
-            reason: "no configuration".into(),
-        })?;
-        for (axis, &target) in rig.axes.iter().zip(&q) {
-            axis.move_abs(target).await.map_err(|cause| CalibrateError::Move {
-                recipe: name.clone(),
-                rig: rig_name.clone(),
-                device: axis.name().into(),
-                cause,
-            })?;
-        }
+        let (q, _) = reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
         let frame = rig.camera.capture().await.map_err(|cause| CalibrateError::Move {
             recipe: name.clone(),
             rig: rig_name.clone(),

@@ -22,7 +22,7 @@ use gonio_calibration::radiometric::{
     HdrDiagnosis, RadiometricError, ResponseCurve, ResponseFit, ResponseOptions,
 };
 use gonio_devices::image::RgbImage;
-use gonio_devices::{CameraConfig, Direction, Frame, Vec3};
+use gonio_devices::{CameraConfig, Frame, Vec3};
 use gonio_simulator::sensor::SensorResponse;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -349,33 +349,7 @@ async fn goto_pose(recipe: &Recipe, rig: &Rig) -> Result<([f64; 2], [f64; 2], Ve
         Some(p) => (p.view, p.light.unwrap_or(recipe.light)),
         None => ([0.0, 0.0], recipe.light),
     };
-    let unreachable = |reason: String| CalibrateError::Unreachable {
-        recipe: recipe.name.clone(),
-        index: 0,
-        view,
-        light,
-        rig: rig.spec.name.clone(),
-        reason,
-    };
-    let q = rig
-        .kinematics
-        .inverse(
-            Direction::from_degrees(light[0], light[1]),
-            Direction::from_degrees(view[0], view[1]),
-            None,
-        )
-        .map_err(|e| unreachable(e.to_string()))?
-        .into_iter()
-        .next()
-        .ok_or_else(|| unreachable("no configuration".into()))?;
-    for (axis, &target) in rig.axes.iter().zip(&q) {
-        axis.move_abs(target).await.map_err(|cause| CalibrateError::Move {
-            recipe: recipe.name.clone(),
-            rig: rig.spec.name.clone(),
-            device: axis.name().into(),
-            cause,
-        })?;
-    }
+    let (q, _) = super::reach_pose(recipe, rig, 0, view, light, None).await?;
     Ok((view, light, q))
 }
 

@@ -21,7 +21,6 @@ use gonio_calibration::intrinsics::CameraModel;
 use gonio_calibration::rig_geometry::{estimate_rig_geometry, RigGeometryFit, RigGeometryOptions, RigView};
 use gonio_devices::kinematics;
 use gonio_devices::rig::{AlignmentSpec, RigSpec};
-use gonio_devices::Direction;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -202,29 +201,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
     let mut prev: Option<Vec<f64>> = None;
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
-        let unreachable = |reason: String| CalibrateError::Unreachable {
-            recipe: name.clone(),
-            index,
-            view: pose.view,
-            light,
-            rig: rig_name.clone(),
-            reason,
-        };
-        let sols = rig
-            .kinematics
-            .inverse(
-                Direction::from_degrees(light[0], light[1]),
-                Direction::from_degrees(pose.view[0], pose.view[1]),
-                prev.as_deref(),
-            )
-            .map_err(|e| unreachable(e.to_string()))?;
-        let q = sols
-            .into_iter()
-            .next()
-            .ok_or_else(|| unreachable("no configuration".into()))?;
-        for (axis, &target) in rig.axes.iter().zip(&q) {
-            axis.move_abs(target).await.map_err(|c| dev(axis.name().into(), c))?;
-        }
+        let (q, _) = super::reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
         let frame = rig
             .camera
             .capture()

@@ -17,7 +17,6 @@ use super::apply::{LampModel, Radiometric};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::engine::{self, frame_to_linear, Rig};
 use crate::rectify::{rectify_frame, RectifyParams};
-use gonio_devices::Direction;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use thiserror::Error;
@@ -203,30 +202,7 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
     let mut prev: Option<Vec<f64>> = None;
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
-        let unreachable = |reason: String| CalibrateError::Unreachable {
-            recipe: name.clone(),
-            index,
-            view: pose.view,
-            light,
-            rig: rig_name.clone(),
-            reason,
-        };
-        let sols = rig
-            .kinematics
-            .inverse(
-                Direction::from_degrees(light[0], light[1]),
-                Direction::from_degrees(pose.view[0], pose.view[1]),
-                prev.as_deref(),
-            )
-            .map_err(|e| unreachable(e.to_string()))?;
-        let q = sols
-            .into_iter()
-            .next()
-            .ok_or_else(|| unreachable("no configuration".into()))?;
-        let mut q_read = Vec::with_capacity(q.len());
-        for (axis, &target) in rig.axes.iter().zip(&q) {
-            q_read.push(axis.move_abs(target).await.map_err(|c| device_err(axis.name(), c))?);
-        }
+        let (q, q_read) = super::reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
         rig.camera.rig_still();
         let frame = rig
             .camera
