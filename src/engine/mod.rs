@@ -294,6 +294,15 @@ type Driven = (Frame, capture::CaptureNotes, Vec<f64>, Vec<f64>);
 
 /// Move all axes to the step's targets (concurrently), wait until settled, capture (under
 /// the capture policy: bounded retries, stale frames discarded, saturation handled).
+///
+/// Whether the engine can judge a frame stale by its timestamp: only the simulated camera
+/// stamps frames on the rig clock. A V4L2 camera stamps CLOCK_MONOTONIC and applies its own
+/// rule after `rig_still`, also when the axes are simulated (the vivid campaign found the
+/// engine refusing every vivid frame when this looked at the clock alone).
+fn frames_on_rig_clock(spec: &gonio_devices::rig::RigSpec, rig_has_clock: bool) -> bool {
+    rig_has_clock && spec.camera.backend == "sim"
+}
+
 async fn drive_step(
     rig: &Rig,
     step: &Step,
@@ -315,11 +324,7 @@ async fn drive_step(
     }
     // A streaming camera must not hand out frames exposed during the move.
     rig.camera.rig_still();
-    // Only the simulated camera stamps frames on the rig clock, so only its frames can be
-    // judged here (a V4L2 camera stamps CLOCK_MONOTONIC and applies its own rule after
-    // `rig_still`, also when the axes are simulated).
-    let sim_camera = rig.clock.is_some() && rig.spec.camera.backend == "sim";
-    let still_at = sim_camera.then(|| rig.time());
+    let still_at = frames_on_rig_clock(&rig.spec, rig.clock.is_some()).then(|| rig.time());
     let t1 = Instant::now();
     let (frame, notes) = capture::capture_measurement(rig.camera.as_ref(), policy, camera_config, still_at)
         .await
@@ -503,4 +508,18 @@ fn progress_bar(len: u64, show: bool) -> indicatif::ProgressBar {
         .progress_chars("=> "),
     );
     bar
+}
+
+#[cfg(test)]
+mod stale_rule_tests {
+    /// Regression (vivid campaign): simulated axes with a V4L2 camera must not have their
+    /// frames judged on the rig clock.
+    #[test]
+    fn only_the_simulated_camera_is_judged_on_the_rig_clock() {
+        let mut spec = gonio_devices::rig::RigSpec::default_rig();
+        assert!(super::frames_on_rig_clock(&spec, true));
+        assert!(!super::frames_on_rig_clock(&spec, false));
+        spec.camera.backend = "v4l2".into();
+        assert!(!super::frames_on_rig_clock(&spec, true));
+    }
 }
