@@ -301,13 +301,21 @@ impl SampleSpec {
             MapSpec::Uniform => {}
             MapSpec::Grid { cols, rows, pitch_mm } => {
                 pos("map.pitch_mm", *pitch_mm)?;
-                let n = cols * rows;
-                if *cols == 0 || *rows == 0 || n + 1 > self.materials.len() {
+                // Saturating: a mutated file can ask for a grid whose patch count overflows
+                // (found by `fuzz_sample_toml`; corpus `sample/grid_overflow.toml`).
+                let needed = cols.saturating_mul(*rows).saturating_add(1);
+                if needed > 256 {
+                    // Patch indices are stored as u8 (one byte per map texel).
+                    return Err(bad(
+                        "map",
+                        format!("a {cols} × {rows} grid has more than 255 patches; at most 255 are supported"),
+                    ));
+                }
+                if *cols == 0 || *rows == 0 || needed > self.materials.len() {
                     return Err(bad(
                         "map",
                         format!(
-                            "a {cols} × {rows} grid needs {} [[material]] tables (one per patch, then the surround), {} given",
-                            n + 1,
+                            "a {cols} × {rows} grid needs {needed} [[material]] tables (one per patch, then the surround), {} given",
                             self.materials.len()
                         ),
                     ));
@@ -510,7 +518,7 @@ fn material_at(m: &MapSpec, x: f64, y: f64) -> u8 {
             if i >= 0.0 && j >= 0.0 && (i as usize) < cols && (j as usize) < rows {
                 (j as usize * cols + i as usize) as u8
             } else {
-                (cols * rows).min(255) as u8
+                cols.saturating_mul(rows).min(255) as u8
             }
         }
     }
