@@ -290,6 +290,25 @@ pub(crate) async fn reach_pose(
     Ok((q, q_read))
 }
 
+/// Home the rig and set the camera up (`engine::prepare`), then the recipe's exposure if it
+/// gives one. Returns the camera configuration in force (as the camera applied it).
+pub(crate) async fn prepare_rig(recipe: &Recipe, rig: &Rig) -> Result<gonio_devices::CameraConfig, CalibrateError> {
+    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
+        recipe: recipe.name.clone(),
+        rig: rig.spec.name.clone(),
+        cause: Box::new(cause),
+    })?;
+    if let Some(e) = recipe.exposure_s {
+        config.exposure = e;
+        config = rig
+            .camera
+            .configure(&config)
+            .await
+            .map_err(|cause| device_error(recipe, rig, rig.camera.name(), cause))?;
+    }
+    Ok(config)
+}
+
 /// A device failure during a recipe, naming the recipe, the rig and the device.
 pub(crate) fn device_error(
     recipe: &Recipe,
@@ -356,24 +375,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
     let rig_name = rig.spec.name.clone();
     let board = recipe.checkerboard.expect("validated: intrinsics recipes have a board");
     let t0 = rig.time();
-    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        cause: Box::new(cause),
-    })?;
-    if let Some(e) = recipe.exposure_s {
-        config.exposure = e;
-        config = rig
-            .camera
-            .configure(&config)
-            .await
-            .map_err(|cause| CalibrateError::Move {
-                recipe: name.clone(),
-                rig: rig_name.clone(),
-                device: rig.camera.name().into(),
-                cause,
-            })?;
-    }
+    let config = prepare_rig(recipe, rig).await?;
     tracing::info!(recipe = %name, exposure = config.exposure, "intrinsics: capturing {} poses", recipe.poses.len());
     let mut views = Vec::new();
     let mut capture_times = Vec::new();
@@ -382,12 +384,11 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
         let (q, _) = reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
-        let frame = rig.camera.capture().await.map_err(|cause| CalibrateError::Move {
-            recipe: name.clone(),
-            rig: rig_name.clone(),
-            device: rig.camera.name().into(),
-            cause,
-        })?;
+        let frame = rig
+            .camera
+            .capture()
+            .await
+            .map_err(|cause| device_error(recipe, rig, rig.camera.name(), cause))?;
         let raw = frame_to_linear(&frame);
         let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
             recipe: name.clone(),

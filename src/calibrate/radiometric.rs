@@ -16,7 +16,7 @@
 //! `calibration.json` tens of megabytes.
 
 use super::{CalibrateError, CalibrationResult, Recipe, RecipeKind, RunOutput};
-use crate::engine::{self, Rig};
+use crate::engine::Rig;
 use gonio_calibration::radiometric::{
     colour_matrix, dark_frame, flat_field, merge_hdr, recover_response, ColourMatrix, DarkFrame, FlatField,
     HdrDiagnosis, RadiometricError, ResponseCurve, ResponseFit, ResponseOptions,
@@ -363,12 +363,7 @@ async fn capture(
     per: usize,
 ) -> Result<(Vec<Vec<Frame>>, Vec<f64>), CalibrateError> {
     let t0 = rig.time();
-    let dev = |cause| CalibrateError::Move {
-        recipe: recipe.name.clone(),
-        rig: rig.spec.name.clone(),
-        device: rig.camera.name().into(),
-        cause,
-    };
+    let dev = |cause| super::device_error(recipe, rig, rig.camera.name(), cause);
     let mut out = Vec::new();
     let mut times = Vec::new();
     for &e in exposures {
@@ -517,11 +512,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
     let rig_name = rig.spec.name.clone();
     let simulated = rig.clock.is_some();
     let t0 = rig.time();
-    let config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        cause: Box::new(cause),
-    })?;
+    let config = super::prepare_rig(recipe, rig).await?;
     let (view, light, q) = goto_pose(recipe, rig).await?;
     let mut exposures = spec.exposures_s.clone();
     if exposures.is_empty() {

@@ -15,7 +15,7 @@
 //! applying the estimate, and the error against the number of views.
 
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
-use crate::engine::{self, frame_to_linear, Rig};
+use crate::engine::{frame_to_linear, Rig};
 use gonio_calibration::checkerboard::detect_checkerboard;
 use gonio_calibration::intrinsics::CameraModel;
 use gonio_calibration::rig_geometry::{estimate_rig_geometry, RigGeometryFit, RigGeometryOptions, RigView};
@@ -177,24 +177,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
         .expect("validated: rig-geometry recipes have a board");
     let opts: RigGeometryOptions = recipe.rig_geometry.clone().unwrap_or_default();
     let t0 = rig.time();
-    let dev = |device: String, cause| CalibrateError::Move {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        device,
-        cause,
-    };
-    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        cause: Box::new(cause),
-    })?;
-    if let Some(e) = recipe.exposure_s {
-        config.exposure = e;
-        rig.camera
-            .configure(&config)
-            .await
-            .map_err(|c| dev(rig.camera.name().into(), c))?;
-    }
+    super::prepare_rig(recipe, rig).await?;
     tracing::info!(recipe = %name, "rig geometry: capturing {} poses", recipe.poses.len());
     let mut views = Vec::new();
     let mut capture_times = Vec::new();
@@ -206,7 +189,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
             .camera
             .capture()
             .await
-            .map_err(|c| dev(rig.camera.name().into(), c))?;
+            .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
         let raw = frame_to_linear(&frame);
         let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
             recipe: name.clone(),

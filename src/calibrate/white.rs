@@ -15,7 +15,7 @@
 
 use super::apply::{LampModel, Radiometric};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
-use crate::engine::{self, frame_to_linear, Rig};
+use crate::engine::{frame_to_linear, Rig};
 use crate::rectify::{rectify_frame, RectifyParams};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -170,24 +170,7 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
     };
     let lamp = LampModel::from_rig(&rig.spec).map_err(|e| fail(e.into()))?;
     let t0 = rig.time();
-    let mut config = engine::prepare(rig).await.map_err(|cause| CalibrateError::Device {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        cause: Box::new(cause),
-    })?;
-    let device_err = |device: &str, cause: gonio_devices::DeviceError| CalibrateError::Move {
-        recipe: name.clone(),
-        rig: rig_name.clone(),
-        device: device.into(),
-        cause,
-    };
-    if let Some(e) = recipe.exposure_s {
-        config.exposure = e;
-        rig.camera
-            .configure(&config)
-            .await
-            .map_err(|c| device_err(rig.camera.name(), c))?;
-    }
+    super::prepare_rig(recipe, rig).await?;
     let params = RectifyParams {
         width: spec.texels,
         height: spec.texels,
@@ -208,7 +191,7 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
             .camera
             .capture()
             .await
-            .map_err(|c| device_err(rig.camera.name(), c))?;
+            .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
         let raw = frame_to_linear(&frame);
         let cam_pose = rig.kinematics.camera_pose(&q_read);
         let rect = rectify_frame(&raw, &intr, &cam_pose, &rig.border, &params).map_err(|e| {

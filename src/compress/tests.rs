@@ -267,14 +267,10 @@ fn non_finite_input_is_rejected_naming_file_and_measurement() {
     }
 }
 
-/// f32 against f64 SVD on one view-sized matrix with a large dynamic range (singular
-/// values 1 … 1e-7, as between a specular highlight and shadowed texels). The truncation
-/// error of the f64 SVD is the optimal one (the dropped singular values); f32's floor is
-/// ~1e-7 relative to σ₁, so it cannot resolve components below that. Printed with
-/// `--nocapture`; the production code runs the SVD in f64.
-#[test]
-fn f32_versus_f64_svd_accuracy() {
-    let (m, n) = (512, 45);
+/// An m × n matrix with known singular values 1 … 1e-7 (log-spaced) and generic singular
+/// vectors: the large dynamic range of a view matrix (specular highlight against shadowed
+/// texels). Returns the matrix and its singular values.
+fn graded_matrix(m: usize, n: usize) -> (Mat<f64>, Vec<f64>) {
     let u = Mat::<f64>::from_fn(m, n, |i, j| {
         noisy(j % 5, j / 5, i, 0) as f64 - 0.2 + (i == j) as u8 as f64
     });
@@ -283,6 +279,18 @@ fn f32_versus_f64_svd_accuracy() {
     let qv = v.qr().compute_thin_Q();
     let sigma: Vec<f64> = (0..n).map(|k| 10f64.powf(-7.0 * k as f64 / (n - 1) as f64)).collect();
     let a = Mat::<f64>::from_fn(m, n, |i, j| (0..n).map(|k| qu[(i, k)] * sigma[k] * qv[(j, k)]).sum());
+    (a, sigma)
+}
+
+/// f32 against f64 SVD on one view-sized matrix with a large dynamic range (singular
+/// values 1 … 1e-7, as between a specular highlight and shadowed texels). The truncation
+/// error of the f64 SVD is the optimal one (the dropped singular values); f32's floor is
+/// ~1e-7 relative to σ₁, so it cannot resolve components below that. Printed with
+/// `--nocapture`; the production code runs the SVD in f64.
+#[test]
+fn f32_versus_f64_svd_accuracy() {
+    let (m, n) = (512, 45);
+    let (a, sigma) = graded_matrix(m, n);
     let a32 = Mat::<f32>::from_fn(m, n, |i, j| a[(i, j)] as f32);
     let svd = a32.thin_svd().unwrap();
     let (u32m, s32, v32) = (svd.U(), svd.S().column_vector(), svd.V());
@@ -375,14 +383,7 @@ fn f32_versus_f64_on_a_dataset() {
 #[test]
 fn gram_path_matches_the_svd_path() {
     let (m, n) = (2048, 45);
-    let u = Mat::<f64>::from_fn(m, n, |i, j| {
-        noisy(j % 5, j / 5, i, 0) as f64 - 0.2 + (i == j) as u8 as f64
-    });
-    let v = Mat::<f64>::from_fn(n, n, |i, j| noisy(i % 5, 3, j, 1) as f64 + (i == j) as u8 as f64);
-    let qu = u.qr().compute_thin_Q();
-    let qv = v.qr().compute_thin_Q();
-    let sigma: Vec<f64> = (0..n).map(|k| 10f64.powf(-7.0 * k as f64 / (n - 1) as f64)).collect();
-    let a = Mat::<f64>::from_fn(m, n, |i, j| (0..n).map(|k| qu[(i, k)] * sigma[k] * qv[(j, k)]).sum());
+    let (a, sigma) = graded_matrix(m, n);
     let a32 = Mat::<f32>::from_fn(m, n, |i, j| a[(i, j)] as f32);
     let g32 = a32.transpose() * &a32;
     let eig32 = g32.self_adjoint_eigen(faer::Side::Lower).unwrap();
