@@ -10,12 +10,16 @@ if [ -x "$GONIO_VENV/bin/python" ]; then
   export GONIO_PYTHON="$GONIO_VENV/bin/python"
 fi
 
+# Disk use, printed between stages: a full disk is a CI failure of its own.
+disk() { echo "disk: target $(du -sh target 2>/dev/null | cut -f1), free $(df -h --output=avail . | tail -1 | tr -d ' ')"; }
+
 echo "== cargo fmt --check"
 cargo fmt --all -- --check
 echo "== cargo clippy (warnings denied)"
 cargo clippy --workspace --all-targets -- -D warnings
 echo "== cargo test"
 cargo test --workspace
+disk
 echo "== campaign figures (kill -9, storage and serial faults)"
 # (one test thread: the rows of a table must not interleave; -q prints progress dots
 # in front of a row, hence grep -o)
@@ -34,6 +38,7 @@ bash tests/interop/run.sh
 # Needs apt-get (to download the Debian kernel/busybox/QEMU packages, never installed) and
 # libclang (the `v4l2` feature's bindgen). Mandatory under CI; elsewhere skipped with a
 # notice when those are missing.
+disk
 echo "== vivid (V4L2 backend in a VM)"
 if command -v apt-get >/dev/null && { [ -n "$(ls /usr/lib/llvm-*/lib/libclang-[0-9]*.so* 2>/dev/null)" ] || [ -n "${LIBCLANG_PATH:-}" ]; }; then
   bash tests/vivid/run.sh
@@ -43,3 +48,4 @@ elif [ -n "${CI:-}" ]; then
 else
   echo "vivid: skipped (needs apt-get and libclang-dev; run .ci/run)"
 fi
+disk
