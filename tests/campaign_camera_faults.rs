@@ -16,15 +16,9 @@ mod common;
 use gonio::store::{self, MeasurementRecord};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 
-use common::{bin, write_scene};
-
-/// One row of the campaign table (same columns as campaign_faults and serial_drivers).
-fn fault_row(fault: &str, lost: usize, outcome: &str) {
-    println!("faults: {fault:<58} | {lost:<5} | {outcome}");
-}
+use common::{acquire, fault_row, resume, write_scene};
 
 /// The reduced scene with extra camera options (TOML inline-table entries).
 fn scene(dir: &Path, camera_options: &str) -> (PathBuf, PathBuf) {
@@ -38,31 +32,6 @@ fn scene(dir: &Path, camera_options: &str) -> (PathBuf, PathBuf) {
     )
     .unwrap();
     (rig, sweep)
-}
-
-fn acquire(rig: &Path, sweep: &Path, out: &Path) -> Output {
-    Command::new(bin())
-        .arg("acquire")
-        .arg("--rig")
-        .arg(rig)
-        .arg("--sweep")
-        .arg(sweep)
-        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
-        .arg(out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap()
-}
-
-fn resume(dir: &Path) -> Output {
-    Command::new(bin())
-        .args(["acquire", "--json", "--resume"])
-        .arg(dir)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap()
 }
 
 fn records(dir: &Path) -> BTreeMap<usize, MeasurementRecord> {

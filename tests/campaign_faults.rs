@@ -20,31 +20,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{bin, write_scene};
-
-fn acquire_cmd(rig: &Path, sweep: &Path, out: &Path) -> Command {
-    let mut c = Command::new(bin());
-    c.arg("acquire")
-        .arg("--rig")
-        .arg(rig)
-        .arg("--sweep")
-        .arg(sweep)
-        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
-        .arg(out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    c
-}
-
-fn resume(dir: &Path) -> Output {
-    Command::new(bin())
-        .args(["acquire", "--json", "--resume"])
-        .arg(dir)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap()
-}
+use common::{acquire_cmd, resume, write_scene};
 
 fn sh(args: &[&str]) -> bool {
     Command::new(args[0])

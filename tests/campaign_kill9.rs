@@ -22,10 +22,10 @@ mod common;
 use gonio::store::{self, MeasurementRecord};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{bin, write_scene};
+use common::{acquire_cmd, bin, resume_cmd, write_scene};
 
 /// SplitMix64 stream over the simulator's `mix64`, so a failing trial can be replayed by
 /// its seed.
@@ -44,29 +44,6 @@ impl Rng {
 
 fn env_u64(name: &str, default: u64) -> u64 {
     std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
-}
-
-pub fn acquire_cmd(rig: &Path, sweep: &Path, out: &Path) -> Command {
-    let mut c = Command::new(bin());
-    c.arg("acquire")
-        .arg("--rig")
-        .arg(rig)
-        .arg("--sweep")
-        .arg(sweep)
-        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
-        .arg(out)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    c
-}
-
-fn resume_cmd(dir: &Path) -> Command {
-    let mut c = Command::new(bin());
-    c.args(["acquire", "--json", "--resume"])
-        .arg(dir)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
-    c
 }
 
 /// When to kill.

@@ -14,10 +14,7 @@ use gonio_simulator::emulate::{spawn_pty, EmulatorConfig, EmulatorHandle, FaultP
 use std::path::Path;
 use std::sync::Arc;
 
-/// One row of the campaign table `tests/run.sh` prints (same columns as campaign_faults).
-fn fault_row(fault: &str, lost: &str, outcome: &str) {
-    println!("faults: {fault:<58} | {lost:<5} | {outcome}");
-}
+use common::fault_row;
 
 fn emulator(protocol: Protocol, axes: usize, faults: &[&str]) -> EmulatorHandle {
     let cfg = EmulatorConfig::new(protocol, axes).with_faults(FaultPlan::parse(faults).unwrap());

@@ -1,6 +1,9 @@
 //! Helpers shared by the campaign tests (each `tests/*.rs` that needs them says `mod common;`).
+//! Each test binary uses a subset of them, hence the `dead_code` allowance.
+#![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
 
 /// The binary under test, copied once per test process: other builds sharing the target
 /// directory may replace `target/debug/gonio` while a campaign runs (that happened here and
@@ -54,4 +57,45 @@ pub fn write_scene(dir: &Path) -> (PathBuf, PathBuf) {
     )
     .unwrap();
     (rig, sweep)
+}
+
+/// `gonio acquire` of the reduced scene: 32² images, no planning time, a fixed seed,
+/// JSON progress discarded and stderr captured (the campaigns read the errors).
+pub fn acquire_cmd(rig: &Path, sweep: &Path, out: &Path) -> Command {
+    let mut c = Command::new(bin());
+    c.arg("acquire")
+        .arg("--rig")
+        .arg(rig)
+        .arg("--sweep")
+        .arg(sweep)
+        .args(["--size", "32x32", "--plan-time", "0", "--seed", "7", "--json", "--out"])
+        .arg(out)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    c
+}
+
+/// `gonio acquire --resume DIR`, output handled as by [`acquire_cmd`].
+pub fn resume_cmd(dir: &Path) -> Command {
+    let mut c = Command::new(bin());
+    c.args(["acquire", "--json", "--resume"])
+        .arg(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    c
+}
+
+/// Run [`acquire_cmd`] to its end.
+pub fn acquire(rig: &Path, sweep: &Path, out: &Path) -> Output {
+    acquire_cmd(rig, sweep, out).output().unwrap()
+}
+
+/// Run [`resume_cmd`] to its end.
+pub fn resume(dir: &Path) -> Output {
+    resume_cmd(dir).output().unwrap()
+}
+
+/// One row of the `faults:` table that tests/run.sh collects from every campaign.
+pub fn fault_row(fault: &str, lost: impl std::fmt::Display, outcome: &str) {
+    println!("faults: {:<58} | {:<5} | {outcome}", fault, lost.to_string());
 }
