@@ -460,7 +460,8 @@ struct SpeedReport {
     /// GEMM on the same shapes.
     full_view_qr_svd_seconds: f64,
     full_view_gram_seconds: f64,
-    /// AᵀA lower triangle (`triangular::matmul`), GFLOP/s counting m·n·(n+1).
+    /// AᵀA lower triangle as PVMF computes it (`factor::gram_by_row_chunks`), GFLOP/s
+    /// counting m·n·(n+1).
     full_view_gram_product_gflops: f64,
     /// Plain faer `Aᵀ * A` (all n² entries), GFLOP/s counting 2·m·n².
     full_view_gemm_ata_gflops: f64,
@@ -469,7 +470,16 @@ struct SpeedReport {
     /// `factor::gram_lower` with b column blocks: (b, seconds), the rejected alternative
     /// to the triangular product PVMF uses (`full_view_triangular_gram_seconds`).
     full_view_gram_blocked_seconds: Vec<(usize, f64)>,
+    /// faer's own parallel triangular product (`triangular::matmul`, PVMF's product until
+    /// session 4) and the row-chunked product PVMF uses now, alone on an idle pool.
     full_view_triangular_gram_seconds: f64,
+    full_view_chunked_gram_seconds: f64,
+    /// The same two while another thread reads a view (`DatasetViews::view_columns`, its
+    /// own rayon tasks), as PVMF's reader thread does during the encode. faer's parallel
+    /// product splits the output between the threads and waits for the slowest; the
+    /// chunked one hands out 16 whole products that either thread can take.
+    full_view_triangular_gram_under_read_seconds: f64,
+    full_view_chunked_gram_under_read_seconds: f64,
     /// Gram product rate over the plain AᵀA GEMM rate (same flop count convention).
     full_view_gram_product_vs_gemm: f64,
     /// Whole Gram path (useful flops as above over its time) over the plain GEMM rate.
@@ -570,6 +580,42 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
             faer::get_global_parallelism(),
         )
     });
+    let chunked = |big: &Mat<f64>| {
+        std::hint::black_box(crate::compress::factor::gram_by_row_chunks(big.as_ref()));
+    };
+    let chunk_s = best(&mut || chunked(&big));
+    // Both products again while a reader thread loads views, as during PVMF's encode.
+    let under_read = |f: &mut dyn FnMut()| -> f64 {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let stop = AtomicBool::new(false);
+        std::thread::scope(|scope| {
+            scope.spawn(|| {
+                while !stop.load(Ordering::Relaxed) {
+                    let _ = std::hint::black_box(ds.view_columns(0));
+                }
+            });
+            // The mean, not the best: contention is what is measured here.
+            let reps = 8;
+            let t0 = Instant::now();
+            (0..reps).for_each(|_| f());
+            stop.store(true, Ordering::Relaxed);
+            t0.elapsed().as_secs_f64() / reps as f64
+        })
+    };
+    let tri_read_s = under_read(&mut || {
+        tri_matmul(
+            g.as_mut(),
+            BlockStructure::TriangularLower,
+            faer::Accum::Replace,
+            big.transpose(),
+            BlockStructure::Rectangular,
+            big.as_ref(),
+            BlockStructure::Rectangular,
+            1.0,
+            faer::get_global_parallelism(),
+        )
+    });
+    let chunk_read_s = under_read(&mut || chunked(&big));
     let ata_s = best(&mut || {
         std::hint::black_box(big.transpose() * &big);
     });
@@ -585,7 +631,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
             (b, s)
         })
         .collect();
-    let tri_gflops = (65536 * n * (n + 1)) as f64 / tri_s / 1e9;
+    let tri_gflops = (65536 * n * (n + 1)) as f64 / chunk_s / 1e9;
     let ata_gflops = 2.0 * (65536 * n * n) as f64 / ata_s / 1e9;
     let full_gemm = 2.0 * (65536 * n * n) as f64 / ay_s / 1e9;
     drop(big);
@@ -638,6 +684,9 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
         full_view_gemm_gflops: full_gemm,
         full_view_gram_blocked_seconds: blocked,
         full_view_triangular_gram_seconds: tri_s,
+        full_view_chunked_gram_seconds: chunk_s,
+        full_view_triangular_gram_under_read_seconds: tri_read_s,
+        full_view_chunked_gram_under_read_seconds: chunk_read_s,
         full_view_gram_product_vs_gemm: tri_gflops / ata_gflops,
         full_view_gram_path_vs_gemm: useful_gram_flops(65536) / full_gram / 1e9 / ata_gflops,
         extrapolated_full_read_seconds: per(read_s) * scale,

@@ -4,6 +4,7 @@ use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::{DatasetViews, ViewMatrix};
 use super::CompressError;
 use faer::{Mat, MatRef};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Compression method.
@@ -153,8 +154,8 @@ pub const GRAM_MIN_EIGEN_RATIO: f64 = 1e-8;
 /// faer GEMMs over `blocks` column blocks; the rest is left zero. Only `gonio bench
 /// compress --speed` uses it, as the alternative that was measured and rejected: on a
 /// 65536 × 243 view (release, 2 cores at load ≈ 6) b = 1 took 1.08 s, b = 3 2.23 s,
-/// b = 9 1.82 s, against 1.05 s for faer's triangular product that
-/// [`gram_truncated`] uses (which itself runs at ~0.55× faer's plain GEMM rate).
+/// b = 9 1.82 s, against 1.05 s for faer's parallel triangular product (PVMF's product
+/// until it was replaced by the row-chunked [`gram_by_row_chunks`]).
 pub fn gram_lower(a: MatRef<'_, f64>, blocks: usize) -> Mat<f64> {
     let n = a.ncols();
     let nb = blocks.clamp(1, n.max(1));
@@ -177,6 +178,56 @@ pub fn gram_lower(a: MatRef<'_, f64>, blocks: usize) -> Mat<f64> {
     g
 }
 
+/// Rows per chunk of [`gram_by_row_chunks`]: a 4096 × 243 f64 chunk is 8 MiB, so a
+/// chunk's product streams through L2/L3 once while faer's kernel runs at its full rate.
+const GRAM_CHUNK_ROWS: usize = 4096;
+
+/// The lower triangle (with the diagonal) of `AᵀA`, as a sum of per-chunk products over
+/// fixed blocks of [`GRAM_CHUNK_ROWS`] rows.
+///
+/// Why: for a tall, narrow view matrix (65536 × 243) faer's own parallel triangular
+/// product splits the 243 × 243 output between the threads, which leaves each thread a
+/// small, bandwidth-bound product; splitting the long inner dimension instead gives each
+/// thread whole sequential products at the kernel's full rate (measured by `gonio bench
+/// compress --speed`). The chunk boundaries do not depend on the thread count and the
+/// partial sums are added in chunk order, so the result is the same bits on any machine
+/// for the same input.
+pub fn gram_by_row_chunks(a: MatRef<'_, f64>) -> Mat<f64> {
+    use faer::linalg::matmul::triangular::{matmul, BlockStructure};
+    let (m, n) = (a.nrows(), a.ncols());
+    let chunks = m.div_ceil(GRAM_CHUNK_ROWS).max(1);
+    let partial: Vec<Mat<f64>> = (0..chunks)
+        .into_par_iter()
+        .map(|k| {
+            let r0 = k * GRAM_CHUNK_ROWS;
+            let rows = GRAM_CHUNK_ROWS.min(m - r0.min(m));
+            let s = a.subrows(r0.min(m), rows);
+            let mut g = Mat::<f64>::zeros(n, n);
+            matmul(
+                g.as_mut(),
+                BlockStructure::TriangularLower,
+                faer::Accum::Replace,
+                s.transpose(),
+                BlockStructure::Rectangular,
+                s,
+                BlockStructure::Rectangular,
+                1.0,
+                faer::Par::Seq,
+            );
+            g
+        })
+        .collect();
+    let mut sum = Mat::<f64>::zeros(n, n);
+    for g in &partial {
+        for j in 0..n {
+            for i in j..n {
+                sum[(i, j)] += g[(i, j)];
+            }
+        }
+    }
+    sum
+}
+
 /// Rank-`c` factorization `A ≈ (A·V)·Vᵀ` from the eigen-decomposition of the Gram matrix
 /// `G = AᵀA` (all in f64): `V` = the eigenvectors of the `c` largest eigenvalues, which are
 /// the right singular vectors of `A`, and `A·V = U·S`. Returns `None` when the Gram
@@ -184,29 +235,17 @@ pub fn gram_lower(a: MatRef<'_, f64>, blocks: usize) -> Mat<f64> {
 /// uses [`truncated_svd`].
 ///
 /// Why: for a tall `m × n` view matrix (65536 × 243) the Gram matrix is one symmetric
-/// product (`m·n²` flops: faer's triangular matmul computes the lower triangle only) and
+/// product (`m·n²` flops: [`gram_by_row_chunks`] computes the lower triangle only) and
 /// `A·V` another `2·m·n·c`;
 /// the QR path costs `4·m·n²` (factorization plus forming Q). The eigen-decomposition of
 /// the 243 × 243 Gram matrix is negligible.
 pub fn gram_truncated(a: MatRef<'_, f64>, c: usize) -> Result<Option<Factors>, CompressError> {
-    use faer::linalg::matmul::triangular::{matmul, BlockStructure};
     let (m, n) = (a.nrows(), a.ncols());
     let k = c.min(m).min(n);
     if k == 0 {
         return Ok(None);
     }
-    let mut g = Mat::<f64>::zeros(n, n);
-    matmul(
-        g.as_mut(),
-        BlockStructure::TriangularLower,
-        faer::Accum::Replace,
-        a.transpose(),
-        BlockStructure::Rectangular,
-        a,
-        BlockStructure::Rectangular,
-        1.0,
-        faer::get_global_parallelism(),
-    );
+    let g = gram_by_row_chunks(a);
     let eig = g
         .self_adjoint_eigen(faer::Side::Lower)
         .map_err(|e| CompressError::Svd(format!("Gram eigen-decomposition: {e:?}")))?;
