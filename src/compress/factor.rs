@@ -16,9 +16,14 @@ pub enum Method {
     /// Per-view matrix factorization (one truncated SVD per view).
     Pvmf,
     /// Local PCA / PCMF (`local_pca`): `clusters` clusters of ABRDFs with `components`
-    /// eigen-ABRDFs each, at most `iters` alternation rounds.
+    /// eigen-ABRDFs each, at most `iters` alternation rounds, run in a global subspace of
+    /// `subspace` dimensions (0: in the full ABRDF space).
     #[serde(rename = "local-pca")]
-    LocalPca { clusters: usize, iters: usize },
+    LocalPca {
+        clusters: usize,
+        iters: usize,
+        subspace: usize,
+    },
     /// Median-cut quantization of ABRDFs (`median_cut`): index image + BRDF block.
     #[serde(rename = "median-cut")]
     MedianCut {
@@ -513,6 +518,9 @@ pub struct CompressedBtf {
     pub gbtf: Gbtf,
     method: Method,
     c: usize,
+    /// Homomorphic files only: the factor tables in direction-major order for decoding
+    /// (see [`super::homomorphic::DirectionMajor`]).
+    homomorphic: Option<Box<super::homomorphic::DirectionMajor>>,
 }
 
 /// Index of the direction in `list` within 0.01° of `deg` (angle between the unit vectors).
@@ -546,8 +554,17 @@ impl CompressedBtf {
                 let (_, c) = super::local_pca::validate(h)?;
                 let k = h.blocks[2].rows;
                 super::local_pca::check_indices(&gbtf.blocks[0], k, "cluster")?;
-                let method = Method::LocalPca { clusters: k, iters: 0 };
-                return Ok(CompressedBtf { gbtf, method, c });
+                let method = Method::LocalPca {
+                    clusters: k,
+                    iters: 0,
+                    subspace: 0,
+                };
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method,
+                    c,
+                    homomorphic: None,
+                });
             }
             "median-cut" => {
                 let boxes = super::median_cut::validate(&gbtf)?;
@@ -556,12 +573,23 @@ impl CompressedBtf {
                     balanced: false,
                     min_error_cut: false,
                 };
-                return Ok(CompressedBtf { gbtf, method, c: 0 });
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method,
+                    c: 0,
+                    homomorphic: None,
+                });
             }
             "homomorphic" => {
                 let half_bins = super::homomorphic::validate(h)?;
                 let method = Method::Homomorphic { half_bins, sweeps: 0 };
-                return Ok(CompressedBtf { gbtf, method, c: 0 });
+                let tables = Box::new(super::homomorphic::DirectionMajor::new(&gbtf, half_bins));
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method,
+                    c: 0,
+                    homomorphic: Some(tables),
+                });
             }
             m => return Err(bad(format!("unknown method {m:?}"))),
         };
@@ -579,7 +607,12 @@ impl CompressedBtf {
         if got != want || c == 0 {
             return Err(bad(format!("block shapes {got:?} do not match the header's grid")));
         }
-        Ok(CompressedBtf { gbtf, method, c })
+        Ok(CompressedBtf {
+            gbtf,
+            method,
+            c,
+            homomorphic: None,
+        })
     }
 
     pub fn method(&self) -> Method {
@@ -603,8 +636,8 @@ impl CompressedBtf {
             )));
         }
         let c = self.c;
-        if let Method::Homomorphic { half_bins, .. } = self.method {
-            return Ok(super::homomorphic::reconstruct(&self.gbtf, half_bins, light, view));
+        if let Some(tables) = &self.homomorphic {
+            return Ok(tables.reconstruct(&self.gbtf.header, light, view));
         }
         if let Method::MedianCut { .. } = self.method {
             return Ok(super::median_cut::reconstruct(&self.gbtf, light, view));

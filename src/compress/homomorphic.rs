@@ -279,7 +279,83 @@ pub fn validate(h: &GbtfHeader) -> Result<usize, CompressError> {
     Ok(nh)
 }
 
-/// Reconstruct image (`light`, `view`) of a validated homomorphic file.
+/// The factor tables of a validated homomorphic file in direction-major order: for each
+/// light (view, half-vector bin) the `texels × 3` values of all texels, contiguous.
+///
+/// Why: the file stores the factors texel-major (one ABRDF's tables together, which is
+/// what fitting writes and what the container's per-texel layout documents), so decoding
+/// one image from it gathers three values per texel from rows 81 · 3 floats apart: one
+/// cache miss each, 10.8 ms per 256² image. Transposed once when the file is opened, an
+/// image is three contiguous streams and one `exp` per value, split across the threads.
+/// It costs a second copy of the tables in memory while the file is open. The arithmetic
+/// is the file-layout decoder's ([`reconstruct`]), in the same order, so the images are
+/// bit-identical (a test checks it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DirectionMajor {
+    albedo: Vec<f32>,
+    light: Vec<f32>,
+    view: Vec<f32>,
+    half: Vec<f32>,
+    half_bins: usize,
+}
+
+impl DirectionMajor {
+    /// Transpose the blocks of a file that passed [`validate`] (`half_bins` from it).
+    pub fn new(g: &Gbtf, half_bins: usize) -> Self {
+        let t = g.header.width * g.header.height;
+        let transpose = |block: &[f32], dirs: usize| {
+            let mut out = vec![0f32; dirs * t * 3];
+            out.par_chunks_mut(t * 3).enumerate().for_each(|(d, plane)| {
+                for (i, px) in plane.chunks_exact_mut(3).enumerate() {
+                    px.copy_from_slice(&block[(i * dirs + d) * 3..(i * dirs + d) * 3 + 3]);
+                }
+            });
+            out
+        };
+        DirectionMajor {
+            albedo: g.blocks[0].clone(),
+            light: transpose(&g.blocks[1], g.header.lights_deg.len()),
+            view: transpose(&g.blocks[2], g.header.views_deg.len()),
+            half: if half_bins > 0 {
+                transpose(&g.blocks[3], half_bins)
+            } else {
+                Vec::new()
+            },
+            half_bins,
+        }
+    }
+
+    /// Image (`light`, `view`), interleaved linear RGB; indices checked by the caller.
+    pub fn reconstruct(&self, h: &GbtfHeader, light: usize, view: usize) -> Vec<f32> {
+        let n = self.albedo.len();
+        let (p, q) = (&self.light[light * n..][..n], &self.view[view * n..][..n]);
+        let r = (self.half_bins > 0).then(|| {
+            let bin = half_bins_of(&[h.lights_deg[light]], &[h.views_deg[view]], self.half_bins)[0] as usize;
+            &self.half[bin * n..][..n]
+        });
+        let mut out = vec![0f32; n];
+        const CHUNK: usize = 8192;
+        out.par_chunks_mut(CHUNK).enumerate().for_each(|(k, o)| {
+            let i0 = k * CHUNK;
+            for (j, o) in o.iter_mut().enumerate() {
+                let i = i0 + j;
+                let a = self.albedo[i];
+                if a <= 0.0 {
+                    continue;
+                }
+                let mut s = p[i] + q[i];
+                if let Some(r) = r {
+                    s += r[i];
+                }
+                *o = (a * (s.exp() - EPSILON as f32)).max(0.0);
+            }
+        });
+        out
+    }
+}
+
+/// Reconstruct image (`light`, `view`) of a validated homomorphic file from its own
+/// (texel-major) layout: the reference decoder; [`DirectionMajor`] is the fast one.
 pub fn reconstruct(g: &Gbtf, nh: usize, light: usize, view: usize) -> Vec<f32> {
     let h = &g.header;
     let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
@@ -314,6 +390,60 @@ mod tests {
 
     fn params(half_bins: usize) -> Params {
         Params::new(Method::Homomorphic { half_bins, sweeps: 30 }, 1)
+    }
+
+    /// The direction-major decoder gives the file-layout decoder's images bit for bit, on
+    /// a fitted file and on a 64² file of arbitrary factors (more values than one decode
+    /// chunk, some texels with a non-positive mean), with and without half-vector bins.
+    #[test]
+    fn direction_major_decoder_is_bit_identical_to_the_reference() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| {
+            0.1 + hash(t, c) * hash(t + 7, l * 3 + c) * (0.3 + hash(t + 9, v))
+        });
+        for bins in [0, 3] {
+            let (g, m) = round_trip(&ds, &params(bins), &tmp.path().join("a.gbtf"));
+            let mut big = g.clone();
+            let (w, h) = (64, 64);
+            big.header.width = w;
+            big.header.height = h;
+            let t = w * h;
+            for (k, (info, block)) in big.header.blocks.iter_mut().zip(big.blocks.iter_mut()).enumerate() {
+                info.rows = t;
+                *block = (0..t * info.cols)
+                    .map(|i| {
+                        let x = hash(i, k + 40);
+                        if k == 0 {
+                            x - 0.1 // some means ≤ 0: decoded as 0
+                        } else {
+                            3.0 * x - 2.0
+                        }
+                    })
+                    .collect();
+            }
+            let nh = validate(&big.header).unwrap();
+            assert_eq!(nh, bins);
+            let fast = DirectionMajor::new(&big, nh);
+            let (nl, nv) = (g.header.lights_deg.len(), g.header.views_deg.len());
+            for l in 0..nl {
+                for v in 0..nv {
+                    let a = reconstruct(&big, nh, l, v);
+                    let b = fast.reconstruct(&big.header, l, v);
+                    assert!(
+                        a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                        "64², {bins} bins, pair ({l}, {v}) differs"
+                    );
+                    let small = m.reconstruct(l, v).unwrap();
+                    assert!(
+                        small
+                            .iter()
+                            .zip(reconstruct(&g, nh, l, v))
+                            .all(|(x, y)| x.to_bits() == y.to_bits()),
+                        "fitted file, {bins} bins, pair ({l}, {v}) differs"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

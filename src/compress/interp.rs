@@ -164,6 +164,8 @@ impl BtfModel for CompressedBtf {
 }
 
 /// A compressed file of either kind, opened by its signature.
+// One value per opened file, never in a collection: the size difference costs nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum AnyModel {
     Gbtf(CompressedBtf),
     Dfmf(Dfmf),
