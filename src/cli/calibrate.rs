@@ -172,6 +172,66 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
             }
         }
     }
+    if let Some(g) = &r.rig_geometry {
+        print_rig_geometry(g);
+    }
     println!("  rig time {:.1} s; wrote {}", r.rig_time_s, path.display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// The human summary of a rig-geometry calibration: each estimated parameter (with the
+/// truth on the simulator), the reprojection before and after, the direction errors over
+/// the Bonn pairs and the error-versus-views table.
+fn print_rig_geometry(g: &calibrate::rig_geometry::RigGeometryCalibration) {
+    let f = &g.fit;
+    println!(
+        "  {} views, {} corners, reprojection RMS {:.4} px (nominal kinematics {:.4} px), condition {:.3e}, {} LM iterations",
+        g.view_axes_deg.len(),
+        f.points,
+        f.rms_px,
+        f.initial_rms_px,
+        f.condition,
+        f.iterations
+    );
+    println!("  parameter                     estimate_°   σ_°        truth_°    error_°");
+    for p in &f.parameters {
+        let truth = g.errors.as_ref().and_then(|e| e.iter().find(|e| e.name == p.name));
+        match truth {
+            Some(t) => println!(
+                "  {:<28} {:+10.5}  {:9.2e}  {:+9.5}  {:+9.2e}",
+                p.name, p.value_deg, p.sigma_deg, t.truth_deg, t.error_deg
+            ),
+            None => println!("  {:<28} {:+10.5}  {:9.2e}", p.name, p.value_deg, p.sigma_deg),
+        }
+    }
+    if !f.unobserved_axes.is_empty() {
+        println!(
+            "  not observable from target images (kept as in the rig file): {}",
+            f.unobserved_axes.join(", ")
+        );
+    }
+    if let (Some(b), Some(a)) = (&g.directions_before, &g.directions_after) {
+        println!(
+            "  direction error over {} Bonn pairs: view max {:.4}° mean {:.4}° before, max {:.4}° mean {:.4}° after; light max {:.4}° before, {:.4}° after",
+            a.pairs, b.view_max_deg, b.view_mean_deg, a.view_max_deg, a.view_mean_deg, b.light_max_deg, a.light_max_deg
+        );
+    }
+    if !g.effort.is_empty() {
+        println!("  views  capture_s  fit_ms  rms_px   max_param_err_°  view_max_err_°");
+        let opt = |x: Option<f64>, w: usize, p: usize| x.map_or(format!("{:>w$}", "-"), |v| format!("{v:w$.p$}"));
+        for row in &g.effort {
+            match &row.failure {
+                None => println!(
+                    "  {:5}  {:9.1}  {:6.1}  {}  {}  {}",
+                    row.views,
+                    row.capture_s,
+                    1e3 * row.fit_s,
+                    opt(row.rms_px, 6, 4),
+                    opt(row.max_parameter_error_deg, 15, 5),
+                    opt(row.view_max_error_deg, 14, 5)
+                ),
+                Some(e) => println!("  {:5}  {:9.1}  refused: {e}", row.views, row.capture_s),
+            }
+        }
+    }
 }
