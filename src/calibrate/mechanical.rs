@@ -6,6 +6,18 @@
 //! simulator, the `options.mechanical` error model's load side). An axis without one is
 //! refused with a clear error rather than "measured" as perfect.
 //!
+//! **The camera as the reference** (`reference = "camera"`): most rigs have no load-side
+//! encoder, but the camera sees where the sample holder really is. With the checkerboard
+//! target on the holder and the camera parked at `camera_view_deg`, every arrival takes a
+//! frame; the detected corners are back-projected onto the sample plane through the
+//! nominal camera pose (the measured axis at 0) and a 2-D rigid fit (Procrustes) of the
+//! board's corner grid to them gives the holder's in-plane rotation. That observes exactly
+//! the axes that turn the sample about its normal (the turntable); any other axis is
+//! refused before anything moves, because its error would show as a shift or a tilt of the
+//! board that a nominal pose cannot tell from a camera error. Constant biases (the board's
+//! placement, the other axes' offsets) fall into the positioning offset; backlash,
+//! repeatability, scale and periodic errors are differences and are measured.
+//!
 //! The scripted run, for each axis of the recipe's `[mechanical]` section:
 //!
 //! 1. **Homing**: `home_cycles` times: move `home_away_deg` away, home, read reference and
@@ -51,6 +63,30 @@ pub struct MechanicalSpec {
     /// Approach distance (degrees): each target is reached after a move from this far below
     /// or above; it must exceed the backlash to take the play up.
     pub approach_deg: f64,
+    /// Where the load position comes from: `encoder` (`Axis::reference_position`) or
+    /// `camera` (the checkerboard target seen by the rig's camera, see the module docs).
+    pub reference: ReferenceKind,
+    /// Camera reference: the view direction `[θ, φ]` (degrees) the camera is parked at; the
+    /// lamp goes to the recipe's `light`.
+    pub camera_view_deg: [f64; 2],
+}
+
+/// [`MechanicalSpec::reference`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ReferenceKind {
+    #[default]
+    Encoder,
+    Camera,
+}
+
+impl ReferenceKind {
+    fn name(self) -> &'static str {
+        match self {
+            ReferenceKind::Encoder => "encoder",
+            ReferenceKind::Camera => "camera",
+        }
+    }
 }
 
 impl Default for MechanicalSpec {
@@ -64,6 +100,8 @@ impl Default for MechanicalSpec {
             target_count: 9,
             span: 0.8,
             approach_deg: 1.0,
+            reference: ReferenceKind::Encoder,
+            camera_view_deg: [30.0, 90.0],
         }
     }
 }
@@ -94,6 +132,12 @@ impl MechanicalSpec {
             return bad(
                 "home_away_deg",
                 format!("{}: must be in [0, 360] degrees", self.home_away_deg),
+            );
+        }
+        if !self.camera_view_deg.iter().all(|v| v.is_finite()) {
+            return bad(
+                "camera_view_deg",
+                format!("{:?}: not a direction in degrees", self.camera_view_deg),
             );
         }
         if !(self.span.is_finite() && self.span > 0.0 && self.span <= 1.0) {
@@ -152,6 +196,32 @@ pub enum MechanicalError {
         approach_deg: f64,
         min_deg: f64,
         max_deg: f64,
+    },
+    #[error(
+        "recipe `{recipe}`: axis `{axis}` cannot be measured through the camera: {reason}. Only axes that turn the \
+         sample about its normal (a turntable) are observable this way; use an encoder reference \
+         (reference = \"encoder\") or leave the axis out of mechanical.axes"
+    )]
+    NotObservable {
+        recipe: String,
+        axis: String,
+        reason: String,
+    },
+    #[error(
+        "recipe `{recipe}`: reference = \"camera\" needs the board geometry: add checkerboard = {{ cols = …, rows = …, pitch_mm = … }}"
+    )]
+    NoBoard { recipe: String },
+    #[error("recipe `{recipe}`: axis `{axis}`: camera reference at read-back {read_back_deg:.4}°: {message}")]
+    CameraReference {
+        recipe: String,
+        axis: String,
+        read_back_deg: f64,
+        message: String,
+    },
+    #[error("recipe `{recipe}`: parking the camera for the camera reference: {cause}")]
+    Setup {
+        recipe: String,
+        cause: Box<super::CalibrateError>,
     },
     #[error("recipe `{recipe}`: axis `{axis}`: {command}: {cause}")]
     Device {
@@ -322,6 +392,166 @@ fn targets_for(spec: &MechanicalSpec, lo: f64, hi: f64) -> Vec<f64> {
         .collect()
 }
 
+/// 2-D rigid fit `q ≈ R(β)·p + t` (Procrustes, centroids removed): β in degrees and the
+/// RMS residual (same unit as the points). A mirrored labelling of `p` (the detector may
+/// number a square board's grid either way round) is undone first: `p`'s y is flipped when
+/// the cross-covariance says the two sets differ by a reflection.
+fn rigid_angle_deg(p: &[[f64; 2]], q: &[[f64; 2]]) -> (f64, f64) {
+    let n = p.len().max(1) as f64;
+    let centroid = |v: &[[f64; 2]]| {
+        let s = v.iter().fold([0.0, 0.0], |a, x| [a[0] + x[0], a[1] + x[1]]);
+        [s[0] / n, s[1] / n]
+    };
+    let (cq, cp0) = (centroid(q), centroid(p));
+    let cov = |flip: f64| {
+        let mut m = [[0.0; 2]; 2];
+        for (a, b) in p.iter().zip(q) {
+            let pa = [a[0] - cp0[0], flip * (a[1] - cp0[1])];
+            let qb = [b[0] - cq[0], b[1] - cq[1]];
+            for i in 0..2 {
+                for j in 0..2 {
+                    m[i][j] += pa[i] * qb[j];
+                }
+            }
+        }
+        m
+    };
+    let m = cov(1.0);
+    let flip = if m[0][0] * m[1][1] - m[0][1] * m[1][0] < 0.0 {
+        -1.0
+    } else {
+        1.0
+    };
+    let m = cov(flip);
+    let beta = (m[0][1] - m[1][0]).atan2(m[0][0] + m[1][1]);
+    let (c, s_) = (beta.cos(), beta.sin());
+    let mut sse = 0.0;
+    for (a, b) in p.iter().zip(q) {
+        let pa = [a[0] - cp0[0], flip * (a[1] - cp0[1])];
+        let r = [c * pa[0] - s_ * pa[1], s_ * pa[0] + c * pa[1]];
+        sse += (r[0] - (b[0] - cq[0])).powi(2) + (r[1] - (b[1] - cq[1])).powi(2);
+    }
+    (beta.to_degrees(), (sse / n).sqrt())
+}
+
+/// The camera as the position reference of one axis (see the module docs).
+struct CameraReference {
+    board: gonio_calibration::checkerboard::CheckerboardSpec,
+    detection: gonio_calibration::checkerboard::CheckerboardOptions,
+    camera: gonio_calibration::intrinsics::CameraModel,
+    /// Sample plane (mm) → image (px) for the nominal pose with the measured axis at 0.
+    plane_to_image: gonio_calibration::homography::Homography,
+    /// +1 or −1: the board's in-plane rotation per degree of the axis.
+    sign: f64,
+}
+
+impl CameraReference {
+    /// Set up for axis `index` with the other axes at `q_parked` (radians); refuses an axis
+    /// whose motion is not a rotation of the sample about its normal.
+    // Called once per axis before anything moves; the error's size costs nothing here.
+    #[allow(clippy::result_large_err)]
+    fn new(
+        recipe: &Recipe,
+        rig: &Rig,
+        index: usize,
+        q_parked: &[f64],
+        spec_view: [f64; 2],
+    ) -> Result<CameraReference, MechanicalError> {
+        use gonio_calibration::homography::Homography;
+        let axis = rig.axes[index].name().to_string();
+        let board = recipe.checkerboard.ok_or_else(|| MechanicalError::NoBoard {
+            recipe: recipe.name.clone(),
+        })?;
+        let intr = rig.spec.camera.intrinsics();
+        let at = |deg: f64| {
+            let mut q = q_parked.to_vec();
+            q[index] = deg.to_radians();
+            Homography::from_pose(&intr, &rig.kinematics.camera_pose(&q))
+        };
+        let h0 = at(0.0);
+        let not = |reason: String| MechanicalError::NotObservable {
+            recipe: recipe.name.clone(),
+            axis: axis.clone(),
+            reason,
+        };
+        let inv = h0
+            .inverse()
+            .ok_or_else(|| not("the parked camera does not see the sample plane".into()))?;
+        // Move the axis by δ in the kinematics and look where a ±20 mm square of sample
+        // points lands on the nominal plane: a turntable turns it by ±δ in place. Both a
+        // large and a tiny δ (the size of the errors measured): on the camera arc's pole
+        // the pose can follow a large move but lose a small one (a kinematic singularity).
+        let p: Vec<[f64; 2]> = (0..25)
+            .map(|k| [((k % 5) as f64 - 2.0) * 10.0, ((k / 5) as f64 - 2.0) * 10.0])
+            .collect();
+        let mut sign = 0.0;
+        for delta in [5.0, 0.01] {
+            let h1 = at(delta);
+            let mut q = Vec::new();
+            for x in &p {
+                let w = h1
+                    .apply(x[0], x[1])
+                    .and_then(|(u, v)| inv.apply(u, v))
+                    .ok_or_else(|| not("the sample leaves the camera's view when the axis moves".into()))?;
+                q.push([w.0, w.1]);
+            }
+            let (beta, rms) = rigid_angle_deg(&p, &q);
+            let shift = {
+                let c = q.iter().fold([0.0, 0.0], |a, x| [a[0] + x[0], a[1] + x[1]]);
+                (c[0] / 25.0).hypot(c[1] / 25.0)
+            };
+            if rms > 1e-3 || shift > 1e-3 || ((beta.abs() - delta).abs() > 1e-3 * delta) {
+                return Err(not(format!(
+                    "at the parked view {:?}° a {delta}° move of it turns the sample by {beta:.5}° about its normal, \
+                     shifts it by {shift:.3} mm and deforms it by {rms:.3} mm RMS in the camera's view (on the pole \
+                     θ = 0 the camera pose can lose small moves: park the camera at θ > 0 with camera_view_deg)",
+                    spec_view
+                )));
+            }
+            sign = beta.signum();
+        }
+        Ok(CameraReference {
+            board,
+            detection: recipe.detection.clone(),
+            camera: super::rig_geometry::camera_model(&rig.spec),
+            plane_to_image: h0,
+            sign,
+        })
+    }
+
+    /// The axis position (degrees) the camera sees: the board's in-plane rotation, taken
+    /// within ±45° of the read-back (the square board's labelling repeats every 90°).
+    fn position_deg(&self, frame: &gonio_devices::Frame, read_back_deg: f64) -> Result<f64, String> {
+        let raw = crate::engine::frame_to_linear(frame);
+        let det = gonio_calibration::checkerboard::detect_checkerboard(&raw, &self.board, &self.detection)
+            .map_err(|e| e.to_string())?;
+        let inv = self.plane_to_image.inverse().ok_or("degenerate camera pose")?;
+        let (cam, mut plane) = (&self.camera, Vec::with_capacity(det.image.len()));
+        for px in &det.image {
+            let (x, y) = cam.undistort(px[0], px[1]);
+            let (u, v) = (cam.fx * x + cam.cx, cam.fy * y + cam.cy);
+            let w = inv.apply(u, v).ok_or("a corner maps behind the camera")?;
+            plane.push([w.0, w.1]);
+        }
+        let (beta, rms) = rigid_angle_deg(&det.object, &plane);
+        if rms > 0.05 * self.board.pitch_mm {
+            return Err(format!(
+                "the detected corners do not fit a rigid board on the sample plane ({rms:.3} mm RMS): the camera \
+                 pose or the board is not what the rig file says"
+            ));
+        }
+        let a = self.sign * beta;
+        tracing::debug!(
+            read_back_deg,
+            board_deg = a,
+            rms_mm = rms,
+            corners = plane.len(),
+            "camera reference"
+        );
+        Ok(a + 90.0 * ((read_back_deg - a) / 90.0).round())
+    }
+}
+
 /// One arrival: read-back and reference (degrees).
 struct Arrival {
     read_back: f64,
@@ -332,6 +562,7 @@ struct AxisRun<'a> {
     recipe: &'a str,
     axis: &'a Arc<dyn Axis>,
     rig: &'a Rig,
+    camera: Option<&'a CameraReference>,
 }
 
 impl AxisRun<'_> {
@@ -353,6 +584,24 @@ impl AxisRun<'_> {
     }
 
     async fn read(&self, read_back_rad: f64) -> Result<Arrival, MechanicalError> {
+        if let Some(cam) = self.camera {
+            let read_back = read_back_rad.to_degrees();
+            let frame = self
+                .rig
+                .camera
+                .capture()
+                .await
+                .map_err(|e| self.err("capture a reference frame", e))?;
+            let reference =
+                cam.position_deg(&frame, read_back)
+                    .map_err(|message| MechanicalError::CameraReference {
+                        recipe: self.recipe.into(),
+                        axis: self.axis.name().into(),
+                        read_back_deg: read_back,
+                        message,
+                    })?;
+            return Ok(Arrival { read_back, reference });
+        }
         let reference = self
             .axis
             .reference_position()
@@ -422,9 +671,30 @@ pub async fn run_mechanical(
         }
         plans.push((i, targets));
     }
+    // Camera reference: home, set the camera up, park camera and lamp, then check every
+    // listed axis is observable before any of them is measured.
+    let mut cameras: Vec<Option<CameraReference>> = plans.iter().map(|_| None).collect();
+    if spec.reference == ReferenceKind::Camera {
+        if recipe.checkerboard.is_none() {
+            return Err(MechanicalError::NoBoard {
+                recipe: recipe.name.clone(),
+            });
+        }
+        let setup = |cause| MechanicalError::Setup {
+            recipe: recipe.name.clone(),
+            cause: Box::new(cause),
+        };
+        super::prepare_rig(recipe, rig).await.map_err(setup)?;
+        let (_, q_parked) = super::reach_pose(recipe, rig, 0, spec.camera_view_deg, recipe.light, None)
+            .await
+            .map_err(setup)?;
+        for (slot, (i, _)) in cameras.iter_mut().zip(&plans) {
+            *slot = Some(CameraReference::new(recipe, rig, *i, &q_parked, spec.camera_view_deg)?);
+        }
+    }
     let mut axes = Vec::new();
-    for (i, targets) in plans {
-        axes.push(run_axis(recipe, spec, rig, i, &targets).await?);
+    for ((i, targets), cam) in plans.into_iter().zip(&cameras) {
+        axes.push(run_axis(recipe, spec, rig, i, &targets, cam.as_ref()).await?);
     }
     Ok(MechanicalCalibration {
         approach_deg: spec.approach_deg,
@@ -465,12 +735,14 @@ async fn run_axis(
     rig: &Rig,
     index: usize,
     targets: &[f64],
+    camera: Option<&CameraReference>,
 ) -> Result<AxisMechanics, MechanicalError> {
     let axis = &rig.axes[index];
     let run = AxisRun {
         recipe: &recipe.name,
         axis,
         rig,
+        camera,
     };
     let name = axis.name().to_string();
     let t0 = rig.time();
@@ -640,7 +912,7 @@ async fn run_axis(
     }
     Ok(AxisMechanics {
         axis: name,
-        reference: "encoder".into(),
+        reference: spec.reference.name().into(),
         homing,
         backlash,
         positioning,

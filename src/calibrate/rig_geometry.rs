@@ -119,7 +119,7 @@ pub fn direction_errors(nominal: &RigSpec, truth: &RigSpec) -> DirectionErrors {
 }
 
 /// The rig file's camera as a calibrated camera model (intrinsics + distortion options).
-fn camera_model(spec: &RigSpec) -> CameraModel {
+pub(super) fn camera_model(spec: &RigSpec) -> CameraModel {
     let k = spec.camera.intrinsics();
     let mut distortion = [0.0; 5];
     for (i, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {

@@ -251,17 +251,35 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     let encode_seconds = t0.elapsed().as_secs_f64();
     drop(gbtf);
 
-    // conventions.md: ratio against the raw 8-bit size of the full grid (L · V · W · H · 3).
-    let raw = (ds.n_lights() * ds.n_views() * ds.texels() * 3) as u64;
     let mut r = Report {
         method: params.method.name(),
         components: params.components,
         format: "gbtf",
         params: serde_json::to_value(&params)?,
-        out: args.out.display().to_string(),
-        images_measured: ds.n_measured(),
         filled_pairs: info.filled,
         dataset_passes: info.passes,
+        encode_stages: std::mem::take(&mut info.stages),
+        ..report_base(args, &ds, stored, encode_seconds)
+    };
+    finish_report(args, &ds, &mut r)?;
+    Ok(r)
+}
+
+/// The report fields that do not depend on the method, with the evaluation fields empty
+/// (filled by [`finish_report`]); the callers set method, format, params, fill and stage
+/// fields by struct update, so both file formats report the same way.
+fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_seconds: f64) -> Report {
+    // conventions.md: ratio against the raw 8-bit size of the full grid (L · V · W · H · 3).
+    let raw = (ds.n_lights() * ds.n_views() * ds.texels() * 3) as u64;
+    Report {
+        method: "",
+        components: 0,
+        format: "",
+        params: serde_json::Value::Null,
+        out: args.out.display().to_string(),
+        images_measured: ds.n_measured(),
+        filled_pairs: 0,
+        dataset_passes: 0,
         stored_bytes: stored,
         raw_8bit_bytes: raw,
         compression_ratio: raw as f64 / stored as f64,
@@ -275,10 +293,8 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         decode_seconds_per_image: None,
         truth: None,
         peak_memory_bytes: None,
-        encode_stages: std::mem::take(&mut info.stages),
-    };
-    finish_report(args, &ds, &mut r)?;
-    Ok(r)
+        encode_stages: Vec::new(),
+    }
 }
 
 /// Read the written file back (checks every CRC or length), evaluate it against the
@@ -340,30 +356,14 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
         .with_context(|| format!("writing {}", args.out.display()))?;
     let encode_seconds = t0.elapsed().as_secs_f64();
     drop(model);
-    let raw = (ds.n_lights() * ds.n_views() * ds.texels() * 3) as u64;
     let mut r = Report {
         method: "dfmf",
         components: c,
         format: "ubo2014-btf",
         params: pjson,
-        out: args.out.display().to_string(),
-        images_measured: ds.n_measured(),
         filled_pairs: info.filled,
         dataset_passes: info.passes,
-        stored_bytes: stored,
-        raw_8bit_bytes: raw,
-        compression_ratio: raw as f64 / stored as f64,
-        encode_seconds,
-        error_scale: "8-bit sRGB codes / 255 (UBO2003 encoding); linear in the dataset's values",
-        rmse_8bit: None,
-        mean_abs_8bit: None,
-        max_8bit: None,
-        psnr_8bit_db: None,
-        rmse_linear: None,
-        decode_seconds_per_image: None,
-        truth: None,
-        peak_memory_bytes: None,
-        encode_stages: Vec::new(),
+        ..report_base(args, ds, stored, encode_seconds)
     };
     finish_report(args, ds, &mut r)?;
     Ok(r)

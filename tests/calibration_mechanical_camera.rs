@@ -1,0 +1,111 @@
+//! The mechanical calibration with the camera as the reference
+//! (`calibration/recipes/mechanical-camera.toml`): on the simulated rig with an error
+//! model (`devices/rigs/mechanical-errors.toml`, its turntable's load-side encoder switched
+//! off, so only the camera can see the load) the turntable's backlash, homing
+//! repeatability and scale error must match the simulator's truth; an axis the camera
+//! cannot observe (the lamp arm) is refused before anything moves, and so is a recipe
+//! without the board's geometry.
+//!
+//! Run: `cargo test --test calibration_mechanical_camera -- --nocapture` (prints the figures).
+
+use gonio::calibrate::mechanical::MechanicalError;
+use gonio::calibrate::{self, CalibrateError, Recipe};
+use gonio::engine::Rig;
+use gonio_devices::rig::RigSpec;
+use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use std::path::Path;
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn recipe() -> Recipe {
+    Recipe::load(&root().join("calibration/recipes/mechanical-camera.toml")).unwrap()
+}
+
+/// The mechanical-errors rig with the turntable's encoder off.
+fn rig_without_encoder() -> RigSpec {
+    let path = root().join("devices/rigs/mechanical-errors.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let anchor = "periodic_phase_deg = 30.0, seed = 11 }";
+    assert!(text.contains(anchor), "{} changed", path.display());
+    let text = text.replacen(anchor, "periodic_phase_deg = 30.0, seed = 11, encoder = false }", 1);
+    RigSpec::parse(&text, "mechanical-errors without turntable encoder").unwrap()
+}
+
+// The error is matched by variant; its size does not matter here.
+#[allow(clippy::result_large_err)]
+fn run(spec: &RigSpec, recipe: &Recipe) -> Result<calibrate::RunOutput, CalibrateError> {
+    let sample = SampleSpec::resolve(&recipe.target).unwrap();
+    // As `gonio calibrate` does: the recipe's render settings.
+    let opts = SimOptions {
+        noise: Some(recipe.simulator.noise),
+        quality: RenderQuality {
+            supersample: recipe.simulator.supersample,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let rig = Rig::build(spec, &sample, &opts).unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(calibrate::run(recipe, &rig))
+}
+
+#[test]
+fn the_camera_measures_the_turntable_against_the_truth() {
+    let out = run(&rig_without_encoder(), &recipe()).unwrap();
+    let m = out.result.mechanical.expect("a mechanical result");
+    let a = &m.axes[0];
+    assert_eq!((a.axis.as_str(), a.reference.as_str()), ("turntable", "camera"));
+    let (t, e) = (a.truth.as_ref().unwrap(), a.errors.as_ref().unwrap());
+    println!(
+        "mechanical (camera): backlash {:.5}° (truth {:.5}, error {:+.2e}), repeatability {:.5}° (drawn {:.5}, error {:+.2e}), scale {:+.3e} (truth fit {:+.3e}, error {:+.2e})",
+        a.backlash.mean_deg,
+        t.model.backlash_deg,
+        e.backlash_deg,
+        a.homing.repeatability_deg,
+        t.realized_repeatability_deg,
+        e.repeatability_vs_realized_deg,
+        a.positioning.scale_error,
+        t.fit.scale_error,
+        e.scale_error
+    );
+    // Tolerances: the corners' noise-free detection error (~0.01–0.02 mm on the plane,
+    // 121 corners) bounds a single angle to a few thousandths of a degree.
+    assert!(e.backlash_deg.abs() < 0.005, "backlash error {:+.2e}°", e.backlash_deg);
+    assert!(
+        e.repeatability_vs_realized_deg.abs() < 0.003,
+        "repeatability error {:+.2e}°",
+        e.repeatability_vs_realized_deg
+    );
+    assert!(e.scale_error.abs() < 5e-5, "scale error {:+.2e}", e.scale_error);
+}
+
+#[test]
+fn axes_the_camera_cannot_see_and_a_missing_board_are_refused() {
+    let mut r = recipe();
+    r.mechanical.as_mut().unwrap().axes = vec!["light_arc".into()];
+    match run(&rig_without_encoder(), &r) {
+        Err(CalibrateError::Mechanical(e)) => match *e {
+            MechanicalError::NotObservable { ref axis, .. } => {
+                assert_eq!(axis, "light_arc");
+                println!("refused: {e}");
+            }
+            other => panic!("expected NotObservable, got {other}"),
+        },
+        Err(other) => panic!("expected a mechanical error, got {other}"),
+        Ok(_) => panic!("the lamp arm must be refused"),
+    }
+    let mut r = recipe();
+    r.checkerboard = None;
+    match run(&rig_without_encoder(), &r) {
+        Err(CalibrateError::Mechanical(e)) => {
+            assert!(matches!(*e, MechanicalError::NoBoard { .. }), "got {e}");
+        }
+        Err(other) => panic!("expected a mechanical error, got {other}"),
+        Ok(_) => panic!("a camera reference without a board must be refused"),
+    }
+}
