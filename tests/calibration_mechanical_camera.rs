@@ -73,15 +73,15 @@ fn the_camera_measures_the_turntable_against_the_truth() {
         t.fit.scale_error,
         e.scale_error
     );
-    // Tolerances: the corners' noise-free detection error (~0.01–0.02 mm on the plane,
-    // 121 corners) bounds a single angle to a few thousandths of a degree.
-    assert!(e.backlash_deg.abs() < 0.005, "backlash error {:+.2e}°", e.backlash_deg);
+    // Measured: +7.4e-5°, −7.4e-5°, −5.1e-6; the bounds leave a factor ≥ 4 for the
+    // renderer's and detector's changes.
+    assert!(e.backlash_deg.abs() < 1e-3, "backlash error {:+.2e}°", e.backlash_deg);
     assert!(
-        e.repeatability_vs_realized_deg.abs() < 0.003,
+        e.repeatability_vs_realized_deg.abs() < 1e-3,
         "repeatability error {:+.2e}°",
         e.repeatability_vs_realized_deg
     );
-    assert!(e.scale_error.abs() < 5e-5, "scale error {:+.2e}", e.scale_error);
+    assert!(e.scale_error.abs() < 2e-5, "scale error {:+.2e}", e.scale_error);
 }
 
 #[test]
@@ -98,6 +98,22 @@ fn axes_the_camera_cannot_see_and_a_missing_board_are_refused() {
         },
         Err(other) => panic!("expected a mechanical error, got {other}"),
         Ok(_) => panic!("the lamp arm must be refused"),
+    }
+    // Too coarse a render (2 × 2 point samples per pixel, board edges parallel to the
+    // pixel grid): the homing scatter does not change a single sample, every homing reads
+    // the same angle, and the run says so instead of reporting a perfect axis.
+    let mut r = recipe();
+    r.simulator.supersample = 2;
+    match run(&rig_without_encoder(), &r) {
+        Err(CalibrateError::Mechanical(e)) => {
+            assert!(matches!(*e, MechanicalError::CameraReference { .. }), "got {e}");
+            println!("refused: {e}");
+        }
+        Err(other) => panic!("expected a mechanical error, got {other}"),
+        Ok(out) => panic!(
+            "an unresolved camera reference must be refused, got repeatability {:?}",
+            out.result.mechanical.map(|m| m.axes[0].homing.repeatability_deg)
+        ),
     }
     let mut r = recipe();
     r.checkerboard = None;
