@@ -12,7 +12,7 @@ use gonio::calibrate::mechanical::MechanicalError;
 use gonio::calibrate::{self, CalibrateError, Recipe};
 use gonio::engine::Rig;
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use gonio_simulator::SampleSpec;
 use std::path::Path;
 
 fn root() -> &'static Path {
@@ -38,14 +38,7 @@ fn rig_without_encoder() -> RigSpec {
 fn run(spec: &RigSpec, recipe: &Recipe) -> Result<calibrate::RunOutput, CalibrateError> {
     let sample = SampleSpec::resolve(&recipe.target).unwrap();
     // As `gonio calibrate` does: the recipe's render settings.
-    let opts = SimOptions {
-        noise: Some(recipe.simulator.noise),
-        quality: RenderQuality {
-            supersample: recipe.simulator.supersample,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
+    let opts = recipe.sim_options();
     let rig = Rig::build(spec, &sample, &opts).unwrap();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -7,7 +7,7 @@ use gonio::calibrate::{self, CalibrateError, Recipe};
 use gonio::engine::Rig;
 use gonio_calibration::radiometric::RadiometricError;
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use gonio_simulator::SampleSpec;
 use std::path::{Path, PathBuf};
 
 fn root() -> &'static Path {
@@ -23,14 +23,7 @@ fn recipe(name: &str) -> Recipe {
 fn run(recipe: &Recipe) -> Result<calibrate::RunOutput, CalibrateError> {
     let spec = RigSpec::load(&root().join("devices/rigs/radiometric.toml")).unwrap();
     let sample = SampleSpec::resolve(&recipe.target).unwrap();
-    let opts = SimOptions {
-        noise: Some(recipe.simulator.noise),
-        quality: RenderQuality {
-            supersample: recipe.simulator.supersample,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
+    let opts = recipe.sim_options();
     let rig = Rig::build(&spec, &sample, &opts).unwrap();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()

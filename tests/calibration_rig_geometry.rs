@@ -10,7 +10,7 @@ use gonio::calibrate::{self, CalibrateError, Recipe};
 use gonio::engine::Rig;
 use gonio_calibration::rig_geometry::RigGeometryError;
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use gonio_simulator::SampleSpec;
 use std::path::Path;
 
 fn root() -> &'static Path {
@@ -28,14 +28,7 @@ fn recipe() -> Recipe {
 #[allow(clippy::result_large_err)]
 fn run(recipe: &Recipe, spec: &RigSpec) -> Result<calibrate::RunOutput, CalibrateError> {
     let sample = SampleSpec::resolve(&recipe.target).unwrap();
-    let opts = SimOptions {
-        noise: Some(recipe.simulator.noise),
-        quality: RenderQuality {
-            supersample: recipe.simulator.supersample,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
+    let opts = recipe.sim_options();
     let rig = Rig::build(spec, &sample, &opts).unwrap();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -498,7 +498,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
 mod tests {
     use super::*;
     use gonio_devices::rig::RigSpec;
-    use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+    use gonio_simulator::SampleSpec;
     use std::path::Path;
 
     fn root() -> &'static Path {
@@ -508,14 +508,7 @@ mod tests {
     fn wide_rig(recipe: &Recipe) -> Rig {
         let spec = RigSpec::load(&root().join("devices/rigs/wide-lens.toml")).unwrap();
         let sample = SampleSpec::resolve(&recipe.target).unwrap();
-        let opts = SimOptions {
-            noise: Some(recipe.simulator.noise),
-            quality: RenderQuality {
-                supersample: recipe.simulator.supersample,
-                ..Default::default()
-            },
-            ..Default::default()
-        };
+        let opts = recipe.sim_options();
         Rig::build(&spec, &sample, &opts).unwrap()
     }
 

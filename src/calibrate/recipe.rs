@@ -140,6 +140,20 @@ fn default_light() -> [f64; 2] {
 }
 
 impl Recipe {
+    /// The simulator settings the recipe asks for (`[simulator]`: supersampling, noise):
+    /// what `gonio calibrate` builds a simulated rig with, so tests and scripts that build
+    /// the rig themselves render the same frames.
+    pub fn sim_options(&self) -> gonio_simulator::SimOptions {
+        gonio_simulator::SimOptions {
+            noise: Some(self.simulator.noise),
+            quality: gonio_simulator::RenderQuality {
+                supersample: self.simulator.supersample,
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
     pub fn load(path: &Path) -> Result<Recipe, RecipeError> {
         let file = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|source| RecipeError::Io {

@@ -5,7 +5,6 @@ use super::common::{load_sample, RigArgs};
 use crate::calibrate::{self, Recipe};
 use crate::engine::Rig;
 use anyhow::{Context, Result};
-use gonio_simulator::{RenderQuality, SimOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -30,14 +29,10 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
     let recipe = Recipe::load(&a.recipe)?;
     let spec = a.rig.load()?;
     let sample = load_sample(&recipe.target)?;
-    let opts = SimOptions {
-        noise: Some(a.noise || recipe.simulator.noise),
-        quality: RenderQuality {
-            supersample: recipe.simulator.supersample,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
+    let mut opts = recipe.sim_options();
+    if a.noise {
+        opts.noise = Some(true);
+    }
     let rig = Rig::build(&spec, &sample, &opts)?;
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let out = rt.block_on(calibrate::run(&recipe, &rig))?;
