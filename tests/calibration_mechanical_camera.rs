@@ -8,11 +8,12 @@
 //!
 //! Run: `cargo test --test calibration_mechanical_camera -- --nocapture` (prints the figures).
 
+mod common;
+
+use common::run_recipe;
 use gonio::calibrate::mechanical::MechanicalError;
-use gonio::calibrate::{self, CalibrateError, Recipe};
-use gonio::engine::Rig;
+use gonio::calibrate::{CalibrateError, Recipe};
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::SampleSpec;
 use std::path::Path;
 
 fn root() -> &'static Path {
@@ -33,23 +34,9 @@ fn rig_without_encoder() -> RigSpec {
     RigSpec::parse(&text, "mechanical-errors without turntable encoder").unwrap()
 }
 
-// The error is matched by variant; its size does not matter here.
-#[allow(clippy::result_large_err)]
-fn run(spec: &RigSpec, recipe: &Recipe) -> Result<calibrate::RunOutput, CalibrateError> {
-    let sample = SampleSpec::resolve(&recipe.target).unwrap();
-    // As `gonio calibrate` does: the recipe's render settings.
-    let opts = recipe.sim_options();
-    let rig = Rig::build(spec, &sample, &opts).unwrap();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(calibrate::run(recipe, &rig))
-}
-
 #[test]
 fn the_camera_measures_the_turntable_against_the_truth() {
-    let out = run(&rig_without_encoder(), &recipe()).unwrap();
+    let out = run_recipe(&recipe(), &rig_without_encoder()).unwrap();
     let m = out.result.mechanical.expect("a mechanical result");
     let a = &m.axes[0];
     assert_eq!((a.axis.as_str(), a.reference.as_str()), ("turntable", "camera"));
@@ -81,7 +68,7 @@ fn the_camera_measures_the_turntable_against_the_truth() {
 fn axes_the_camera_cannot_see_and_a_missing_board_are_refused() {
     let mut r = recipe();
     r.mechanical.as_mut().unwrap().axes = vec!["light_arc".into()];
-    match run(&rig_without_encoder(), &r) {
+    match run_recipe(&r, &rig_without_encoder()) {
         Err(CalibrateError::Mechanical(e)) => match *e {
             MechanicalError::NotObservable { ref axis, .. } => {
                 assert_eq!(axis, "light_arc");
@@ -97,7 +84,7 @@ fn axes_the_camera_cannot_see_and_a_missing_board_are_refused() {
     // the same angle, and the run says so instead of reporting a perfect axis.
     let mut r = recipe();
     r.simulator.supersample = 2;
-    match run(&rig_without_encoder(), &r) {
+    match run_recipe(&r, &rig_without_encoder()) {
         Err(CalibrateError::Mechanical(e)) => {
             assert!(matches!(*e, MechanicalError::CameraReference { .. }), "got {e}");
             println!("refused: {e}");
@@ -110,7 +97,7 @@ fn axes_the_camera_cannot_see_and_a_missing_board_are_refused() {
     }
     let mut r = recipe();
     r.checkerboard = None;
-    match run(&rig_without_encoder(), &r) {
+    match run_recipe(&r, &rig_without_encoder()) {
         Err(CalibrateError::Mechanical(e)) => {
             assert!(matches!(*e, MechanicalError::NoBoard { .. }), "got {e}");
         }

@@ -3,11 +3,12 @@
 //! recovered within the stated tolerance of the simulator's truth, and brackets that cannot
 //! work are refused with a typed error.
 
+mod common;
+
+use common::run_recipe;
 use gonio::calibrate::{self, CalibrateError, Recipe};
-use gonio::engine::Rig;
 use gonio_calibration::radiometric::RadiometricError;
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::SampleSpec;
 use std::path::{Path, PathBuf};
 
 fn root() -> &'static Path {
@@ -21,15 +22,10 @@ fn recipe(name: &str) -> Recipe {
 // The error is matched by variant in the tests; its size does not matter here.
 #[allow(clippy::result_large_err)]
 fn run(recipe: &Recipe) -> Result<calibrate::RunOutput, CalibrateError> {
-    let spec = RigSpec::load(&root().join("devices/rigs/radiometric.toml")).unwrap();
-    let sample = SampleSpec::resolve(&recipe.target).unwrap();
-    let opts = recipe.sim_options();
-    let rig = Rig::build(&spec, &sample, &opts).unwrap();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(calibrate::run(recipe, &rig))
+    run_recipe(
+        recipe,
+        &RigSpec::load(&root().join("devices/rigs/radiometric.toml")).unwrap(),
+    )
 }
 
 fn tmpdir(tag: &str) -> PathBuf {

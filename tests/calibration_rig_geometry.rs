@@ -4,13 +4,14 @@
 //! corners, and applying the estimate makes the planner's commanded directions the true
 //! ones.
 
+mod common;
+
+use common::run_recipe;
 use gonio::calibrate::recipe::PoseSpec;
 use gonio::calibrate::rig_geometry::direction_errors;
-use gonio::calibrate::{self, CalibrateError, Recipe};
-use gonio::engine::Rig;
+use gonio::calibrate::{CalibrateError, Recipe};
 use gonio_calibration::rig_geometry::RigGeometryError;
 use gonio_devices::rig::RigSpec;
-use gonio_simulator::SampleSpec;
 use std::path::Path;
 
 fn root() -> &'static Path {
@@ -25,18 +26,6 @@ fn recipe() -> Recipe {
     Recipe::load(&root().join("calibration/recipes/rig-geometry.toml")).unwrap()
 }
 
-#[allow(clippy::result_large_err)]
-fn run(recipe: &Recipe, spec: &RigSpec) -> Result<calibrate::RunOutput, CalibrateError> {
-    let sample = SampleSpec::resolve(&recipe.target).unwrap();
-    let opts = recipe.sim_options();
-    let rig = Rig::build(spec, &sample, &opts).unwrap();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
-    rt.block_on(calibrate::run(recipe, &rig))
-}
-
 #[test]
 fn misalignment_is_recovered_and_applying_it_corrects_the_directions() {
     let spec = misaligned();
@@ -45,7 +34,7 @@ fn misalignment_is_recovered_and_applying_it_corrects_the_directions() {
     // 8 of the shipped 12 poses keep the debug run short; they still tilt the camera at
     // several turntable angles.
     recipe.poses.truncate(8);
-    let out = run(&recipe, &spec).unwrap();
+    let out = run_recipe(&recipe, &spec).unwrap();
     let r = out.result.rig_geometry.as_ref().expect("rig-geometry result");
     let fit = &r.fit;
     assert_eq!(fit.unobserved_axes, vec!["light_base", "light_arc"]);
@@ -103,7 +92,7 @@ fn straight_down_views_are_refused_with_a_diagnosis() {
         })
         .collect();
     // Every view straight down: the turntable's offset looks exactly like a camera roll.
-    let e = run(&recipe, &misaligned()).err().expect("refused");
+    let e = run_recipe(&recipe, &misaligned()).err().expect("refused");
     match &e {
         CalibrateError::RigGeometry {
             cause: RigGeometryError::Undetermined { parameters, hint, .. },

@@ -439,8 +439,9 @@ struct CameraReference {
     board: gonio_calibration::checkerboard::CheckerboardSpec,
     detection: gonio_calibration::checkerboard::CheckerboardOptions,
     camera: gonio_calibration::intrinsics::CameraModel,
-    /// Sample plane (mm) → image (px) for the nominal pose with the measured axis at 0.
-    plane_to_image: gonio_calibration::homography::Homography,
+    /// Image (px, undistorted) → sample plane (mm) for the nominal pose with the measured
+    /// axis at 0.
+    image_to_plane: gonio_calibration::homography::Homography,
     /// +1 or −1: the board's in-plane rotation per degree of the axis.
     sign: f64,
 }
@@ -513,7 +514,7 @@ impl CameraReference {
             board,
             detection: recipe.detection.clone(),
             camera: super::rig_geometry::camera_model(&rig.spec),
-            plane_to_image: h0,
+            image_to_plane: inv,
             sign,
         })
     }
@@ -524,12 +525,14 @@ impl CameraReference {
         let raw = crate::engine::frame_to_linear(frame);
         let det = gonio_calibration::checkerboard::detect_checkerboard(&raw, &self.board, &self.detection)
             .map_err(|e| e.to_string())?;
-        let inv = self.plane_to_image.inverse().ok_or("degenerate camera pose")?;
         let (cam, mut plane) = (&self.camera, Vec::with_capacity(det.image.len()));
         for px in &det.image {
             let (x, y) = cam.undistort(px[0], px[1]);
             let (u, v) = (cam.fx * x + cam.cx, cam.fy * y + cam.cy);
-            let w = inv.apply(u, v).ok_or("a corner maps behind the camera")?;
+            let w = self
+                .image_to_plane
+                .apply(u, v)
+                .ok_or("a corner maps behind the camera")?;
             plane.push([w.0, w.1]);
         }
         let (beta, rms) = rigid_angle_deg(&det.object, &plane);

@@ -190,13 +190,14 @@ const GRAM_CHUNK_ROWS: usize = 4096;
 /// The lower triangle (with the diagonal) of `AᵀA`, as a sum of per-chunk products over
 /// fixed blocks of [`GRAM_CHUNK_ROWS`] rows.
 ///
-/// Why: for a tall, narrow view matrix (65536 × 243) faer's own parallel triangular
-/// product splits the 243 × 243 output between the threads, which leaves each thread a
-/// small, bandwidth-bound product; splitting the long inner dimension instead gives each
-/// thread whole sequential products at the kernel's full rate (measured by `gonio bench
-/// compress --speed`). The chunk boundaries do not depend on the thread count and the
-/// partial sums are added in chunk order, so the result is the same bits on any machine
-/// for the same input.
+/// Why: alone on an idle pool faer's own parallel triangular product is as fast (0.056 s
+/// per 65536 × 243 view against 0.055 s), but PVMF runs it while its reader thread
+/// decodes the next view on the same rayon pool, and there the parallel product waits
+/// for the busy threads: 0.142 s against 0.114 s per view, and 16.1 s against 12.3 s for
+/// the whole encode (`gonio bench compress DATASET --speed`, fields
+/// `full_view_*_gram_under_read_seconds`). Whole chunks go to whichever thread is free.
+/// The chunk boundaries do not depend on the thread count and the partial sums are added
+/// in chunk order, so the result is the same bits on any machine for the same input.
 pub fn gram_by_row_chunks(a: MatRef<'_, f64>) -> Mat<f64> {
     use faer::linalg::matmul::triangular::{matmul, BlockStructure};
     let (m, n) = (a.nrows(), a.ncols());
@@ -204,9 +205,9 @@ pub fn gram_by_row_chunks(a: MatRef<'_, f64>) -> Mat<f64> {
     let partial: Vec<Mat<f64>> = (0..chunks)
         .into_par_iter()
         .map(|k| {
+            // k < chunks = ⌈m / GRAM_CHUNK_ROWS⌉, so r0 ≤ m (= only for m = 0).
             let r0 = k * GRAM_CHUNK_ROWS;
-            let rows = GRAM_CHUNK_ROWS.min(m - r0.min(m));
-            let s = a.subrows(r0.min(m), rows);
+            let s = a.subrows(r0, GRAM_CHUNK_ROWS.min(m - r0));
             let mut g = Mat::<f64>::zeros(n, n);
             matmul(
                 g.as_mut(),

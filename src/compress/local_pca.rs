@@ -849,17 +849,11 @@ mod tests {
     use super::*;
     use crate::compress::{evaluate, CompressedBtf};
 
+    /// The full-space algorithm (subspace 0) with a seed.
     fn params(k: usize, c: usize, seed: u64) -> Params {
         Params {
             seed,
-            ..Params::new(
-                Method::LocalPca {
-                    clusters: k,
-                    iters: 20,
-                    subspace: 0,
-                },
-                c,
-            )
+            ..in_subspace(k, c, 0)
         }
     }
 

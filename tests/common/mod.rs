@@ -99,3 +99,21 @@ pub fn resume(dir: &Path) -> Output {
 pub fn fault_row(fault: &str, lost: impl std::fmt::Display, outcome: &str) {
     println!("faults: {:<58} | {:<5} | {outcome}", fault, lost.to_string());
 }
+
+/// Run a calibration recipe on a simulated rig file the way `gonio calibrate` does: the
+/// recipe's target and simulator settings ([`gonio::calibrate::Recipe::sim_options`]), a
+/// current-thread runtime, the recipe to its end.
+// The error is matched by variant in the tests; its size does not matter here.
+#[allow(clippy::result_large_err)]
+pub fn run_recipe(
+    recipe: &gonio::calibrate::Recipe,
+    spec: &gonio_devices::rig::RigSpec,
+) -> Result<gonio::calibrate::RunOutput, gonio::calibrate::CalibrateError> {
+    let sample = gonio_simulator::SampleSpec::resolve(&recipe.target).unwrap();
+    let rig = gonio::engine::Rig::build(spec, &sample, &recipe.sim_options()).unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(gonio::calibrate::run(recipe, &rig))
+}
