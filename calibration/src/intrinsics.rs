@@ -150,6 +150,15 @@ pub struct IntrinsicsOptions {
     /// localisation degrades as the squares foreshorten, biasing the whole fit.
     pub max_tilt_deg: f64,
     pub max_iterations: usize,
+    /// Hold `fy / fx` at this value instead of estimating `fy` (OpenCV's
+    /// `CALIB_FIX_ASPECT_RATIO`; 1.0 = square pixels, true of practically every sensor).
+    /// Why it matters: a rig that can only tilt the target about one camera axis (a
+    /// two-arm goniometer: the camera arc tilts, the turntable only turns the target in its
+    /// plane) puts every target plane parallel to that axis, and then `fy` and the principal
+    /// point across that axis trade against each other; with little perspective (a long
+    /// lens) the data hardly separate them. `None`: `fy` is estimated.
+    #[serde(default)]
+    pub aspect_ratio: Option<f64>,
     /// Refuse the result when a focal length or principal point coordinate has a one-sigma
     /// uncertainty above this fraction of the focal length: the data do not determine it
     /// (too few or too similar views), and a fit that reprojects well can still be far off.
@@ -165,6 +174,7 @@ impl Default for IntrinsicsOptions {
             max_condition: 1e7,
             max_tilt_deg: 75.0,
             max_iterations: 100,
+            aspect_ratio: None,
             max_relative_sigma: 0.005,
         }
     }
@@ -256,6 +266,13 @@ pub fn calibrate_intrinsics(
             got: views.len(),
         });
     }
+    if let Some(a) = opts.aspect_ratio {
+        if !(a.is_finite() && a > 0.0) {
+            return Err(IntrinsicsError::ClosedForm(format!(
+                "aspect_ratio = {a}: must be a positive number (fy / fx; 1.0 for square pixels)"
+            )));
+        }
+    }
     let min_points = opts.min_points_per_view.max(4);
     for v in views {
         if v.object.len() != v.image.len() {
@@ -324,8 +341,21 @@ pub fn calibrate_intrinsics(
     }
 
     let mut cam = initial;
+    if let Some(a) = opts.aspect_ratio {
+        // start from the closed form's mean focal length with the fixed ratio
+        let f = 0.5 * (cam.fx + cam.fy / a);
+        cam.fx = f;
+        cam.fy = a * f;
+    }
     let free = opts.distortion.free();
-    let (iterations, jtj) = refine(views, &mut cam, &mut poses, free, opts.max_iterations)?;
+    let (iterations, jtj) = refine(
+        views,
+        &mut cam,
+        &mut poses,
+        free,
+        opts.aspect_ratio,
+        opts.max_iterations,
+    )?;
 
     let mut view_rms_px = Vec::with_capacity(views.len());
     let mut sum = 0.0;
@@ -338,9 +368,9 @@ pub fn calibrate_intrinsics(
         points += v.object.len();
     }
     let rms_px = (sum / points as f64).sqrt();
-    let nparams = 4 + free.len() + 6 * views.len();
+    let nparams = 4 + free.len() + 6 * views.len() - usize::from(opts.aspect_ratio.is_some());
     let dof = (2 * points).saturating_sub(nparams).max(1);
-    let sigma = sigma_from(&jtj, sum / dof as f64, free, views.len());
+    let sigma = sigma_from(&jtj, sum / dof as f64, free, opts.aspect_ratio);
     let f = cam.fx.min(cam.fy);
     for (param, value, sig) in [
         ("fx", cam.fx, sigma.fx),
@@ -537,12 +567,21 @@ fn refine(
     cam: &mut CameraModel,
     poses: &mut [ViewPose],
     free_dist: &[usize],
+    aspect: Option<f64>,
     max_iter: usize,
 ) -> Result<(usize, DMatrix<f64>), IntrinsicsError> {
+    // With a fixed aspect ratio fy is not a parameter: it follows fx.
+    let fy_free = aspect.is_none();
     let free_cam: Vec<usize> = [0, 1, 2, 3]
         .into_iter()
+        .filter(|&c| c != 1 || fy_free)
         .chain(free_dist.iter().map(|&d| 4 + d))
         .collect();
+    let tie = |cv: &mut [f64; NCAM]| {
+        if let Some(a) = aspect {
+            cv[1] = a * cv[0];
+        }
+    };
     let nc = free_cam.len();
     let n = nc + 6 * views.len();
     let cost_of = |cam: &CameraModel, poses: &[ViewPose]| -> f64 {
@@ -566,6 +605,8 @@ fn refine(
                 let mut b = cvec;
                 a[ci] += h;
                 b[ci] -= h;
+                tie(&mut a);
+                tie(&mut b);
                 let (ra, rb) = (residuals(v, &vec_to_cam(&a), p), residuals(v, &vec_to_cam(&b), p));
                 for row in 0..m {
                     jc[(row, col)] = (ra[row] - rb[row]) / (2.0 * h);
@@ -611,6 +652,7 @@ fn refine(
         for (col, &ci) in free_cam.iter().enumerate() {
             cv[ci] += step[col];
         }
+        tie(&mut cv);
         let ps = poses
             .iter()
             .enumerate()
@@ -682,10 +724,11 @@ fn refine(
     Ok((iterations, jtj))
 }
 
-/// One-sigma parameter errors from `σ² (JᵀJ)⁻¹`.
-fn sigma_from(jtj: &DMatrix<f64>, variance: f64, free_dist: &[usize], nviews: usize) -> CameraSigma {
-    let nc = 4 + free_dist.len();
-    let _ = nviews;
+/// One-sigma parameter errors from `σ² (JᵀJ)⁻¹`. The parameter order is [`refine`]'s: fx,
+/// fy (unless the aspect ratio is fixed, when its sigma is the ratio times fx's), cx, cy,
+/// then the free distortion coefficients.
+fn sigma_from(jtj: &DMatrix<f64>, variance: f64, free_dist: &[usize], aspect: Option<f64>) -> CameraSigma {
+    let nc = 4 + free_dist.len() - usize::from(aspect.is_some());
     let diag: Vec<f64> = match jtj.clone().cholesky() {
         Some(ch) => {
             let inv = ch.inverse();
@@ -693,15 +736,19 @@ fn sigma_from(jtj: &DMatrix<f64>, variance: f64, free_dist: &[usize], nviews: us
         }
         None => vec![f64::INFINITY; nc],
     };
+    let (fx, fy, rest) = match aspect {
+        Some(a) => (diag[0], a * diag[0], &diag[1..]),
+        None => (diag[0], diag[1], &diag[2..]),
+    };
     let mut distortion = [0.0; 5];
     for (k, &d) in free_dist.iter().enumerate() {
-        distortion[d] = diag[4 + k];
+        distortion[d] = rest[2 + k];
     }
     CameraSigma {
-        fx: diag[0],
-        fy: diag[1],
-        cx: diag[2],
-        cy: diag[3],
+        fx,
+        fy,
+        cx: rest[0],
+        cy: rest[1],
         distortion,
     }
 }

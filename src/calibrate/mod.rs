@@ -108,6 +108,11 @@ pub struct CornerSet {
     pub convention: String,
     pub image_size: [usize; 2],
     pub views: Vec<TargetView>,
+    /// Simulator only: the exact projection of every detected corner's target point, per
+    /// view and in the same order as `views[k].image`, so a detector's error can be
+    /// studied corner by corner (`image − truth_image`). Empty on real rigs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub truth_image: Vec<Vec<[f64; 2]>>,
 }
 
 /// Truth of the simulated camera and the estimate's errors against it.
@@ -149,6 +154,9 @@ pub struct EffortRow {
     /// with all views.
     pub fx_error_percent: f64,
     pub cx_error_px: f64,
+    /// Principal point y error (px), against the same reference as `cx_error_px`.
+    #[serde(default)]
+    pub cy_error_px: f64,
     /// Why the fit failed (too few views, degenerate), if it did.
     pub failure: Option<String>,
 }
@@ -172,6 +180,11 @@ pub struct CalibrationResult {
     /// Simulator only: RMS distance (px) of the detected corners from their exact
     /// projections, per view — the detector's error, which bounds what the fit can do.
     pub corner_truth_rms_px: Vec<f64>,
+    /// Intrinsics: the exposure (s) each view was captured at. Without a recipe exposure
+    /// the camera's is lowered until the board's bright squares no longer clip (see
+    /// [`capture_unclipped`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub view_exposure_s: Vec<f64>,
     /// Rig time for the whole run (s).
     pub rig_time_s: f64,
     /// Dark, response, flat or colour run: estimates, diagnostics, truth errors, effort.
@@ -210,6 +223,7 @@ impl CalibrationResult {
             errors: None,
             effort: Vec::new(),
             corner_truth_rms_px: Vec::new(),
+            view_exposure_s: Vec::new(),
             rig_time_s: 0.0,
             radiometric: None,
             white_standard: None,
@@ -337,8 +351,9 @@ fn sim_distortion(rig: &Rig) -> [f64; 5] {
 
 /// RMS distance of detected corners from the exact projection of the target corners
 /// (simulated rigs). The board is symmetric, so the detector's grid may be any proper
-/// rotation of the true one: the best of the four is taken.
-fn corner_truth_rms(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -> f64 {
+/// rotation of the true one: the best of the four is taken. Returns the RMS and the exact
+/// projections (in the detector's order) under that rotation.
+fn corner_truth(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -> (f64, Vec<[f64; 2]>) {
     let k = rig.spec.camera.intrinsics();
     let cam = CameraModel {
         fx: k.fx,
@@ -350,10 +365,9 @@ fn corner_truth_rms(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]
     let pose = rig.kinematics.camera_pose(q);
     (0..4)
         .map(|r| {
-            let sum: f64 = object
+            let proj: Vec<[f64; 2]> = object
                 .iter()
-                .zip(image)
-                .map(|(o, i)| {
+                .map(|o| {
                     let (x, y) = match r {
                         0 => (o[0], o[1]),
                         1 => (-o[1], o[0]),
@@ -362,12 +376,69 @@ fn corner_truth_rms(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]
                     };
                     let c = pose.to_camera(gonio_devices::Vec3::new(x, y, 0.0));
                     let (u, v) = cam.project_point([c.x, c.y, c.z]);
-                    (u - i[0]).powi(2) + (v - i[1]).powi(2)
+                    [u, v]
                 })
+                .collect();
+            let sum: f64 = proj
+                .iter()
+                .zip(image)
+                .map(|(p, i)| (p[0] - i[0]).powi(2) + (p[1] - i[1]).powi(2))
                 .sum();
-            (sum / object.len().max(1) as f64).sqrt()
+            ((sum / object.len().max(1) as f64).sqrt(), proj)
         })
-        .fold(f64::INFINITY, f64::min)
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .expect("four rotations")
+}
+
+/// Largest fraction of a target frame's values that may sit at full scale before the frame
+/// is taken again shorter: clipped bright squares move every edge toward them.
+const MAX_CLIPPED_FRACTION: f64 = 1e-4;
+
+/// How many times an intrinsics view is re-exposed (each time at half the exposure) before
+/// the clipped frame is used as it is (the corner model then treats clipped pixels as
+/// censored) and the detector diagnoses it if it must.
+const MAX_REEXPOSURES: u32 = 6;
+
+/// Capture a target frame. With `auto` (the recipe sets no exposure), a frame whose values
+/// clip is captured again at half the exposure, up to [`MAX_REEXPOSURES`] times; the
+/// camera's configuration is left at the exposure that worked, so the next view starts
+/// there. Returns the frame and the exposure it was taken at.
+async fn capture_unclipped(
+    recipe: &Recipe,
+    rig: &Rig,
+    config: &mut gonio_devices::CameraConfig,
+    auto: bool,
+) -> Result<(gonio_devices::Frame, f64), CalibrateError> {
+    let mut tries = 0;
+    loop {
+        let frame = rig
+            .camera
+            .capture()
+            .await
+            .map_err(|cause| device_error(recipe, rig, rig.camera.name(), cause))?;
+        let clipped = engine::capture::saturated_fraction(&frame);
+        if !auto || clipped <= MAX_CLIPPED_FRACTION || tries >= MAX_REEXPOSURES {
+            return Ok((frame, config.exposure));
+        }
+        tries += 1;
+        let mut next = config.clone();
+        next.exposure = config.exposure * 0.5;
+        let applied = rig
+            .camera
+            .configure(&next)
+            .await
+            .map_err(|cause| device_error(recipe, rig, rig.camera.name(), cause))?;
+        if applied.exposure >= config.exposure {
+            // the camera cannot go shorter: use what it gives
+            return Ok((frame, config.exposure));
+        }
+        tracing::info!(
+            clipped_percent = 100.0 * clipped,
+            exposure_s = applied.exposure,
+            "intrinsics: target frame clips; exposing shorter"
+        );
+        *config = applied;
+    }
 }
 
 async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
@@ -375,20 +446,20 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
     let rig_name = rig.spec.name.clone();
     let board = recipe.checkerboard.expect("validated: intrinsics recipes have a board");
     let t0 = rig.time();
-    let config = prepare_rig(recipe, rig).await?;
+    let mut config = prepare_rig(recipe, rig).await?;
+    let auto_exposure = recipe.exposure_s.is_none();
+    let mut view_exposure = Vec::new();
     tracing::info!(recipe = %name, exposure = config.exposure, "intrinsics: capturing {} poses", recipe.poses.len());
     let mut views = Vec::new();
     let mut capture_times = Vec::new();
-    let mut corner_truth = Vec::new();
+    let mut corner_rms = Vec::new();
+    let mut truth_image = Vec::new();
     let mut prev: Option<Vec<f64>> = None;
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
         let (q, _) = reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
-        let frame = rig
-            .camera
-            .capture()
-            .await
-            .map_err(|cause| device_error(recipe, rig, rig.camera.name(), cause))?;
+        let (frame, exposure) = capture_unclipped(recipe, rig, &mut config, auto_exposure).await?;
+        view_exposure.push(exposure);
         let raw = frame_to_linear(&frame);
         let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
             recipe: name.clone(),
@@ -398,7 +469,9 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         })?;
         tracing::debug!(index, candidates = det.candidates, "board found");
         if rig.clock.is_some() {
-            corner_truth.push(corner_truth_rms(rig, &q, &det.object, &det.image));
+            let (rms, proj) = corner_truth(rig, &q, &det.object, &det.image);
+            corner_rms.push(rms);
+            truth_image.push(proj);
         }
         views.push(TargetView {
             label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
@@ -437,10 +510,11 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         }
     });
     // Error against effort: the same fit on the first k views.
-    let (ref_fx, ref_cx) = truth
-        .as_ref()
-        .map(|t| (t.fx, t.cx))
-        .unwrap_or((fit.camera.fx, fit.camera.cx));
+    let (ref_fx, ref_cx, ref_cy) =
+        truth
+            .as_ref()
+            .map(|t| (t.fx, t.cx, t.cy))
+            .unwrap_or((fit.camera.fx, fit.camera.cx, fit.camera.cy));
     let mut effort = Vec::new();
     for k in 3..=views.len() {
         let start = Instant::now();
@@ -458,6 +532,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
                 cy: c.camera.cy,
                 fx_error_percent: 100.0 * (c.camera.fx - ref_fx) / ref_fx,
                 cx_error_px: c.camera.cx - ref_cx,
+                cy_error_px: c.camera.cy - ref_cy,
                 failure: None,
             },
             Err(e) => EffortRow {
@@ -470,6 +545,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
                 cy: f64::NAN,
                 fx_error_percent: f64::NAN,
                 cx_error_px: f64::NAN,
+                cy_error_px: f64::NAN,
                 failure: Some(e.to_string()),
             },
         });
@@ -479,7 +555,8 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         truth,
         errors,
         effort,
-        corner_truth_rms_px: corner_truth,
+        corner_truth_rms_px: corner_rms,
+        view_exposure_s: view_exposure,
         rig_time_s: rig.time() - t0,
         ..CalibrationResult::new(recipe, rig_name, simulated)
     }
@@ -490,6 +567,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
             convention: "gonio: pixel (i, j) has its centre at (i + 0.5, j + 0.5); OpenCV = this − 0.5".into(),
             image_size: [size.0, size.1],
             views,
+            truth_image,
         }),
     })
 }
@@ -528,8 +606,9 @@ mod tests {
     }
 
     /// The targets on noiseless simulated images of a distorting wide-angle lens
-    /// with an off-centre principal point: focal length within 0.1 % of the truth,
-    /// principal point within 0.1 % of the image size, reprojection RMS < 0.1 px.
+    /// with an off-centre principal point: focal length and principal point within 0.1 %
+    /// of the truth, reprojection RMS < 0.1 px. The rig's default exposure clips the
+    /// board's bright squares, so this also checks that the runner exposes shorter.
     #[test]
     fn intrinsics_match_the_simulator_truth() {
         let out = run_blocking(&shipped()).unwrap();
@@ -539,7 +618,8 @@ mod tests {
         let e = r.errors.as_ref().unwrap();
         assert!(c.rms_px < 0.1, "rms {}", c.rms_px);
         assert!(e.fx_percent.abs() < 0.1 && e.fy_percent.abs() < 0.1, "{e:?}");
-        assert!(e.cx_px.abs() < 0.001 * 768.0 && e.cy_px.abs() < 0.001 * 640.0, "{e:?}");
+        assert!(e.cx_percent.abs() < 0.1 && e.cy_percent.abs() < 0.1, "{e:?}");
+        assert!(r.view_exposure_s.iter().all(|&x| x < 0.05), "{:?}", r.view_exposure_s);
         assert!((t.distortion[0] + 0.12).abs() < 1e-12, "truth read from the rig file");
         // barrel distortion is recovered in sign and rough size over the target's field
         assert!(

@@ -87,17 +87,18 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
         );
     }
     if !r.effort.is_empty() {
-        println!("  views  capture_s  fit_ms  rms_px   fx_err_%   cx_err_px");
+        println!("  views  capture_s  fit_ms  rms_px   fx_err_%   cx_err_px  cy_err_px");
         for row in &r.effort {
             match &row.failure {
                 None => println!(
-                    "  {:5}  {:9.1}  {:6.1}  {:6.4}  {:+9.4}  {:+9.3}",
+                    "  {:5}  {:9.1}  {:6.1}  {:6.4}  {:+9.4}  {:+9.3}  {:+9.3}",
                     row.views,
                     row.capture_s,
                     1e3 * row.fit_s,
                     row.rms_px,
                     row.fx_error_percent,
-                    row.cx_error_px
+                    row.cx_error_px,
+                    row.cy_error_px
                 ),
                 Some(f) => println!("  {:5}  {:9.1}  refused: {f}", row.views, row.capture_s),
             }

@@ -6,7 +6,8 @@ Zhang + Levenberg-Marquardt fit (DIR/calibration.json).
 Pixel conventions differ by half a pixel: gonio puts pixel centres at (i + 0.5, j + 0.5),
 OpenCV at integers, so the corners are shifted by -0.5 on the way in and OpenCV's cx, cy by
 +0.5 on the way out. The distortion model is matched to the recipe's (`opencv4` =
-CALIB_FIX_K3, `radial` = also CALIB_ZERO_TANGENT_DIST, `none` = all fixed).
+CALIB_FIX_K3, `radial` = also CALIB_ZERO_TANGENT_DIST, `none` = all fixed), and a fixed
+`aspect_ratio` to CALIB_FIX_ASPECT_RATIO.
 
 Tolerances (stated, checked): fx, fy, cx, cy agree within 0.05 % of the focal length;
 distortion coefficients within 5 % of OpenCV's magnitude plus an absolute 1e-3 (k1, p1,
@@ -43,12 +44,17 @@ def main() -> int:
         flags |= cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     elif model == "none":
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+    if result["recipe"]["estimate"].get("aspect_ratio") is not None:
+        # fy / fx held fixed: OpenCV keeps the ratio of the initial camera matrix
+        flags |= cv2.CALIB_FIX_ASPECT_RATIO
     # Start OpenCV from its own initialisation too: the oracle must not merely confirm the
     # starting point it was given.
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
     results = {}
+    # (OpenCV's own init with a fixed aspect ratio reads only the ratio of the matrix given)
+    own = np.eye(3) if flags & cv2.CALIB_FIX_ASPECT_RATIO else None
     for name, f, guess in [("from gonio's estimate", flags, k0.copy()),
-                           ("from OpenCV's own init", flags & ~cv2.CALIB_USE_INTRINSIC_GUESS, None)]:
+                           ("from OpenCV's own init", flags & ~cv2.CALIB_USE_INTRINSIC_GUESS, own)]:
         rms, k, dist, _, _ = cv2.calibrateCamera(obj, img, (w, h), guess, None, flags=f, criteria=crit)
         results[name] = (rms, k, dist.ravel())
     ok = True

@@ -128,3 +128,6 @@ done
 # the tolerances stated in tests/interop/opencv_intrinsics.py (0.05 % of f for fx, fy, cx, cy).
 "$gonio" calibrate calibration/recipes/intrinsics.toml --rig devices/rigs/wide-lens.toml --out "$work/cal" --json > "$work/cal.json"
 "$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal"
+# The long lens of the default rig with its recipe (pinhole, square pixels: fixed aspect ratio).
+"$gonio" calibrate calibration/recipes/intrinsics-telephoto.toml --rig devices/rigs/default.toml --out "$work/cal-tele" --json > "$work/cal-tele.json"
+"$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-tele"
