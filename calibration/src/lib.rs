@@ -13,6 +13,7 @@ pub mod checkerboard;
 pub mod error;
 pub mod homography;
 pub mod intrinsics;
+pub mod light_geometry;
 pub mod markers;
 pub mod radiometric;
 pub mod rectify;
