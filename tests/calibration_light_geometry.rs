@@ -145,6 +145,20 @@ fn rig_and_light_geometry_combine() {
     let t = both.sim_misalignment.as_mut().unwrap();
     t.axis_zero_offset_deg.insert("light_base".into(), -0.35);
     t.axis_zero_offset_deg.insert("light_arc".into(), 0.25);
+    // Without the camera's calibration the highlights cannot be explained by lamp offsets
+    // alone: refused, not absorbed into the lamp's estimate.
+    let e = run_recipe(&recipe(), &both).err().expect("refused");
+    println!("light-geometry on an uncalibrated camera: {e}");
+    assert!(
+        matches!(
+            &e,
+            CalibrateError::LightGeometry {
+                cause: LightGeometryError::PoorFit { rms_px, .. },
+                ..
+            } if *rms_px > 0.5
+        ),
+        "{e}"
+    );
     let mut rg = Recipe::load(&root().join("calibration/recipes/rig-geometry.toml")).unwrap();
     rg.poses.truncate(8);
     let rg_out = run_recipe(&rg, &both).unwrap();

@@ -366,7 +366,9 @@ impl Default for LightGeometryOptions {
             min_poses: 3,
             max_iterations: 50,
             max_condition: 100.0,
-            max_rms_px: 1.0,
+            // Located highlights scatter by a few hundredths of a pixel; an uncalibrated
+            // camera pose (0.3° of turntable) leaves ≈ 1 px: refuse well below that.
+            max_rms_px: 0.25,
             max_offset_deg: 2.0,
             edge_margin_mm: 3.0,
             highlight: HighlightOptions::default(),
@@ -477,7 +479,7 @@ pub enum LightGeometryError {
     },
     #[error(
         "light geometry: RMS highlight residual {rms_px:.3} px after the fit (limit {max_px} px): the model does not \
-         describe these images (camera pose or intrinsics not calibrated, a tilted sample, a lamp-distance error)"
+         describe these images: is the camera calibrated (run rig-geometry.toml first and put its `[alignment]` into the rig file; intrinsics in the camera options)? Or the sample is tilted, or the lamp distance is wrong"
     )]
     PoorFit { rms_px: f64, max_px: f64 },
 }
@@ -994,7 +996,11 @@ mod tests {
                 p.pixel[0] += 0.2 * gauss();
                 p.pixel[1] += 0.2 * gauss();
             }
-            let fit = estimate_light_geometry(&believed(), &camera(), &poses, &Default::default()).unwrap();
+            let loose = LightGeometryOptions {
+                max_rms_px: 1.0,
+                ..Default::default()
+            };
+            let fit = estimate_light_geometry(&believed(), &camera(), &poses, &loose).unwrap();
             let e = fit.parameters[1].value_deg - truth().axis_zero_offset_deg["light_arc"];
             sq += e * e;
             sig += fit.parameters[1].sigma_deg;
