@@ -14,6 +14,7 @@ pub mod corner_model;
 pub mod error;
 pub mod homography;
 pub mod intrinsics;
+pub mod light_geometry;
 pub mod markers;
 pub mod radiometric;
 pub mod rectify;

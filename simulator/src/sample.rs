@@ -24,6 +24,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("white-standard", include_str!("../samples/white-standard.toml")),
     ("calibration-target", include_str!("../samples/calibration-target.toml")),
     ("colour-target", include_str!("../samples/colour-target.toml")),
+    ("mirror", include_str!("../samples/mirror.toml")),
 ];
 
 /// The default sample of the main job.

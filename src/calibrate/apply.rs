@@ -197,6 +197,10 @@ pub struct AppliedCalibration {
     /// from the same corrected kinematics; the manifest's rig then carries `[alignment]`,
     /// and `--resume` plans nothing again.
     pub rig_geometry: Option<super::rig_geometry::RigGeometryCalibration>,
+    /// The lamp axes' zero offsets of a light-geometry calibration, applied with (after)
+    /// the rig geometry: each writes only its own axes, so the camera's offsets come from
+    /// one and the lamp's from the other.
+    pub light_geometry: Option<super::light_geometry::LightGeometryCalibration>,
 }
 
 impl AppliedCalibration {
@@ -204,6 +208,9 @@ impl AppliedCalibration {
     /// without one. Call before planning.
     pub fn correct_rig(&self, rig: &mut gonio_devices::rig::RigSpec) {
         if let Some(g) = &self.rig_geometry {
+            g.apply(rig);
+        }
+        if let Some(g) = &self.light_geometry {
             g.apply(rig);
         }
     }
@@ -440,6 +447,12 @@ impl AppliedCalibration {
                         serde_json::from_value(r.value["rig_geometry"].clone())
                             .map_err(|e| bad(format!("rig_geometry: {e}")))?;
                     applied.rig_geometry = Some(geo);
+                }
+                "light-geometry" => {
+                    let geo: super::light_geometry::LightGeometryCalibration =
+                        serde_json::from_value(r.value["light_geometry"].clone())
+                            .map_err(|e| bad(format!("light_geometry: {e}")))?;
+                    applied.light_geometry = Some(geo);
                 }
                 other => {
                     skipped.push(other.to_string());

@@ -12,6 +12,7 @@
 //! points and target points per view), the input an independent oracle (OpenCV) needs.
 
 pub mod apply;
+pub mod light_geometry;
 pub mod mechanical;
 pub mod radiometric;
 pub mod recipe;
@@ -97,6 +98,21 @@ pub enum CalibrateError {
     RigGeometry {
         recipe: String,
         cause: gonio_calibration::rig_geometry::RigGeometryError,
+    },
+    /// The lamp-offset fit (or its design check before capture) refused.
+    #[error("recipe `{recipe}`: {cause}")]
+    LightGeometry {
+        recipe: String,
+        cause: gonio_calibration::light_geometry::LightGeometryError,
+    },
+    /// No usable highlight in a light-geometry frame (the cause says why and what to change).
+    #[error("recipe `{recipe}`: pose {index} (view {view:?}, light {light:?}): {cause}")]
+    Highlight {
+        recipe: String,
+        index: usize,
+        view: [f64; 2],
+        light: [f64; 2],
+        cause: gonio_calibration::light_geometry::HighlightError,
     },
 }
 
@@ -199,6 +215,9 @@ pub struct CalibrationResult {
     /// Rig-geometry run: axis zero offsets, camera mounting rotation, direction errors.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rig_geometry: Option<rig_geometry::RigGeometryCalibration>,
+    /// Light-geometry run: the lamp axes' zero offsets from a mirror's highlights.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light_geometry: Option<light_geometry::LightGeometryCalibration>,
 }
 
 impl CalibrationResult {
@@ -229,6 +248,7 @@ impl CalibrationResult {
             white_standard: None,
             mechanical: None,
             rig_geometry: None,
+            light_geometry: None,
         }
     }
 
@@ -258,6 +278,7 @@ pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError
         RecipeKind::WhiteStandard => white::run_white(recipe, rig).await,
         RecipeKind::Mechanical => mechanical::run(recipe, rig).await,
         RecipeKind::RigGeometry => rig_geometry::run_rig_geometry(recipe, rig).await,
+        RecipeKind::LightGeometry => light_geometry::run_light_geometry(recipe, rig).await,
     }
 }
 

@@ -41,6 +41,9 @@ pub enum RecipeKind {
     /// Axis zero offsets and the camera's mounting rotation (bundle adjustment over
     /// checkerboard views at many axis positions).
     RigGeometry,
+    /// Zero offsets of the lamp's axes from the specular highlight of a near-mirror sample
+    /// over many axis positions.
+    LightGeometry,
 }
 
 impl RecipeKind {
@@ -54,6 +57,7 @@ impl RecipeKind {
             RecipeKind::Colour => "colour",
             RecipeKind::Mechanical => "mechanical",
             RecipeKind::RigGeometry => "rig-geometry",
+            RecipeKind::LightGeometry => "light-geometry",
         }
     }
 }
@@ -133,6 +137,10 @@ pub struct Recipe {
     /// apply when the section is absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rig_geometry: Option<gonio_calibration::rig_geometry::RigGeometryOptions>,
+    /// Light geometry: fit options, refusal limits and highlight detection
+    /// (`kind = "light-geometry"`; defaults apply when the section is absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light_geometry: Option<gonio_calibration::light_geometry::LightGeometryOptions>,
 }
 
 fn default_light() -> [f64; 2] {
@@ -263,6 +271,30 @@ impl Recipe {
                         "{} poses: the rig-geometry fit needs at least {min} views",
                         self.poses.len()
                     ),
+                ));
+            }
+        }
+        if self.kind == RecipeKind::LightGeometry {
+            let opts = self.light_geometry.clone().unwrap_or_default();
+            opts.validate()
+                .map_err(|(key, message)| bad(&format!("light_geometry.{key}"), message))?;
+            if self.poses.len() < opts.min_poses {
+                return Err(bad(
+                    "pose",
+                    format!(
+                        "{} poses: the light-geometry fit needs at least {} (light_geometry.min_poses); add [[pose]] \
+                         entries with the lamp in the mirror direction of the view",
+                        self.poses.len(),
+                        opts.min_poses
+                    ),
+                ));
+            }
+            if let Some(k) = self.poses.iter().position(|p| p.light.is_none()) {
+                return Err(bad(
+                    &format!("pose[{k}].light"),
+                    "missing: a light-geometry pose needs its lamp direction (the mirror of its view: \
+                     light = [θ_v, φ_v + 180°])"
+                        .into(),
                 ));
             }
         }

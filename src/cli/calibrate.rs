@@ -171,8 +171,66 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
     if let Some(g) = &r.rig_geometry {
         print_rig_geometry(g);
     }
+    if let Some(g) = &r.light_geometry {
+        print_light_geometry(g);
+    }
     println!("  rig time {:.1} s; wrote {}", r.rig_time_s, path.display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// The human summary of a light-geometry calibration: the two lamp offsets (with the truth
+/// on the simulator), the highlight residuals and localisation error, the light-direction
+/// errors over the Bonn pairs and the error-versus-poses table.
+fn print_light_geometry(g: &calibrate::light_geometry::LightGeometryCalibration) {
+    let f = &g.fit;
+    let peak = g.highlights.iter().map(|h| h.peak).fold(0.0, f64::max);
+    println!(
+        "  {} poses, highlight RMS residual {:.4} px (zero offsets {:.4} px), condition {:.3} (design {:.3}), {} LM iterations, brightest highlight {:.2} of full scale",
+        f.poses, f.rms_px, f.initial_rms_px, f.condition, g.design_condition, f.iterations, peak
+    );
+    if g.camera_alignment.is_none() {
+        println!("  camera pose from the nominal kinematics (no [alignment] in the rig file)");
+    }
+    println!("  parameter                     estimate_°   σ_°        truth_°    error_°");
+    for p in &f.parameters {
+        match g.errors.as_ref().and_then(|e| e.iter().find(|e| e.name == p.name)) {
+            Some(t) => println!(
+                "  {:<28} {:+10.5}  {:9.2e}  {:+9.5}  {:+9.2e}",
+                p.name, p.value_deg, p.sigma_deg, t.truth_deg, t.error_deg
+            ),
+            None => println!("  {:<28} {:+10.5}  {:9.2e}", p.name, p.value_deg, p.sigma_deg),
+        }
+    }
+    if let Some(l) = &g.localisation {
+        println!(
+            "  highlight localisation vs exact reflection point: mean ({:+.4}, {:+.4}) px, RMS {:.4} px, max {:.4} px",
+            l.mean_px[0], l.mean_px[1], l.rms_px, l.max_px
+        );
+    }
+    if let (Some(b), Some(a)) = (&g.directions_before, &g.directions_after) {
+        println!(
+            "  light direction error over {} Bonn pairs: max {:.4}° mean {:.4}° before, max {:.5}° mean {:.5}° after",
+            a.pairs, b.light_max_deg, b.light_mean_deg, a.light_max_deg, a.light_mean_deg
+        );
+    }
+    if !g.effort.is_empty() {
+        println!("  poses  capture_s  fit_ms  rms_px   max_param_err_°  light_max_err_°");
+        let opt = |x: Option<f64>, w: usize, p: usize| x.map_or(format!("{:>w$}", "-"), |v| format!("{v:w$.p$}"));
+        for row in &g.effort {
+            match &row.failure {
+                None => println!(
+                    "  {:5}  {:9.1}  {:6.2}  {}  {}  {}",
+                    row.poses,
+                    row.capture_s,
+                    1e3 * row.fit_s,
+                    opt(row.rms_px, 6, 4),
+                    opt(row.max_parameter_error_deg, 15, 5),
+                    opt(row.light_max_error_deg, 15, 5)
+                ),
+                Some(e) => println!("  {:5}  {:9.1}  refused: {e}", row.poses, row.capture_s),
+            }
+        }
+    }
 }
 
 /// The human summary of a rig-geometry calibration: each estimated parameter (with the
