@@ -464,9 +464,9 @@ impl RawCorrection {
             let n = curve.max_dn.round() as usize + 1;
             // Below the black limit the fit has no data (zero weight) and the curve is only
             // the smoothness term's extrapolation: on radiometric.toml it gives code 0 a
-            // value of 3 % of a mid-grey, which a dark subtraction through it would remove
-            // from every pixel. A response passes through 0 at no signal, so the curve is
-            // continued linearly from the black limit to 0 instead.
+            // value of 1.7 % of mid-grey (0.0086 against 0.5), which a dark subtraction
+            // through it would remove from every pixel. A response passes through 0 at no
+            // signal, so the curve is continued linearly from the black limit to 0 instead.
             let zb = ((curve.validity.black_fraction * curve.max_dn).ceil() as usize).clamp(1, n - 1);
             lut = std::array::from_fn(|c| {
                 let at_black = 0.5 * curve.g_at(c, zb as f64).exp();
