@@ -245,6 +245,14 @@ pub struct RadiometricCalibration {
     pub effort: Vec<RadiometricEffort>,
     /// Assumptions the run made (e.g. a linear response because none was given).
     pub notes: Vec<String>,
+    /// Flat and colour runs: how their values were made linear — `response:ID` (the
+    /// response result with that id), `own-bracket` (a curve fitted on the run's own
+    /// bracket, not stored) or `linear` (camera assumed linear). An acquisition applies a
+    /// flat or colour result only together with the same linearisation (see
+    /// `apply::RawCorrection`): a gain or matrix measured on differently linearised values
+    /// would scale each level differently. `None` in results of older builds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub linearisation: Option<String>,
 }
 
 impl RadiometricCalibration {
@@ -455,14 +463,15 @@ fn linearise(frames: &[Frame], curve: &ResponseCurve) -> Result<Vec<RgbImage>, R
         .collect()
 }
 
-/// The response curve flat and colour runs use, and a note on where it came from.
+/// The response curve flat and colour runs use, a note on where it came from and its
+/// [`RadiometricCalibration::linearisation`] tag.
 // CalibrateError is large (other recipe kinds' variants); it is built once per failed run.
 #[allow(clippy::result_large_err)]
 fn response_for(
     recipe: &Recipe,
     spec: &RadiometricSpec,
     bracket: &[Frame],
-) -> Result<(ResponseCurve, String), CalibrateError> {
+) -> Result<(ResponseCurve, String, String), CalibrateError> {
     if let Some(path) = &spec.response {
         let bad = |message: String| CalibrateError::ResponseInput {
             recipe: recipe.name.clone(),
@@ -479,7 +488,11 @@ fn response_for(
             .radiometric
             .and_then(|x| x.response)
             .ok_or_else(|| bad(format!("calibration {} ({}) holds no response curve", r.id, r.kind)))?;
-        return Ok((fit.curve, format!("response curve from {path} (calibration {})", r.id)));
+        return Ok((
+            fit.curve,
+            format!("response curve from {path} (calibration {})", r.id),
+            format!("response:{}", r.id),
+        ));
     }
     let mut distinct: Vec<f64> = bracket.iter().map(|f| f.meta.exposure).collect();
     distinct.sort_by(|a, b| a.total_cmp(b));
@@ -489,12 +502,14 @@ fn response_for(
         return Ok((
             fit.curve,
             "response curve recovered from this recipe's own bracket".into(),
+            "own-bracket".into(),
         ));
     }
     let max_dn = bracket.first().map(|f| f.max_dn() as f64).unwrap_or(4095.0);
     Ok((
         ResponseCurve::linear(max_dn, spec.fit.levels),
         "no response calibration given and a single exposure: the camera is assumed linear".into(),
+        "linear".into(),
     ))
 }
 
@@ -590,7 +605,9 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
                 out.response = Some(fit);
                 (c, "response recovered from the bracket".to_string())
             } else {
-                response_for(recipe, &spec, &bracket)?
+                let (c, how, tag) = response_for(recipe, &spec, &bracket)?;
+                out.linearisation = Some(tag);
+                (c, how)
             };
             let fit_s = t.elapsed().as_secs_f64();
             out.notes.push(how);
@@ -655,7 +672,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
                     let t = Instant::now();
                     let mut tmp = RadiometricCalibration::default();
                     let r = response_for(recipe, &spec, &sub)
-                        .and_then(|(c, _)| merge_hdr(&sub, &c).map_err(|e| fail(recipe, e)))
+                        .and_then(|(c, _, _)| merge_hdr(&sub, &c).map_err(|e| fail(recipe, e)))
                         .and_then(|h| colour_fit(recipe, rig, &spec, &q, &h.image, &mut tmp));
                     let fs = t.elapsed().as_secs_f64();
                     out.effort.push(match (r, tmp.colour) {
@@ -678,8 +695,9 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
             let (frames, times) = capture(recipe, rig, &config, &exposures, spec.frames).await?;
             // The response: given, or from the exposure-bracket (first frame per exposure).
             let bracket: Vec<Frame> = frames.iter().map(|f| f[0].clone()).collect();
-            let (curve, how) = response_for(recipe, &spec, &bracket)?;
+            let (curve, how, tag) = response_for(recipe, &spec, &bracket)?;
             out.notes.push(how);
+            out.linearisation = Some(tag);
             // All frames of the exposure with the most valid values (the middle of a bracket).
             let best = frames
                 .iter()

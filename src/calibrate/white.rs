@@ -32,6 +32,13 @@ pub struct WhiteStandardSpec {
     /// texels per pose are plenty).
     #[serde(default = "default_texels")]
     pub texels: usize,
+    /// A directory of dark / response / flat / colour results (`DIR/*/calibration.json`, made
+    /// on this rig; other kinds there are ignored) to correct each frame with before the fit,
+    /// exactly as `gonio acquire --calibration` corrects it: `K` is only valid for values
+    /// corrected the same way, so the result lists their ids and an acquisition applying
+    /// other corrections refuses it. Relative paths are relative to the working directory.
+    #[serde(default)]
+    pub corrections: Option<String>,
 }
 
 fn default_texels() -> usize {
@@ -67,6 +74,8 @@ pub enum WhiteError {
     Lamp(#[from] super::apply::ApplyError),
     #[error("no texel is lit at any pose: cannot fit the scale")]
     NoData,
+    #[error("[white_standard] corrections: {0}")]
+    Corrections(String),
 }
 
 /// One pose of the fit.
@@ -114,6 +123,10 @@ pub struct WhiteStandardCalibration {
     pub truth_k: Option<[f64; 3]>,
     pub k_error_percent: Option<[f64; 3]>,
     pub effort: Vec<WhiteEffort>,
+    /// Ids of the raw-frame corrections (dark, response, flat, colour) the frames were
+    /// corrected with before the fit; empty = uncorrected linear DN values.
+    #[serde(default)]
+    pub corrections: Vec<String>,
 }
 
 /// Values this close to full scale count as saturated.
@@ -131,7 +144,7 @@ struct PoseData {
 
 /// The simulated sensor's true K: `sensitivity_e_per_radiance_s / full_well_e` from the
 /// rig file's camera options (the simulator's defaults where absent).
-fn sim_truth_k(rig: &Rig) -> f64 {
+pub(crate) fn sim_truth_k(rig: &Rig) -> f64 {
     let opt = |key: &str, default: f64| {
         rig.spec
             .camera
@@ -169,6 +182,12 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
         cause,
     };
     let lamp = LampModel::from_rig(&rig.spec).map_err(|e| fail(e.into()))?;
+    let correction = match &spec.corrections {
+        None => None,
+        Some(dir) => {
+            load_corrections(std::path::Path::new(dir), &rig.spec).map_err(|m| fail(WhiteError::Corrections(m)))?
+        }
+    };
     let t0 = rig.time();
     super::prepare_rig(recipe, rig).await?;
     let params = RectifyParams {
@@ -192,7 +211,13 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
             .capture()
             .await
             .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
-        let raw = frame_to_linear(&frame);
+        let (raw, saturated_px) = match &correction {
+            Some(c) => {
+                let (img, n) = c.apply(&frame).map_err(|e| fail(e.into()))?;
+                (img, Some(n))
+            }
+            None => (frame_to_linear(&frame), None),
+        };
         let cam_pose = rig.kinematics.camera_pose(&q_read);
         let rect = rectify_frame(&raw, &intr, &cam_pose, &rig.border, &params).map_err(|e| {
             fail(WhiteError::Rectify {
@@ -201,8 +226,20 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
             })
         })?;
         let n = rect.image.data.len().max(1);
-        let saturated = rect.image.data.iter().filter(|&&v| v as f64 >= SATURATION).count();
-        let fraction = 100.0 * saturated as f64 / n as f64;
+        // Corrected values have no fixed full scale: there the raw frame's saturated pixels
+        // count, as a share of the standard's footprint (frame pixels above 5 % of the
+        // brightest).
+        let fraction = match saturated_px {
+            None => {
+                let saturated = rect.image.data.iter().filter(|&&v| v as f64 >= SATURATION).count();
+                100.0 * saturated as f64 / n as f64
+            }
+            Some(s) => {
+                let top = raw.data.iter().fold(0f32, |a, &b| a.max(b));
+                let lit = raw.data.chunks_exact(3).filter(|p| p[1] > 0.05 * top).count().max(1);
+                100.0 * s as f64 / lit as f64
+            }
+        };
         if fraction > MAX_SATURATED_PERCENT {
             return Err(fail(WhiteError::Saturated {
                 index,
@@ -280,7 +317,9 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
         worst = worst.max(mx);
     }
     let simulated = rig.clock.is_some();
-    let truth_k = simulated.then(|| [sim_truth_k(rig); 3]);
+    // The truth K is on the scale of uncorrected values (DN / max DN); corrected values are
+    // on the response curve's own scale, which has no truth to compare with.
+    let truth_k = (simulated && correction.is_none()).then(|| [sim_truth_k(rig); 3]);
     let k_error_percent = truth_k.map(|t| std::array::from_fn(|c| 100.0 * (k[c] - t[c]) / t[c]));
     let reference = truth_k.unwrap_or(k);
     let effort = (1..=data.len())
@@ -309,6 +348,10 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
         truth_k,
         k_error_percent,
         effort,
+        corrections: correction
+            .as_ref()
+            .map(|c| c.sources.iter().map(|s| s.id.clone()).collect())
+            .unwrap_or_default(),
     };
     let result = CalibrationResult {
         white_standard: Some(white),
@@ -317,4 +360,33 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
     }
     .seal();
     Ok(RunOutput { result, corners: None })
+}
+
+/// The raw-frame correction of the dark / response / flat / colour results in `dir`,
+/// checked against the rig's camera; `None` if `dir` holds none of them.
+fn load_corrections(
+    dir: &std::path::Path,
+    rig: &gonio_devices::rig::RigSpec,
+) -> Result<Option<super::apply::RawCorrection>, String> {
+    use super::apply::{load_dir, AppliedCalibration};
+    let results: Vec<_> = load_dir(dir, &rig.name)
+        .map_err(|e| e.to_string())?
+        .into_iter()
+        .filter(|r| matches!(r.kind.as_str(), "dark" | "response" | "flat" | "colour"))
+        .collect();
+    if results.is_empty() {
+        return Err(format!(
+            "{} holds no dark, response, flat or colour result: run those recipes first (--out {}/KIND)",
+            dir.display(),
+            dir.display()
+        ));
+    }
+    let (applied, _) = AppliedCalibration::from_results(&results).map_err(|e| e.to_string())?;
+    if let Some(c) = &applied.raw {
+        let cam = &rig.camera;
+        c.check_camera(cam.width, cam.height, cam.bit_depth)
+            .map_err(|e| e.to_string())?;
+    }
+    tracing::info!(corrections = ?applied.corrections(), "white standard: frames corrected before the fit");
+    Ok(applied.raw)
 }

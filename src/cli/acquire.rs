@@ -131,6 +131,11 @@ pub struct Summary {
     /// Ids of the calibration results applied (comma-separated).
     #[serde(default)]
     pub calibration: Option<String>,
+    /// Raw-frame corrections applied to every frame, in order (`response`, `dark`, `flat`,
+    /// `colour`); empty without. Saturated pixels are counted per measurement
+    /// (`extra.saturated_pixels` of its record).
+    #[serde(default)]
+    pub corrections: Vec<String>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), for the memory benchmark.
@@ -162,7 +167,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         quality: RenderQuality::default(),
     };
     let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).context("building the rig")?);
-    let calibration = dataset_calibration(dataset.header(), dataset.dir(), &rig_spec.name)?;
+    let calibration = dataset_calibration(dataset.header(), dataset.dir(), &rig_spec)?;
     // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
     for s in &plan.skipped {
         if !done.contains(&s.index) {
@@ -264,6 +269,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
             .map_or(APPLY_UNIT_DN, |c| c.value_unit())
             .to_string(),
         calibration: calibration.as_ref().map(|c| c.ids.join(",")),
+        corrections: calibration.as_ref().map(|c| c.corrections()).unwrap_or_default(),
     };
     if complete {
         dataset
@@ -324,7 +330,7 @@ fn create_new(args: &AcquireArgs) -> Result<Opened> {
     header.raw_frames = settings.raw;
     header.extra = serde_json::json!({ "run_settings": settings });
     let calibration = match &args.calibration {
-        Some(dir) => Some(prepare_calibration(dir, &rig.name, &mut header)?),
+        Some(dir) => Some(prepare_calibration(dir, &rig, &mut header)?),
         None => None,
     };
     let dataset = Dataset::create(&args.out, &header, args.force).with_context(|| {
@@ -353,12 +359,13 @@ fn calibration_copy(kind: &str) -> String {
 /// file, copy in the dataset, applied or not).
 fn prepare_calibration(
     dir: &Path,
-    rig_name: &str,
+    rig: &RigSpec,
     header: &mut ManifestHeader,
 ) -> Result<Vec<crate::calibrate::apply::LoadedResult>> {
     use crate::calibrate::apply::{load_dir, AppliedCalibration};
-    let results = load_dir(dir, rig_name)?;
+    let results = load_dir(dir, &rig.name)?;
     let (applied, not_applied) = AppliedCalibration::from_results(&results)?;
+    check_raw_correction(&applied, rig)?;
     for kind in &not_applied {
         tracing::warn!(kind = %kind, "calibration kind is not applied by acquire yet: recorded as not applied");
     }
@@ -369,6 +376,18 @@ fn prepare_calibration(
         header.values = "BRDF (1/sr) per texel, radiometrically calibrated with a white standard \
                          (value / (K · exposure · gain · E(x)), E from the lamp position per texel)"
             .into();
+    }
+    if let Some(raw) = &applied.raw {
+        let kinds = raw.kinds().join(", ");
+        header.values = if applied.radiometric.is_some() {
+            format!("{} Raw frames corrected first: {kinds}.", header.values)
+        } else {
+            format!(
+                "linear values (½ exp g of the response curve's scale), raw frames corrected: {kinds}; \
+                 no white standard, so not BRDF"
+            )
+        };
+        header.extra["corrections"] = serde_json::json!(raw.sources);
     }
     header.extra["value_unit"] = serde_json::json!(applied.value_unit());
     header.extra["calibrations"] = serde_json::Value::Array(
@@ -388,6 +407,25 @@ fn prepare_calibration(
     Ok(results)
 }
 
+/// Refuse raw-frame corrections made on another camera (size, bit depth) before anything is
+/// created; warn when the dark frames were taken at another exposure (dark current scales
+/// with it).
+fn check_raw_correction(applied: &crate::calibrate::apply::AppliedCalibration, rig: &RigSpec) -> Result<()> {
+    let Some(raw) = &applied.raw else { return Ok(()) };
+    let c = &rig.camera;
+    raw.check_camera(c.width, c.height, c.bit_depth)?;
+    if let Some(t) = raw.dark_exposure_s {
+        if (t - c.exposure_s).abs() > 1e-3 * c.exposure_s.abs().max(1e-9) {
+            tracing::warn!(
+                dark_exposure_s = t,
+                exposure_s = c.exposure_s,
+                "the dark frame was taken at another exposure than the camera's: its dark current differs"
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Copy the result files into the dataset (`calibration/KIND.json`).
 fn store_calibration_copies(out: &Path, results: &[crate::calibrate::apply::LoadedResult]) -> Result<()> {
     let dir = out.join("calibration");
@@ -405,8 +443,9 @@ fn store_calibration_copies(out: &Path, results: &[crate::calibrate::apply::Load
 fn dataset_calibration(
     header: &ManifestHeader,
     dir: &Path,
-    rig_name: &str,
+    rig: &RigSpec,
 ) -> Result<Option<Arc<crate::calibrate::apply::AppliedCalibration>>> {
+    let rig_name = &rig.name;
     use crate::calibrate::apply::{load_files, AppliedCalibration};
     let Some(list) = header.extra.get("calibrations").and_then(|v| v.as_array()) else {
         return Ok(None);
@@ -419,6 +458,7 @@ fn dataset_calibration(
     let results =
         load_files(&files, rig_name).with_context(|| format!("loading the calibration of {}", dir.display()))?;
     let (applied, _) = AppliedCalibration::from_results(&results)?;
+    check_raw_correction(&applied, rig)?;
     let expected = header.calibration.clone().unwrap_or_default();
     if applied.ids.join(",") != expected {
         bail!(

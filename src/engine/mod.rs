@@ -375,13 +375,21 @@ fn store_loop(
     };
     let undistort = calibration.as_ref().and_then(|c| c.camera);
     let radiometric = calibration.as_ref().and_then(|c| c.radiometric);
+    let raw_correction = calibration.as_ref().and_then(|c| c.raw.as_ref());
     while let Some(job) = rx.blocking_recv() {
         let index = job.step.index;
         let pose = rig.kinematics.camera_pose(&job.q_read);
         let ((rect, t_rect), (truth, t_truth)) = rayon::join(
             || {
                 let t = Instant::now();
-                let mut raw = frame_to_linear(&job.frame);
+                // Dark, response, flat, colour: on the raw frame, before the geometry.
+                let (mut raw, saturated) = match raw_correction {
+                    Some(c) => match c.apply(&job.frame) {
+                        Ok((img, n)) => (img, Some(n)),
+                        Err(e) => return (Err(e), 0.0),
+                    },
+                    None => (frame_to_linear(&job.frame), None),
+                };
                 if let (Some(k), None) = (job.notes.exposure_scale, &radiometric) {
                     // Re-exposed after saturating: back to the nominal exposure's scale (a
                     // radiometric calibration divides by each frame's own exposure instead).
@@ -391,7 +399,10 @@ fn store_loop(
                     raw = crate::calibrate::apply::undistort_frame(&raw, cam);
                 }
                 (
-                    rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
+                    Ok((
+                        rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
+                        saturated,
+                    )),
                     t.elapsed().as_secs_f64(),
                 )
             },
@@ -406,6 +417,13 @@ fn store_loop(
         );
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
+        let (rect, saturated) = match rect {
+            Ok(r) => r,
+            Err(source) => {
+                failed.store(true, Ordering::SeqCst);
+                return Err(Box::new((dataset, EngineError::Calibration { index, source })));
+            }
+        };
         let mut rect = match rect {
             Ok(r) => r,
             Err(e) => {
@@ -424,8 +442,18 @@ fn store_loop(
             let lamp = rig.kinematics.light_position(&job.q_read);
             let (t, g) = (job.frame.meta.exposure, job.frame.meta.gain);
             let mut converted = r.to_brdf(&mut rect.image, lamp, &params, t, g);
+            // The truth is on the scale of an ideal linear sensor (DN / max DN); with raw-frame
+            // corrections the fitted K is on the response curve's scale instead, so the truth
+            // is converted with the simulated sensor's true K (the simulator knows it).
+            let truth_radio = match raw_correction {
+                Some(_) => crate::calibrate::apply::Radiometric {
+                    k: [crate::calibrate::white::sim_truth_k(&rig); 3],
+                    lamp: r.lamp,
+                },
+                None => *r,
+            };
             if let (Ok(()), Some(img)) = (&converted, truth.as_mut()) {
-                converted = r.to_brdf(img, lamp, &params, t, g);
+                converted = truth_radio.to_brdf(img, lamp, &params, t, g);
             }
             if let Err(source) = converted {
                 failed.store(true, Ordering::SeqCst);
@@ -441,6 +469,11 @@ fn store_loop(
             "markers_found": rect.markers_found,
             "marker_rms_px": rect.marker_rms_px,
         });
+        if let Some(n) = saturated {
+            // Pixels at or above the saturation code: corrected as neutral clipped white,
+            // a lower bound (see `RawCorrection`).
+            extra["saturated_pixels"] = serde_json::json!(n);
+        }
         if let (Some(t), true) = (&truth, opts.store_truth) {
             let rel = format!("truth/{index:05}.exr");
             let path = dataset.dir().join(&rel);
