@@ -17,30 +17,16 @@
 //! `cargo test -p gonio --test calibration_radiometric_apply -- --nocapture` prints the
 //! figures.
 
+mod common;
+
+use common::{fresh_tmp, gonio, root};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 const ALBEDO: f64 = 0.9;
 const RIG: &str = "devices/rigs/radiometric.toml";
 
-fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn gonio(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_gonio"))
-        .args(args)
-        .current_dir(root())
-        .env("RUST_LOG", "warn")
-        .output()
-        .expect("running gonio")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gonio-radapply-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    fresh_tmp("radapply", name)
 }
 
 /// A copy of a shipped recipe with `edits` (each `from` must occur) written to `dir`.

@@ -4,29 +4,15 @@
 //! A reduced set of Bonn directions keeps it short; the full 81 × 81 run is a command in
 //! the report (`gonio acquire --sample white-standard --calibration …`).
 
+mod common;
+
+use common::{fresh_tmp, gonio};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 const ALBEDO: f64 = 0.9;
 
-fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn gonio(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_gonio"))
-        .args(args)
-        .current_dir(root())
-        .env("RUST_LOG", "warn")
-        .output()
-        .expect("running gonio")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("gonio-white-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    fresh_tmp("white", name)
 }
 
 fn calibrate(dir: &Path) -> serde_json::Value {

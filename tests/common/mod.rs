@@ -117,3 +117,26 @@ pub fn run_recipe(
         .unwrap();
     rt.block_on(gonio::calibrate::run(recipe, &rig))
 }
+
+/// The workspace root: recipes and rig files are named relative to it.
+pub fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Run the gonio binary in the workspace root with `args`, warnings-only logs.
+pub fn gonio(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_gonio"))
+        .args(args)
+        .current_dir(root())
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("running gonio")
+}
+
+/// A fresh, empty temporary directory `gonio-{tag}-{pid}-{name}`.
+pub fn fresh_tmp(tag: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("gonio-{tag}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
