@@ -44,10 +44,6 @@ pub struct CornerFit {
     pub q: [f64; 2],
     /// Fitted optical blur σ (pixels), beyond the pixel's own area.
     pub blur_px: f64,
-    /// Weighted RMS residual relative to the fitted contrast `2|b|`.
-    pub rms_relative: f64,
-    /// One-sigma uncertainty of `q` (pixels, larger axis) from the fit's covariance.
-    pub sigma_px: f64,
 }
 
 const SQRT_PI: f64 = 1.772_453_850_905_516;
@@ -334,11 +330,11 @@ pub fn fit_corner(
 
     let mut jrows = Vec::with_capacity(px.len());
     let mut centre = start;
-    let (mut cost, mut used) = (0.0, 0);
+    let mut used = 0;
     // Outer loop: re-centre the weights on the estimate until it stays put.
     for _ in 0..6 {
-        let (c0, mut r, u) = eval(&p, centre, Some(&mut jrows));
-        (cost, used) = (c0, u);
+        let (mut cost, mut r, u) = eval(&p, centre, Some(&mut jrows));
+        used = u;
         let mut lambda = 1e-3;
         for _ in 0..60 {
             let mut jtj = Mat9::zeros();
@@ -388,22 +384,9 @@ pub fn fit_corner(
     if s > radius || used < 20 || p[6].abs() < 1e-12 {
         return None;
     }
-    // Covariance of (qx, qy): σ² (JᵀJ)⁻¹ with σ² the residual variance.
-    eval(&p, centre, Some(&mut jrows));
-    let mut jtj = Mat9::zeros();
-    for row in &jrows {
-        jtj += row * row.transpose();
-    }
-    let var = cost / (used as f64 - 9.0).max(1.0);
-    let sigma_px = jtj
-        .try_inverse()
-        .map(|c| (c[(0, 0)].max(c[(1, 1)]) * var).sqrt())
-        .unwrap_or(f64::INFINITY);
     Some(CornerFit {
         q: [p[0], p[1]],
         blur_px: s,
-        rms_relative: (cost / used as f64).sqrt() / (2.0 * p[6].abs()),
-        sigma_px,
     })
 }
 
