@@ -73,6 +73,16 @@ pub struct CheckerboardOptions {
     /// `saturation_level` are empty (black, lens cap, light off): too little signal for
     /// corners, whatever the detector would make of the noise.
     pub min_frame_contrast: f64,
+    /// Coded boards only: markers that must agree on a grid's labelling before its corners
+    /// are named (one misread marker must not name a grid).
+    pub min_markers: usize,
+    /// Coded boards only: fewest corners a view must give (a partial view is used if it
+    /// has this many, over at least two rows and two columns).
+    pub min_corners: usize,
+    /// Coded boards only: a corner whose model fit leaves an RMS residual (as a fraction of
+    /// the corner's contrast) above the view's median by more than this, in quadrature, is
+    /// left out: something else lies in its window.
+    pub max_corner_residual: f64,
 }
 
 impl Default for CheckerboardOptions {
@@ -87,6 +97,9 @@ impl Default for CheckerboardOptions {
             model_fit: true,
             max_model_radius_px: 8.0,
             min_frame_contrast: 0.01,
+            min_markers: 2,
+            min_corners: 8,
+            max_corner_residual: 0.02,
         }
     }
 }
@@ -100,6 +113,13 @@ pub struct CheckerboardDetection {
     pub candidates: usize,
     /// Mean distance the sub-pixel step moved the corners (pixels).
     pub mean_refinement_px: f64,
+    /// Coded boards: the ids of the markers that named the corners (empty for a plain
+    /// checkerboard).
+    #[serde(default)]
+    pub markers: Vec<usize>,
+    /// Coded boards: corners that were named but whose refinement failed, left out.
+    #[serde(default)]
+    pub dropped_corners: usize,
 }
 
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -126,20 +146,20 @@ pub enum CheckerboardError {
 }
 
 /// A single-channel image, row-major.
-struct Gray {
-    w: usize,
-    h: usize,
-    d: Vec<f32>,
+pub(crate) struct Gray {
+    pub w: usize,
+    pub h: usize,
+    pub d: Vec<f32>,
 }
 
 impl Gray {
     #[inline]
-    fn at(&self, x: usize, y: usize) -> f32 {
+    pub fn at(&self, x: usize, y: usize) -> f32 {
         self.d[y * self.w + x]
     }
     /// Bilinear value at pixel coordinates (u, v) (centres at half-integers), clamped.
     #[inline]
-    fn sample(&self, u: f64, v: f64) -> f64 {
+    pub fn sample(&self, u: f64, v: f64) -> f64 {
         let x = (u - 0.5).clamp(0.0, (self.w - 1) as f64);
         let y = (v - 0.5).clamp(0.0, (self.h - 1) as f64);
         let (x0, y0) = (x.floor() as usize, y.floor() as usize);
@@ -197,18 +217,53 @@ pub fn detect_checkerboard(
     spec: &CheckerboardSpec,
     opts: &CheckerboardOptions,
 ) -> Result<CheckerboardDetection, CheckerboardError> {
+    if spec.cols < 2 || spec.rows < 2 || !(spec.pitch_mm > 0.0 && spec.pitch_mm.is_finite()) {
+        return Err(CheckerboardError::BadSpec(format!(
+            "{}×{} inner corners, pitch {} mm: need ≥ 2×2 corners and a pitch > 0",
+            spec.cols, spec.rows, spec.pitch_mm
+        )));
+    }
+    let frame = prepare_frame(img, opts)?;
+    let result = detect_inner(&frame.gray, spec, opts, frame.contrast);
+    frame.explain(result, opts)
+}
+
+/// A frame that passed the frame-level checks: its luminance, contrast and clipping.
+pub(crate) struct Frame {
+    pub gray: Gray,
+    /// 1st–99th percentile spread (frame units).
+    pub contrast: f64,
+    /// Fraction of the bright pixels that clip.
+    pub saturated: f64,
+}
+
+impl Frame {
+    /// A board not found in a frame that clips a lot is reported as saturated: clipping is
+    /// the likelier cause, and shortening the exposure the fix.
+    pub fn explain<T>(
+        &self,
+        r: Result<T, CheckerboardError>,
+        opts: &CheckerboardOptions,
+    ) -> Result<T, CheckerboardError> {
+        match r {
+            Err(_) if self.saturated > opts.max_saturated_fraction => Err(CheckerboardError::Saturated {
+                percent: 100.0 * self.saturated,
+                level: opts.saturation_level,
+            }),
+            other => other,
+        }
+    }
+}
+
+/// Luminance and the frame-level diagnosis: a useless frame (empty, black, saturated)
+/// gets its own error before any corner is looked for.
+pub(crate) fn prepare_frame(img: &RgbImage, opts: &CheckerboardOptions) -> Result<Frame, CheckerboardError> {
     if img.data.len() != img.width * img.height * 3 || img.width < 8 || img.height < 8 {
         return Err(CheckerboardError::BadImage {
             width: img.width,
             height: img.height,
             len: img.data.len(),
         });
-    }
-    if spec.cols < 2 || spec.rows < 2 || !(spec.pitch_mm > 0.0 && spec.pitch_mm.is_finite()) {
-        return Err(CheckerboardError::BadSpec(format!(
-            "{}×{} inner corners, pitch {} mm: need ≥ 2×2 corners and a pitch > 0",
-            spec.cols, spec.rows, spec.pitch_mm
-        )));
     }
     let gray = Gray {
         w: img.width,
@@ -258,25 +313,16 @@ pub fn detect_checkerboard(
         }
         return Err(CheckerboardError::Empty { p1, p99 });
     }
-    let result = detect_inner(&gray, spec, opts, frame_contrast as f64);
-    match result {
-        Err(e) if saturated > opts.max_saturated_fraction => {
-            let _ = e;
-            Err(CheckerboardError::Saturated {
-                percent: 100.0 * saturated,
-                level: opts.saturation_level,
-            })
-        }
-        other => other,
-    }
+    Ok(Frame {
+        gray,
+        contrast: frame_contrast as f64,
+        saturated,
+    })
 }
 
-fn detect_inner(
-    gray: &Gray,
-    spec: &CheckerboardSpec,
-    opts: &CheckerboardOptions,
-    frame_contrast: f64,
-) -> Result<CheckerboardDetection, CheckerboardError> {
+/// Saddle-point corner candidates (module docs, step 2) and the smoothed image they were
+/// found on.
+pub(crate) fn saddle_candidates(gray: &Gray, opts: &CheckerboardOptions, frame_contrast: f64) -> (Gray, Vec<[f64; 2]>) {
     let smooth = gaussian_blur(gray, opts.smoothing_px);
     let (w, h) = (gray.w, gray.h);
     // Saddle response: −det(Hessian) of the smoothed image.
@@ -332,6 +378,29 @@ fn detect_inner(
             }
         }
     }
+    (smooth, candidates)
+}
+
+/// The candidate nearest the candidates' centroid, among those not `taken`.
+pub(crate) fn central_seed(pts: &[[f64; 2]], taken: &[bool]) -> Option<usize> {
+    let free: Vec<usize> = (0..pts.len()).filter(|&k| !taken[k]).collect();
+    if free.is_empty() {
+        return None;
+    }
+    let n = free.len() as f64;
+    let cx = free.iter().map(|&k| pts[k][0]).sum::<f64>() / n;
+    let cy = free.iter().map(|&k| pts[k][1]).sum::<f64>() / n;
+    let d2 = |k: usize| (pts[k][0] - cx).powi(2) + (pts[k][1] - cy).powi(2);
+    free.into_iter().min_by(|&a, &b| d2(a).total_cmp(&d2(b)))
+}
+
+fn detect_inner(
+    gray: &Gray,
+    spec: &CheckerboardSpec,
+    opts: &CheckerboardOptions,
+    frame_contrast: f64,
+) -> Result<CheckerboardDetection, CheckerboardError> {
+    let (smooth, candidates) = saddle_candidates(gray, opts, frame_contrast);
     let found = candidates.len();
     let not_found = |gc: usize, gr: usize, hint: &str| CheckerboardError::NotFound {
         found,
@@ -348,7 +417,10 @@ fn detect_inner(
             "too few corner candidates: board out of view, occluded, too blurred or too small",
         ));
     }
-    let grid = grow_grid(&candidates, &smooth);
+    let grid = match central_seed(&candidates, &vec![false; found]) {
+        Some(seed) => grow_grid(&candidates, &smooth, seed, &vec![false; found], 0.25),
+        None => HashMap::new(),
+    };
     let (mut imin, mut imax, mut jmin, mut jmax) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
     for &(i, j) in grid.keys() {
         imin = imin.min(i);
@@ -506,6 +578,8 @@ fn detect_inner(
         object,
         candidates: found,
         mean_refinement_px: moved / (cols * rows) as f64,
+        markers: Vec::new(),
+        dropped_corners: 0,
     })
 }
 
@@ -583,38 +657,57 @@ fn ring_crossings(g: &Gray, u: f64, v: f64, r: f64, min_contrast: f64) -> bool {
     crossings == 4 && shortest >= 2
 }
 
-/// Grow a 4-connected grid from the candidate nearest the centroid.
-fn grow_grid(pts: &[[f64; 2]], smooth: &Gray) -> HashMap<(i64, i64), usize> {
+/// Grow a 4-connected grid from candidate `seed` over the candidates not `taken`.
+/// `edge_offset` (a fraction of a step) is how far to each side of a step the image is
+/// sampled to tell a board axis from a diagonal: within a square's plain part (a quarter
+/// for a checkerboard; within the white margin for a coded board, whose markers would
+/// otherwise make a diagonal through a white square look like an edge).
+pub(crate) fn grow_grid(
+    pts: &[[f64; 2]],
+    smooth: &Gray,
+    seed: usize,
+    taken: &[bool],
+    edge_offset: f64,
+) -> HashMap<(i64, i64), usize> {
     let n = pts.len();
     let mut grid = HashMap::new();
-    if n < 5 {
+    if n < 5 || taken[seed] {
         return grid;
     }
-    let cx = pts.iter().map(|p| p[0]).sum::<f64>() / n as f64;
-    let cy = pts.iter().map(|p| p[1]).sum::<f64>() / n as f64;
     let d2 = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
-    let seed = (0..n)
-        .min_by(|&a, &b| d2(pts[a], [cx, cy]).total_cmp(&d2(pts[b], [cx, cy])))
-        .expect("non-empty");
     // Local basis at the seed. Under strong perspective a diagonal of the grid can be
     // shorter than an axis, so neighbours are classified by the image, not by distance: a
     // step along a board axis follows an edge between a dark and a bright square (the two
     // sides of its midpoint differ), a diagonal step crosses the middle of one square.
-    let mut near: Vec<usize> = (0..n).filter(|&k| k != seed).collect();
+    let mut near: Vec<usize> = (0..n).filter(|&k| k != seed && !taken[k]).collect();
     near.sort_by(|&a, &b| d2(pts[a], pts[seed]).total_cmp(&d2(pts[b], pts[seed])));
-    near.truncate(8);
+    // Enough neighbours that the board's own are among them even where small marks (a coded
+    // board's marker cells at a grazing view) crowd the corner.
+    near.truncate(24);
     let vec = |k: usize| [pts[k][0] - pts[seed][0], pts[k][1] - pts[seed][1]];
-    let edge_score = |k: usize| {
-        let v = vec(k);
+    // Sampled at three places along the step, `edge_offset` × its length to either side:
+    // an edge has the same two colours all along it, with the same sign.
+    let edge_score = |from: usize, to: usize| {
+        let v = [pts[to][0] - pts[from][0], pts[to][1] - pts[from][1]];
         let len = v[0].hypot(v[1]).max(1e-9);
         let nrm = [-v[1] / len, v[0] / len];
-        let mid = [pts[seed][0] + 0.5 * v[0], pts[seed][1] + 0.5 * v[1]];
-        let off = 0.25 * len;
-        (smooth.sample(mid[0] + nrm[0] * off, mid[1] + nrm[1] * off)
-            - smooth.sample(mid[0] - nrm[0] * off, mid[1] - nrm[1] * off))
-        .abs()
+        let off = edge_offset * len;
+        let diffs: Vec<f64> = [0.3, 0.5, 0.7]
+            .iter()
+            .map(|&f| {
+                let mid = [pts[from][0] + f * v[0], pts[from][1] + f * v[1]];
+                smooth.sample(mid[0] + nrm[0] * off, mid[1] + nrm[1] * off)
+                    - smooth.sample(mid[0] - nrm[0] * off, mid[1] - nrm[1] * off)
+            })
+            .collect();
+        let same_sign = diffs.iter().all(|&d| d > 0.0) || diffs.iter().all(|&d| d < 0.0);
+        if same_sign {
+            diffs.iter().map(|d| d.abs()).fold(f64::INFINITY, f64::min)
+        } else {
+            0.0
+        }
     };
-    let scores: Vec<f64> = near.iter().map(|&k| edge_score(k)).collect();
+    let scores: Vec<f64> = near.iter().map(|&k| edge_score(seed, k)).collect();
     let best_score = scores.iter().copied().fold(0.0, f64::max);
     let edges: Vec<usize> = near
         .iter()
@@ -646,9 +739,11 @@ fn grow_grid(pts: &[[f64; 2]], smooth: &Gray) -> HashMap<(i64, i64), usize> {
             }
             let q = [p[0] + d[0], p[1] + d[1]];
             let tol = 0.3 * a[0].hypot(a[1]).min(b[0].hypot(b[1]));
-            let best = (0..n)
-                .filter(|&m| d2(pts[m], q) < tol * tol)
-                .min_by(|&x, &y| d2(pts[x], q).total_cmp(&d2(pts[y], q)));
+            // The nearest candidate to the prediction that is joined to this node by an
+            // edge of the board (not a stray point beside the corner it should be).
+            let mut near_q: Vec<usize> = (0..n).filter(|&m| !taken[m] && d2(pts[m], q) < tol * tol).collect();
+            near_q.sort_by(|&x, &y| d2(pts[x], q).total_cmp(&d2(pts[y], q)));
+            let best = near_q.into_iter().find(|&m| edge_score(k, m) >= 0.3 * best_score);
             let Some(m) = best else { continue };
             if owner.contains_key(&m) {
                 continue;
@@ -674,7 +769,7 @@ fn grow_grid(pts: &[[f64; 2]], smooth: &Gray) -> HashMap<(i64, i64), usize> {
 /// not shift-invariant and biases the result by a few hundredths of a pixel); the
 /// Gaussian weights follow the estimate, so the window stays centred on it. `None` if it
 /// does not converge or wanders off by more than the window.
-fn refine_corner(g: &Gray, start: [f64; 2], win: usize) -> Option<[f64; 2]> {
+pub(crate) fn refine_corner(g: &Gray, start: [f64; 2], win: usize) -> Option<[f64; 2]> {
     let mut q = Vector2::new(start[0], start[1]);
     let reach = win as isize + 1;
     let sigma = win as f64 * 0.6;

@@ -44,6 +44,10 @@ pub struct CornerFit {
     pub q: [f64; 2],
     /// Fitted optical blur σ (pixels), beyond the pixel's own area.
     pub blur_px: f64,
+    /// RMS of the weighted residuals over the contrast (|dark − bright|): ≈ noise/contrast
+    /// for a clean corner, much more when something else (an occluder's rim, a mark)
+    /// lies in the window.
+    pub relative_residual: f64,
 }
 
 const SQRT_PI: f64 = 1.772_453_850_905_516;
@@ -331,6 +335,7 @@ pub fn fit_corner(
     let mut jrows = Vec::with_capacity(px.len());
     let mut centre = start;
     let mut used = 0;
+    let mut final_cost = f64::NAN;
     // Outer loop: re-centre the weights on the estimate until it stays put.
     for _ in 0..6 {
         let (mut cost, mut r, u) = eval(&p, centre, Some(&mut jrows));
@@ -374,6 +379,7 @@ pub fn fit_corner(
         if !p.iter().all(|v| v.is_finite()) || (p[0] - start[0]).hypot(p[1] - start[1]) > 0.5 * radius {
             return None;
         }
+        final_cost = cost;
         let moved = (p[0] - centre[0]).hypot(p[1] - centre[1]);
         centre = [p[0], p[1]];
         if moved < 1e-4 {
@@ -387,6 +393,7 @@ pub fn fit_corner(
     Some(CornerFit {
         q: [p[0], p[1]],
         blur_px: s,
+        relative_residual: (final_cost / used as f64).sqrt() / (2.0 * p[6].abs()),
     })
 }
 

@@ -10,6 +10,7 @@
 //!   re-exports it.
 
 pub mod checkerboard;
+pub mod coded_board;
 pub mod corner_model;
 pub mod error;
 pub mod homography;

@@ -117,25 +117,40 @@ pub fn render(
     noise: f64,
     seed: u64,
 ) -> RgbImage {
+    render_ss(intr, pose, paint, 4, blur, noise, seed)
+}
+
+/// [`render`] with `ss × ss` sheared sub-samples per pixel (corner tests that measure
+/// hundredths of a pixel need more than 4 × 4).
+pub fn render_ss(
+    intr: &Intrinsics,
+    pose: &CameraPose,
+    paint: &(dyn Fn(f64, f64) -> [f32; 3] + Sync),
+    ss: usize,
+    blur: f64,
+    noise: f64,
+    seed: u64,
+) -> RgbImage {
     let inv = Homography::from_pose(intr, pose).inverse().unwrap();
     let mut img = RgbImage::new(WIDTH, HEIGHT);
     img.data.par_chunks_mut(WIDTH * 3).enumerate().for_each(|(j, row)| {
         for i in 0..WIDTH {
             let mut acc = [0.0f32; 3];
-            for a in 0..4 {
-                for b in 0..4 {
-                    // A sheared 4 × 4 grid: all 16 sub-samples have distinct u and
+            let n = ss as f64;
+            for a in 0..ss {
+                for b in 0..ss {
+                    // A sheared ss × ss grid: all sub-samples have distinct u and
                     // distinct v offsets, so edges along the pixel axes (which the
-                    // rig's views at φ = 0° and 90° produce) are resolved to 1/16 px
-                    // instead of 1/4 px.
-                    let u = i as f64 + (a as f64 + (b as f64 + 0.5) / 4.0) / 4.0;
-                    let v = j as f64 + (b as f64 + (a as f64 + 0.5) / 4.0) / 4.0;
+                    // rig's views at φ = 0° and 90° produce) are resolved to 1/ss² px
+                    // instead of 1/ss px.
+                    let u = i as f64 + (a as f64 + (b as f64 + 0.5) / n) / n;
+                    let v = j as f64 + (b as f64 + (a as f64 + 0.5) / n) / n;
                     let c = match inv.apply(u, v) {
                         Some((x, y)) => paint(x, y),
                         None => [0.02; 3],
                     };
                     for k in 0..3 {
-                        acc[k] += c[k] / 16.0;
+                        acc[k] += c[k] / (n * n) as f32;
                     }
                 }
             }

@@ -7,6 +7,7 @@
 
 pub mod axis;
 pub mod camera;
+pub mod coded_board;
 pub mod error;
 pub mod geometry;
 pub mod image;

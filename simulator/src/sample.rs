@@ -9,6 +9,7 @@
 
 use crate::brdf::{BrdfModel, Rgb};
 use crate::noise::{fbm, value_noise};
+use gonio_devices::coded_board::CodedBoardSpec;
 use gonio_devices::target::MarkerBorder;
 use gonio_devices::Vec3;
 use serde::{Deserialize, Serialize};
@@ -25,6 +26,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("calibration-target", include_str!("../samples/calibration-target.toml")),
     ("colour-target", include_str!("../samples/colour-target.toml")),
     ("mirror", include_str!("../samples/mirror.toml")),
+    ("coded-target", include_str!("../samples/coded-target.toml")),
 ];
 
 /// The default sample of the main job.
@@ -96,6 +98,52 @@ pub enum MapSpec {
     /// patch (column i, row j) — row 0 at the +y edge — is material `j · cols + i`; outside
     /// the grid the surround, material `cols · rows`.
     Grid { cols: usize, rows: usize, pitch_mm: f64 },
+    /// The coded-marker calibration board ([`CodedBoardSpec`]) centred on the sample:
+    /// material 0 where it is white (and around it), 1 where it is black. Its edges fall on
+    /// texel boundaries only if `pitch_mm`, the margin and the marker cells are multiples of
+    /// the texel size (`size_mm / resolution`); the shipped `coded-target` is laid out so.
+    CodedBoard {
+        squares_x: usize,
+        squares_y: usize,
+        pitch_mm: f64,
+        marker_mm: f64,
+        #[serde(default)]
+        first_id: usize,
+    },
+}
+
+impl MapSpec {
+    /// The coded board this map draws, if it is one.
+    pub fn coded_board(&self) -> Option<CodedBoardSpec> {
+        match *self {
+            MapSpec::CodedBoard {
+                squares_x,
+                squares_y,
+                pitch_mm,
+                marker_mm,
+                first_id,
+            } => Some(CodedBoardSpec {
+                squares_x,
+                squares_y,
+                pitch_mm,
+                marker_mm,
+                first_id,
+            }),
+            _ => None,
+        }
+    }
+}
+
+/// A disc painted over the material map: something lying on the sample (a clamp, tape, a
+/// finger), for testing detectors on partly hidden targets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Occluder {
+    /// Centre on the sample plane (mm).
+    pub center_mm: [f64; 2],
+    pub radius_mm: f64,
+    /// Index of the `[[material]]` it is made of.
+    pub material: usize,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -134,6 +182,9 @@ pub struct SampleSpec {
     /// right if it is true.
     #[serde(default)]
     pub isotropic: bool,
+    /// Discs painted over the map (`[[occluder]]`); none by default.
+    #[serde(default, rename = "occluder")]
+    pub occluders: Vec<Occluder>,
 }
 
 fn default_resolution() -> usize {
@@ -326,6 +377,26 @@ impl SampleSpec {
             | MapSpec::Ribs { period_mm }
             | MapSpec::Emboss { period_mm }
             | MapSpec::Checker { period_mm } => pos("map.period_mm", *period_mm)?,
+            MapSpec::CodedBoard { .. } => {
+                let board = self.map.coded_board().expect("a coded board");
+                board.validate().map_err(|m| bad("map", m))?;
+                if self.materials.len() < 2 {
+                    return Err(bad(
+                        "material",
+                        "a coded board needs two [[material]] tables: white (0), then black (1)".into(),
+                    ));
+                }
+                let [w, h] = board.size_mm();
+                if w > self.size_mm + 1e-9 || h > self.size_mm + 1e-9 {
+                    return Err(bad(
+                        "map",
+                        format!(
+                            "the board is {w} × {h} mm, larger than the sample (size_mm = {}): it would be cut off",
+                            self.size_mm
+                        ),
+                    ));
+                }
+            }
             MapSpec::Noise {
                 scale_mm, threshold, ..
             } => {
@@ -356,6 +427,28 @@ impl SampleSpec {
             ));
         }
         self.border.validate("border").map_err(|m| bad("border", m))?;
+        for (k, o) in self.occluders.iter().enumerate() {
+            if !(o.radius_mm.is_finite() && o.radius_mm > 0.0 && o.center_mm.iter().all(|c| c.is_finite())) {
+                return Err(bad(
+                    &format!("occluder[{k}]"),
+                    format!(
+                        "centre {:?}, radius {} mm: need a finite centre and a radius > 0",
+                        o.center_mm, o.radius_mm
+                    ),
+                ));
+            }
+            if o.material >= self.materials.len() || o.material > 255 {
+                return Err(bad(
+                    &format!("occluder[{k}].material"),
+                    format!(
+                        "{}: there are {} [[material]] tables (indices 0 ..= {})",
+                        o.material,
+                        self.materials.len(),
+                        self.materials.len().saturating_sub(1)
+                    ),
+                ));
+            }
+        }
         Ok(())
     }
 
@@ -410,12 +503,26 @@ impl SampleSpec {
             }
         };
         let material_map = match &self.map {
-            MapSpec::Uniform => None,
+            MapSpec::Uniform if self.occluders.is_empty() => None,
             m => {
+                let board = m.coded_board();
                 let mut map = vec![0u8; n * n];
                 for j in 0..n {
                     for i in 0..n {
-                        map[j * n + i] = material_at(m, centre(i), -centre(j));
+                        let (x, y) = (centre(i), -centre(j));
+                        map[j * n + i] = match &board {
+                            Some(b) => u8::from(b.is_black(x, y)),
+                            None => material_at(m, x, y),
+                        };
+                        // Occluders lie on top of the map.
+                        if let Some(o) = self
+                            .occluders
+                            .iter()
+                            .rev()
+                            .find(|o| (x - o.center_mm[0]).hypot(y - o.center_mm[1]) <= o.radius_mm)
+                        {
+                            map[j * n + i] = o.material as u8;
+                        }
                     }
                 }
                 Some(map)
@@ -513,6 +620,8 @@ fn material_at(m: &MapSpec, x: f64, y: f64) -> u8 {
             let (a, b) = ((x / period_mm).floor() as i64, (y / period_mm).floor() as i64);
             u8::from((a + b).rem_euclid(2) == 1)
         }
+        // Drawn by `CodedBoardSpec::is_black` in `build`.
+        MapSpec::CodedBoard { .. } => 0,
         MapSpec::Grid { cols, rows, pitch_mm } => {
             let i = (x / pitch_mm + cols as f64 / 2.0).floor();
             let j = (rows as f64 / 2.0 - y / pitch_mm).floor();
@@ -592,6 +701,38 @@ mod tests {
             }
         }
         assert!(SampleSpec::resolve(DEFAULT_SAMPLE).is_ok());
+    }
+
+    /// The coded board is drawn where `CodedBoardSpec::is_black` says, occluders on top;
+    /// an occluder of a material that does not exist is refused by name.
+    #[test]
+    fn coded_board_and_occluders() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/samples/coded-target-occluded.toml");
+        let spec = SampleSpec::load(Path::new(path)).unwrap();
+        let board = spec.map.coded_board().unwrap();
+        let s = spec.clone().build().unwrap();
+        let map = s.material_map.as_ref().unwrap();
+        let n = spec.resolution;
+        let texel = spec.size_mm / n as f64;
+        let (mut black, mut hidden) = (0, 0);
+        for j in 0..n {
+            for i in 0..n {
+                let (x, y) = ((i as f64 + 0.5) * texel - 44.0, 44.0 - (j as f64 + 0.5) * texel);
+                let under = spec
+                    .occluders
+                    .iter()
+                    .any(|o| (x - o.center_mm[0]).hypot(y - o.center_mm[1]) <= o.radius_mm);
+                let want = if under { 2 } else { u8::from(board.is_black(x, y)) };
+                assert_eq!(map[j * n + i], want, "texel ({i}, {j})");
+                black += usize::from(want == 1);
+                hidden += usize::from(under);
+            }
+        }
+        assert!(black > n * n / 3 && hidden > 0);
+        let mut bad = spec.clone();
+        bad.occluders[0].material = 7;
+        let e = bad.validate("occluded").unwrap_err().to_string();
+        assert!(e.contains("occluder[0].material"), "{e}");
     }
 
     /// `isotropic` is declared per file (default false); only the white standard (flat,
