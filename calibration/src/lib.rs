@@ -9,6 +9,7 @@
 //!   pose homography where they are not, then the warp. The root crate's `rectify` module
 //!   re-exports it.
 
+pub mod board;
 pub mod checkerboard;
 pub mod coded_board;
 pub mod corner_model;

@@ -208,7 +208,7 @@ pub enum MechanicalError {
         reason: String,
     },
     #[error(
-        "recipe `{recipe}`: reference = \"camera\" needs the board geometry: add checkerboard = {{ cols = …, rows = …, pitch_mm = … }}"
+        "recipe `{recipe}`: reference = \"camera\" needs the board geometry: add checkerboard = {{ cols = …, rows = …, pitch_mm = … }} or coded_board = {{ squares_x = …, squares_y = …, pitch_mm = …, marker_mm = … }}"
     )]
     NoBoard { recipe: String },
     #[error("recipe `{recipe}`: axis `{axis}`: camera reference at read-back {read_back_deg:.4}°: {message}")]
@@ -436,7 +436,7 @@ fn rigid_angle_deg(p: &[[f64; 2]], q: &[[f64; 2]]) -> (f64, f64) {
 
 /// The camera as the position reference of one axis (see the module docs).
 struct CameraReference {
-    board: gonio_calibration::checkerboard::CheckerboardSpec,
+    board: gonio_calibration::board::Board,
     detection: gonio_calibration::checkerboard::CheckerboardOptions,
     camera: gonio_calibration::intrinsics::CameraModel,
     /// Image (px, undistorted) → sample plane (mm) for the nominal pose with the measured
@@ -460,7 +460,7 @@ impl CameraReference {
     ) -> Result<CameraReference, MechanicalError> {
         use gonio_calibration::homography::Homography;
         let axis = rig.axes[index].name().to_string();
-        let board = recipe.checkerboard.ok_or_else(|| MechanicalError::NoBoard {
+        let board = recipe.board().ok_or_else(|| MechanicalError::NoBoard {
             recipe: recipe.name.clone(),
         })?;
         let intr = rig.spec.camera.intrinsics();
@@ -523,8 +523,7 @@ impl CameraReference {
     /// within ±45° of the read-back (the square board's labelling repeats every 90°).
     fn position_deg(&self, frame: &gonio_devices::Frame, read_back_deg: f64) -> Result<f64, String> {
         let raw = crate::engine::frame_to_linear(frame);
-        let det = gonio_calibration::checkerboard::detect_checkerboard(&raw, &self.board, &self.detection)
-            .map_err(|e| e.to_string())?;
+        let det = self.board.detect(&raw, &self.detection).map_err(|e| e.to_string())?;
         let (cam, mut plane) = (&self.camera, Vec::with_capacity(det.image.len()));
         for px in &det.image {
             let (x, y) = cam.undistort(px[0], px[1]);
@@ -536,7 +535,7 @@ impl CameraReference {
             plane.push([w.0, w.1]);
         }
         let (beta, rms) = rigid_angle_deg(&det.object, &plane);
-        if rms > 0.05 * self.board.pitch_mm {
+        if rms > 0.05 * self.board.pitch_mm() {
             return Err(format!(
                 "the detected corners do not fit a rigid board on the sample plane ({rms:.3} mm RMS): the camera \
                  pose or the board is not what the rig file says"
@@ -677,7 +676,7 @@ pub async fn run_mechanical(
     // listed axis is observable before any of them is measured.
     let mut cameras: Vec<Option<CameraReference>> = plans.iter().map(|_| None).collect();
     if spec.reference == ReferenceKind::Camera {
-        if recipe.checkerboard.is_none() {
+        if recipe.board().is_none() {
             return Err(MechanicalError::NoBoard {
                 recipe: recipe.name.clone(),
             });

@@ -20,7 +20,7 @@ pub mod rig_geometry;
 pub mod white;
 
 use crate::engine::{self, frame_to_linear, Rig};
-use gonio_calibration::checkerboard::{detect_checkerboard, CheckerboardError};
+use gonio_calibration::checkerboard::CheckerboardError;
 use gonio_calibration::intrinsics::{
     calibrate_intrinsics, CameraModel, IntrinsicsCalibration, IntrinsicsError, TargetView,
 };
@@ -465,7 +465,7 @@ async fn capture_unclipped(
 async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
     let name = recipe.name.clone();
     let rig_name = rig.spec.name.clone();
-    let board = recipe.checkerboard.expect("validated: intrinsics recipes have a board");
+    let board = recipe.board().expect("validated: intrinsics recipes have a board");
     let t0 = rig.time();
     let mut config = prepare_rig(recipe, rig).await?;
     let auto_exposure = recipe.exposure_s.is_none();
@@ -482,12 +482,14 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         let (frame, exposure) = capture_unclipped(recipe, rig, &mut config, auto_exposure).await?;
         view_exposure.push(exposure);
         let raw = frame_to_linear(&frame);
-        let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
-            recipe: name.clone(),
-            index,
-            view: pose.view,
-            cause,
-        })?;
+        let det = board
+            .detect(&raw, &recipe.detection)
+            .map_err(|cause| CalibrateError::Detection {
+                recipe: name.clone(),
+                index,
+                view: pose.view,
+                cause,
+            })?;
         tracing::debug!(index, candidates = det.candidates, "board found");
         if rig.clock.is_some() {
             let (rms, proj) = corner_truth(rig, &q, &det.object, &det.image);

@@ -4,8 +4,10 @@
 //! exposures, and with which fitting options; `gonio calibrate RECIPE --rig R` runs it on
 //! any rig. Unknown keys are errors, so a typo never silently falls back to a default.
 
+use gonio_calibration::board::Board;
 use gonio_calibration::checkerboard::{CheckerboardOptions, CheckerboardSpec};
 use gonio_calibration::intrinsics::IntrinsicsOptions;
+use gonio_devices::coded_board::CodedBoardSpec;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use thiserror::Error;
@@ -104,9 +106,14 @@ pub struct Recipe {
     /// The target: a built-in sample name or sample file (what the simulator renders; on
     /// a real rig, what must be mounted).
     pub target: String,
-    /// Board geometry (intrinsics).
+    /// Board geometry (intrinsics, rig geometry, mechanical through the camera): a plain
+    /// checkerboard, or `coded_board` (below), one of the two.
     #[serde(default)]
     pub checkerboard: Option<CheckerboardSpec>,
+    /// The coded-marker board (`devices/src/coded_board.rs`; the simulator's
+    /// `coded-target`): views may show only part of it.
+    #[serde(default)]
+    pub coded_board: Option<CodedBoardSpec>,
     #[serde(default)]
     pub detection: CheckerboardOptions,
     /// Fitting options (intrinsics).
@@ -251,18 +258,7 @@ impl Recipe {
             }
         }
         if self.kind == RecipeKind::RigGeometry {
-            let Some(cb) = &self.checkerboard else {
-                return Err(bad(
-                    "checkerboard",
-                    "a rig-geometry recipe needs [checkerboard] cols, rows, pitch_mm".into(),
-                ));
-            };
-            if cb.cols < 2 || cb.rows < 2 || cb.pitch_mm.is_nan() || cb.pitch_mm <= 0.0 {
-                return Err(bad(
-                    "checkerboard",
-                    format!("{cb:?}: need ≥ 2 × 2 inner corners and pitch_mm > 0"),
-                ));
-            }
+            self.validate_board(file, "a rig-geometry recipe")?;
             let min = self.rig_geometry.as_ref().map(|o| o.min_views).unwrap_or(3).max(1);
             if self.poses.len() < min {
                 return Err(bad(
@@ -299,18 +295,7 @@ impl Recipe {
             }
         }
         if self.kind == RecipeKind::Intrinsics {
-            let Some(cb) = &self.checkerboard else {
-                return Err(bad(
-                    "checkerboard",
-                    "an intrinsics recipe needs [checkerboard] cols, rows, pitch_mm".into(),
-                ));
-            };
-            if cb.cols < 2 || cb.rows < 2 || cb.pitch_mm.is_nan() || cb.pitch_mm <= 0.0 {
-                return Err(bad(
-                    "checkerboard",
-                    format!("{cb:?}: need ≥ 2 × 2 inner corners and pitch_mm > 0"),
-                ));
-            }
+            self.validate_board(file, "an intrinsics recipe")?;
             if self.poses.len() < 3 {
                 return Err(bad(
                     "pose",
@@ -319,6 +304,49 @@ impl Recipe {
             }
         }
         Ok(())
+    }
+}
+
+impl Recipe {
+    /// The target board, if the recipe names one.
+    pub fn board(&self) -> Option<Board> {
+        match (&self.checkerboard, &self.coded_board) {
+            (_, Some(c)) => Some(Board::Coded(*c)),
+            (Some(cb), None) => Some(Board::Checkerboard(*cb)),
+            (None, None) => None,
+        }
+    }
+
+    /// Exactly one board, and a sound one.
+    fn validate_board(&self, file: &str, what: &str) -> Result<(), RecipeError> {
+        let bad = |key: &str, message: String| RecipeError::Invalid {
+            file: file.into(),
+            key: key.into(),
+            message,
+        };
+        match (&self.checkerboard, &self.coded_board) {
+            (None, None) => Err(bad(
+                "checkerboard",
+                format!(
+                    "{what} needs a board: checkerboard = {{ cols, rows, pitch_mm }} or \
+                     coded_board = {{ squares_x, squares_y, pitch_mm, marker_mm }}"
+                ),
+            )),
+            (Some(_), Some(_)) => Err(bad(
+                "coded_board",
+                "both checkerboard and coded_board are set: a recipe uses one target; remove one".into(),
+            )),
+            (Some(cb), None) => {
+                if cb.cols < 2 || cb.rows < 2 || cb.pitch_mm.is_nan() || cb.pitch_mm <= 0.0 {
+                    return Err(bad(
+                        "checkerboard",
+                        format!("{cb:?}: need ≥ 2 × 2 inner corners and pitch_mm > 0"),
+                    ));
+                }
+                Ok(())
+            }
+            (None, Some(c)) => c.validate().map_err(|m| bad("coded_board", m)),
+        }
     }
 }
 

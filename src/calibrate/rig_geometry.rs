@@ -16,7 +16,6 @@
 
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::engine::{frame_to_linear, Rig};
-use gonio_calibration::checkerboard::detect_checkerboard;
 use gonio_calibration::intrinsics::CameraModel;
 use gonio_calibration::rig_geometry::{estimate_rig_geometry, RigGeometryFit, RigGeometryOptions, RigView};
 use gonio_devices::kinematics;
@@ -172,9 +171,7 @@ fn corrected(nominal: &RigSpec, fit: &RigGeometryFit) -> RigSpec {
 pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
     let name = recipe.name.clone();
     let rig_name = rig.spec.name.clone();
-    let board = recipe
-        .checkerboard
-        .expect("validated: rig-geometry recipes have a board");
+    let board = recipe.board().expect("validated: rig-geometry recipes have a board");
     let opts: RigGeometryOptions = recipe.rig_geometry.clone().unwrap_or_default();
     let t0 = rig.time();
     super::prepare_rig(recipe, rig).await?;
@@ -191,12 +188,14 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
             .await
             .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
         let raw = frame_to_linear(&frame);
-        let det = detect_checkerboard(&raw, &board, &recipe.detection).map_err(|cause| CalibrateError::Detection {
-            recipe: name.clone(),
-            index,
-            view: pose.view,
-            cause,
-        })?;
+        let det = board
+            .detect(&raw, &recipe.detection)
+            .map_err(|cause| CalibrateError::Detection {
+                recipe: name.clone(),
+                index,
+                view: pose.view,
+                cause,
+            })?;
         views.push(RigView {
             label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
             q: q.clone(),

@@ -131,3 +131,6 @@ done
 # The long lens of the default rig with its recipe (pinhole, square pixels: fixed aspect ratio).
 "$gonio" calibrate calibration/recipes/intrinsics-telephoto.toml --rig devices/rigs/default.toml --out "$work/cal-tele" --json > "$work/cal-tele.json"
 "$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-tele"
+# The coded-marker board on the default rig: views with different corner counts.
+"$gonio" calibrate calibration/recipes/intrinsics-coded.toml --rig devices/rigs/default.toml --out "$work/cal-coded" --json > "$work/cal-coded.json"
+"$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-coded"

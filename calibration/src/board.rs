@@ -1,0 +1,56 @@
+//! The calibration target a recipe names: a plain checkerboard (every corner must be in
+//! view) or the coded-marker board (any part of it will do). Everything downstream (the
+//! intrinsics, rig-geometry and mechanical fits) only sees corners and their board points,
+//! so they take either.
+
+use crate::checkerboard::{
+    detect_checkerboard, CheckerboardDetection, CheckerboardError, CheckerboardOptions, CheckerboardSpec,
+};
+use crate::coded_board::detect_coded_board;
+use gonio_devices::coded_board::CodedBoardSpec;
+use gonio_devices::image::RgbImage;
+
+/// A planar target with known corner positions.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Board {
+    Checkerboard(CheckerboardSpec),
+    Coded(CodedBoardSpec),
+}
+
+impl Board {
+    /// Find the board's corners in a linear RGB frame.
+    pub fn detect(
+        &self,
+        img: &RgbImage,
+        opts: &CheckerboardOptions,
+    ) -> Result<CheckerboardDetection, CheckerboardError> {
+        match self {
+            Board::Checkerboard(spec) => detect_checkerboard(img, spec, opts),
+            Board::Coded(spec) => detect_coded_board(img, spec, opts),
+        }
+    }
+
+    /// Inner corners of the whole board.
+    pub fn corner_count(&self) -> usize {
+        match self {
+            Board::Checkerboard(spec) => spec.cols * spec.rows,
+            Board::Coded(spec) => {
+                let (c, r) = spec.corners();
+                c * r
+            }
+        }
+    }
+
+    /// Square size (mm).
+    pub fn pitch_mm(&self) -> f64 {
+        match self {
+            Board::Checkerboard(spec) => spec.pitch_mm,
+            Board::Coded(spec) => spec.pitch_mm,
+        }
+    }
+
+    /// Whether a view may show only part of the board.
+    pub fn allows_partial_views(&self) -> bool {
+        matches!(self, Board::Coded(_))
+    }
+}
