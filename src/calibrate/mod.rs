@@ -77,7 +77,7 @@ pub enum CalibrateError {
         recipe: String,
         cause: gonio_calibration::radiometric::RadiometricError,
     },
-    #[error("recipe `{recipe}`: response calibration {path}: {message}")]
+    #[error("recipe `{recipe}`: [radiometric] response = \"{path}\": {message}")]
     ResponseInput {
         recipe: String,
         path: String,
