@@ -68,6 +68,34 @@ fn calibrate(cwd: &Path, recipe: &Path, rig: &str, out: &Path) -> serde_json::Va
     serde_json::from_slice(&o.stdout).unwrap()
 }
 
+/// `gonio acquire --json` of `sample` on the radiometric rig at `size` texels with the
+/// results in `cal`, into `ds`, over `sweep` (default: the built-in sweep).
+fn acquire_output(sweep: Option<&Path>, sample: &str, size: &str, cal: &Path, ds: &Path) -> std::process::Output {
+    let mut args = vec!["acquire", "--rig", RIG, "--sample", sample, "--size", size, "--json"];
+    if let Some(sweep) = sweep {
+        args.extend(["--sweep", sweep.to_str().unwrap()]);
+    }
+    args.extend(["--calibration", cal.to_str().unwrap(), "--out", ds.to_str().unwrap()]);
+    gonio(&args)
+}
+
+/// [`acquire_output`] that must succeed; returns its `--json` summary.
+fn acquire(sweep: &Path, sample: &str, size: &str, cal: &Path, ds: &Path) -> serde_json::Value {
+    let o = acquire_output(Some(sweep), sample, size, cal, ds);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+/// An 8 × 8 acquisition of the white standard with the results in `cal` that must be
+/// refused before `ds` is created; returns the error.
+fn refused_acquire(cal: &Path, ds: &Path) -> String {
+    let o = acquire_output(None, "white-standard", "8x8", cal, ds);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(!o.status.success(), "{err}");
+    assert!(!ds.exists(), "no dataset for a refused calibration");
+    err
+}
+
 /// What one acquisition of the white standard measured at the pairs with θ ≤ 60°.
 struct WhiteErrors {
     summary: serde_json::Value,
@@ -92,24 +120,7 @@ fn acquire_white(dir: &Path, cal: &Path, tag: &str, resume: bool) -> WhiteErrors
         .unwrap();
     }
     let ds = dir.join(format!("ds-{tag}"));
-    let o = gonio(&[
-        "acquire",
-        "--rig",
-        RIG,
-        "--sample",
-        "white-standard",
-        "--sweep",
-        sweep.to_str().unwrap(),
-        "--size",
-        "24x24",
-        "--calibration",
-        cal.to_str().unwrap(),
-        "--out",
-        ds.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let summary = acquire(&sweep, "white-standard", "24x24", cal, &ds);
     assert_eq!(summary["value_unit"], "brdf_per_sr");
     if resume {
         let journal = ds.join("journal.jsonl");
@@ -189,23 +200,7 @@ views = [[0, 0], [30, 330]]
     )
     .unwrap();
     let ds = dir.join(format!("colour-{tag}"));
-    let o = gonio(&[
-        "acquire",
-        "--rig",
-        RIG,
-        "--sample",
-        "colour-target",
-        "--sweep",
-        sweep.to_str().unwrap(),
-        "--size",
-        "60x60",
-        "--calibration",
-        cal.to_str().unwrap(),
-        "--out",
-        ds.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    acquire(&sweep, "colour-target", "60x60", cal, &ds);
     let refs = patch_references();
     let (_, records) = gonio::store::load(&ds).unwrap();
     let (mut sum2, mut n, mut worst) = (0.0f64, 0usize, 0.0f64);
@@ -410,26 +405,11 @@ fn radiometric_corrections_make_the_white_standard_read_its_albedo() {
 
     // A white standard fitted on corrected frames is refused without those corrections.
     let lone = cal_set(&dir, "lone", &[(&cal, "white")]);
-    let o = gonio(&[
-        "acquire",
-        "--rig",
-        RIG,
-        "--sample",
-        "white-standard",
-        "--size",
-        "8x8",
-        "--calibration",
-        lone.to_str().unwrap(),
-        "--out",
-        dir.join("refused").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success());
+    let err = refused_acquire(&lone, &dir.join("refused"));
     assert!(
         err.contains("white standard was fitted on frames corrected") && err.contains("corrections = "),
         "{err}"
     );
-    assert!(!dir.join("refused").exists());
     println!("  test run time {:.1} s", t0.elapsed().as_secs_f64());
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -450,23 +430,8 @@ fn a_dark_map_from_another_camera_size_is_refused() {
     let dark = recipe_copy(&dir, "dark.toml", &[("frames = 16", "frames = 2".into())]);
     let cal = dir.join("cal");
     calibrate(&dir, &dark, small_rig.to_str().unwrap(), &cal.join("dark"));
-    let out = dir.join("ds");
-    let o = gonio(&[
-        "acquire",
-        "--rig",
-        RIG,
-        "--sample",
-        "white-standard",
-        "--size",
-        "8x8",
-        "--calibration",
-        cal.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = refused_acquire(&cal, &dir.join("ds"));
     println!("refused: {err}");
-    assert!(!o.status.success());
     assert!(
         err.contains("dark/calibration.json")
             && err.contains("192×160")
@@ -474,6 +439,5 @@ fn a_dark_map_from_another_camera_size_is_refused() {
             && err.contains("re-run"),
         "{err}"
     );
-    assert!(!out.exists(), "no dataset for a refused calibration");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -18,6 +18,8 @@ pub mod radiometric;
 pub mod recipe;
 pub mod rig_geometry;
 pub mod white;
+// helpers shared by the rig- and light-geometry recipes
+mod offset_fit;
 
 use crate::engine::{self, frame_to_linear, Rig};
 use gonio_calibration::checkerboard::{detect_checkerboard, CheckerboardError};
