@@ -73,12 +73,86 @@ fn response_then_flat_match_the_truth() {
     assert!(e.to_string().contains("run a response recipe first"), "{e}");
 }
 
+/// `[radiometric] response` takes a response run's output directory as well as its
+/// `calibration.json`; a missing file, another kind of result, a result of another rig or
+/// of a camera with another bit depth are refused before the rig moves, naming the key and
+/// the fix.
+#[test]
+fn a_response_reference_is_checked_before_the_rig_moves() {
+    let out = run(&recipe("response.toml")).unwrap();
+    let dir = tmpdir("reference");
+    let good: serde_json::Value = serde_json::to_value(&out.result).unwrap();
+    let write = |name: &str, v: &serde_json::Value| -> String {
+        let d = dir.join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::write(d.join("calibration.json"), serde_json::to_string(v).unwrap()).unwrap();
+        d.display().to_string()
+    };
+    let refused = |response: String| -> String {
+        let mut colour = recipe("colour.toml");
+        colour.radiometric.as_mut().unwrap().response = Some(response);
+        let e = run(&colour).err().expect("refused");
+        let text = e.to_string();
+        println!("refused: {text}");
+        assert!(
+            matches!(e, CalibrateError::ResponseInput { .. }),
+            "a reference error, not a capture or fit error: {text}"
+        );
+        assert!(text.contains("[radiometric] response = "), "names the key: {text}");
+        text
+    };
+
+    let e = refused(dir.join("absent").display().to_string());
+    assert!(
+        e.contains("run a response recipe first") && e.contains("remove the key"),
+        "{e}"
+    );
+
+    let mut dark = good.clone();
+    dark["kind"] = "dark".into();
+    dark["radiometric"]["response"] = serde_json::Value::Null;
+    let e = refused(write("dark", &dark));
+    assert!(e.contains("`dark` result") && e.contains("response.toml"), "{e}");
+
+    let mut other = good.clone();
+    other["rig"] = "another-rig".into();
+    let e = refused(write("other-rig", &other));
+    assert!(e.contains("another-rig") && e.contains("re-run"), "{e}");
+
+    let mut bits = good.clone();
+    bits["radiometric"]["response"]["curve"]["max_dn"] = 1023.0.into();
+    let e = refused(write("bits", &bits));
+    assert!(e.contains("0 ..= 1023") && e.contains("re-run"), "{e}");
+
+    // The run's directory and its calibration.json are the same reference.
+    let d = write("good", &good);
+    let mut flat = recipe("flat.toml");
+    flat.radiometric.as_mut().unwrap().response = Some(d);
+    flat.radiometric.as_mut().unwrap().frames = 1;
+    flat.radiometric.as_mut().unwrap().effort.clear();
+    let r = run(&flat).unwrap();
+    assert_eq!(
+        r.result.radiometric.unwrap().linearisation.unwrap(),
+        format!("response:{}", out.result.id)
+    );
+
+    // A response key on a recipe that does not use one is a recipe error.
+    let text = std::fs::read_to_string(root().join("calibration/recipes/dark.toml")).unwrap();
+    let dark_with = text.replacen("[radiometric]\n", "[radiometric]\nresponse = \"cal/response\"\n", 1);
+    let e = Recipe::parse(&dark_with, "t").unwrap_err();
+    assert!(e.to_string().contains("radiometric.response"), "{e}");
+    std::fs::remove_dir_all(dir).ok();
+}
+
 /// The colour matrix undoes the crosstalk: corrected patches within 0.02 (linear
 /// reflectance) RMS of their references, and the matrix within 5 % of the crosstalk's
 /// inverse (relative Frobenius).
 #[test]
 fn colour_matrix_matches_the_truth() {
-    let out = run(&recipe("colour.toml")).unwrap();
+    // Stand-alone: the shipped recipe reads cal/response, this recovers its own curve.
+    let mut colour = recipe("colour.toml");
+    colour.radiometric.as_mut().unwrap().response = None;
+    let out = run(&colour).unwrap();
     let r = out.result.radiometric.as_ref().unwrap();
     println!("{}", r.table());
     let c = r.colour.as_ref().unwrap();
@@ -153,7 +227,8 @@ fn recipes_refuse_bad_radiometric_tables() {
     );
     let e = Recipe::parse(&one, "t").unwrap_err();
     assert!(e.to_string().contains("radiometric.exposures_s"), "{e}");
-    let typo = text.replace("lambda = 20.0", "lamda = 20.0");
+    let typo = text.replace("lambda = 150.0", "lamda = 150.0");
+    assert_ne!(typo, text, "response.toml no longer contains `lambda = 150.0`");
     let e = Recipe::parse(&typo, "t").unwrap_err();
     assert!(e.to_string().contains("lamda"), "{e}");
     let neg = text.replace("0.003125,", "-1.0,");

@@ -29,5 +29,7 @@ pub use markers::{detect_markers, detect_markers_with, DetectOptions, MarkerDete
 pub use rectify::{rectify_frame, HomographySource, Rectified, RectifyError};
 pub use warp::{texel_samples, warp, RectifyParams};
 
+mod offset_fit;
+
 #[cfg(test)]
 mod testutil;

@@ -31,6 +31,7 @@
 //! wherever the clipping is widest.
 
 use crate::intrinsics::CameraModel;
+use crate::offset_fit::{axis_count_problem, parameter_table, sigmas_and_correlation};
 use crate::rig_geometry::ParameterEstimate;
 use gonio_devices::image::RgbImage;
 use gonio_devices::kinematics;
@@ -718,12 +719,8 @@ pub fn estimate_light_geometry(
             pose: p.label.clone(),
             reason,
         };
-        if p.q.len() != rig.axes.len() {
-            return Err(bad(format!(
-                "{} axis positions for a rig with {} axes",
-                p.q.len(),
-                rig.axes.len()
-            )));
+        if let Some(reason) = axis_count_problem(&p.q, rig.axes.len()) {
+            return Err(bad(reason));
         }
         if !p.q.iter().chain(&p.pixel).all(|x| x.is_finite()) {
             return Err(bad("non-finite axis position or highlight pixel".into()));
@@ -804,23 +801,7 @@ pub fn estimate_light_geometry(
         .try_inverse()
         .unwrap_or_else(|| DMatrix::from_element(2, 2, f64::NAN))
         * s2;
-    let sig: Vec<f64> = (0..2).map(|i| cov[(i, i)].max(0.0).sqrt()).collect();
-    let correlation = (0..2)
-        .map(|a| {
-            (0..2)
-                .map(|b| {
-                    let d = sig[a] * sig[b];
-                    if d > 0.0 {
-                        cov[(a, b)] / d
-                    } else if a == b {
-                        1.0
-                    } else {
-                        0.0
-                    }
-                })
-                .collect()
-        })
-        .collect();
+    let (sig, correlation) = sigmas_and_correlation(&cov);
     let mut alignment = AlignmentSpec::default();
     for (k, &i) in axes.iter().enumerate() {
         alignment
@@ -829,15 +810,7 @@ pub fn estimate_light_geometry(
     }
     Ok(LightGeometryFit {
         alignment,
-        parameters: names
-            .iter()
-            .zip(p.iter().zip(&sig))
-            .map(|(name, (v, s))| ParameterEstimate {
-                name: name.clone(),
-                value_deg: v.to_degrees(),
-                sigma_deg: s.to_degrees(),
-            })
-            .collect(),
+        parameters: parameter_table(&names, &p, &sig),
         correlation,
         condition,
         rms_px,

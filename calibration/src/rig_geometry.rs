@@ -24,6 +24,7 @@
 //! offsets) predicts best. That is unambiguous while the misalignment is far below 45°.
 
 use crate::intrinsics::CameraModel;
+use crate::offset_fit::{axis_count_problem, parameter_table, sigmas_and_correlation};
 use gonio_devices::kinematics;
 use gonio_devices::rig::{AlignmentSpec, RigKind, RigSpec};
 use gonio_devices::Vec3;
@@ -281,12 +282,8 @@ pub fn estimate_rig_geometry(
             view: v.label.clone(),
             reason,
         };
-        if v.q.len() != rig.axes.len() {
-            return Err(bad(format!(
-                "{} axis positions for a rig with {} axes",
-                v.q.len(),
-                rig.axes.len()
-            )));
+        if let Some(reason) = axis_count_problem(&v.q, rig.axes.len()) {
+            return Err(bad(reason));
         }
         if v.object.len() != v.image.len() {
             return Err(bad(format!(
@@ -430,23 +427,7 @@ pub fn estimate_rig_geometry(
         .pseudo_inverse(1e-300)
         .unwrap_or_else(|_| DMatrix::from_element(n, n, f64::NAN))
         * s2;
-    let sig: Vec<f64> = (0..n).map(|i| cov[(i, i)].max(0.0).sqrt()).collect();
-    let correlation = (0..n)
-        .map(|a| {
-            (0..n)
-                .map(|b| {
-                    let d = sig[a] * sig[b];
-                    if d > 0.0 {
-                        cov[(a, b)] / d
-                    } else if a == b {
-                        1.0
-                    } else {
-                        0.0
-                    }
-                })
-                .collect()
-        })
-        .collect();
+    let (sig, correlation) = sigmas_and_correlation(&cov);
     let mut view_rms_px = Vec::with_capacity(views.len());
     let mut off = 0;
     for v in views {
@@ -454,15 +435,7 @@ pub fn estimate_rig_geometry(
         view_rms_px.push((sum_sq(&r[off..off + k]) / v.object.len() as f64).sqrt());
         off += k;
     }
-    let parameters = names
-        .iter()
-        .zip(p.iter().zip(&sig))
-        .map(|(name, (v, s))| ParameterEstimate {
-            name: name.clone(),
-            value_deg: v.to_degrees(),
-            sigma_deg: s.to_degrees(),
-        })
-        .collect();
+    let parameters = parameter_table(&names, &p, &sig);
     Ok(RigGeometryFit {
         alignment: model.alignment(&p),
         parameters,

@@ -18,6 +18,7 @@
 //! light-direction error over all Bonn 81 × 81 pairs before and after applying the estimate,
 //! and the error against the number of poses.
 
+use super::offset_fit::{corrected, nominal_rig, EffortFigures};
 use super::rig_geometry::{camera_model, direction_errors, DirectionErrors, ParameterError};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::engine::{frame_to_linear, Rig};
@@ -113,21 +114,9 @@ fn parameter_errors(fit: &LightGeometryFit, truth: &AlignmentSpec) -> Vec<Parame
         .map(|p| {
             let axis = p.name.strip_prefix("zero_offset.").unwrap_or(&p.name);
             let t = truth.axis_zero_offset_deg.get(axis).copied().unwrap_or(0.0);
-            ParameterError {
-                name: p.name.clone(),
-                estimate_deg: p.value_deg,
-                truth_deg: t,
-                error_deg: p.value_deg - t,
-                sigma_deg: p.sigma_deg,
-            }
+            ParameterError::new(p, t)
         })
         .collect()
-}
-
-fn corrected(nominal: &RigSpec, fit: &LightGeometryFit) -> RigSpec {
-    let mut r = nominal.clone();
-    fit.apply(&mut r);
-    r
 }
 
 pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
@@ -139,11 +128,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
     };
     let camera = camera_model(&rig.spec);
     // The planner's view of the rig: the rig file without the simulator's truth.
-    let nominal = {
-        let mut r = rig.spec.clone();
-        r.sim_misalignment = None;
-        r
-    };
+    let nominal = nominal_rig(&rig.spec);
     // Solve every pose first (the same IK and chaining `reach_pose` uses), so a pose set
     // that cannot work is refused before the rig moves.
     let mut planned: Vec<(String, Vec<f64>)> = Vec::with_capacity(recipe.poses.len());
@@ -253,7 +238,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
     let directions_before = truth_spec.as_ref().map(|t| direction_errors(&nominal, t));
     let directions_after = truth_spec
         .as_ref()
-        .map(|t| direction_errors(&corrected(&nominal, &fit), t));
+        .map(|t| direction_errors(&corrected(&nominal, |r| fit.apply(r)), t));
     // Error against effort: the same fit on the first k poses.
     let mut effort = Vec::new();
     for k in opts.min_poses.max(1)..=poses.len() {
@@ -261,41 +246,26 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
         let r = estimate_light_geometry(&nominal, &camera, &poses[..k], &opts);
         let fit_s = start.elapsed().as_secs_f64();
         let capture_s = capture_times[k - 1];
-        effort.push(match r {
-            Ok(f) => {
-                let max_parameter_error_deg = Some(match &truth {
-                    Some(t) => parameter_errors(&f, t)
-                        .iter()
-                        .map(|p| p.error_deg.abs())
-                        .fold(0.0, f64::max),
-                    None => f
-                        .parameters
-                        .iter()
-                        .zip(&fit.parameters)
-                        .map(|(a, b)| (a.value_deg - b.value_deg).abs())
-                        .fold(0.0, f64::max),
-                });
-                LightEffortRow {
-                    poses: k,
-                    capture_s,
-                    fit_s,
-                    rms_px: Some(f.rms_px),
-                    max_parameter_error_deg,
-                    light_max_error_deg: truth_spec
-                        .as_ref()
-                        .map(|t| direction_errors(&corrected(&nominal, &f), t).light_max_deg),
-                    failure: None,
-                }
-            }
-            Err(e) => LightEffortRow {
-                poses: k,
-                capture_s,
-                fit_s,
-                rms_px: None,
-                max_parameter_error_deg: None,
-                light_max_error_deg: None,
-                failure: Some(e.to_string()),
-            },
+        let figures = match r {
+            Ok(f) => EffortFigures::of_fit(
+                &f.parameters,
+                f.rms_px,
+                truth.as_ref().map(|t| parameter_errors(&f, t)),
+                &fit.parameters,
+                truth_spec
+                    .as_ref()
+                    .map(|t| direction_errors(&corrected(&nominal, |r| f.apply(r)), t).light_max_deg),
+            ),
+            Err(e) => EffortFigures::refused(e),
+        };
+        effort.push(LightEffortRow {
+            poses: k,
+            capture_s,
+            fit_s,
+            rms_px: figures.rms_px,
+            max_parameter_error_deg: figures.max_parameter_error_deg,
+            light_max_error_deg: figures.max_direction_error_deg,
+            failure: figures.failure,
         });
     }
     let result = CalibrationResult {

@@ -18,6 +18,8 @@ pub mod radiometric;
 pub mod recipe;
 pub mod rig_geometry;
 pub mod white;
+// helpers shared by the rig- and light-geometry recipes
+mod offset_fit;
 
 use crate::engine::{self, frame_to_linear, Rig};
 use gonio_calibration::checkerboard::CheckerboardError;
@@ -77,7 +79,7 @@ pub enum CalibrateError {
         recipe: String,
         cause: gonio_calibration::radiometric::RadiometricError,
     },
-    #[error("recipe `{recipe}`: response calibration {path}: {message}")]
+    #[error("recipe `{recipe}`: [radiometric] response = \"{path}\": {message}")]
     ResponseInput {
         recipe: String,
         path: String,

@@ -7,9 +7,12 @@
 //! time those cost, so a lab can choose how long to calibrate.
 //!
 //! Order: `dark` and `response` stand alone; `flat` and `colour` need linear values, so
-//! they take a response curve (`[radiometric] response = "DIR/calibration.json"` of a
-//! response run), or recover one from their own bracket when it has ≥ 2 exposures, or
-//! otherwise assume a linear camera (said in `notes`).
+//! they take a response curve (`[radiometric] response = "DIR"`, the output directory or
+//! `DIR/calibration.json` of a response run, checked before the rig moves), or recover one
+//! from their own bracket when it has ≥ 2 exposures, or otherwise assume a linear camera
+//! (said in `notes`). An acquisition applies a flat or colour result only with the response
+//! result it was linearised with, so the shipped flat and colour recipes both name
+//! `cal/response`.
 //!
 //! Maps (dark, flat) are stored at block resolution (`map_block` pixels per side): the
 //! sensor effects they describe are smooth, and a full-resolution map would make
@@ -40,8 +43,9 @@ pub struct RadiometricSpec {
     /// Debevec-Malik options (levels, λ, samples, validity limits).
     #[serde(default)]
     pub fit: ResponseOptions,
-    /// A response calibration (`calibration.json` of a `response` recipe) for flat and
-    /// colour; relative paths are relative to the working directory.
+    /// A response calibration for flat and colour: the `calibration.json` of a `response`
+    /// run or its output directory; relative paths are relative to the working directory.
+    /// Checked before the rig moves (a response result, made on this rig's camera).
     #[serde(default)]
     pub response: Option<String>,
     /// Flat field: pixels below this fraction of the brightest are outside the target.
@@ -102,6 +106,15 @@ impl RadiometricSpec {
                 format!(
                     "{:?}: a response recipe needs a bracket of at least 2 exposures",
                     self.exposures_s
+                ),
+            );
+        }
+        if self.response.is_some() && !matches!(kind, RecipeKind::Flat | RecipeKind::Colour) {
+            return bad(
+                "response",
+                format!(
+                    "only flat and colour recipes take a response result, this is a {} recipe: remove the key",
+                    kind.name()
                 ),
             );
         }
@@ -463,36 +476,94 @@ fn linearise(frames: &[Frame], curve: &ResponseCurve) -> Result<Vec<RgbImage>, R
         .collect()
 }
 
+/// A response result named by `[radiometric] response` (flat and colour recipes), loaded
+/// and checked against the rig before anything moves.
+#[derive(Clone, Debug)]
+struct GivenResponse {
+    curve: ResponseCurve,
+    /// Where it came from (a `notes` line).
+    note: String,
+    /// The [`RadiometricCalibration::linearisation`] tag: `response:ID`.
+    tag: String,
+}
+
+/// Load `[radiometric] response = "PATH"`: the `calibration.json` of a response run, or the
+/// directory holding it (the run's `--out`). Refused, with the fix, when the file is
+/// missing or unreadable, is not a response result, or was made on another rig or a camera
+/// of another bit depth (its curve would linearise the wrong codes).
+// CalibrateError is large (other recipe kinds' variants); it is built once per failed run.
+#[allow(clippy::result_large_err)]
+fn load_response(
+    recipe: &Recipe,
+    path: &str,
+    rig: &gonio_devices::rig::RigSpec,
+) -> Result<GivenResponse, CalibrateError> {
+    let bad = |message: String| CalibrateError::ResponseInput {
+        recipe: recipe.name.clone(),
+        path: path.to_string(),
+        message,
+    };
+    let mut file = std::path::PathBuf::from(path);
+    if file.is_dir() {
+        file.push("calibration.json");
+    }
+    let text = std::fs::read_to_string(&file).map_err(|e| {
+        bad(format!(
+            "{}: {e}: run a response recipe first on rig `{}` (gonio calibrate calibration/recipes/response.toml \
+             --rig RIG --out cal/response) and name its output directory or calibration.json here, or remove the \
+             key to recover a response from this recipe's own bracket (relative paths are relative to the \
+             working directory)",
+            file.display(),
+            rig.name
+        ))
+    })?;
+    let r: CalibrationResult =
+        serde_json::from_str(&text).map_err(|e| bad(format!("{}: not a calibration result: {e}", file.display())))?;
+    let Some(fit) = r.radiometric.and_then(|x| x.response) else {
+        return Err(bad(format!(
+            "{} is a `{}` result (id {}) and holds no response curve: name the output of response.toml \
+             (e.g. cal/response)",
+            file.display(),
+            r.kind,
+            r.id
+        )));
+    };
+    if r.rig != rig.name {
+        return Err(bad(format!(
+            "made on rig `{}`, this run is on rig `{}`: a response curve belongs to one camera; re-run \
+             response.toml on rig `{}`",
+            r.rig, rig.name, rig.name
+        )));
+    }
+    let bits = rig.camera.bit_depth;
+    let max = ((1u64 << bits.min(16)) - 1) as f64;
+    if (fit.curve.max_dn - max).abs() > 0.5 {
+        return Err(bad(format!(
+            "the curve covers codes 0 ..= {}, this camera delivers {bits}-bit codes 0 ..= {max}: re-run \
+             response.toml on this camera",
+            fit.curve.max_dn
+        )));
+    }
+    Ok(GivenResponse {
+        curve: fit.curve,
+        note: format!("response curve from {} (calibration {})", file.display(), r.id),
+        tag: format!("response:{}", r.id),
+    })
+}
+
 /// The response curve flat and colour runs use, a note on where it came from and its
-/// [`RadiometricCalibration::linearisation`] tag.
+/// [`RadiometricCalibration::linearisation`] tag: the `given` response result, else one
+/// recovered from the bracket when it has ≥ 2 exposures, else a linear camera.
 // CalibrateError is large (other recipe kinds' variants); it is built once per failed run.
 #[allow(clippy::result_large_err)]
 fn response_for(
     recipe: &Recipe,
     spec: &RadiometricSpec,
+    given: Option<&GivenResponse>,
     bracket: &[Frame],
 ) -> Result<(ResponseCurve, String, String), CalibrateError> {
-    if let Some(path) = &spec.response {
-        let bad = |message: String| CalibrateError::ResponseInput {
-            recipe: recipe.name.clone(),
-            path: path.clone(),
-            message,
-        };
-        let text = std::fs::read_to_string(path).map_err(|e| {
-            bad(format!(
-                "{e}: run a response recipe first (calibration/recipes/response.toml)"
-            ))
-        })?;
-        let r: CalibrationResult = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
-        let fit = r
-            .radiometric
-            .and_then(|x| x.response)
-            .ok_or_else(|| bad(format!("calibration {} ({}) holds no response curve", r.id, r.kind)))?;
-        return Ok((
-            fit.curve,
-            format!("response curve from {path} (calibration {})", r.id),
-            format!("response:{}", r.id),
-        ));
+    if let Some(g) = given {
+        return Ok((g.curve.clone(), g.note.clone(), g.tag.clone()));
     }
     let mut distinct: Vec<f64> = bracket.iter().map(|f| f.meta.exposure).collect();
     distinct.sort_by(|a, b| a.total_cmp(b));
@@ -523,6 +594,11 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
             key,
             message,
         })?;
+    // A named response result is checked before the rig moves.
+    let given = match (&spec.response, recipe.kind) {
+        (Some(path), RecipeKind::Flat | RecipeKind::Colour) => Some(load_response(recipe, path, &rig.spec)?),
+        _ => None,
+    };
     let name = recipe.name.clone();
     let rig_name = rig.spec.name.clone();
     let simulated = rig.clock.is_some();
@@ -605,7 +681,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
                 out.response = Some(fit);
                 (c, "response recovered from the bracket".to_string())
             } else {
-                let (c, how, tag) = response_for(recipe, &spec, &bracket)?;
+                let (c, how, tag) = response_for(recipe, &spec, given.as_ref(), &bracket)?;
                 out.linearisation = Some(tag);
                 (c, how)
             };
@@ -671,7 +747,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
                         .sum();
                     let t = Instant::now();
                     let mut tmp = RadiometricCalibration::default();
-                    let r = response_for(recipe, &spec, &sub)
+                    let r = response_for(recipe, &spec, given.as_ref(), &sub)
                         .and_then(|(c, _, _)| merge_hdr(&sub, &c).map_err(|e| fail(recipe, e)))
                         .and_then(|h| colour_fit(recipe, rig, &spec, &q, &h.image, &mut tmp));
                     let fs = t.elapsed().as_secs_f64();
@@ -695,7 +771,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
             let (frames, times) = capture(recipe, rig, &config, &exposures, spec.frames).await?;
             // The response: given, or from the exposure-bracket (first frame per exposure).
             let bracket: Vec<Frame> = frames.iter().map(|f| f[0].clone()).collect();
-            let (curve, how, tag) = response_for(recipe, &spec, &bracket)?;
+            let (curve, how, tag) = response_for(recipe, &spec, given.as_ref(), &bracket)?;
             out.notes.push(how);
             out.linearisation = Some(tag);
             // All frames of the exposure with the most valid values (the middle of a bracket).

@@ -14,6 +14,7 @@
 //! error of the view and light directions over all Bonn 81 × 81 pairs before and after
 //! applying the estimate, and the error against the number of views.
 
+use super::offset_fit::{corrected, nominal_rig, EffortFigures};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::engine::{frame_to_linear, Rig};
 use gonio_calibration::intrinsics::CameraModel;
@@ -150,22 +151,9 @@ fn parameter_errors(fit: &RigGeometryFit, truth: &AlignmentSpec) -> Vec<Paramete
                 };
                 truth.camera_rotation_deg[c]
             };
-            ParameterError {
-                name: p.name.clone(),
-                estimate_deg: p.value_deg,
-                truth_deg: t,
-                error_deg: p.value_deg - t,
-                sigma_deg: p.sigma_deg,
-            }
+            ParameterError::new(p, t)
         })
         .collect()
-}
-
-/// The rig with `fit` applied to a copy of its nominal description.
-fn corrected(nominal: &RigSpec, fit: &RigGeometryFit) -> RigSpec {
-    let mut r = nominal.clone();
-    fit.apply(&mut r);
-    r
 }
 
 pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
@@ -213,18 +201,14 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
     let fit = estimate_rig_geometry(&rig.spec, &camera, &views, &opts).map_err(fit_err)?;
     let simulated = rig.clock.is_some();
     // What the planner used: the rig file without its simulator-only truth.
-    let nominal = {
-        let mut r = rig.spec.clone();
-        r.sim_misalignment = None;
-        r
-    };
+    let nominal = nominal_rig(&rig.spec);
     let truth_spec = simulated.then(|| rig.spec.simulated_truth());
     let truth = simulated.then(|| rig.spec.sim_misalignment.clone().unwrap_or_default());
     let errors = truth.as_ref().map(|t| parameter_errors(&fit, t));
     let directions_before = truth_spec.as_ref().map(|t| direction_errors(&nominal, t));
     let directions_after = truth_spec
         .as_ref()
-        .map(|t| direction_errors(&corrected(&nominal, &fit), t));
+        .map(|t| direction_errors(&corrected(&nominal, |r| fit.apply(r)), t));
     // Error against effort: the same fit on the first k views.
     let mut effort = Vec::new();
     for k in opts.min_views.max(1)..=views.len() {
@@ -232,39 +216,26 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
         let r = estimate_rig_geometry(&rig.spec, &camera, &views[..k], &opts);
         let fit_s = start.elapsed().as_secs_f64();
         let capture_s = capture_times[k - 1];
-        effort.push(match r {
-            Ok(f) => {
-                let max_err = |e: Vec<ParameterError>| e.iter().map(|p| p.error_deg.abs()).fold(0.0, f64::max);
-                let max_parameter_error_deg = Some(match &truth {
-                    Some(t) => max_err(parameter_errors(&f, t)),
-                    None => f
-                        .parameters
-                        .iter()
-                        .zip(&fit.parameters)
-                        .map(|(a, b)| (a.value_deg - b.value_deg).abs())
-                        .fold(0.0, f64::max),
-                });
-                RigEffortRow {
-                    views: k,
-                    capture_s,
-                    fit_s,
-                    rms_px: Some(f.rms_px),
-                    max_parameter_error_deg,
-                    view_max_error_deg: truth_spec
-                        .as_ref()
-                        .map(|t| direction_errors(&corrected(&nominal, &f), t).view_max_deg),
-                    failure: None,
-                }
-            }
-            Err(e) => RigEffortRow {
-                views: k,
-                capture_s,
-                fit_s,
-                rms_px: None,
-                max_parameter_error_deg: None,
-                view_max_error_deg: None,
-                failure: Some(e.to_string()),
-            },
+        let figures = match r {
+            Ok(f) => EffortFigures::of_fit(
+                &f.parameters,
+                f.rms_px,
+                truth.as_ref().map(|t| parameter_errors(&f, t)),
+                &fit.parameters,
+                truth_spec
+                    .as_ref()
+                    .map(|t| direction_errors(&corrected(&nominal, |r| f.apply(r)), t).view_max_deg),
+            ),
+            Err(e) => EffortFigures::refused(e),
+        };
+        effort.push(RigEffortRow {
+            views: k,
+            capture_s,
+            fit_s,
+            rms_px: figures.rms_px,
+            max_parameter_error_deg: figures.max_parameter_error_deg,
+            view_max_error_deg: figures.max_direction_error_deg,
+            failure: figures.failure,
         });
     }
     let result = CalibrationResult {

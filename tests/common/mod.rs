@@ -125,9 +125,16 @@ pub fn root() -> &'static Path {
 
 /// Run the gonio binary in the workspace root with `args`, warnings-only logs.
 pub fn gonio(args: &[&str]) -> Output {
+    gonio_in(root(), args)
+}
+
+/// Run the gonio binary in `dir` with `args`, warnings-only logs: paths a recipe names
+/// relative to the working directory (`response = "cal/response/calibration.json"`,
+/// `corrections = "cal"`) then resolve below `dir`.
+pub fn gonio_in(dir: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_gonio"))
         .args(args)
-        .current_dir(root())
+        .current_dir(dir)
         .env("RUST_LOG", "warn")
         .output()
         .expect("running gonio")
