@@ -695,7 +695,11 @@ mod tests {
             .find(|(n, _)| *n == "calibration-target-wedge")
             .unwrap()
             .1
-            .replacen("azimuth_deg = 0.0", "azimuth_deg = 120.0", 1);
+            .replacen(
+                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 0.0 }",
+                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 120.0 }",
+                1,
+            );
         let b = SampleSpec::parse(&text, "w.toml", None).unwrap().build().unwrap();
         let Surface::Height(g) = &b.surface else {
             panic!("a plane has a height grid")
@@ -734,7 +738,11 @@ mod tests {
                 .find(|(n, _)| *n == "calibration-target-wedge")
                 .unwrap()
                 .1
-                .replacen(bad, key, 1);
+                .replacen(
+                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0"),
+                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0").replacen(bad, key, 1),
+                    1,
+                );
             let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();
             let k = key.split(' ').next().unwrap();
             assert!(
