@@ -22,6 +22,7 @@ pub mod radiometric;
 pub mod rectify;
 pub mod rig_geometry;
 pub mod warp;
+pub mod wedge;
 
 pub use error::CalibError;
 pub use homography::{Correspondence, Homography};

@@ -24,6 +24,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("leather", include_str!("../samples/leather.toml")),
     ("white-standard", include_str!("../samples/white-standard.toml")),
     ("calibration-target", include_str!("../samples/calibration-target.toml")),
+    (
+        "calibration-target-wedge",
+        include_str!("../samples/calibration-target-wedge.toml"),
+    ),
     ("colour-target", include_str!("../samples/colour-target.toml")),
     ("mirror", include_str!("../samples/mirror.toml")),
     ("coded-target", include_str!("../samples/coded-target.toml")),
@@ -70,6 +74,18 @@ pub enum HeightSpec {
         amplitude_mm: f64,
         octaves: u32,
         seed: u64,
+    },
+    /// A tilted plane through the sample centre (a target on a wedge): the normal leans by
+    /// `slope_deg` from +z toward the sample-frame azimuth `azimuth_deg` (from +x toward
+    /// +y), i.e. `z = −tan(slope)·(x cos(azimuth) + y sin(azimuth))`. The material map stays
+    /// a function of the sample-frame (x, y), so on the plane itself a pattern is stretched
+    /// by 1 / cos(slope) along the slope. Rendered exactly: a bilinear height grid
+    /// reproduces a plane, and its normal is the analytic one. Slopes up to 60° (steeper
+    /// planes hide themselves from most of the hemisphere).
+    Plane {
+        slope_deg: f64,
+        #[serde(default)]
+        azimuth_deg: f64,
     },
     /// A grayscale PNG (black = −amplitude/2, white = +amplitude/2), stretched over the sample.
     Image {
@@ -185,6 +201,15 @@ pub struct SampleSpec {
     /// Discs painted over the map (`[[occluder]]`); none by default.
     #[serde(default, rename = "occluder")]
     pub occluders: Vec<Occluder>,
+}
+
+/// Steepest plane a `plane` height field may have (degrees).
+pub const MAX_PLANE_SLOPE_DEG: f64 = 60.0;
+
+/// Unit normal of a `plane` height field (see [`HeightSpec::Plane`]).
+pub fn plane_normal(slope_deg: f64, azimuth_deg: f64) -> Vec3 {
+    let (s, a) = (slope_deg.to_radians(), azimuth_deg.to_radians());
+    Vec3::new(s.sin() * a.cos(), s.sin() * a.sin(), s.cos())
 }
 
 fn default_resolution() -> usize {
@@ -339,6 +364,20 @@ impl SampleSpec {
                     return Err(bad("height.octaves", format!("{octaves}: valid range is 1 ..= 12")));
                 }
             }
+            HeightSpec::Plane { slope_deg, azimuth_deg } => {
+                if !(slope_deg.is_finite() && (0.0..MAX_PLANE_SLOPE_DEG).contains(slope_deg)) {
+                    return Err(bad(
+                        "height.slope_deg",
+                        format!("{slope_deg}: valid range is 0 ≤ slope < {MAX_PLANE_SLOPE_DEG}°"),
+                    ));
+                }
+                if !(azimuth_deg.is_finite() && azimuth_deg.abs() <= 360.0) {
+                    return Err(bad(
+                        "height.azimuth_deg",
+                        format!("{azimuth_deg}: valid range is −360 ..= 360°"),
+                    ));
+                }
+            }
             HeightSpec::Image { path, amplitude_mm } => {
                 amp("height.amplitude_mm", *amplitude_mm)?;
                 if !path.exists() {
@@ -491,7 +530,16 @@ impl SampleSpec {
                 let (min, max) = heights.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &h| {
                     (a.min(h as f64), b.max(h as f64))
                 });
-                let normals = normals(&heights, n, texel);
+                let normals = match *h {
+                    // The analytic normal: central differences halve the slope on the edge
+                    // texels (one-sided there), which a relief never notices but a plane's
+                    // shading would.
+                    HeightSpec::Plane { slope_deg, azimuth_deg } => {
+                        let v = plane_normal(slope_deg, azimuth_deg);
+                        vec![[v.x as f32, v.y as f32, v.z as f32]; n * n]
+                    }
+                    _ => normals(&heights, n, texel),
+                };
                 Surface::Height(HeightGrid {
                     n,
                     texel,
@@ -558,6 +606,10 @@ fn height_at(h: &HeightSpec, x: f64, y: f64) -> f64 {
     use std::f64::consts::PI;
     match *h {
         HeightSpec::Flat | HeightSpec::Image { .. } => 0.0,
+        HeightSpec::Plane { slope_deg, azimuth_deg } => {
+            let a = azimuth_deg.to_radians();
+            -slope_deg.to_radians().tan() * (x * a.cos() + y * a.sin())
+        }
         HeightSpec::Weave {
             period_mm,
             amplitude_mm,
@@ -765,5 +817,79 @@ mod tests {
         assert!(e.contains("nope.png") && e.contains("does not exist"), "{e}");
         let e = SampleSpec::resolve("no-such-sample").unwrap_err().to_string();
         assert!(e.contains("wallpaper"), "{e}");
+    }
+
+    /// A `plane` height field is the tilted plane, with the analytic normal on every texel,
+    /// and bad slopes are refused by name.
+    #[test]
+    fn plane_heights_and_normals_are_exact_and_bad_slopes_are_refused() {
+        let s = SampleSpec::resolve("calibration-target-wedge").unwrap();
+        assert_eq!(
+            s.height,
+            HeightSpec::Plane {
+                slope_deg: 15.0,
+                azimuth_deg: 0.0
+            }
+        );
+        let text = BUILTIN
+            .iter()
+            .find(|(n, _)| *n == "calibration-target-wedge")
+            .unwrap()
+            .1
+            .replacen(
+                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 0.0 }",
+                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 120.0 }",
+                1,
+            );
+        let b = SampleSpec::parse(&text, "w.toml", None).unwrap().build().unwrap();
+        let Surface::Height(g) = &b.surface else {
+            panic!("a plane has a height grid")
+        };
+        let (t, a) = (15f64.to_radians().tan(), 120f64.to_radians());
+        let n = g.n;
+        for j in (0..n).step_by(7) {
+            for i in (0..n).step_by(5) {
+                let x = (i as f64 + 0.5) * g.texel - 30.0;
+                let y = 30.0 - (j as f64 + 0.5) * g.texel;
+                let want = -t * (x * a.cos() + y * a.sin());
+                assert!((g.heights[j * n + i] as f64 - want).abs() < 1e-5, "({i}, {j})");
+            }
+        }
+        // the normal leans toward the azimuth; the same on edge texels as inside
+        let want = plane_normal(15.0, 120.0);
+        assert!((want.x - 15f64.to_radians().sin() * a.cos()).abs() < 1e-12);
+        for k in [0, n - 1, n * n / 2, n * n - 1] {
+            let v = g.normals[k];
+            let d = Vec3::new(v[0] as f64, v[1] as f64, v[2] as f64) - want;
+            assert!(d.dot(d).sqrt() < 1e-6, "texel {k}: {v:?}");
+        }
+        assert!(
+            (g.max - 30.0 * t * (a.cos().abs() + a.sin().abs())).abs() < 0.2,
+            "{}",
+            g.max
+        );
+        for (bad, key) in [
+            ("slope_deg = 15.0", "slope_deg = 60.0"),
+            ("slope_deg = 15.0", "slope_deg = -1.0"),
+            ("slope_deg = 15.0", "slope_deg = nan"),
+            ("azimuth_deg = 0.0", "azimuth_deg = inf"),
+        ] {
+            let text = BUILTIN
+                .iter()
+                .find(|(n, _)| *n == "calibration-target-wedge")
+                .unwrap()
+                .1
+                .replacen(
+                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0"),
+                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0").replacen(bad, key, 1),
+                    1,
+                );
+            let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();
+            let k = key.split(' ').next().unwrap();
+            assert!(
+                e.contains("w.toml") && e.contains(&format!("height.{k}")) && e.contains("valid range"),
+                "{e}"
+            );
+        }
     }
 }

@@ -26,6 +26,7 @@ use gonio_calibration::checkerboard::CheckerboardError;
 use gonio_calibration::intrinsics::{
     calibrate_intrinsics, CameraModel, IntrinsicsCalibration, IntrinsicsError, TargetView,
 };
+use gonio_calibration::wedge::{quarter_turn, WedgeSpec};
 use gonio_devices::Direction;
 pub use recipe::{Recipe, RecipeError, RecipeKind};
 use serde::{Deserialize, Serialize};
@@ -374,9 +375,17 @@ fn sim_distortion(rig: &Rig) -> [f64; 5] {
 
 /// RMS distance of detected corners from the exact projection of the target corners
 /// (simulated rigs). The board is symmetric, so the detector's grid may be any proper
-/// rotation of the true one: the best of the four is taken. Returns the RMS and the exact
-/// projections (in the detector's order) under that rotation.
-fn corner_truth(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -> (f64, Vec<[f64; 2]>) {
+/// rotation of the true one: the best of the four is taken. Returns the RMS, the exact
+/// projections (in the detector's order) under that rotation, and the rotation (quarter
+/// turns, [`gonio_calibration::wedge::quarter_turn`]). On a wedge the board points are
+/// projected from the tilted plane ([`WedgeSpec::lift`]).
+fn corner_truth(
+    rig: &Rig,
+    q: &[f64],
+    wedge: Option<&WedgeSpec>,
+    object: &[[f64; 2]],
+    image: &[[f64; 2]],
+) -> (f64, Vec<[f64; 2]>, u8) {
     let k = rig.spec.camera.intrinsics();
     let cam = CameraModel {
         fx: k.fx,
@@ -386,18 +395,14 @@ fn corner_truth(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -
         distortion: sim_distortion(rig),
     };
     let pose = rig.kinematics.camera_pose(q);
-    (0..4)
+    (0..4u8)
         .map(|r| {
             let proj: Vec<[f64; 2]> = object
                 .iter()
                 .map(|o| {
-                    let (x, y) = match r {
-                        0 => (o[0], o[1]),
-                        1 => (-o[1], o[0]),
-                        2 => (-o[0], -o[1]),
-                        _ => (o[1], -o[0]),
-                    };
-                    let c = pose.to_camera(gonio_devices::Vec3::new(x, y, 0.0));
+                    let p = quarter_turn(*o, r);
+                    let [x, y, z] = wedge.map_or([p[0], p[1], 0.0], |w| w.lift(p));
+                    let c = pose.to_camera(gonio_devices::Vec3::new(x, y, z));
                     let (u, v) = cam.project_point([c.x, c.y, c.z]);
                     [u, v]
                 })
@@ -407,10 +412,28 @@ fn corner_truth(rig: &Rig, q: &[f64], object: &[[f64; 2]], image: &[[f64; 2]]) -
                 .zip(image)
                 .map(|(p, i)| (p[0] - i[0]).powi(2) + (p[1] - i[1]).powi(2))
                 .sum();
-            ((sum / object.len().max(1) as f64).sqrt(), proj)
+            ((sum / object.len().max(1) as f64).sqrt(), proj, r)
         })
         .min_by(|a, b| a.0.total_cmp(&b.0))
         .expect("four rotations")
+}
+
+/// The object points of a board on a wedge: the detector's flat board points in true
+/// in-plane coordinates ([`WedgeSpec::in_plane`]). The wedge is not symmetric under the
+/// board's quarter turns, so which of the detector's four equivalent grids is the printed
+/// one is decided first from the rig's nominal geometry (camera pose of the reached axes,
+/// nominal intrinsics): the quarter turn whose points on the wedge project nearest the
+/// detected corners. The alternatives differ by about a board's size in the image, so a
+/// rough nominal geometry is enough. Points come back in the sample frame's orientation.
+fn wedge_object_points(
+    rig: &Rig,
+    q: &[f64],
+    wedge: &WedgeSpec,
+    object: &[[f64; 2]],
+    image: &[[f64; 2]],
+) -> Vec<[f64; 2]> {
+    let (_, _, r) = corner_truth(rig, q, Some(wedge), object, image);
+    object.iter().map(|o| wedge.in_plane(quarter_turn(*o, r))).collect()
 }
 
 /// Largest fraction of a target frame's values that may sit at full scale before the frame
@@ -494,13 +517,17 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
             })?;
         tracing::debug!(index, candidates = det.candidates, "board found");
         if rig.clock.is_some() {
-            let (rms, proj) = corner_truth(rig, &q, &det.object, &det.image);
+            let (rms, proj, _) = corner_truth(rig, &q, recipe.wedge.as_ref(), &det.object, &det.image);
             corner_rms.push(rms);
             truth_image.push(proj);
         }
+        let object = match &recipe.wedge {
+            Some(w) => wedge_object_points(rig, &q, w, &det.object, &det.image),
+            None => det.object,
+        };
         views.push(TargetView {
             label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
-            object: det.object,
+            object,
             image: det.image,
         });
         capture_times.push(rig.time() - t0);

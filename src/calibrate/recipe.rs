@@ -114,6 +114,10 @@ pub struct Recipe {
     /// `coded-target`): views may show only part of it.
     #[serde(default)]
     pub coded_board: Option<CodedBoardSpec>,
+    /// Intrinsics: the wedge the board sits on (`wedge = { slope_deg, azimuth_deg }`, see
+    /// [`gonio_calibration::wedge`]); the board's points are then taken on the tilted plane.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wedge: Option<gonio_calibration::wedge::WedgeSpec>,
     #[serde(default)]
     pub detection: CheckerboardOptions,
     /// Fitting options (intrinsics).
@@ -303,6 +307,12 @@ impl Recipe {
                 ));
             }
         }
+        if let Some(w) = &self.wedge {
+            if self.kind != RecipeKind::Intrinsics {
+                return Err(bad("wedge", "only intrinsics recipes use a wedge".into()));
+            }
+            w.validate().map_err(|m| bad("wedge", m))?;
+        }
         Ok(())
     }
 }
@@ -380,6 +390,15 @@ mod tests {
         assert!(e.to_string().contains("at least 3"), "{e}");
         let e = Recipe::parse(&format!("{base}light = [95, 0]\n{poses}"), "t").unwrap_err();
         assert!(e.to_string().contains("light"), "{e}");
+        let r = Recipe::parse(&format!("{base}wedge = {{ slope_deg = 15.0 }}\n{poses}"), "t").unwrap();
+        assert_eq!(r.wedge.map(|w| (w.slope_deg, w.azimuth_deg)), Some((15.0, 0.0)));
+        let e = Recipe::parse(&format!("{base}wedge = {{ slope_deg = 60.0 }}\n{poses}"), "t").unwrap_err();
+        assert!(
+            e.to_string().contains("wedge") && e.to_string().contains("valid range"),
+            "{e}"
+        );
+        let e = Recipe::parse(&format!("{base}wedge = {{ slope = 15.0 }}\n{poses}"), "t").unwrap_err();
+        assert!(e.to_string().contains("slope"), "{e}");
         let e = Recipe::parse("kind = \"focus\"\nname = \"x\"\ntarget = \"t\"\n", "t").unwrap_err();
         assert!(e.to_string().contains("focus"), "{e}");
     }
