@@ -367,7 +367,11 @@ fn label(
             .then(a.0.offset.cmp(&b.0.offset))
     });
     let Some((best, ids)) = ranked.first() else {
-        return Err(format!("no marker could be read in its {} corners", grid.len()));
+        return Err(format!(
+            "no marker could be read in its {} corners (markers too small to read: a grazing view or a distant \
+             board; blurred; or not this board)",
+            grid.len()
+        ));
     };
     let rival = ranked.get(1).map(|r| r.1.len()).unwrap_or(0);
     if ids.len() < opts.min_markers.max(1) {
@@ -606,7 +610,14 @@ mod tests {
     #[test]
     fn whole_board_in_any_orientation() {
         // Turntable angles in all four quadrants: the labelling must follow the board.
-        for &(t, ph) in &[(0.0, 0.0), (30.0, 100.0), (45.0, 200.0), (55.0, 290.0), (20.0, 45.0)] {
+        for &(t, ph) in &[
+            (0.0, 0.0),
+            (30.0, 100.0),
+            (45.0, 200.0),
+            (55.0, 290.0),
+            (20.0, 45.0),
+            (65.0, 160.0),
+        ] {
             let p = pose(t, ph);
             let d = detect_coded_board(&view(&p, &[], 0.0, 0.0), &BOARD, &CheckerboardOptions::default())
                 .unwrap_or_else(|e| panic!("θ={t} φ={ph}: {e}"));
@@ -662,6 +673,26 @@ mod tests {
         eprintln!("cut off: {} corners, worst error {e:.4} px", d.image.len());
         assert!(d.image.len() >= 14 && d.image.len() < 49, "{} corners", d.image.len());
         assert!(e < 0.05);
+    }
+
+    /// Beyond about 70° the marker cells are under two pixels across: the board is then
+    /// either found with every corner right or refused with the reason, never misnamed.
+    #[test]
+    fn grazing_views_are_right_or_refused() {
+        for &(t, ph) in &[(72.0, 30.0), (76.0, 250.0), (80.0, 100.0)] {
+            let p = pose(t, ph);
+            match detect_coded_board(&view(&p, &[], 0.0, 0.0), &BOARD, &CheckerboardOptions::default()) {
+                Ok(d) => {
+                    let e = worst_error(&p, &d);
+                    eprintln!("grazing θ={t} φ={ph}: {} corners, worst error {e:.4} px", d.image.len());
+                    assert!(e < 0.1, "θ={t} φ={ph}: worst corner error {e:.4} px");
+                }
+                Err(e) => {
+                    eprintln!("grazing θ={t} φ={ph}: refused: {e}");
+                    assert!(matches!(e, CheckerboardError::NotFound { .. }), "{e}");
+                }
+            }
+        }
     }
 
     #[test]
