@@ -30,27 +30,11 @@ impl Board {
         }
     }
 
-    /// Inner corners of the whole board.
-    pub fn corner_count(&self) -> usize {
-        match self {
-            Board::Checkerboard(spec) => spec.cols * spec.rows,
-            Board::Coded(spec) => {
-                let (c, r) = spec.corners();
-                c * r
-            }
-        }
-    }
-
     /// Square size (mm).
     pub fn pitch_mm(&self) -> f64 {
         match self {
             Board::Checkerboard(spec) => spec.pitch_mm,
             Board::Coded(spec) => spec.pitch_mm,
         }
-    }
-
-    /// Whether a view may show only part of the board.
-    pub fn allows_partial_views(&self) -> bool {
-        matches!(self, Board::Coded(_))
     }
 }
