@@ -874,8 +874,8 @@ mod plane_tests {
                 .unwrap(),
         );
         let r = Renderer::new(s, RenderQuality::default());
-        let normal = plane_normal(15.0, 0.0);
-        let tan = 15f64.to_radians().tan();
+        let normal = plane_normal(20.0, 0.0);
+        let tan = 20f64.to_radians().tan();
         for (theta, phi) in [
             (0.0f64, 0.0f64),
             (45.0, 0.0),

@@ -686,7 +686,7 @@ mod tests {
         assert_eq!(
             s.height,
             HeightSpec::Plane {
-                slope_deg: 15.0,
+                slope_deg: 20.0,
                 azimuth_deg: 0.0
             }
         );
@@ -696,15 +696,15 @@ mod tests {
             .unwrap()
             .1
             .replacen(
-                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 0.0 }",
-                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 120.0 }",
+                "height = { kind = \"plane\", slope_deg = 20.0, azimuth_deg = 0.0 }",
+                "height = { kind = \"plane\", slope_deg = 20.0, azimuth_deg = 120.0 }",
                 1,
             );
         let b = SampleSpec::parse(&text, "w.toml", None).unwrap().build().unwrap();
         let Surface::Height(g) = &b.surface else {
             panic!("a plane has a height grid")
         };
-        let (t, a) = (15f64.to_radians().tan(), 120f64.to_radians());
+        let (t, a) = (20f64.to_radians().tan(), 120f64.to_radians());
         let n = g.n;
         for j in (0..n).step_by(7) {
             for i in (0..n).step_by(5) {
@@ -715,8 +715,8 @@ mod tests {
             }
         }
         // the normal leans toward the azimuth; the same on edge texels as inside
-        let want = plane_normal(15.0, 120.0);
-        assert!((want.x - 15f64.to_radians().sin() * a.cos()).abs() < 1e-12);
+        let want = plane_normal(20.0, 120.0);
+        assert!((want.x - 20f64.to_radians().sin() * a.cos()).abs() < 1e-12);
         for k in [0, n - 1, n * n / 2, n * n - 1] {
             let v = g.normals[k];
             let d = Vec3::new(v[0] as f64, v[1] as f64, v[2] as f64) - want;
@@ -728,9 +728,9 @@ mod tests {
             g.max
         );
         for (bad, key) in [
-            ("slope_deg = 15.0", "slope_deg = 60.0"),
-            ("slope_deg = 15.0", "slope_deg = -1.0"),
-            ("slope_deg = 15.0", "slope_deg = nan"),
+            ("slope_deg = 20.0", "slope_deg = 60.0"),
+            ("slope_deg = 20.0", "slope_deg = -1.0"),
+            ("slope_deg = 20.0", "slope_deg = nan"),
             ("azimuth_deg = 0.0", "azimuth_deg = inf"),
         ] {
             let text = BUILTIN
@@ -739,8 +739,8 @@ mod tests {
                 .unwrap()
                 .1
                 .replacen(
-                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0"),
-                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0").replacen(bad, key, 1),
+                    &format!("kind = \"plane\", {}", "slope_deg = 20.0, azimuth_deg = 0.0"),
+                    &format!("kind = \"plane\", {}", "slope_deg = 20.0, azimuth_deg = 0.0").replacen(bad, key, 1),
                     1,
                 );
             let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();

@@ -131,3 +131,6 @@ done
 # The long lens of the default rig with its recipe (pinhole, square pixels: fixed aspect ratio).
 "$gonio" calibrate calibration/recipes/intrinsics-telephoto.toml --rig devices/rigs/default.toml --out "$work/cal-tele" --json > "$work/cal-tele.json"
 "$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-tele"
+# The same lens with the board on a wedge (in-plane object points of the tilted board).
+"$gonio" calibrate calibration/recipes/intrinsics-wedge.toml --rig devices/rigs/default.toml --out "$work/cal-wedge" --json > "$work/cal-wedge.json"
+"$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-wedge"
