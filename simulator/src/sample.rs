@@ -180,6 +180,9 @@ pub struct HeightGrid {
     pub normals: Vec<[f32; 3]>,
     pub min: f64,
     pub max: f64,
+    /// The unit normal when the field is a plane through the origin (`plane` height kind):
+    /// the renderer then intersects and shadows it analytically, with no ray march.
+    pub plane: Option<Vec3>,
 }
 
 /// What the renderer intersects: the mean plane, or a height field.
@@ -447,6 +450,10 @@ impl SampleSpec {
                     }
                     _ => normals(&heights, n, texel),
                 };
+                let plane = match *h {
+                    HeightSpec::Plane { slope_deg, azimuth_deg } => Some(plane_normal(slope_deg, azimuth_deg)),
+                    _ => None,
+                };
                 Surface::Height(HeightGrid {
                     n,
                     texel,
@@ -454,6 +461,7 @@ impl SampleSpec {
                     normals,
                     min,
                     max,
+                    plane,
                 })
             }
         };
