@@ -221,6 +221,21 @@ impl Renderer {
         // The relief's edge texels continue a little past the sample square (its cut
         // edge), so rays grazing the edge hit the sample instead of falling through.
         let reach = half + 2.0 * g.texel;
+        if let Some(n) = g.plane {
+            // A plane through the origin: one exact intersection. Rays from behind it, or
+            // meeting it outside the square (they pass the wedge's cut edge), see nothing.
+            let nd = n.dot(dir);
+            if nd >= 0.0 {
+                return None;
+            }
+            let t = -n.dot(origin) / nd;
+            let p = origin + dir * t;
+            if t < 0.0 || p.x.abs() > reach || p.y.abs() > reach {
+                return None;
+            }
+            let (i, j) = self.sample.texel_of(p.x, p.y);
+            return Some((p, i, j, n));
+        }
         let f = |t: f64| {
             let p = origin + dir * t;
             if p.x.abs() > reach || p.y.abs() > reach {
@@ -345,6 +360,12 @@ impl Renderer {
             for (i, out) in row.iter_mut().enumerate() {
                 let x = (i as f64 + 0.5) * cell - half;
                 let y = half - (j as f64 + 0.5) * cell;
+                if let Some(normal) = g.plane {
+                    // A plane shadows nothing of itself: lit where the lamp is on its front.
+                    let p = Vec3::new(x, y, self.height(g, x, y));
+                    *out = u8::from(normal.dot(light - p) > 0.0);
+                    continue;
+                }
                 let z = self.height(g, x, y) + 1e-4;
                 let d = (light - Vec3::new(x, y, z)).normalized();
                 if d.z <= 0.0 {
@@ -856,7 +877,7 @@ mod disc_lamp_tests {
 #[cfg(test)]
 mod plane_tests {
     use super::{Hit, PointLight, RenderQuality, Renderer};
-    use crate::sample::plane_normal;
+    use crate::sample::{plane_normal, Surface};
     use crate::SampleSpec;
     use gonio_devices::Vec3;
     use std::sync::Arc;
@@ -867,15 +888,26 @@ mod plane_tests {
     /// casts no shadow on it.
     #[test]
     fn a_tilted_plane_is_hit_exactly_and_not_self_shadowed() {
-        let s = Arc::new(
-            SampleSpec::resolve("calibration-target-wedge")
-                .unwrap()
-                .build()
-                .unwrap(),
-        );
-        let r = Renderer::new(s, RenderQuality::default());
-        let normal = plane_normal(15.0, 0.0);
-        let tan = 15f64.to_radians().tan();
+        for analytic in [true, false] {
+            plane_is_exact(analytic);
+        }
+    }
+
+    /// `analytic` false: the general height-field march and shadow walk on the plane's grid.
+    fn plane_is_exact(analytic: bool) {
+        let mut s = SampleSpec::resolve("calibration-target-wedge")
+            .unwrap()
+            .build()
+            .unwrap();
+        if let Surface::Height(g) = &mut s.surface {
+            assert!(g.plane.is_some());
+            if !analytic {
+                g.plane = None;
+            }
+        }
+        let r = Renderer::new(Arc::new(s), RenderQuality::default());
+        let normal = plane_normal(20.0, 0.0);
+        let tan = 20f64.to_radians().tan();
         for (theta, phi) in [
             (0.0f64, 0.0f64),
             (45.0, 0.0),
@@ -891,7 +923,10 @@ mod plane_tests {
                 match r.trace(cam, dir) {
                     Hit::Sample { p, normal: n, .. } => {
                         let d = p - target;
-                        assert!(d.dot(d).sqrt() < 1e-6, "θ {theta} φ {phi} ({x}, {y}): hit {p:?}");
+                        assert!(
+                            d.dot(d).sqrt() < 1e-6,
+                            "θ {theta} φ {phi} ({x}, {y}), analytic {analytic}: hit {p:?}"
+                        );
                         let dn = n - normal;
                         assert!(dn.dot(dn).sqrt() < 1e-6, "{n:?}");
                     }
@@ -905,7 +940,7 @@ mod plane_tests {
             let lamp = Vec3::new(t.sin() * p.cos(), t.sin() * p.sin(), t.cos()) * 1200.0;
             let img = r.render_truth(Vec3::new(0.0, 0.0, 1000.0), 48, 48, &PointLight::point(lamp, 50.0));
             let dark = img.data.iter().filter(|&&v| v <= 0.0).count();
-            assert_eq!(dark, 0, "lamp φ {phi}: {dark} unlit values");
+            assert_eq!(dark, 0, "lamp φ {phi}, analytic {analytic}: {dark} unlit values");
         }
     }
 }

@@ -231,6 +231,9 @@ pub struct HeightGrid {
     pub normals: Vec<[f32; 3]>,
     pub min: f64,
     pub max: f64,
+    /// The unit normal when the field is a plane through the origin (`plane` height kind):
+    /// the renderer then intersects and shadows it analytically, with no ray march.
+    pub plane: Option<Vec3>,
 }
 
 /// What the renderer intersects: the mean plane, or a height field.
@@ -540,6 +543,10 @@ impl SampleSpec {
                     }
                     _ => normals(&heights, n, texel),
                 };
+                let plane = match *h {
+                    HeightSpec::Plane { slope_deg, azimuth_deg } => Some(plane_normal(slope_deg, azimuth_deg)),
+                    _ => None,
+                };
                 Surface::Height(HeightGrid {
                     n,
                     texel,
@@ -547,6 +554,7 @@ impl SampleSpec {
                     normals,
                     min,
                     max,
+                    plane,
                 })
             }
         };
@@ -827,7 +835,7 @@ mod tests {
         assert_eq!(
             s.height,
             HeightSpec::Plane {
-                slope_deg: 15.0,
+                slope_deg: 20.0,
                 azimuth_deg: 0.0
             }
         );
@@ -837,15 +845,15 @@ mod tests {
             .unwrap()
             .1
             .replacen(
-                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 0.0 }",
-                "height = { kind = \"plane\", slope_deg = 15.0, azimuth_deg = 120.0 }",
+                "height = { kind = \"plane\", slope_deg = 20.0, azimuth_deg = 0.0 }",
+                "height = { kind = \"plane\", slope_deg = 20.0, azimuth_deg = 120.0 }",
                 1,
             );
         let b = SampleSpec::parse(&text, "w.toml", None).unwrap().build().unwrap();
         let Surface::Height(g) = &b.surface else {
             panic!("a plane has a height grid")
         };
-        let (t, a) = (15f64.to_radians().tan(), 120f64.to_radians());
+        let (t, a) = (20f64.to_radians().tan(), 120f64.to_radians());
         let n = g.n;
         for j in (0..n).step_by(7) {
             for i in (0..n).step_by(5) {
@@ -856,8 +864,8 @@ mod tests {
             }
         }
         // the normal leans toward the azimuth; the same on edge texels as inside
-        let want = plane_normal(15.0, 120.0);
-        assert!((want.x - 15f64.to_radians().sin() * a.cos()).abs() < 1e-12);
+        let want = plane_normal(20.0, 120.0);
+        assert!((want.x - 20f64.to_radians().sin() * a.cos()).abs() < 1e-12);
         for k in [0, n - 1, n * n / 2, n * n - 1] {
             let v = g.normals[k];
             let d = Vec3::new(v[0] as f64, v[1] as f64, v[2] as f64) - want;
@@ -869,9 +877,9 @@ mod tests {
             g.max
         );
         for (bad, key) in [
-            ("slope_deg = 15.0", "slope_deg = 60.0"),
-            ("slope_deg = 15.0", "slope_deg = -1.0"),
-            ("slope_deg = 15.0", "slope_deg = nan"),
+            ("slope_deg = 20.0", "slope_deg = 60.0"),
+            ("slope_deg = 20.0", "slope_deg = -1.0"),
+            ("slope_deg = 20.0", "slope_deg = nan"),
             ("azimuth_deg = 0.0", "azimuth_deg = inf"),
         ] {
             let text = BUILTIN
@@ -880,8 +888,8 @@ mod tests {
                 .unwrap()
                 .1
                 .replacen(
-                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0"),
-                    &format!("kind = \"plane\", {}", "slope_deg = 15.0, azimuth_deg = 0.0").replacen(bad, key, 1),
+                    &format!("kind = \"plane\", {}", "slope_deg = 20.0, azimuth_deg = 0.0"),
+                    &format!("kind = \"plane\", {}", "slope_deg = 20.0, azimuth_deg = 0.0").replacen(bad, key, 1),
                     1,
                 );
             let e = SampleSpec::parse(&text, "w.toml", None).unwrap_err().to_string();

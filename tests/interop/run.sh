@@ -134,3 +134,6 @@ done
 # The coded-marker board on the default rig: views with different corner counts.
 "$gonio" calibrate calibration/recipes/intrinsics-coded.toml --rig devices/rigs/default.toml --out "$work/cal-coded" --json > "$work/cal-coded.json"
 "$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-coded"
+# The same lens with the board on a wedge (in-plane object points of the tilted board).
+"$gonio" calibrate calibration/recipes/intrinsics-wedge.toml --rig devices/rigs/default.toml --out "$work/cal-wedge" --json > "$work/cal-wedge.json"
+"$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-wedge"
