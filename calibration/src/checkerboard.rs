@@ -381,6 +381,14 @@ pub(crate) fn saddle_candidates(gray: &Gray, opts: &CheckerboardOptions, frame_c
     (smooth, candidates)
 }
 
+/// A grown grid's index range: (i_min, i_max, j_min, j_max).
+pub(crate) fn grid_bounds(grid: &HashMap<(i64, i64), usize>) -> (i64, i64, i64, i64) {
+    grid.keys()
+        .fold((i64::MAX, i64::MIN, i64::MAX, i64::MIN), |(a, b, c, d), &(i, j)| {
+            (a.min(i), b.max(i), c.min(j), d.max(j))
+        })
+}
+
 /// The candidate nearest the candidates' centroid, among those not `taken`.
 pub(crate) fn central_seed(pts: &[[f64; 2]], taken: &[bool]) -> Option<usize> {
     let free: Vec<usize> = (0..pts.len()).filter(|&k| !taken[k]).collect();
@@ -421,13 +429,7 @@ fn detect_inner(
         Some(seed) => grow_grid(&candidates, &smooth, seed, &vec![false; found], 0.25),
         None => HashMap::new(),
     };
-    let (mut imin, mut imax, mut jmin, mut jmax) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
-    for &(i, j) in grid.keys() {
-        imin = imin.min(i);
-        imax = imax.max(i);
-        jmin = jmin.min(j);
-        jmax = jmax.max(j);
-    }
+    let (imin, imax, jmin, jmax) = grid_bounds(&grid);
     let (gc, gr) = ((imax - imin + 1) as usize, (jmax - jmin + 1) as usize);
     let (cols, rows) = (spec.cols, spec.rows);
     // The grown grid may carry stray X-junctions next to the board (a holder marker

@@ -25,8 +25,8 @@
 //! view needs `min_corners` of them, spread over at least two rows and two columns.
 
 use crate::checkerboard::{
-    central_seed, grow_grid, prepare_frame, refine_corner, saddle_candidates, CheckerboardDetection, CheckerboardError,
-    CheckerboardOptions, Gray,
+    central_seed, grid_bounds, grow_grid, prepare_frame, refine_corner, saddle_candidates, CheckerboardDetection,
+    CheckerboardError, CheckerboardOptions, Gray,
 };
 use crate::homography::Homography;
 use gonio_devices::coded_board::{decode, CodedBoardSpec, MARKER_CELLS};
@@ -340,13 +340,7 @@ fn label(
     opts: &CheckerboardOptions,
     frame_contrast: f64,
 ) -> Result<(Labelling, Vec<usize>), String> {
-    let (mut imin, mut imax, mut jmin, mut jmax) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
-    for &(i, j) in grid.keys() {
-        imin = imin.min(i);
-        imax = imax.max(i);
-        jmin = jmin.min(j);
-        jmax = jmax.max(j);
-    }
+    let (imin, imax, jmin, jmax) = grid_bounds(grid);
     let mut reads = Vec::new();
     for j in jmin - 1..=jmax {
         for i in imin - 1..=imax {

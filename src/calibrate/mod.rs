@@ -487,6 +487,27 @@ async fn capture_unclipped(
     }
 }
 
+/// The recipe's board in the frame of pose `index`; a failure names the recipe and the
+/// pose it was captured at.
+// Called once per captured view; the error's size costs nothing next to a capture.
+#[allow(clippy::result_large_err)]
+fn detect_board(
+    recipe: &Recipe,
+    board: &gonio_calibration::board::Board,
+    raw: &gonio_devices::image::RgbImage,
+    index: usize,
+    view: [f64; 2],
+) -> Result<gonio_calibration::checkerboard::CheckerboardDetection, CalibrateError> {
+    board
+        .detect(raw, &recipe.detection)
+        .map_err(|cause| CalibrateError::Detection {
+            recipe: recipe.name.clone(),
+            index,
+            view,
+            cause,
+        })
+}
+
 async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, CalibrateError> {
     let name = recipe.name.clone();
     let rig_name = rig.spec.name.clone();
@@ -507,14 +528,7 @@ async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Calibra
         let (frame, exposure) = capture_unclipped(recipe, rig, &mut config, auto_exposure).await?;
         view_exposure.push(exposure);
         let raw = frame_to_linear(&frame);
-        let det = board
-            .detect(&raw, &recipe.detection)
-            .map_err(|cause| CalibrateError::Detection {
-                recipe: name.clone(),
-                index,
-                view: pose.view,
-                cause,
-            })?;
+        let det = detect_board(recipe, &board, &raw, index, pose.view)?;
         tracing::debug!(index, candidates = det.candidates, "board found");
         if rig.clock.is_some() {
             let (rms, proj, _) = corner_truth(rig, &q, recipe.wedge.as_ref(), &det.object, &det.image);

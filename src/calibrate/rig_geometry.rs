@@ -176,14 +176,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
             .await
             .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
         let raw = frame_to_linear(&frame);
-        let det = board
-            .detect(&raw, &recipe.detection)
-            .map_err(|cause| CalibrateError::Detection {
-                recipe: name.clone(),
-                index,
-                view: pose.view,
-                cause,
-            })?;
+        let det = super::detect_board(recipe, &board, &raw, index, pose.view)?;
         views.push(RigView {
             label: format!("pose {index} view θ={} φ={}", pose.view[0], pose.view[1]),
             q: q.clone(),
