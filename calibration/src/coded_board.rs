@@ -29,7 +29,7 @@ use crate::checkerboard::{
     CheckerboardError, CheckerboardOptions, Gray,
 };
 use crate::homography::Homography;
-use gonio_devices::coded_board::{decode, CodedBoardSpec, MARKER_CELLS};
+use gonio_devices::coded_board::{code_from_cells, decode, CodedBoardSpec, MARKER_CELLS};
 use gonio_devices::image::RgbImage;
 use std::collections::HashMap;
 
@@ -466,17 +466,9 @@ fn read_square(
     if ring.iter().filter(|&&v| v > mid).count() > 1 {
         return None; // not a marker's black ring
     }
-    // The bits, read as if the grid were the board (bit k: column k % 4 from −x, row k / 4
-    // from +y; grid index b grows with +y).
-    let mut code = 0u16;
-    for row in 0..4 {
-        for bx in 0..4 {
-            let (a, b) = (bx + 1, MARKER_CELLS - 2 - row);
-            if g[a][b] > mid {
-                code |= 1 << (15 - (row * 4 + bx));
-            }
-        }
-    }
+    // The bits, read as if the grid were the board (cell g[a][b]: a along grid i as board
+    // x, b along grid j as board y).
+    let code = code_from_cells(|cx, cy| g[cx][cy] > mid);
     let (id, r, _) = decode(code, 1)?;
     let (a_sq, b_sq) = spec.square_of(id)?;
     // The grid shows the marker turned by r: the board is the grid turned back by r.

@@ -203,10 +203,28 @@ pub fn marker_cell_black(code: u16, cx: usize, cy: usize) -> bool {
     code_bit(code, bx, by_top) == 0
 }
 
+/// The mask of the bit at inner cell column `bx` (from −x) and row `row` (from +y).
+fn bit_mask(bx: usize, row: usize) -> u16 {
+    1 << (15 - (row * 4 + bx))
+}
+
 /// Bit of `code` at inner cell column `bx` (from −x) and row `row` (from +y).
 pub fn code_bit(code: u16, bx: usize, row: usize) -> u16 {
-    let k = row * 4 + bx;
-    (code >> (15 - k)) & 1
+    u16::from(code & bit_mask(bx, row) != 0)
+}
+
+/// The code a marker shows, from which of its cells are white: `white(cx, cy)` with cx from
+/// −x and cy from −y in `1..5` (the inner cells; the inverse of [`marker_cell_black`]).
+pub fn code_from_cells(white: impl Fn(usize, usize) -> bool) -> u16 {
+    let mut code = 0u16;
+    for row in 0..4 {
+        for bx in 0..4 {
+            if white(bx + 1, MARKER_CELLS - 2 - row) {
+                code |= bit_mask(bx, row);
+            }
+        }
+    }
+    code
 }
 
 /// `code` turned by 90° counter-clockwise (seen with +y up): the bit at (column, row)
@@ -217,8 +235,7 @@ pub fn rotate_code(code: u16) -> u16 {
         for bx in 0..4 {
             if code_bit(code, bx, row) == 1 {
                 // counter-clockwise: column c, row r (from top) → column r, row 3 − c
-                let (nbx, nrow) = (row, 3 - bx);
-                out |= 1 << (15 - (nrow * 4 + nbx));
+                out |= bit_mask(row, 3 - bx);
             }
         }
     }
@@ -313,6 +330,13 @@ mod tests {
                     assert!((a ^ rotate_code_by(b, r)).count_ones() >= MIN_DISTANCE);
                 }
             }
+        }
+    }
+
+    #[test]
+    fn cells_and_codes_agree() {
+        for &c in dictionary().iter().take(10) {
+            assert_eq!(code_from_cells(|cx, cy| !marker_cell_black(c, cx, cy)), c);
         }
     }
 
