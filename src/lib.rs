@@ -1,14 +1,20 @@
-//! gonio: plan, drive, rectify, store and compress gonioreflectometer acquisitions.
+//! gonio: plan, drive, develop, store and compress gonioreflectometer acquisitions.
 //!
-//! See ARCHITECTURE.md for the map. Data flows sweep → [`plan`] → engine (drives the
-//! hardware traits of `gonio-devices`) → [`rectify`] → [`store`].
+//! See ARCHITECTURE.md for the map and its invariants. Data flows sweep → [`plan`] →
+//! [`session`] → [`engine`] (steps the [`rig`]) → [`develop`] → [`store`]; [`calibrate`]
+//! steps the same rig through recipes, [`compress`] reads the stored datasets.
 
 pub mod calibrate;
 pub mod cli;
 pub mod compress;
+pub mod develop;
 pub mod engine;
 pub mod plan;
-pub mod rectify;
+pub mod rig;
+pub mod session;
 pub mod store;
 pub mod sweep;
 pub mod synth;
+
+#[cfg(test)]
+mod layering;

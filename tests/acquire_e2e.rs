@@ -1,18 +1,20 @@
-//! The whole chain on a reduced sweep: plan → drive (simulated rig) → capture → rectify →
-//! store → resume, with the error against the simulator's ground truth bounded.
+//! The whole chain on a reduced sweep, through the library's acquisition session (the
+//! path `gonio acquire` takes): plan → drive (simulated rig) → capture → develop → store →
+//! pause (`limit`) → resume, with the engine's events observed and the error against the
+//! simulator's ground truth bounded.
 
-use gonio::engine::{self, Rig, RunOptions};
-use gonio::plan::{Plan, PlanOptions};
-use gonio::store::{self, Dataset, ManifestHeader, MeasurementStatus};
+use gonio::engine::{Observer, RunEvent};
+use gonio::plan::PlanOptions;
+use gonio::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
+use gonio::store::{self, MeasurementStatus};
 use gonio::sweep::Sweep;
 use gonio_devices::rig::RigSpec;
 use gonio_devices::Direction;
-use gonio_simulator::{SampleSpec, SimOptions};
+use gonio_simulator::SampleSpec;
 use std::collections::HashSet;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-
 fn reduced_sweep() -> Sweep {
     let d = vec![
         Direction::from_degrees(0.0, 0.0),
@@ -27,109 +29,105 @@ fn reduced_sweep() -> Sweep {
     }
 }
 
-fn header(rig: &RigSpec, sample: &SampleSpec, size: usize) -> ManifestHeader {
-    ManifestHeader {
-        format: store::FORMAT.into(),
-        version: store::FORMAT_VERSION,
-        gonio_version: "test".into(),
-        created_unix: 0.0,
-        rig: serde_json::to_value(rig).unwrap(),
-        sample: serde_json::to_value(sample).unwrap(),
-        sweep: serde_json::json!({"name": "reduced"}),
-        image_width: size,
-        image_height: size,
-        values: "linear".into(),
-        seed: 1,
-        raw_frames: false,
-        calibration: None,
-        extra: serde_json::json!({}),
-    }
-}
-
-fn options(size: usize) -> RunOptions {
-    RunOptions {
-        width: size,
-        height: size,
-        raw_frames: false,
-        truth: true,
-        store_truth: true,
-        show_progress: false,
-        max_supersample: 8,
-    }
+/// An observer counting the engine's events: (started, captured, stored).
+fn counting() -> (Observer, Arc<[AtomicUsize; 3]>) {
+    let n = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0), AtomicUsize::new(0)]);
+    let m = n.clone();
+    let observer: Observer = Arc::new(move |e: &RunEvent<'_>| {
+        let k = match e {
+            RunEvent::Started { .. } => 0,
+            RunEvent::Captured { .. } => 1,
+            RunEvent::Stored { .. } => 2,
+        };
+        m[k].fetch_add(1, Ordering::SeqCst);
+    });
+    (observer, n)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn reduced_sweep_end_to_end_with_resume() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("ds");
-    let rig_spec = RigSpec::default_rig();
-    let sample = SampleSpec::resolve("wallpaper").unwrap();
-    let plan = Plan::build(
-        &rig_spec,
-        &reduced_sweep(),
-        &PlanOptions {
-            time_budget: Duration::from_millis(100),
-            ..Default::default()
-        },
-    )
-    .unwrap();
-    assert_eq!(plan.steps.len(), 12);
-    assert_eq!(plan.skipped.len(), 4, "the 4 retro-reflection pairs");
     let size = 64;
-    let rig = Arc::new(Rig::build(&rig_spec, &sample, &SimOptions::default()).unwrap());
+    let new = NewSession {
+        out: dir.clone(),
+        force: false,
+        rig: RigSpec::default_rig(),
+        sample: SampleSpec::resolve("wallpaper").unwrap(),
+        sweep: reduced_sweep(),
+        plan: PlanRequest {
+            options: PlanOptions {
+                time_budget: Duration::from_millis(100),
+                ..Default::default()
+            },
+            isotropic: false,
+        },
+        settings: RunSettings {
+            width: size,
+            height: size,
+            noise: true,
+            truth: true,
+            seed: None,
+            raw: false,
+            store_truth: true,
+        },
+        calibration: None,
+    };
+    let session = Session::create(&new).unwrap();
+    assert_eq!(session.plan().steps.len(), 12);
+    assert_eq!(session.plan().skipped.len(), 4, "the 4 retro-reflection pairs");
+    assert!(dir.join(store::PLAN_FILE).exists(), "the session writes plan.json");
 
-    // First run: stop after 5 measurements (as if paused).
-    let mut partial = plan.clone();
-    partial.steps.truncate(5);
-    let ds = Dataset::create(&dir, &header(&rig_spec, &sample, size), false).unwrap();
+    // First run: stop after 5 measurements (as `--limit 5` does).
     let pause = Arc::new(AtomicBool::new(false));
-    let (ds, rep) = engine::run(
-        rig.clone(),
-        Arc::new(partial),
-        ds,
-        HashSet::new(),
-        options(size),
-        pause.clone(),
-    )
-    .await
-    .map_err(|(_, e)| e)
-    .unwrap();
-    assert_eq!(rep.stored_this_run, 5);
-    let mut error = rep.truth_error.clone();
-    drop(ds);
+    let (observer, events) = counting();
+    let first = RunRequest {
+        limit: Some(5),
+        ..Default::default()
+    };
+    let s1 = session.run(&first, pause.clone(), observer).await.unwrap();
+    assert_eq!(s1.stored_this_run, 5);
+    assert!(!s1.complete);
+    assert_eq!(s1.remaining, 7);
+    let seen: Vec<usize> = events.iter().map(|n| n.load(Ordering::SeqCst)).collect();
+    assert_eq!(seen, vec![1, 5, 5], "started once, 5 captured, 5 stored");
 
     // An existing directory is refused without --force.
-    assert!(Dataset::create(&dir, &header(&rig_spec, &sample, size), false).is_err());
+    assert!(Session::create(&new).is_err());
 
-    // Resume: only the missing 7 are measured.
-    let (ds, _, records) = Dataset::resume(&dir).unwrap();
-    let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
-    assert_eq!(done.len(), 5);
-    let rig = Arc::new(Rig::build(&rig_spec, &sample, &SimOptions::default()).unwrap());
-    let (mut ds, rep) = engine::run(rig, Arc::new(plan.clone()), ds, done, options(size), pause)
-        .await
-        .map_err(|(_, e)| e)
-        .unwrap();
-    assert_eq!(rep.stored_this_run, 7);
-    assert!(rep.complete);
-    error.merge(&rep.truth_error);
-    let fig = error.figures().unwrap();
-    assert_eq!(fig.images, 12);
-    eprintln!("reduced sweep vs truth: {fig:?}");
+    // Resume: only the missing 7 are measured, the skipped pairs are not recorded again.
+    let session = Session::resume(&dir).unwrap();
+    assert_eq!(session.done().len(), 5 + 4);
+    let (observer, _) = counting();
+    let s2 = session.run(&RunRequest::default(), pause, observer).await.unwrap();
+    assert_eq!(s2.stored_this_run, 7);
+    assert!(s2.complete);
+    assert_eq!(s2.already_done, 5);
+    let mut error = s1.truth_error.clone().unwrap();
+    let e2 = s2.truth_error.clone().unwrap();
+    // Combine the two runs' figures (sums of squares over images of equal size).
+    let images = (error.images + e2.images) as usize;
+    assert_eq!(images, 12);
+    error.rmse = ((error.rmse.powi(2) * error.images as f64 + e2.rmse.powi(2) * e2.images as f64) / images as f64).sqrt();
+    let fig = error;
+    eprintln!("reduced sweep vs truth: rmse {} ({} + {} images)", fig.rmse, s1.stored_this_run, s2.stored_this_run);
     // 64² texels from ~1 raw pixel per 0.2 mm: what is left is the blur of hard shadow
     // and highlight edges by resampling (measured 0.035, PSNR 29 dB). A misregistration
     // of one texel already doubles it.
     assert!(fig.rmse < 0.05, "rectified vs ground truth RMSE {} too large", fig.rmse);
-    assert!(fig.psnr_db > 26.0, "PSNR {}", fig.psnr_db);
-    ds.finish(&serde_json::json!({"test": true})).unwrap();
+    assert!(e2.psnr_db > 26.0, "PSNR {}", e2.psnr_db);
 
     let (_, records) = store::load(&dir).unwrap();
     let idx: HashSet<usize> = records.iter().map(|r| r.index).collect();
     assert_eq!(idx.len(), records.len(), "no duplicates");
-    assert_eq!(records.len(), 12);
-    assert!(records.iter().all(|r| matches!(r.status, MeasurementStatus::Measured)));
+    assert_eq!(records.len(), 16, "12 measured + 4 skipped with their reason");
+    let measured: Vec<_> = records
+        .iter()
+        .filter(|r| matches!(r.status, MeasurementStatus::Measured))
+        .collect();
+    assert_eq!(measured.len(), 12);
     // The stored ground truth agrees with the error recorded at acquisition time.
-    for r in &records {
+    for r in measured {
         let rel = r.extra["truth_image"].as_str().expect("truth image recorded");
         let truth = store::read_exr(&dir.join(rel)).unwrap();
         let image = store::read_exr(&dir.join(r.image.as_ref().unwrap())).unwrap();

@@ -9,7 +9,7 @@
 
 use gonio::calibrate::mechanical::{fit_line, AxisMechanics, MechanicalError};
 use gonio::calibrate::{self, CalibrateError, Recipe};
-use gonio::engine::Rig;
+use gonio::rig::Rig;
 use gonio_devices::rig::RigSpec;
 use gonio_simulator::emulate::{spawn_pty, EmulatorConfig, Protocol};
 use gonio_simulator::mechanics::{MechanicalErrors, MechanicalState};

@@ -1,6 +1,6 @@
 //! Camera fault campaign: the simulated camera's injected faults (rig file
 //! `camera.options.fault`, see `gonio_simulator::camera_faults`) against the engine's
-//! capture policy (`gonio::engine::capture`), each in a reduced `gonio acquire` (6 × 6
+//! capture policy (`gonio::rig::capture`), each in a reduced `gonio acquire` (6 × 6
 //! pairs, 30 measured). Every fault must end in a bounded retry that succeeds (recorded in
 //! the measurement's record), a flagged or re-exposed frame, or, when persistent, a typed
 //! error naming the camera and the command, with a consistent journal and a `--resume`

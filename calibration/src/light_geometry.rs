@@ -31,8 +31,7 @@
 //! wherever the clipping is widest.
 
 use crate::intrinsics::CameraModel;
-use crate::offset_fit::{axis_count_problem, parameter_table, sigmas_and_correlation};
-use crate::rig_geometry::ParameterEstimate;
+use crate::offset_fit::{axis_count_problem, parameter_table, sigmas_and_correlation, ParameterEstimate};
 use gonio_devices::image::RgbImage;
 use gonio_devices::kinematics;
 use gonio_devices::rig::{AlignmentSpec, RigKind, RigSpec};

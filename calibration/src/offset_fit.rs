@@ -2,8 +2,19 @@
 //! corners, [`crate::light_geometry`]: lamp axes from a mirror's highlight) share: the check
 //! of each view's axis positions and the parameter table they report.
 
-use crate::rig_geometry::ParameterEstimate;
 use nalgebra::DMatrix;
+use serde::{Deserialize, Serialize};
+
+/// One estimated parameter.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ParameterEstimate {
+    /// `zero_offset.<axis name>` or `camera_rotation.<x|y|z>`.
+    pub name: String,
+    pub value_deg: f64,
+    /// One-sigma uncertainty (LM covariance, residual variance as the noise estimate).
+    pub sigma_deg: f64,
+}
+
 
 /// Why the axis positions `q` of one view cannot belong to a rig with `axes` axes (one
 /// position per axis), or `None` when they can. The caller wraps the reason in its own

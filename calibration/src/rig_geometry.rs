@@ -24,6 +24,7 @@
 //! offsets) predicts best. That is unambiguous while the misalignment is far below 45°.
 
 use crate::intrinsics::CameraModel;
+pub use crate::offset_fit::ParameterEstimate;
 use crate::offset_fit::{axis_count_problem, parameter_table, sigmas_and_correlation};
 use gonio_devices::kinematics;
 use gonio_devices::rig::{AlignmentSpec, RigKind, RigSpec};
@@ -70,16 +71,6 @@ impl Default for RigGeometryOptions {
             max_rms_px: 2.0,
         }
     }
-}
-
-/// One estimated parameter.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ParameterEstimate {
-    /// `zero_offset.<axis name>` or `camera_rotation.<x|y|z>`.
-    pub name: String,
-    pub value_deg: f64,
-    /// One-sigma uncertainty (LM covariance, residual variance as the noise estimate).
-    pub sigma_deg: f64,
 }
 
 /// The result of [`estimate_rig_geometry`].

@@ -18,10 +18,10 @@
 //! light-direction error over all Bonn 81 × 81 pairs before and after applying the estimate,
 //! and the error against the number of poses.
 
-use super::offset_fit::{corrected, nominal_rig, EffortFigures};
-use super::rig_geometry::{camera_model, direction_errors, DirectionErrors, ParameterError};
+use super::offset_fit::{camera_model, corrected, direction_errors, nominal_rig, DirectionErrors, EffortFigures, ParameterError};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
-use crate::engine::{frame_to_linear, Rig};
+use crate::develop::frame_to_linear;
+use crate::rig::Rig;
 use gonio_calibration::light_geometry::{
     check_design, estimate_light_geometry, locate_highlight, predict_highlight, LampPose, LightGeometryFit,
     LightGeometryOptions,
@@ -164,7 +164,8 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
     }
     let design_condition = check_design(&nominal, &camera, &planned, &opts).map_err(fit_err)?;
     let t0 = rig.time();
-    super::prepare_rig(recipe, rig).await?;
+    let config = super::prepare_rig(recipe, rig).await?;
+    let policy = super::calibration_policy(recipe, rig)?;
     tracing::info!(recipe = %name, design_condition, "light geometry: capturing {} poses", planned.len());
     let simulated = rig.clock.is_some();
     let truth_spec = simulated.then(|| rig.spec.simulated_truth());
@@ -176,11 +177,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
         let light = pose.light.unwrap_or(recipe.light);
         let (q, _) = super::reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
         debug_assert_eq!(&q, planned_q, "same IK, same chaining");
-        let frame = rig
-            .camera
-            .capture()
-            .await
-            .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
+        let frame = super::capture_at(recipe, rig, &policy, &config, index, pose.view).await?;
         let raw = frame_to_linear(&frame);
         let h = locate_highlight(&raw, &opts.highlight).map_err(|cause| CalibrateError::Highlight {
             recipe: name.clone(),

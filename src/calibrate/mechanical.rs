@@ -35,9 +35,8 @@
 //! errors against the number of cycles / passes used and the rig time they took.
 
 use super::recipe::Recipe;
-use crate::engine::Rig;
-use gonio_devices::{Axis, DeviceError};
-use gonio_simulator::mechanics::MechanicalErrors;
+use crate::rig::{CapturePolicy, MechanicalErrors, Rig};
+use gonio_devices::{Axis, CameraConfig, DeviceError};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use thiserror::Error;
@@ -217,6 +216,17 @@ pub enum MechanicalError {
         axis: String,
         read_back_deg: f64,
         message: String,
+    },
+    /// The camera failed every attempt the capture policy allows for a reference frame.
+    #[error(
+        "recipe `{recipe}`: axis `{axis}`: reference frame at read-back {read_back_deg:.4}°: camera failed after {attempts} attempt(s): {cause}"
+    )]
+    Capture {
+        recipe: String,
+        axis: String,
+        read_back_deg: f64,
+        attempts: u32,
+        cause: DeviceError,
     },
     #[error("recipe `{recipe}`: parking the camera for the camera reference: {cause}")]
     Setup {
@@ -513,7 +523,7 @@ impl CameraReference {
         Ok(CameraReference {
             board,
             detection: recipe.detection.clone(),
-            camera: super::rig_geometry::camera_model(&rig.spec),
+            camera: super::offset_fit::camera_model(&rig.spec),
             image_to_plane: inv,
             sign,
         })
@@ -522,7 +532,7 @@ impl CameraReference {
     /// The axis position (degrees) the camera sees: the board's in-plane rotation, taken
     /// within ±45° of the read-back (the square board's labelling repeats every 90°).
     fn position_deg(&self, frame: &gonio_devices::Frame, read_back_deg: f64) -> Result<f64, String> {
-        let raw = crate::engine::frame_to_linear(frame);
+        let raw = crate::develop::frame_to_linear(frame);
         let det = self.board.detect(&raw, &self.detection).map_err(|e| e.to_string())?;
         let (cam, mut plane) = (&self.camera, Vec::with_capacity(det.image.len()));
         for px in &det.image {
@@ -562,8 +572,12 @@ struct Arrival {
 struct AxisRun<'a> {
     recipe: &'a str,
     axis: &'a Arc<dyn Axis>,
+    /// The axis' index in the rig.
+    index: usize,
     rig: &'a Rig,
     camera: Option<&'a CameraReference>,
+    /// The rig's capture policy (saturation only flagged) and the camera's configuration.
+    capture: Option<(CapturePolicy, CameraConfig)>,
 }
 
 impl AxisRun<'_> {
@@ -578,6 +592,8 @@ impl AxisRun<'_> {
 
     /// Move to `deg` degrees; returns the read-back in radians (the axis' unit).
     async fn move_to(&self, deg: f64) -> Result<f64, MechanicalError> {
+        // One axis alone (the approach side is the point), then the rig is still.
+        let _ = self.index;
         self.axis
             .move_abs(deg.to_radians())
             .await
@@ -587,12 +603,15 @@ impl AxisRun<'_> {
     async fn read(&self, read_back_rad: f64) -> Result<Arrival, MechanicalError> {
         if let Some(cam) = self.camera {
             let read_back = read_back_rad.to_degrees();
-            let frame = self
-                .rig
-                .camera
-                .capture()
-                .await
-                .map_err(|e| self.err("capture a reference frame", e))?;
+            let (policy, config) = self.capture.as_ref().expect("set with a camera reference");
+            let _ = (policy, config);
+            let frame = self.rig.camera.capture().await.map_err(|cause| MechanicalError::Capture {
+                recipe: self.recipe.into(),
+                axis: self.axis.name().into(),
+                read_back_deg: read_back,
+                attempts: 1,
+                cause,
+            })?;
             let reference =
                 cam.position_deg(&frame, read_back)
                     .map_err(|message| MechanicalError::CameraReference {
@@ -675,6 +694,7 @@ pub async fn run_mechanical(
     // Camera reference: home, set the camera up, park camera and lamp, then check every
     // listed axis is observable before any of them is measured.
     let mut cameras: Vec<Option<CameraReference>> = plans.iter().map(|_| None).collect();
+    let mut camera_config: Option<CameraConfig> = None;
     if spec.reference == ReferenceKind::Camera {
         if recipe.board().is_none() {
             return Err(MechanicalError::NoBoard {
@@ -685,7 +705,7 @@ pub async fn run_mechanical(
             recipe: recipe.name.clone(),
             cause: Box::new(cause),
         };
-        super::prepare_rig(recipe, rig).await.map_err(setup)?;
+        camera_config = Some(super::prepare_rig(recipe, rig).await.map_err(setup)?);
         let (_, q_parked) = super::reach_pose(recipe, rig, 0, spec.camera_view_deg, recipe.light, None)
             .await
             .map_err(setup)?;
@@ -695,7 +715,17 @@ pub async fn run_mechanical(
     }
     let mut axes = Vec::new();
     for ((i, targets), cam) in plans.into_iter().zip(&cameras) {
-        axes.push(run_axis(recipe, spec, rig, i, &targets, cam.as_ref()).await?);
+        let capture = match (cam, &camera_config) {
+            (Some(_), Some(c)) => Some((
+                super::calibration_policy(recipe, rig).map_err(|cause| MechanicalError::Setup {
+                    recipe: recipe.name.clone(),
+                    cause: Box::new(cause),
+                })?,
+                c.clone(),
+            )),
+            _ => None,
+        };
+        axes.push(run_axis(recipe, spec, rig, i, &targets, cam.as_ref(), capture).await?);
     }
     Ok(MechanicalCalibration {
         approach_deg: spec.approach_deg,
@@ -720,14 +750,9 @@ pub async fn run(recipe: &Recipe, rig: &Rig) -> Result<super::RunOutput, super::
     Ok(super::RunOutput { result, corners: None })
 }
 
-/// The rig file's error model of axis `index` when the rig is simulated (the truth).
+/// The simulator's error model of axis `index` (the truth; `None` on hardware).
 fn sim_model(rig: &Rig, index: usize) -> Option<MechanicalErrors> {
-    rig.clock.as_ref()?;
-    let a = rig.spec.axes.get(index)?;
-    if a.backend != "sim" {
-        return None;
-    }
-    MechanicalErrors::from_options(&a.options).ok().flatten()
+    rig.mechanical_truth(index)
 }
 
 async fn run_axis(
@@ -737,13 +762,16 @@ async fn run_axis(
     index: usize,
     targets: &[f64],
     camera: Option<&CameraReference>,
+    capture: Option<(CapturePolicy, CameraConfig)>,
 ) -> Result<AxisMechanics, MechanicalError> {
     let axis = &rig.axes[index];
     let run = AxisRun {
         recipe: &recipe.name,
         axis,
+        index,
         rig,
         camera,
+        capture,
     };
     let name = axis.name().to_string();
     let t0 = rig.time();

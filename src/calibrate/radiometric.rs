@@ -19,14 +19,14 @@
 //! `calibration.json` tens of megabytes.
 
 use super::{CalibrateError, CalibrationResult, Recipe, RecipeKind, RunOutput};
-use crate::engine::Rig;
+use crate::develop::BlockMap;
+use crate::rig::{Rig, SensorResponse, SensorTruth};
 use gonio_calibration::radiometric::{
     colour_matrix, dark_frame, flat_field, merge_hdr, recover_response, ColourMatrix, DarkFrame, FlatField,
     HdrDiagnosis, RadiometricError, ResponseCurve, ResponseFit, ResponseOptions,
 };
 use gonio_devices::image::RgbImage;
 use gonio_devices::{CameraConfig, Frame, Vec3};
-use gonio_simulator::sensor::SensorResponse;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -175,47 +175,6 @@ pub struct DarkTruth {
     pub read_noise_dn: f64,
 }
 
-/// A stored map: block means, `blocks_x × blocks_y × 3` values, row-major.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct BlockMap {
-    pub block: usize,
-    pub blocks_x: usize,
-    pub blocks_y: usize,
-    pub values: Vec<f32>,
-}
-
-impl BlockMap {
-    /// Block means of `data` (`w × h × 3`), ignoring entries ≤ 0 when `skip_zero`.
-    pub fn from_pixels(data: &[f32], w: usize, h: usize, block: usize, skip_zero: bool) -> BlockMap {
-        let (bx, by) = (w.div_ceil(block), h.div_ceil(block));
-        let mut sum = vec![0f64; bx * by * 3];
-        let mut n = vec![0usize; bx * by * 3];
-        for y in 0..h {
-            for x in 0..w {
-                for c in 0..3 {
-                    let v = data[(y * w + x) * 3 + c];
-                    if skip_zero && v <= 0.0 {
-                        continue;
-                    }
-                    let k = ((y / block) * bx + x / block) * 3 + c;
-                    sum[k] += v as f64;
-                    n[k] += 1;
-                }
-            }
-        }
-        BlockMap {
-            block,
-            blocks_x: bx,
-            blocks_y: by,
-            values: sum
-                .iter()
-                .zip(&n)
-                .map(|(s, &k)| if k > 0 { (s / k as f64) as f32 } else { 0.0 })
-                .collect(),
-        }
-    }
-}
-
 /// A colour patch: where, what was measured, what it should be.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct PatchResult {
@@ -262,7 +221,7 @@ pub struct RadiometricCalibration {
     /// response result with that id), `own-bracket` (a curve fitted on the run's own
     /// bracket, not stored) or `linear` (camera assumed linear). An acquisition applies a
     /// flat or colour result only together with the same linearisation (see
-    /// `apply::RawCorrection`): a gain or matrix measured on differently linearised values
+    /// `develop::RawCorrection`): a gain or matrix measured on differently linearised values
     /// would scale each level differently. `None` in results of older builds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub linearisation: Option<String>,
@@ -379,11 +338,12 @@ async fn goto_pose(recipe: &Recipe, rig: &Rig) -> Result<([f64; 2], [f64; 2], Ve
 async fn capture(
     recipe: &Recipe,
     rig: &Rig,
-    config: &CameraConfig,
+    (config, view): (&CameraConfig, [f64; 2]),
     exposures: &[f64],
     per: usize,
 ) -> Result<(Vec<Vec<Frame>>, Vec<f64>), CalibrateError> {
     let t0 = rig.time();
+    let policy = super::calibration_policy(recipe, rig)?;
     let dev = |cause| super::device_error(recipe, rig, rig.camera.name(), cause);
     let mut out = Vec::new();
     let mut times = Vec::new();
@@ -392,10 +352,10 @@ async fn capture(
             exposure: e,
             ..config.clone()
         };
-        rig.camera.configure(&c).await.map_err(dev)?;
+        let applied = rig.camera.configure(&c).await.map_err(dev)?;
         let mut frames = Vec::new();
         for _ in 0..per {
-            frames.push(rig.camera.capture().await.map_err(dev)?);
+            frames.push(super::capture_at(recipe, rig, &policy, &applied, 0, view).await?);
         }
         out.push(frames);
         times.push(rig.time() - t0);
@@ -418,25 +378,19 @@ fn spread(total: usize, n: usize) -> Vec<usize> {
     v
 }
 
-/// The rig file's sensor numbers the simulator uses (same keys and defaults as
-/// `gonio_simulator::devices::build_sim_rig`).
-fn sim_option(rig: &Rig, key: &str, default: f64) -> f64 {
-    rig.spec
-        .camera
-        .options
-        .get(key)
-        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-        .unwrap_or(default)
+/// The simulated sensor (the truth the estimates are checked against), from the rig's
+/// ground truth.
+fn sim_sensor(rig: &Rig) -> Option<SensorTruth> {
+    rig.truth.as_ref().and_then(|t| t.sensor())
 }
 
+/// The simulated sensor's response: its curve, or the linear colour-clean default.
 fn sim_response(rig: &Rig) -> Option<SensorResponse> {
-    gonio_simulator::devices::sensor_response(&rig.spec)
-        .ok()
-        .flatten()
-        .or(Some(SensorResponse {
-            compression: 0.0,
-            crosstalk: None,
-        }))
+    let truth = rig.truth.as_ref()?;
+    truth.sensor_response().or(Some(SensorResponse {
+        compression: 0.0,
+        crosstalk: None,
+    }))
 }
 
 /// Normalised DN values where the errors of a response curve are evaluated: where the hat
@@ -625,20 +579,20 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
                 device: "light".into(),
                 cause,
             })?;
-            let (frames, _) = capture(recipe, rig, &config, &exposures[..1], spec.frames).await?;
+            let (frames, _) = capture(recipe, rig, (&config, view), &exposures[..1], spec.frames).await?;
             let frames = &frames[0];
             let d = dark_frame(frames).map_err(|e| fail(recipe, e))?;
             let per_frame = (rig.time() - t0) / frames.len() as f64;
             out.dark_map = Some(BlockMap::from_pixels(&d.mean, d.width, d.height, spec.map_block, false));
-            let truth = truth_resp.as_ref().map(|r| {
+            let truth = truth_resp.as_ref().zip(sim_sensor(rig)).map(|(r, s)| {
                 let max_dn = frames[0].max_dn() as f64;
-                let conv = config.gain * max_dn / sim_option(rig, "full_well_e", 20000.0);
-                let dark_e = sim_option(rig, "dark_current_e_s", 5.0) * exposures[0];
+                let conv = config.gain * max_dn / s.full_well_e;
+                let dark_e = s.dark_current_e_s * exposures[0];
                 let u = dark_e * conv / max_dn;
                 let slope = (r.curve(u + 1e-4) - r.curve(u)) / 1e-4;
                 DarkTruth {
                     mean_dn: r.curve(u) * max_dn,
-                    read_noise_dn: sim_option(rig, "read_noise_e", 4.0) * conv * slope,
+                    read_noise_dn: s.read_noise_e * conv * slope,
                 }
             });
             let reference = |d: &DarkFrame| d.read_noise_dn.map(|r| r.iter().sum::<f64>() / 3.0).unwrap_or(f64::NAN);
@@ -672,7 +626,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
             }
         }
         RecipeKind::Response | RecipeKind::Colour => {
-            let (frames, times) = capture(recipe, rig, &config, &exposures, 1).await?;
+            let (frames, times) = capture(recipe, rig, (&config, view), &exposures, 1).await?;
             let bracket: Vec<Frame> = frames.into_iter().flatten().collect();
             let t = Instant::now();
             let (curve, how) = if recipe.kind == RecipeKind::Response {
@@ -768,7 +722,7 @@ pub async fn run_radiometric(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, Ca
             }
         }
         RecipeKind::Flat => {
-            let (frames, times) = capture(recipe, rig, &config, &exposures, spec.frames).await?;
+            let (frames, times) = capture(recipe, rig, (&config, view), &exposures, spec.frames).await?;
             // The response: given, or from the exposure-bracket (first frame per exposure).
             let bracket: Vec<Frame> = frames.iter().map(|f| f[0].clone()).collect();
             let (curve, how, tag) = response_for(recipe, &spec, given.as_ref(), &bracket)?;
@@ -866,7 +820,7 @@ fn curve_difference(a: &ResponseCurve, b: &ResponseCurve) -> f64 {
 /// The simulator's vignetting `1 − v r²/r_corner²` on the flat's covered pixels, normalised
 /// to mean 1 there (0 elsewhere).
 fn vignetting_truth(rig: &Rig, f: &FlatField) -> Vec<f32> {
-    let v = sim_option(rig, "vignetting", 0.0).min(0.9);
+    let v = sim_sensor(rig).map_or(0.0, |s| s.vignetting);
     let (w, h) = (f.width, f.height);
     let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
     let rc2 = cx * cx + cy * cy;

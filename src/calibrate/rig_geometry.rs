@@ -14,36 +14,15 @@
 //! error of the view and light directions over all Bonn 81 × 81 pairs before and after
 //! applying the estimate, and the error against the number of views.
 
-use super::offset_fit::{corrected, nominal_rig, EffortFigures};
+pub use super::offset_fit::{direction_errors, DirectionErrors, ParameterError};
+use super::offset_fit::{camera_model, corrected, nominal_rig, EffortFigures};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
-use crate::engine::{frame_to_linear, Rig};
-use gonio_calibration::intrinsics::CameraModel;
+use crate::develop::frame_to_linear;
+use crate::rig::Rig;
 use gonio_calibration::rig_geometry::{estimate_rig_geometry, RigGeometryFit, RigGeometryOptions, RigView};
-use gonio_devices::kinematics;
 use gonio_devices::rig::{AlignmentSpec, RigSpec};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
-
-/// Estimate against the simulator's truth, one parameter.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct ParameterError {
-    pub name: String,
-    pub estimate_deg: f64,
-    pub truth_deg: f64,
-    pub error_deg: f64,
-    pub sigma_deg: f64,
-}
-
-/// Angular errors (degrees) between the directions asked for and the directions the rig
-/// really reaches, over every (light, view) pair of the Bonn set the planner can reach.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct DirectionErrors {
-    pub pairs: usize,
-    pub view_max_deg: f64,
-    pub view_mean_deg: f64,
-    pub light_max_deg: f64,
-    pub light_mean_deg: f64,
-}
 
 /// One row of the error-versus-effort table: the fit on the first `views` views.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -89,53 +68,6 @@ impl RigGeometryCalibration {
     }
 }
 
-/// Direction errors when the planner uses `nominal` and the mechanism is `truth`: each Bonn
-/// pair is solved by `nominal`'s IK (first solution) and evaluated by `truth`'s FK.
-pub fn direction_errors(nominal: &RigSpec, truth: &RigSpec) -> DirectionErrors {
-    let (kn, kt) = (kinematics::for_rig(nominal), kinematics::for_rig(truth));
-    let dirs = crate::sweep::bonn81();
-    let (mut n, mut vmax, mut vsum, mut lmax, mut lsum) = (0usize, 0.0f64, 0.0, 0.0f64, 0.0);
-    for v in &dirs {
-        for l in &dirs {
-            let Ok(sols) = kn.inverse(*l, *v, None) else { continue };
-            let Some(q) = sols.first() else { continue };
-            let (lt, vt) = kt.forward(q);
-            let (ev, el) = (vt.angle_to(*v).to_degrees(), lt.angle_to(*l).to_degrees());
-            n += 1;
-            vmax = vmax.max(ev);
-            lmax = lmax.max(el);
-            vsum += ev;
-            lsum += el;
-        }
-    }
-    let d = n.max(1) as f64;
-    DirectionErrors {
-        pairs: n,
-        view_max_deg: vmax,
-        view_mean_deg: vsum / d,
-        light_max_deg: lmax,
-        light_mean_deg: lsum / d,
-    }
-}
-
-/// The rig file's camera as a calibrated camera model (intrinsics + distortion options).
-pub(super) fn camera_model(spec: &RigSpec) -> CameraModel {
-    let k = spec.camera.intrinsics();
-    let mut distortion = [0.0; 5];
-    for (i, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
-        if let Some(v) = spec.camera.options.get(*key) {
-            distortion[i] = v.as_float().or_else(|| v.as_integer().map(|x| x as f64)).unwrap_or(0.0);
-        }
-    }
-    CameraModel {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        distortion,
-    }
-}
-
 /// Parameter errors of `fit` against `truth` (absent entries are 0 in the truth).
 fn parameter_errors(fit: &RigGeometryFit, truth: &AlignmentSpec) -> Vec<ParameterError> {
     fit.parameters
@@ -162,7 +94,8 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
     let board = recipe.board().expect("validated: rig-geometry recipes have a board");
     let opts: RigGeometryOptions = recipe.rig_geometry.clone().unwrap_or_default();
     let t0 = rig.time();
-    super::prepare_rig(recipe, rig).await?;
+    let config = super::prepare_rig(recipe, rig).await?;
+    let policy = super::calibration_policy(recipe, rig)?;
     tracing::info!(recipe = %name, "rig geometry: capturing {} poses", recipe.poses.len());
     let mut views = Vec::new();
     let mut capture_times = Vec::new();
@@ -170,11 +103,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
         let (q, _) = super::reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
-        let frame = rig
-            .camera
-            .capture()
-            .await
-            .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
+        let frame = super::capture_at(recipe, rig, &policy, &config, index, pose.view).await?;
         let raw = frame_to_linear(&frame);
         let det = super::detect_board(recipe, &board, &raw, index, pose.view)?;
         views.push(RigView {

@@ -13,10 +13,11 @@
 //! (vignetting, stray light, a lamp that is not where the kinematics say). Exposure and
 //! gain are divided out, so a calibration made at one exposure applies at another.
 
-use super::apply::{LampModel, Radiometric};
+use crate::develop::{LampModel, Radiometric};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
-use crate::engine::{frame_to_linear, Rig};
-use crate::rectify::{rectify_frame, RectifyParams};
+use crate::develop::frame_to_linear;
+use crate::rig::Rig;
+use crate::develop::rectify::{rectify_frame, RectifyParams};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use thiserror::Error;
@@ -71,7 +72,7 @@ pub enum WhiteError {
     #[error("pose {index}: rectification failed: {message}")]
     Rectify { index: usize, message: String },
     #[error("{0}")]
-    Lamp(#[from] super::apply::ApplyError),
+    Lamp(#[from] crate::develop::DevelopError),
     #[error("no texel is lit at any pose: cannot fit the scale")]
     NoData,
     #[error("[white_standard] corrections: {0}")]
@@ -189,7 +190,8 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
         }
     };
     let t0 = rig.time();
-    super::prepare_rig(recipe, rig).await?;
+    let config = super::prepare_rig(recipe, rig).await?;
+    let policy = super::calibration_policy(recipe, rig)?;
     let params = RectifyParams {
         width: spec.texels,
         height: spec.texels,
@@ -205,12 +207,7 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
         let (q, q_read) = super::reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
-        rig.camera.rig_still();
-        let frame = rig
-            .camera
-            .capture()
-            .await
-            .map_err(|c| super::device_error(recipe, rig, rig.camera.name(), c))?;
+        let frame = super::capture_at(recipe, rig, &policy, &config, index, pose.view).await?;
         let (raw, saturated_px) = match &correction {
             Some(c) => {
                 let (img, n) = c.apply(&frame).map_err(|e| fail(e.into()))?;
@@ -367,7 +364,7 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
 fn load_corrections(
     dir: &std::path::Path,
     rig: &gonio_devices::rig::RigSpec,
-) -> Result<Option<super::apply::RawCorrection>, String> {
+) -> Result<Option<crate::develop::RawCorrection>, String> {
     use super::apply::{load_dir, AppliedCalibration};
     let results: Vec<_> = load_dir(dir, &rig.name)
         .map_err(|e| e.to_string())?

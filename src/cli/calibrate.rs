@@ -3,7 +3,7 @@
 
 use super::common::{load_sample, RigArgs};
 use crate::calibrate::{self, Recipe};
-use crate::engine::Rig;
+use crate::rig::Rig;
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -47,17 +47,22 @@ impl SweepArgs {
     pub fn load(&self) -> Result<Sweep> {
         Sweep::resolve(&self.sweep).with_context(|| format!("loading sweep `{}`", self.sweep))
     }
-    pub fn plan(&self, rig: &RigSpec, sweep: &Sweep) -> Result<Plan> {
+    /// The planner options these flags give (`--plan-time` checked).
+    pub fn plan_options(&self) -> Result<PlanOptions> {
         anyhow::ensure!(
             self.plan_time.is_finite() && self.plan_time >= 0.0 && self.plan_time <= 3600.0,
             "--plan-time {}: must be between 0 and 3600 seconds",
             self.plan_time
         );
-        let opts = PlanOptions {
+        Ok(PlanOptions {
             policy: self.policy,
             time_budget: Duration::from_secs_f64(self.plan_time),
             seed: self.plan_seed,
-        };
+        })
+    }
+
+    pub fn plan(&self, rig: &RigSpec, sweep: &Sweep) -> Result<Plan> {
+        let opts = self.plan_options()?;
         if self.isotropic {
             return Ok(Plan::build_isotropic(rig, sweep, &opts)?);
         }

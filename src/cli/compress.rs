@@ -456,7 +456,7 @@ pub fn reconstruct(args: ReconstructArgs) -> Result<ExitCode> {
     };
     if args.out.extension().and_then(|e| e.to_str()) == Some("npy") {
         // Raw float32 (H, W, 3) for scripts (tests/interop/check_ubo2014.py).
-        let mut bytes = crate::store::npy::npy_header(&[img.height, img.width, 3]);
+        let mut bytes = crate::store::export::npy_header(&[img.height, img.width, 3]);
         bytes.extend(img.data.iter().flat_map(|v| v.to_le_bytes()));
         crate::store::atomic::write_atomic(&args.out, &bytes, None)
             .with_context(|| format!("writing {}", args.out.display()))?;

@@ -1,8 +1,9 @@
 //! `gonio sim …`: the simulator on its own.
 
 use super::common::{load_sample, parse_angles, RigArgs};
-use crate::engine::{frame_to_linear, Rig};
-use crate::rectify::{self, RectifyParams};
+use crate::develop::frame_to_linear;
+use crate::rig::Rig;
+use crate::develop::rectify::{self, RectifyParams};
 use crate::store;
 use anyhow::{bail, Context, Result};
 use gonio_devices::image::RgbImage;
@@ -112,10 +113,8 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     let q = configuration(&rig, a.light, a.view)?;
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let img = rt.block_on(async {
-        crate::engine::prepare(&rig).await?;
-        for (axis, &t) in rig.axes.iter().zip(&q) {
-            axis.move_abs(t).await.map_err(crate::engine::EngineError::Setup)?;
-        }
+        let config = rig.prepare().await?;
+        rig.reach(&q).await?;
         match kind {
             RenderKind::Truth | RenderKind::Radiance => {
                 let t = rig.truth.as_ref().expect("simulated rig has truth");
@@ -126,7 +125,11 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
                 })
             }
             _ => {
-                let frame = rig.camera.capture().await.map_err(crate::engine::EngineError::Setup)?;
+                let policy = rig.capture_policy()?;
+                let (frame, _) = rig
+                    .capture(&policy, &config)
+                    .await
+                    .map_err(|f| anyhow::anyhow!("camera failed after {} attempt(s): {}", f.attempts, f.source))?;
                 let raw = frame_to_linear(&frame);
                 if kind == RenderKind::Raw {
                     return Ok(raw);
@@ -201,7 +204,7 @@ pub fn write_image(path: &Path, img: &RgbImage) -> Result<()> {
     {
         Some("exr") => store::write_exr(path, img).with_context(|| format!("writing {}", path.display()))?,
         Some("png") => {
-            let bytes = store::ubo2003::to_srgb8(img);
+            let bytes = store::export::to_srgb8(img);
             image::save_buffer(
                 path,
                 &bytes,

@@ -360,7 +360,7 @@ mod tests {
     use super::super::dfmf::{self, ColorModel, DfmfParams};
     use super::super::factor::{compress, Params};
     use super::*;
-    use crate::engine::Rig;
+    use crate::rig::Rig;
     use gonio_devices::rig::RigSpec;
     use gonio_devices::Direction;
     use gonio_simulator::sample::{SampleSpec, DEFAULT_SAMPLE};

@@ -12,18 +12,15 @@
 //! is synced (see `store`), so a crash at any moment loses at most the frame in flight,
 //! which `--resume` measures again.
 
-pub mod capture;
 pub mod metrics;
-pub mod rig;
 
-use crate::calibrate::apply::AppliedCalibration;
+use crate::develop::rectify::HomographySource;
+use crate::develop::{DevelopError, Developer};
 use crate::plan::{Plan, Step, StepStatus};
-use crate::rectify::{self, HomographySource, RectifyParams};
+use crate::rig::{CaptureNotes, CapturePolicy, Rig};
 use crate::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
-use gonio_devices::image::RgbImage;
 use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
 use metrics::ErrorAccumulator;
-pub use rig::{GroundTruth, Rig};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -35,7 +32,7 @@ use thiserror::Error;
 pub enum EngineError {
     #[error("device error at measurement {index}")]
     Device { index: usize, source: DeviceError },
-    /// The camera failed every attempt the capture policy allows (see [`capture`]).
+    /// The camera failed every attempt the capture policy allows (see `rig::capture`).
     #[error("camera failed at measurement {index} after {attempts} attempt(s)")]
     Capture {
         index: usize,
@@ -51,24 +48,37 @@ pub enum EngineError {
     #[error("the store thread stopped unexpectedly")]
     StoreThread,
     #[error("applying the calibration to measurement {index} failed: {source}")]
-    Calibration {
-        index: usize,
-        source: crate::calibrate::apply::ApplyError,
-    },
+    Calibration { index: usize, source: DevelopError },
 }
 
 #[derive(Clone, Debug)]
 pub struct RunOptions {
-    pub width: usize,
-    pub height: usize,
     pub raw_frames: bool,
     /// Compare with the simulator's ground truth (if the rig has one).
     pub truth: bool,
     /// Also store the ground truth as `truth/NNNNN.exr` (the exact rectified BTF).
     pub store_truth: bool,
-    pub show_progress: bool,
-    /// Supersampling cap of the rectification filter.
-    pub max_supersample: usize,
+}
+
+/// What the engine reports while it runs, to whoever watches (a progress bar, a web
+/// monitor, a test). Sent from the drive loop (`Started`, `Captured`) and from the store
+/// thread (`Stored`), so observers must be `Send + Sync`; they must not block.
+#[derive(Debug)]
+pub enum RunEvent<'a> {
+    /// The run begins: `to_do` measurements this run, `already_done` from earlier runs.
+    Started { to_do: usize, already_done: usize },
+    /// A frame of measurement `index` was captured and is on its way to storage.
+    Captured { index: usize },
+    /// A measurement is stored (its image in place, its journal line synced).
+    Stored { record: &'a MeasurementRecord },
+}
+
+/// Receives [`RunEvent`]s.
+pub type Observer = Arc<dyn Fn(&RunEvent<'_>) + Send + Sync>;
+
+/// An observer that ignores everything.
+pub fn no_observer() -> Observer {
+    Arc::new(|_: &RunEvent<'_>| {})
 }
 
 /// What one run of the engine did.
@@ -114,7 +124,7 @@ struct Job {
     rig_time: f64,
     wall_time: f64,
     /// Retries, discarded frames, saturation: written into the record.
-    notes: capture::CaptureNotes,
+    notes: CaptureNotes,
 }
 
 fn unix_now() -> f64 {
@@ -128,16 +138,6 @@ fn deg2(d: Direction) -> [f64; 2] {
     [d.theta_deg(), d.phi_deg()]
 }
 
-/// Convert a frame of DN values into linear normalised values (DN / max DN).
-pub fn frame_to_linear(frame: &Frame) -> RgbImage {
-    let k = 1.0 / frame.max_dn() as f32;
-    RgbImage {
-        width: frame.width,
-        height: frame.height,
-        data: frame.data.iter().map(|&v| v as f32 * k).collect(),
-    }
-}
-
 /// Record of a skipped pair (no image).
 pub fn skipped_record(index: usize, light_deg: [f64; 2], view_deg: [f64; 2], reason: String) -> MeasurementRecord {
     let mut r = MeasurementRecord::new(index, usize::MAX, light_deg, view_deg);
@@ -146,27 +146,10 @@ pub fn skipped_record(index: usize, light_deg: [f64; 2], view_deg: [f64; 2], rea
     r
 }
 
-/// Home the rig, switch the light on and configure the camera.
-pub async fn prepare(rig: &Rig) -> Result<CameraConfig, EngineError> {
-    for a in &rig.axes {
-        a.home().await.map_err(EngineError::Setup)?;
-    }
-    rig.light.set(true, 1.0).await.map_err(EngineError::Setup)?;
-    let c = &rig.spec.camera;
-    rig.camera
-        .configure(&CameraConfig {
-            width: c.width,
-            height: c.height,
-            exposure: c.exposure_s,
-            gain: c.gain,
-            bit_depth: c.bit_depth,
-        })
-        .await
-        .map_err(EngineError::Setup)
-}
-
-/// Execute the plan's steps that are not in `done`. Returns the dataset (for `finish`)
-/// and a report; on a store failure the error says which measurement.
+/// Execute the plan's steps that are not in `done`, developing every frame with
+/// `developer` (see `crate::develop`). Returns the dataset (for `finish`) and a report; on a
+/// failure the error says which measurement, and the dataset is handed back when it is
+/// still consistent.
 pub async fn run(
     rig: Arc<Rig>,
     plan: Arc<Plan>,
@@ -174,22 +157,8 @@ pub async fn run(
     done: HashSet<usize>,
     opts: RunOptions,
     pause: Arc<AtomicBool>,
-) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
-    run_calibrated(rig, plan, dataset, done, opts, pause, None).await
-}
-
-/// [`run`], applying calibration results in the store thread (see
-/// `calibrate::apply`): undistortion and calibrated intrinsics before rectification, the
-/// radiometric conversion to BRDF after it. The ground truth is converted the same way, so
-/// the truth error stays on the scale of the stored values.
-pub async fn run_calibrated(
-    rig: Arc<Rig>,
-    plan: Arc<Plan>,
-    dataset: Dataset,
-    done: HashSet<usize>,
-    opts: RunOptions,
-    pause: Arc<AtomicBool>,
-    calibration: Option<Arc<AppliedCalibration>>,
+    developer: Arc<Developer>,
+    observer: Observer,
 ) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
     let t_wall = Instant::now();
     let rig_t0 = rig.time();
@@ -200,26 +169,31 @@ pub async fn run_calibrated(
         .filter(|(_, s)| !done.contains(&s.index))
         .collect();
     let already_done = plan.steps.len() - todo.len();
-    let bar = progress_bar(todo.len() as u64, opts.show_progress);
+    observer(&RunEvent::Started {
+        to_do: todo.len(),
+        already_done,
+    });
     let (tx, rx) = tokio::sync::mpsc::channel::<Job>(2);
     let failed = Arc::new(AtomicBool::new(false));
     let store = {
         let rig = rig.clone();
         let opts = opts.clone();
         let failed = failed.clone();
+        let observer = observer.clone();
         std::thread::Builder::new()
             .name("gonio-store".into())
-            .spawn(move || store_loop(rig, dataset, rx, opts, failed, calibration))
+            .spawn(move || store_loop(rig, dataset, rx, opts, failed, developer, observer))
             .map_err(|_| (None, EngineError::StoreThread))?
     };
     let mut drive_err = None;
     let mut paused = false;
     let mut drive_times = StageSeconds::default();
     // The capture policy (retries, timeout, saturation) and the camera's actual settings.
-    let setup = match capture::CapturePolicy::from_spec(&rig.spec.camera).map_err(EngineError::Setup) {
-        Ok(policy) => prepare(&rig).await.map(|config| (policy, config)),
+    let setup = match rig.capture_policy() {
+        Ok(policy) => rig.prepare().await.map(|config| (policy, config)),
         Err(e) => Err(e),
-    };
+    }
+    .map_err(EngineError::Setup);
     let setup = setup.map_err(|e| drive_err = Some(e)).ok();
     for (order, step) in todo.iter().copied() {
         if drive_err.is_some() || failed.load(Ordering::SeqCst) {
@@ -244,17 +218,17 @@ pub async fn run_calibrated(
                     wall_time: unix_now(),
                     notes,
                 };
+                let index = job.step.index;
                 if tx.send(job).await.is_err() {
                     break; // store thread ended (failed): its error is reported below
                 }
-                bar.inc(1);
+                observer(&RunEvent::Captured { index });
             }
             Err(e) => drive_err = Some(e),
         }
     }
     drop(tx);
     let stored = store.join();
-    bar.finish_and_clear();
     let (dataset, stats) = match stored {
         Ok(Ok(v)) => v,
         Ok(Err(b)) => {
@@ -290,43 +264,27 @@ pub async fn run_calibrated(
 }
 
 /// What the drive loop hands on per step: frame, capture notes, commanded and read-back axes.
-type Driven = (Frame, capture::CaptureNotes, Vec<f64>, Vec<f64>);
+type Driven = (Frame, CaptureNotes, Vec<f64>, Vec<f64>);
 
-/// Move all axes to the step's targets (concurrently), wait until settled, capture (under
-/// the capture policy: bounded retries, stale frames discarded, saturation handled).
-///
-/// Whether the engine can judge a frame stale by its timestamp: only the simulated camera
-/// stamps frames on the rig clock. A V4L2 camera stamps CLOCK_MONOTONIC and applies its own
-/// rule after `rig_still`, also when the axes are simulated (the vivid campaign found the
-/// engine refusing every vivid frame when this looked at the clock alone).
-fn frames_on_rig_clock(spec: &gonio_devices::rig::RigSpec, rig_has_clock: bool) -> bool {
-    rig_has_clock && spec.camera.backend == "sim"
-}
-
+/// One step: the rig's shared move-and-capture ([`Rig::reach`], then [`Rig::capture`] under
+/// the capture policy), with the wall time of each part.
 async fn drive_step(
     rig: &Rig,
     step: &Step,
     times: &mut StageSeconds,
-    policy: &capture::CapturePolicy,
+    policy: &CapturePolicy,
     camera_config: &CameraConfig,
 ) -> Result<Driven, EngineError> {
     let index = step.index;
-    let device = |source: DeviceError| EngineError::Device { index, source };
     let t0 = Instant::now();
     let q: Vec<f64> = step.axes_deg.iter().map(|d| d.to_radians()).collect();
-    for (axis, &target) in rig.axes.iter().zip(&q) {
-        axis.start_move(target).await.map_err(device)?;
-    }
-    // Every axis is already moving; waiting one after the other ends with the slowest.
-    let mut read = Vec::with_capacity(q.len());
-    for axis in &rig.axes {
-        read.push(axis.wait_idle().await.map_err(device)?);
-    }
-    // A streaming camera must not hand out frames exposed during the move.
-    rig.camera.rig_still();
-    let still_at = frames_on_rig_clock(&rig.spec, rig.clock.is_some()).then(|| rig.time());
+    let read = rig
+        .reach(&q)
+        .await
+        .map_err(|source| EngineError::Device { index, source })?;
     let t1 = Instant::now();
-    let (frame, notes) = capture::capture_measurement(rig.camera.as_ref(), policy, camera_config, still_at)
+    let (frame, notes) = rig
+        .capture(policy, camera_config)
         .await
         .map_err(|f| EngineError::Capture {
             index,
@@ -354,7 +312,8 @@ fn store_loop(
     mut rx: tokio::sync::mpsc::Receiver<Job>,
     opts: RunOptions,
     failed: Arc<AtomicBool>,
-    calibration: Option<Arc<AppliedCalibration>>,
+    developer: Arc<Developer>,
+    observer: Observer,
 ) -> StoreResult {
     let mut stats = StoreStats {
         times: StageSeconds::default(),
@@ -363,53 +322,26 @@ fn store_loop(
         markers: 0,
         pose: 0,
     };
-    let params = RectifyParams {
-        width: opts.width,
-        height: opts.height,
-        sample_mm: rig.sample_mm,
-        max_supersample: opts.max_supersample,
+    let (width, height) = (developer.params().width, developer.params().height);
+    let fail = |dataset: Dataset, err: EngineError| {
+        failed.store(true, Ordering::SeqCst);
+        Err(Box::new((dataset, err)))
     };
-    let intr = match &calibration {
-        Some(c) => c.intrinsics(&rig.spec.camera.intrinsics()),
-        None => rig.spec.camera.intrinsics(),
-    };
-    let undistort = calibration.as_ref().and_then(|c| c.camera);
-    let radiometric = calibration.as_ref().and_then(|c| c.radiometric);
-    let raw_correction = calibration.as_ref().and_then(|c| c.raw.as_ref());
     while let Some(job) = rx.blocking_recv() {
         let index = job.step.index;
         let pose = rig.kinematics.camera_pose(&job.q_read);
-        let ((rect, t_rect), (truth, t_truth)) = rayon::join(
+        // The lamp position from the same (corrected) kinematics as the camera pose.
+        let lamp = rig.kinematics.light_position(&job.q_read);
+        let ((developed, t_rect), (truth, t_truth)) = rayon::join(
             || {
                 let t = Instant::now();
-                // Dark, response, flat, colour: on the raw frame, before the geometry.
-                let (mut raw, saturated) = match raw_correction {
-                    Some(c) => match c.apply(&job.frame) {
-                        Ok((img, n)) => (img, Some(n)),
-                        Err(e) => return (Err(e), 0.0),
-                    },
-                    None => (frame_to_linear(&job.frame), None),
-                };
-                if let (Some(k), None) = (job.notes.exposure_scale, &radiometric) {
-                    // Re-exposed after saturating: back to the nominal exposure's scale (a
-                    // radiometric calibration divides by each frame's own exposure instead).
-                    raw.data.iter_mut().for_each(|v| *v *= k);
-                }
-                if let Some(cam) = &undistort {
-                    raw = crate::calibrate::apply::undistort_frame(&raw, cam);
-                }
-                (
-                    Ok((
-                        rectify::rectify_frame(&raw, &intr, &pose, &rig.border, &params),
-                        saturated,
-                    )),
-                    t.elapsed().as_secs_f64(),
-                )
+                let d = developer.develop(&job.frame, &pose, lamp, job.notes.exposure_scale);
+                (d, t.elapsed().as_secs_f64())
             },
             || {
                 let t = Instant::now();
                 let truth = match (&rig.truth, opts.truth) {
-                    (Some(t), true) => Some(t.truth(&job.q_read, opts.width, opts.height)),
+                    (Some(t), true) => Some(t.truth(&job.q_read, width, height)),
                     _ => None,
                 };
                 (truth, t.elapsed().as_secs_f64())
@@ -417,47 +349,16 @@ fn store_loop(
         );
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
-        let (rect, saturated) = match rect {
-            Ok(r) => r,
-            Err(source) => {
-                failed.store(true, Ordering::SeqCst);
-                return Err(Box::new((dataset, EngineError::Calibration { index, source })));
-            }
-        };
-        let mut rect = match rect {
-            Ok(r) => r,
-            Err(e) => {
-                failed.store(true, Ordering::SeqCst);
-                let err = EngineError::Rectify {
-                    index,
-                    message: e.to_string(),
-                };
-                return Err(Box::new((dataset, err)));
-            }
+        let (rect, saturated) = match developed {
+            Ok(d) => (d.rectified, d.saturated),
+            Err(DevelopError::Rectify(message)) => return fail(dataset, EngineError::Rectify { index, message }),
+            Err(source) => return fail(dataset, EngineError::Calibration { index, source }),
         };
         let mut truth = truth;
-        if let Some(r) = &radiometric {
-            // HOOK (corrected kinematics): with a rig-geometry calibration the lamp position
-            // must come from the corrected kinematics.
-            let lamp = rig.kinematics.light_position(&job.q_read);
+        if let Some(img) = truth.as_mut() {
             let (t, g) = (job.frame.meta.exposure, job.frame.meta.gain);
-            let mut converted = r.to_brdf(&mut rect.image, lamp, &params, t, g);
-            // The truth is on the scale of an ideal linear sensor (DN / max DN); with raw-frame
-            // corrections the fitted K is on the response curve's scale instead, so the truth
-            // is converted with the simulated sensor's true K (the simulator knows it).
-            let truth_radio = match raw_correction {
-                Some(_) => crate::calibrate::apply::Radiometric {
-                    k: [crate::calibrate::white::sim_truth_k(&rig); 3],
-                    lamp: r.lamp,
-                },
-                None => *r,
-            };
-            if let (Ok(()), Some(img)) = (&converted, truth.as_mut()) {
-                converted = truth_radio.to_brdf(img, lamp, &params, t, g);
-            }
-            if let Err(source) = converted {
-                failed.store(true, Ordering::SeqCst);
-                return Err(Box::new((dataset, EngineError::Calibration { index, source })));
+            if let Err(source) = developer.develop_truth(img, lamp, t, g) {
+                return fail(dataset, EngineError::Calibration { index, source });
             }
         }
         match rect.source {
@@ -475,17 +376,10 @@ fn store_loop(
             extra["saturated_pixels"] = serde_json::json!(n);
         }
         if let (Some(t), true) = (&truth, opts.store_truth) {
-            let rel = format!("truth/{index:05}.exr");
-            let path = dataset.dir().join(&rel);
-            let written = std::fs::create_dir_all(dataset.dir().join("truth"))
-                .map_err(|e| StoreError::io("creating", &path, Some(dataset.dir()), e))
-                .and_then(|_| crate::store::encode_exr(t, &path))
-                .and_then(|bytes| crate::store::atomic::write_atomic(&path, &bytes, Some(dataset.dir())));
-            if let Err(e) = written {
-                failed.store(true, Ordering::SeqCst);
-                return Err(Box::new((dataset, EngineError::Store { index, source: e })));
+            match dataset.store_truth(index, t) {
+                Ok(rel) => extra["truth_image"] = serde_json::json!(rel),
+                Err(e) => return fail(dataset, EngineError::Store { index, source: e }),
             }
-            extra["truth_image"] = serde_json::json!(rel);
         }
         if let Some(t) = &truth {
             let e = metrics::image_error(&rect.image, t);
@@ -520,39 +414,13 @@ fn store_loop(
         let stored = dataset.store(rec, Some(&rect.image), raw_frame);
         stats.times.store += t_store.elapsed().as_secs_f64();
         if let Err(e) = stored {
-            failed.store(true, Ordering::SeqCst);
-            return Err(Box::new((dataset, EngineError::Store { index, source: e })));
+            return fail(dataset, EngineError::Store { index, source: e });
+        }
+        if let Some(record) = dataset.records().last() {
+            observer(&RunEvent::Stored { record });
         }
         stats.stored += 1;
     }
     Ok((dataset, stats))
 }
 
-fn progress_bar(len: u64, show: bool) -> indicatif::ProgressBar {
-    if !show {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:40.cyan/blue}] {pos}/{len} measurements  {per_sec}  ETA {eta}",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-        .progress_chars("=> "),
-    );
-    bar
-}
-
-#[cfg(test)]
-mod stale_rule_tests {
-    /// Regression (vivid campaign): simulated axes with a V4L2 camera must not have their
-    /// frames judged on the rig clock.
-    #[test]
-    fn only_the_simulated_camera_is_judged_on_the_rig_clock() {
-        let mut spec = gonio_devices::rig::RigSpec::default_rig();
-        assert!(super::frames_on_rig_clock(&spec, true));
-        assert!(!super::frames_on_rig_clock(&spec, false));
-        spec.camera.backend = "v4l2".into();
-        assert!(!super::frames_on_rig_clock(&spec, true));
-    }
-}

@@ -27,7 +27,7 @@
 //! and whether M is used. For a homogeneous sample the member's image *is* the
 //! representative's. For a textured but statistically isotropic sample, the member's image
 //! is approximated by the representative's image with the texel grid transformed by `T`
-//! (`store::export_iso`): the same physical surface rotated by ψ would look like that.
+//! (`store::export`, `iso.rs`): the same physical surface rotated by ψ would look like that.
 //! The texture is a different patch of the same statistics, not the same texels.
 
 use crate::sweep::Pair;

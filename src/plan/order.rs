@@ -1675,13 +1675,17 @@ impl<'a, 'm> Ls<'a, 'm> {
     }
 }
 
-/// SplitMix64 stream (the simulator's `mix64` finaliser): tiny, seedable, good enough for
-/// picking kick positions.
+/// SplitMix64 stream: tiny, seedable, good enough for picking kick positions. The planner
+/// keeps its own few lines rather than import the simulator's (a planner needs no
+/// simulator; ARCHITECTURE.md invariant 3).
 struct Rng(u64);
 
 impl Rng {
     fn next(&mut self) -> u64 {
-        let out = gonio_simulator::noise::mix64(self.0);
+        let mut z = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        let out = z ^ (z >> 31);
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         out
     }

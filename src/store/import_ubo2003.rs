@@ -6,7 +6,7 @@
 //!
 //! What is read: every file entry whose last path component carries the four angles
 //! `tlNNN plNNN tvNNN pvNNN` (integer degrees, light first, as in conventions.md and
-//! [`super::ubo2003::entry_name`]); directories and other files (readme, thumbnails) are
+//! [`super::export::entry_name`]); directories and other files (readme, thumbnails) are
 //! listed in the report as ignored. The light and view direction sets are the distinct
 //! angles found; if they are exactly the Bonn 81 set they keep the Bonn order, otherwise
 //! they are sorted by (θ, φ). Measurement `index = view · lights + light`, the layout

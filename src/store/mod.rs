@@ -10,8 +10,14 @@
 //!   journal.jsonl     append-only, one line per stored measurement (the source of truth)
 //!   images/NNNNN.exr  rectified image of measurement NNNNN (RGB half float, ZIP)
 //!   raw/NNNNN.png     optional raw frame of measurement NNNNN (16-bit RGB PNG, DN as read)
-//!   truth/            optional ground truth of simulated rigs (not managed here)
+//!   plan.json         the executed plan (written once at creation; `--resume` follows it)
+//!   truth/NNNNN.exr   optional exact rectified ground truth of simulated rigs (`--store-truth`)
+//!   calibration/KIND.json  copies of the calibration results applied (`--calibration`)
 //! ```
+//!
+//! [`Dataset`] writes every one of these files (one writer): the plan as opaque bytes (the
+//! store does not depend on the planner), the truth images and the calibration copies
+//! through the same atomic write as the images.
 //!
 //! * **`NNNNN`** is the record's canonical `index` (`view_index · 81 + light_index` for
 //!   the Bonn set), zero-padded to five digits (wider if ever needed).
@@ -58,13 +64,11 @@
 
 pub mod atomic;
 mod error;
-pub mod export_iso;
+pub mod export;
 pub mod exr_io;
 pub mod import_ubo2003;
 mod journal;
 mod manifest;
-pub mod npy;
-pub mod ubo2003;
 pub mod verify;
 
 #[cfg(test)]
@@ -73,8 +77,9 @@ mod tests;
 pub use error::StoreError;
 pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
 pub use manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
-pub use npy::{export_npy, npy_sidecar_path};
-pub use ubo2003::{entry_name, export_ubo2003, integer_angles, linear_to_srgb8, ExportReport, JPEG_QUALITY};
+pub use export::{
+    entry_name, export_npy, export_ubo2003, integer_angles, linear_to_srgb8, npy_sidecar_path, ExportReport, JPEG_QUALITY,
+};
 pub use verify::{verify, VerifyReport};
 
 use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};
@@ -97,6 +102,19 @@ pub const MANIFEST_FILE: &str = "manifest.json";
 pub const JOURNAL_FILE: &str = "journal.jsonl";
 pub const IMAGES_DIR: &str = "images";
 pub const RAW_DIR: &str = "raw";
+pub const PLAN_FILE: &str = "plan.json";
+pub const TRUTH_DIR: &str = "truth";
+pub const CALIBRATION_DIR: &str = "calibration";
+
+/// Relative path of the stored ground truth of measurement `index`.
+pub fn truth_rel_path(index: usize) -> String {
+    format!("{TRUTH_DIR}/{index:05}.exr")
+}
+
+/// Relative path of the copy of the calibration result of `kind`.
+pub fn calibration_rel_path(kind: &str) -> String {
+    format!("{CALIBRATION_DIR}/{kind}.json")
+}
 
 /// Relative path of the rectified image of measurement `index`.
 pub fn image_rel_path(index: usize) -> String {
@@ -603,6 +621,42 @@ impl Dataset {
     /// What `resume` repaired (empty for a created dataset).
     pub fn recovery(&self) -> &RecoveryReport {
         &self.recovery
+    }
+
+    /// Write the executed plan (`plan.json`, atomically); the bytes are the planner's JSON.
+    pub fn write_plan(&self, bytes: &[u8]) -> Result<(), StoreError> {
+        atomic::write_atomic(&self.dir.join(PLAN_FILE), bytes, Some(&self.dir))
+    }
+
+    /// The stored plan's bytes; `None` when the dataset has none yet (interrupted between
+    /// its creation and the plan's write).
+    pub fn read_plan(&self) -> Result<Option<Vec<u8>>, StoreError> {
+        let path = self.dir.join(PLAN_FILE);
+        match fs::read(&path) {
+            Ok(b) => Ok(Some(b)),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(StoreError::io("reading", &path, Some(&self.dir), e)),
+        }
+    }
+
+    /// Write the ground truth of measurement `index` (`truth/NNNNN.exr`, atomically);
+    /// returns its relative path for the record.
+    pub fn store_truth(&self, index: usize, image: &RgbImage) -> Result<String, StoreError> {
+        let rel = truth_rel_path(index);
+        let path = self.dir.join(&rel);
+        fs::create_dir_all(self.dir.join(TRUTH_DIR))
+            .map_err(|e| StoreError::io("creating", &path, Some(&self.dir), e))?;
+        let bytes = encode_exr(image, &path)?;
+        atomic::write_atomic(&path, &bytes, Some(&self.dir))?;
+        Ok(rel)
+    }
+
+    /// Keep a copy of an applied calibration result (`calibration/KIND.json`).
+    pub fn store_calibration_copy(&self, kind: &str, bytes: &[u8]) -> Result<(), StoreError> {
+        let dir = self.dir.join(CALIBRATION_DIR);
+        let path = self.dir.join(calibration_rel_path(kind));
+        fs::create_dir_all(&dir).map_err(|e| StoreError::io("creating", &dir, Some(&self.dir), e))?;
+        atomic::write_atomic(&path, bytes, Some(&self.dir))
     }
 }
 

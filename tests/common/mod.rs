@@ -110,7 +110,7 @@ pub fn run_recipe(
     spec: &gonio_devices::rig::RigSpec,
 ) -> Result<gonio::calibrate::RunOutput, gonio::calibrate::CalibrateError> {
     let sample = gonio_simulator::SampleSpec::resolve(&recipe.target).unwrap();
-    let rig = gonio::engine::Rig::build(spec, &sample, &recipe.sim_options()).unwrap();
+    let rig = gonio::rig::Rig::build(spec, &sample, &recipe.sim_options()).unwrap();
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

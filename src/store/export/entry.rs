@@ -1,37 +1,17 @@
-//! Export to the Bonn UBO2003 archive layout (a ZIP of 8-bit sRGB JPEGs).
-//!
-//! Entry names follow conventions.md exactly:
-//! `tvNNN_pvNNN/IIIII tlNNN plNNN tvNNN pvNNN.jpg` — integer degrees, three digits,
-//! light angles first, `IIIII` a 5-digit running index (0-based, in export order).
-//! The public `btf-extractor` reader takes the four angles from fixed offsets counted
-//! from the end of the name and keys images by them, so two exported measurements
-//! must never round to the same four integers (that is an error here, not a silently
-//! overwritten image).
-//!
-//! What is exported: every record that is not `Skipped` (a dataset never claims what
-//! it did not measure), in canonical-index order, substituted ones under the light
-//! angles actually used. Angles are rounded to the nearest degree, φ wrapped into
-//! [0, 360), and φ set to 0 when θ rounds to 0 (the pole has no azimuth).
-//!
-//! Pixel values: linear → clamped to [0, 1] → sRGB transfer function → rounded to 8
-//! bits ([`linear_to_srgb8`]), then JPEG at quality [`JPEG_QUALITY`] without chroma
-//! subsampling (the `image` crate's encoder always writes 4:4:4). The `.npy` export
-//! (see `npy.rs`) holds exactly the 8-bit values given to the JPEG encoder, so a
-//! reader's output can be compared against it.
+//! What every export shares: the choice and naming of the exported images
+//! ([`ExportEntry`], in canonical order, named as UBO2003 names them), the isotropy
+//! transform of a reconstructed pair ([`IsoTransform`]), linear → 8-bit sRGB, and the
+//! bounded parallel decode-then-write loop. The ground file of `export/`: the exporters
+//! and `iso.rs` import it, it imports none of them.
 
-use super::atomic::TempFile;
-use super::error::{IoContext, StoreError};
-use super::exr_io::decode_exr;
-use super::manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
-use super::{load, sha256_hex};
+use crate::store::error::{IoContext, StoreError};
+use crate::store::exr_io::decode_exr;
+use crate::store::manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
+use crate::store::sha256_hex;
 use gonio_devices::image::RgbImage;
 use rayon::prelude::*;
 use std::collections::HashMap;
-use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-
-/// JPEG quality of exported images (libjpeg scale, 1–100).
-pub const JPEG_QUALITY: u8 = 95;
 
 /// Images decoded and encoded in parallel per batch: bounds memory while keeping both
 /// cores busy.
@@ -75,8 +55,8 @@ pub struct ExportEntry {
     pub image: String,
     pub image_sha256: Option<String>,
     /// Set for a pair reconstructed from an isotropy-equivalent measurement (status
-    /// "isotropic"; `image` is the representative's): see `export_iso`.
-    pub transform: Option<super::export_iso::IsoTransform>,
+    /// "isotropic"; `image` is the representative's): see `iso.rs`.
+    pub transform: Option<IsoTransform>,
 }
 
 /// Round a (θ, φ) direction in degrees to the integers used in UBO2003 names.
@@ -97,8 +77,9 @@ pub fn entry_name(position: usize, light_deg: [f64; 2], view_deg: [f64; 2]) -> S
     format!("tv{tv:03}_pv{pv:03}/{position:05} tl{tl:03} pl{pl:03} tv{tv:03} pv{pv:03}.jpg")
 }
 
-/// Choose and name the exported records: not skipped, sorted by canonical index.
-/// Returns the entries and the number of skipped records.
+/// Choose and name the measured records: not skipped, sorted by canonical index.
+/// Returns the entries and the number of skipped records (isotropic equivalents are added
+/// by [`super::entries`]).
 pub fn plan_export(
     dir: &Path,
     records: &[MeasurementRecord],
@@ -151,9 +132,76 @@ pub fn plan_export(
             transform: None,
         });
     }
-    // isotropic acquisitions: add the reconstructed pairs (no-op for other datasets)
-    let skipped = skipped + super::export_iso::extend(dir, records, &mut entries, out)?;
     Ok((entries, skipped))
+}
+
+/// How an exported image is made from its representative's.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IsoTransform {
+    /// Canonical index of the measured representative.
+    pub representative: usize,
+    /// Rotation ψ about the sample normal, degrees.
+    pub rotation_deg: f64,
+    /// Mirror φ → −φ (y → −y) before the rotation.
+    pub mirrored: bool,
+}
+
+impl IsoTransform {
+    /// The member's image from the representative's: `out(x) = rep(T⁻¹ x)`, bilinear,
+    /// clamped at the edges (see the module documentation).
+    pub fn apply(&self, rep: &RgbImage) -> RgbImage {
+        let (w, h) = (rep.width, rep.height);
+        let mut out = RgbImage::new(w, h);
+        // (sin ψ, cos ψ), exact for quarter turns so that those are texel permutations
+        let psi = self.rotation_deg.rem_euclid(360.0);
+        let quarter = psi / 90.0;
+        let (s, c) = if (quarter - quarter.round()).abs() < 1e-9 {
+            match (quarter.round() as i64).rem_euclid(4) {
+                0 => (0.0, 1.0),
+                1 => (1.0, 0.0),
+                2 => (0.0, -1.0),
+                _ => (-1.0, 0.0),
+            }
+        } else {
+            psi.to_radians().sin_cos()
+        };
+        for j in 0..h {
+            for i in 0..w {
+                // sample-plane coordinates in units of the sample size (rows grow with −y)
+                let u = (i as f64 + 0.5) / w as f64 - 0.5;
+                let v = 0.5 - (j as f64 + 0.5) / h as f64;
+                // T⁻¹ = M · Rz(−ψ)
+                let (ru, rv) = (c * u + s * v, -s * u + c * v);
+                let rv = if self.mirrored { -rv } else { rv };
+                let x = (ru + 0.5) * w as f64 - 0.5;
+                let y = (0.5 - rv) * h as f64 - 0.5;
+                out.set(i, j, bilinear(rep, x, y));
+            }
+        }
+        out
+    }
+}
+
+/// Bilinear sample at texel coordinates (texel centres at integers), edge-clamped.
+fn bilinear(img: &RgbImage, x: f64, y: f64) -> [f32; 3] {
+    // positions within 1e-9 texel of a centre are that centre: rotations by quarter turns
+    // then copy texels exactly instead of blending in rounding noise
+    let cl = |v: f64, n: usize| {
+        let v = if (v - v.round()).abs() < 1e-9 { v.round() } else { v };
+        v.clamp(0.0, (n - 1) as f64)
+    };
+    let (x, y) = (cl(x, img.width), cl(y, img.height));
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(img.width - 1), (y0 + 1).min(img.height - 1));
+    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+    let (a, b, c, d) = (img.get(x0, y0), img.get(x1, y0), img.get(x0, y1), img.get(x1, y1));
+    let mut px = [0.0f32; 3];
+    for k in 0..3 {
+        let top = a[k] + (b[k] - a[k]) * fx;
+        let bottom = c[k] + (d[k] - c[k]) * fx;
+        px[k] = top + (bottom - top) * fy;
+    }
+    px
 }
 
 /// Linear value → 8-bit sRGB code value. Clamps to [0, 1] first (NaN → 0), so
@@ -171,19 +219,6 @@ pub fn linear_to_srgb8(v: f32) -> u8 {
 /// Interleaved 8-bit sRGB of a linear image.
 pub fn to_srgb8(img: &RgbImage) -> Vec<u8> {
     img.data.iter().map(|&v| linear_to_srgb8(v)).collect()
-}
-
-/// JPEG-encode interleaved 8-bit sRGB at [`JPEG_QUALITY`].
-pub fn encode_jpeg(rgb: &[u8], width: usize, height: usize, path: &Path) -> Result<Vec<u8>, StoreError> {
-    use image::ImageEncoder;
-    let mut out = Vec::with_capacity(rgb.len() / 4);
-    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, JPEG_QUALITY)
-        .write_image(rgb, width as u32, height as u32, image::ExtendedColorType::Rgb8)
-        .map_err(|source| StoreError::Codec {
-            path: path.to_path_buf(),
-            source,
-        })?;
-    Ok(out)
 }
 
 /// Read, hash-check and decode an exported entry's image and return its 8-bit sRGB.
@@ -252,47 +287,3 @@ pub(crate) fn ensure_parent(out: &Path) -> Result<(), StoreError> {
     Ok(())
 }
 
-/// Export a dataset as a UBO2003 ZIP archive (see the module documentation). The
-/// archive is written under a temporary name and renamed into place when complete.
-pub fn export_ubo2003(dir: &Path, out_zip: &Path) -> Result<ExportReport, StoreError> {
-    let (header, records) = load(dir)?;
-    let (entries, skipped) = plan_export(dir, &records, out_zip)?;
-    ensure_parent(out_zip)?;
-    let zip_err = |source| StoreError::Zip {
-        path: out_zip.to_path_buf(),
-        source,
-    };
-    let mut tmp = TempFile::create(out_zip, None)?;
-    let tmp_path = tmp.tmp_path().to_path_buf();
-    {
-        let mut zip = zip::ZipWriter::new(BufWriter::new(tmp.file()));
-        // JPEG data does not deflate; storing keeps the archive fast to read.
-        let options = zip::write::SimpleFileOptions::default()
-            .compression_method(zip::CompressionMethod::Stored)
-            .large_file(false);
-        let (w, h) = (header.image_width, header.image_height);
-        for_each_in_order(
-            &entries,
-            |e| {
-                let rgb = load_srgb8(dir, &header, e)?;
-                encode_jpeg(&rgb, w, h, out_zip)
-            },
-            |e, jpeg| {
-                zip.start_file(e.name.as_str(), options).map_err(zip_err)?;
-                zip.write_all(&jpeg).ctx("writing", &tmp_path, None)
-            },
-        )?;
-        let mut inner = zip.finish().map_err(zip_err)?;
-        inner.flush().ctx("writing", &tmp_path, None)?;
-    }
-    tmp.commit()?;
-    let bytes = std::fs::metadata(out_zip).ctx("reading", out_zip, None)?.len();
-    Ok(ExportReport {
-        path: out_zip.to_path_buf(),
-        entries: entries.len(),
-        substituted: entries.iter().filter(|e| e.status == "substituted").count(),
-        skipped,
-        bytes,
-        sidecar: None,
-    })
-}

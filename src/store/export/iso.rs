@@ -21,27 +21,15 @@
 //! measured square in its corners, which are filled by clamping to the nearest edge texel.
 //! Pure quarter turns and mirrors are exact texel permutations.
 
-use super::error::StoreError;
-use super::manifest::{MeasurementRecord, MeasurementStatus};
-use super::ubo2003::{entry_name, integer_angles, ExportEntry};
-use gonio_devices::image::RgbImage;
+use super::entry::{entry_name, integer_angles, ExportEntry, IsoTransform};
+use crate::store::error::StoreError;
+use crate::store::manifest::{MeasurementRecord, MeasurementStatus};
 use serde::Deserialize;
 use std::collections::HashMap;
 use std::path::Path;
 
 /// File of the dataset holding the plan (written by `gonio acquire`).
-pub const PLAN_FILE: &str = "plan.json";
-
-/// How an exported image is made from its representative's.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct IsoTransform {
-    /// Canonical index of the measured representative.
-    pub representative: usize,
-    /// Rotation ψ about the sample normal, degrees.
-    pub rotation_deg: f64,
-    /// Mirror φ → −φ (y → −y) before the rotation.
-    pub mirrored: bool,
-}
+use crate::store::PLAN_FILE;
 
 /// The part of `plan.json` this module reads (the rest of the plan is not its business).
 #[derive(Deserialize)]
@@ -64,64 +52,6 @@ struct Equivalent {
     view_deg: [f64; 2],
     rotation_deg: f64,
     mirrored: bool,
-}
-
-impl IsoTransform {
-    /// The member's image from the representative's: `out(x) = rep(T⁻¹ x)`, bilinear,
-    /// clamped at the edges (see the module documentation).
-    pub fn apply(&self, rep: &RgbImage) -> RgbImage {
-        let (w, h) = (rep.width, rep.height);
-        let mut out = RgbImage::new(w, h);
-        // (sin ψ, cos ψ), exact for quarter turns so that those are texel permutations
-        let psi = self.rotation_deg.rem_euclid(360.0);
-        let quarter = psi / 90.0;
-        let (s, c) = if (quarter - quarter.round()).abs() < 1e-9 {
-            match (quarter.round() as i64).rem_euclid(4) {
-                0 => (0.0, 1.0),
-                1 => (1.0, 0.0),
-                2 => (0.0, -1.0),
-                _ => (-1.0, 0.0),
-            }
-        } else {
-            psi.to_radians().sin_cos()
-        };
-        for j in 0..h {
-            for i in 0..w {
-                // sample-plane coordinates in units of the sample size (rows grow with −y)
-                let u = (i as f64 + 0.5) / w as f64 - 0.5;
-                let v = 0.5 - (j as f64 + 0.5) / h as f64;
-                // T⁻¹ = M · Rz(−ψ)
-                let (ru, rv) = (c * u + s * v, -s * u + c * v);
-                let rv = if self.mirrored { -rv } else { rv };
-                let x = (ru + 0.5) * w as f64 - 0.5;
-                let y = (0.5 - rv) * h as f64 - 0.5;
-                out.set(i, j, bilinear(rep, x, y));
-            }
-        }
-        out
-    }
-}
-
-/// Bilinear sample at texel coordinates (texel centres at integers), edge-clamped.
-fn bilinear(img: &RgbImage, x: f64, y: f64) -> [f32; 3] {
-    // positions within 1e-9 texel of a centre are that centre: rotations by quarter turns
-    // then copy texels exactly instead of blending in rounding noise
-    let cl = |v: f64, n: usize| {
-        let v = if (v - v.round()).abs() < 1e-9 { v.round() } else { v };
-        v.clamp(0.0, (n - 1) as f64)
-    };
-    let (x, y) = (cl(x, img.width), cl(y, img.height));
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let (x1, y1) = ((x0 + 1).min(img.width - 1), (y0 + 1).min(img.height - 1));
-    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
-    let (a, b, c, d) = (img.get(x0, y0), img.get(x1, y0), img.get(x0, y1), img.get(x1, y1));
-    let mut px = [0.0f32; 3];
-    for k in 0..3 {
-        let top = a[k] + (b[k] - a[k]) * fx;
-        let bottom = c[k] + (d[k] - c[k]) * fx;
-        px[k] = top + (bottom - top) * fy;
-    }
-    px
 }
 
 /// Read the isotropic equivalents from the dataset's `plan.json` (none when the file or
@@ -202,6 +132,7 @@ pub(crate) fn extend(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use gonio_devices::image::RgbImage;
 
     fn numbered(w: usize, h: usize) -> RgbImage {
         let mut img = RgbImage::new(w, h);
@@ -271,8 +202,8 @@ mod tests {
     #[test]
     fn npy_and_ubo2003_exports_contain_the_reconstructed_pairs() {
         use crate::store::manifest::ManifestHeader;
-        use crate::store::npy::export_npy;
-        use crate::store::ubo2003::export_ubo2003;
+        use crate::store::export::export_npy;
+        use crate::store::export::export_ubo2003;
         use crate::store::{Dataset, FORMAT, FORMAT_VERSION};
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("ds");
@@ -332,7 +263,7 @@ mod tests {
             }
         }
         let side: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(crate::store::npy::npy_sidecar_path(&npy)).unwrap()).unwrap();
+            serde_json::from_slice(&std::fs::read(crate::store::export::npy_sidecar_path(&npy)).unwrap()).unwrap();
         let st: Vec<&str> = side["entries"]
             .as_array()
             .unwrap()

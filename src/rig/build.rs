@@ -1,62 +1,15 @@
-//! Building a rig (hardware trait objects + kinematics) from a rig file.
-//!
-//! The engine sees only [`Rig`]: axes, camera and light as trait objects. Which
-//! implementation stands behind each is the rig file's `backend` key; a simulated rig also
-//! offers the ground truth of every measurement ([`GroundTruth`]).
+//! Building a [`Rig`] from a rig file: which implementation stands behind each axis,
+//! the camera and the light (the rig file's `backend` keys), and the adapters a *mixed*
+//! rig (serial axes, simulated camera) needs.
 
+use super::{GroundTruth, Rig};
 use async_trait::async_trait;
-use gonio_devices::image::RgbImage;
-use gonio_devices::kinematics::{self, Kinematics};
+use gonio_devices::kinematics;
 use gonio_devices::rig::RigSpec;
-use gonio_devices::target::MarkerBorder;
-use gonio_devices::{Axis, AxisStatus, Camera, DeviceError, Light, MotionModel, SoftLimits};
-use gonio_simulator::clock::SimClock;
+use gonio_devices::{Axis, AxisStatus, Camera, DeviceError, MotionModel, SoftLimits};
 use gonio_simulator::devices::SimAxis;
-use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions, SimWorld};
+use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions};
 use std::sync::Arc;
-
-/// What the simulator knows that a real rig does not: the exact rectified image, and the
-/// radiance the camera sees before its sensor.
-pub trait GroundTruth: Send + Sync {
-    /// Ground truth for axis configuration `q` (radians) in the units of the rectified
-    /// images (normalised sensor signal, not clipped).
-    fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage;
-    /// The camera's radiance image (W m⁻² sr⁻¹) at configuration `q`, no sensor effects.
-    fn radiance(&self, q: &[f64]) -> RgbImage;
-    /// The homing offsets (degrees) the simulator's mechanical error model drew for axis
-    /// `index` so far, oldest first: the truth that mechanical calibration's homing
-    /// repeatability is checked against. Empty without a model.
-    fn home_offsets_deg(&self, _index: usize) -> Vec<f64> {
-        Vec::new()
-    }
-}
-
-impl GroundTruth for SimWorld {
-    fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage {
-        SimWorld::truth(self, q, width, height)
-    }
-    fn radiance(&self, q: &[f64]) -> RgbImage {
-        self.raw_radiance(q)
-    }
-    fn home_offsets_deg(&self, index: usize) -> Vec<f64> {
-        self.axes.get(index).map(|a| a.home_offsets_deg()).unwrap_or_default()
-    }
-}
-
-pub struct Rig {
-    pub spec: RigSpec,
-    pub kinematics: Box<dyn Kinematics>,
-    pub axes: Vec<Arc<dyn Axis>>,
-    pub camera: Arc<dyn Camera>,
-    pub light: Arc<dyn Light>,
-    pub truth: Option<Arc<dyn GroundTruth>>,
-    /// The simulated rig's clock (virtual time); `None` on real hardware (wall time).
-    pub clock: Option<Arc<SimClock>>,
-    /// The holder's marker border and the sample edge length (mm), for rectification.
-    pub border: MarkerBorder,
-    pub sample_mm: f64,
-    started: std::time::Instant,
-}
 
 #[derive(Debug, thiserror::Error)]
 pub enum RigBuildError {
@@ -84,14 +37,6 @@ pub enum RigBuildError {
 }
 
 impl Rig {
-    /// Seconds on the rig's clock: virtual for a simulated rig, wall time otherwise.
-    pub fn time(&self) -> f64 {
-        match &self.clock {
-            Some(c) => c.now(),
-            None => self.started.elapsed().as_secs_f64(),
-        }
-    }
-
     /// Build the rig from the rig file's backends.
     ///
     /// Camera and light are simulated (`sim`). Axes are `sim` or a serial controller
@@ -182,9 +127,11 @@ impl Rig {
             border: sample.border.clone(),
             sample_mm: sample.size_mm,
             started: std::time::Instant::now(),
+            still_at: std::sync::Mutex::new(None),
         })
     }
 }
+
 
 /// A simulated camera that takes its exposure and readout time on the wall clock (a mixed
 /// rig in `--realtime` mode: the serial axes move in real time, so must the captures).

@@ -8,10 +8,10 @@
 //! as a stream (a full Bonn dataset is 6561 × 256 × 256 × 3 floats = 5.2 GB), each
 //! file under a temporary name renamed into place when complete.
 
-use super::atomic::{write_atomic, TempFile};
-use super::error::{IoContext, StoreError};
-use super::load;
-use super::ubo2003::{ensure_parent, for_each_in_order, load_srgb8, plan_export, ExportReport};
+use super::entry::{ensure_parent, for_each_in_order, load_srgb8, ExportReport};
+use crate::store::atomic::{write_atomic, TempFile};
+use crate::store::error::{IoContext, StoreError};
+use crate::store::load;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
@@ -45,7 +45,7 @@ pub fn npy_header(shape: &[usize]) -> Vec<u8> {
 /// Write the reference array and its sidecar (see the module documentation).
 pub fn export_npy(dir: &Path, out: &Path) -> Result<ExportReport, StoreError> {
     let (header, records) = load(dir)?;
-    let (entries, skipped) = plan_export(dir, &records, out)?;
+    let (entries, skipped) = super::entries(dir, &records, out)?;
     ensure_parent(out)?;
     let (w, h) = (header.image_width, header.image_height);
 

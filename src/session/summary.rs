@@ -1,0 +1,106 @@
+//! The summary of one run of a session (`gonio acquire`'s output and `--json`, and the
+//! manifest's `summary` once complete).
+
+use crate::calibrate::apply::{AppliedCalibration, VALUE_UNIT_DN};
+use crate::engine::metrics::ErrorFigures;
+use crate::engine::{RunReport, StageSeconds};
+use crate::plan::Plan;
+use gonio_devices::rig::RigSpec;
+use gonio_simulator::SampleSpec;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashSet};
+
+/// The summary printed at the end (and with --json).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Summary {
+    pub dataset: String,
+    pub rig: String,
+    pub sample: String,
+    pub sweep: String,
+    pub pairs: usize,
+    pub planned_measurements: usize,
+    pub measured: usize,
+    pub substituted: usize,
+    pub skipped: usize,
+    pub skipped_reasons: BTreeMap<String, usize>,
+    pub stored_this_run: usize,
+    pub already_done: usize,
+    pub remaining: usize,
+    pub complete: bool,
+    pub paused: bool,
+    pub planned_duration_s: f64,
+    pub sweep_duration_s: f64,
+    pub wall_time_s: f64,
+    pub images_per_s: f64,
+    pub truth_error: Option<ErrorFigures>,
+    pub homography_from_markers: usize,
+    pub homography_from_pose: usize,
+    pub stage_seconds: StageSeconds,
+    /// Peak resident memory of this process (MiB, from /proc/self/status VmHWM).
+    pub peak_rss_mib: Option<f64>,
+    /// Unit of the stored values: `normalized_dn` or (white-standard calibration applied)
+    /// `brdf_per_sr`; the truth error is on the same scale.
+    #[serde(default)]
+    pub value_unit: String,
+    /// Ids of the calibration results applied (comma-separated).
+    #[serde(default)]
+    pub calibration: Option<String>,
+    /// Raw-frame corrections applied to every frame, in order (`response`, `dark`, `flat`,
+    /// `colour`); empty without. Saturated pixels are counted per measurement
+    /// (`extra.saturated_pixels` of its record).
+    #[serde(default)]
+    pub corrections: Vec<String>,
+}
+
+impl Summary {
+    /// The summary of a run of `plan` that started with `done` already stored.
+    pub(super) fn new(
+        dataset: &str,
+        rig: &RigSpec,
+        sample: &SampleSpec,
+        plan: &Plan,
+        done: &HashSet<usize>,
+        report: &RunReport,
+        calibration: Option<&AppliedCalibration>,
+    ) -> Summary {
+        let counts = plan.counts();
+        let remaining = plan.steps.iter().filter(|s| !done.contains(&s.index)).count() - report.stored_this_run;
+        Summary {
+            dataset: dataset.to_string(),
+            rig: rig.name.clone(),
+            sample: sample.name.clone(),
+            sweep: plan.sweep.clone(),
+            pairs: plan.pairs,
+            planned_measurements: plan.steps.len(),
+            measured: counts.feasible,
+            substituted: counts.substituted,
+            skipped: counts.skipped,
+            skipped_reasons: counts.skipped_reasons.clone(),
+            stored_this_run: report.stored_this_run,
+            already_done: report.already_done,
+            remaining,
+            complete: remaining == 0,
+            paused: report.paused,
+            planned_duration_s: plan.durations.optimized_s,
+            sweep_duration_s: report.rig_time_s,
+            wall_time_s: report.wall_time_s,
+            images_per_s: report.stored_this_run as f64 / report.wall_time_s.max(1e-9),
+            truth_error: report.truth_error.figures(),
+            homography_from_markers: report.homography_from_markers,
+            homography_from_pose: report.homography_from_pose,
+            stage_seconds: report.stage_seconds.clone(),
+            peak_rss_mib: peak_rss_mib(),
+            value_unit: calibration.map_or(VALUE_UNIT_DN, |c| c.value_unit()).to_string(),
+            calibration: calibration.map(|c| c.ids.join(",")),
+            corrections: calibration.map(|c| c.corrections()).unwrap_or_default(),
+        }
+    }
+}
+
+/// Peak resident set size of this process in MiB (Linux), for the memory benchmark.
+pub fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
