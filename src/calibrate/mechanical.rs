@@ -593,9 +593,8 @@ impl AxisRun<'_> {
     /// Move to `deg` degrees; returns the read-back in radians (the axis' unit).
     async fn move_to(&self, deg: f64) -> Result<f64, MechanicalError> {
         // One axis alone (the approach side is the point), then the rig is still.
-        let _ = self.index;
-        self.axis
-            .move_abs(deg.to_radians())
+        self.rig
+            .reach_axis(self.index, deg.to_radians())
             .await
             .map_err(|e| self.err(&format!("move to {deg}°"), e))
     }
@@ -604,13 +603,14 @@ impl AxisRun<'_> {
         if let Some(cam) = self.camera {
             let read_back = read_back_rad.to_degrees();
             let (policy, config) = self.capture.as_ref().expect("set with a camera reference");
-            let _ = (policy, config);
-            let frame = self.rig.camera.capture().await.map_err(|cause| MechanicalError::Capture {
-                recipe: self.recipe.into(),
-                axis: self.axis.name().into(),
-                read_back_deg: read_back,
-                attempts: 1,
-                cause,
+            let (frame, _) = self.rig.capture(policy, config).await.map_err(|f| {
+                MechanicalError::Capture {
+                    recipe: self.recipe.into(),
+                    axis: self.axis.name().into(),
+                    read_back_deg: read_back,
+                    attempts: f.attempts,
+                    cause: f.source,
+                }
             })?;
             let reference =
                 cam.position_deg(&frame, read_back)

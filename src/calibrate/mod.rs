@@ -326,14 +326,12 @@ pub(crate) async fn reach_pose(
         .into_iter()
         .next()
         .ok_or_else(|| unreachable("no configuration".into()))?;
-    let mut q_read = Vec::with_capacity(q.len());
-    for (axis, &target) in rig.axes.iter().zip(&q) {
-        q_read.push(
-            axis.move_abs(target)
-                .await
-                .map_err(|cause| device_error(recipe, rig, axis.name(), cause))?,
-        );
-    }
+    // The rig's shared step: every axis starts at once, all are waited for, the camera is
+    // told the rig is still (so the capture policy's stale-frame rule applies).
+    let q_read = rig.reach(&q).await.map_err(|cause| {
+        let device = cause.device().to_string();
+        device_error(recipe, rig, &device, cause)
+    })?;
     Ok((q, q_read))
 }
 
@@ -360,14 +358,17 @@ pub(crate) async fn capture_at(
     index: usize,
     view: [f64; 2],
 ) -> Result<gonio_devices::Frame, CalibrateError> {
-    let _ = (policy, config);
-    rig.camera.capture().await.map_err(|cause| CalibrateError::Capture {
+    let (frame, notes) = rig.capture(policy, config).await.map_err(|f| CalibrateError::Capture {
         recipe: recipe.name.clone(),
         index,
         view,
-        attempts: 1,
-        cause,
-    })
+        attempts: f.attempts,
+        cause: f.source,
+    })?;
+    if notes.retries > 0 {
+        tracing::warn!(recipe = %recipe.name, pose = index, retries = notes.retries, faults = ?notes.faults, "calibration capture needed retries");
+    }
+    Ok(frame)
 }
 
 /// Home the rig and set the camera up ([`Rig::prepare`]), then the recipe's exposure if it
