@@ -97,16 +97,22 @@ fn check_file(rel: &str, text: &str) -> Vec<String> {
     let code = non_test_part(text);
     let mut out = Vec::new();
     let Some(ok) = allowed.get(module) else {
-        return vec![format!("{rel}: module `{module}` has no row in layering::ALLOWED: add one")];
+        return vec![format!(
+            "{rel}: module `{module}` has no row in layering::ALLOWED: add one"
+        )];
     };
     for r in crate_refs(code) {
         if r != module && !ok.contains(&r.as_str()) {
-            out.push(format!("{rel}: `{module}` imports `crate::{r}`, which its floor may not"));
+            out.push(format!(
+                "{rel}: `{module}` imports `crate::{r}`, which its floor may not"
+            ));
         }
     }
     let sim_ok = SIMULATOR_ALLOWED.iter().any(|a| *a == module || *a == rel);
     if !sim_ok && code.contains("gonio_simulator") {
-        out.push(format!("{rel}: names gonio_simulator outside rig/, session/, cli/ and synth.rs"));
+        out.push(format!(
+            "{rel}: names gonio_simulator outside rig/, session/, cli/ and synth.rs"
+        ));
     }
     out
 }
@@ -164,10 +170,17 @@ fn the_checker_sees_forbidden_imports() {
     assert!(check_file("engine/mod.rs", "use crate::calibrate::apply::X;").len() == 1);
     assert!(check_file("develop/raw.rs", "use crate::store::Dataset;").len() == 1);
     assert!(check_file("compress/pca.rs", "use gonio_simulator::SimWorld;").len() == 1);
-    assert!(check_file("newfolder/x.rs", "").len() == 1, "unknown modules must be placed");
+    assert!(
+        check_file("newfolder/x.rs", "").len() == 1,
+        "unknown modules must be placed"
+    );
     // allowed: same module, a lower floor, test code, other crates' `crate::`-like words
     assert!(check_file("engine/mod.rs", "use crate::engine::metrics; use crate::rig::Rig;").is_empty());
-    assert!(check_file("engine/mod.rs", "x\n#[cfg(test)]\nmod tests { use crate::calibrate::X; }").is_empty());
+    assert!(check_file(
+        "engine/mod.rs",
+        "x\n#[cfg(test)]\nmod tests { use crate::calibrate::X; }"
+    )
+    .is_empty());
     assert!(check_file("develop/tests.rs", "use crate::calibrate::X;").is_empty());
     assert!(check_file("calibrate/recipe.rs", "gonio_simulator::SimOptions").is_empty());
     assert!(check_file("plan/order.rs", "my_crate::engine").is_empty());

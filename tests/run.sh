@@ -23,11 +23,11 @@ disk
 echo "== campaign figures (kill -9, storage and serial faults)"
 # (one test thread: the rows of a table must not interleave; -q prints progress dots
 # in front of a row, hence grep -o)
-cargo test -q -p gonio --test campaign_kill9 --test campaign_faults --test serial_drivers -- --nocapture \
+cargo test -q -p gonio --test it -- campaign_kill9:: campaign_faults:: serial_drivers:: --nocapture \
   --test-threads=1 2>&1 | grep -oE "(kill9|faults): .*" || true
-# Camera faults (simulated camera's injected faults vs the engine's capture policy): more
-# rows of the same table.
-cargo test -q -p gonio --test campaign_camera_faults -- --nocapture --test-threads=1 2>&1 \
+# Camera faults (simulated camera's injected faults vs the rig's capture policy, in
+# acquisitions and calibrations): more rows of the same table.
+cargo test -q -p gonio --test it -- campaign_camera_faults:: calibration_faults:: --nocapture --test-threads=1 2>&1 \
   | grep -oE "faults: .*" || true
 echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh

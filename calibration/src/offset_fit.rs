@@ -15,7 +15,6 @@ pub struct ParameterEstimate {
     pub sigma_deg: f64,
 }
 
-
 /// Why the axis positions `q` of one view cannot belong to a rig with `axes` axes (one
 /// position per axis), or `None` when they can. The caller wraps the reason in its own
 /// error with the view's label.

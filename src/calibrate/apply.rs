@@ -10,7 +10,7 @@
 //! The per-frame steps themselves live in `crate::develop`; this file only loads.
 
 use crate::develop::{
-    BlockMap, CameraMismatch, Corrections, CorrectionSource, MapPart, Radiometric, RawCorrection, RawParts,
+    BlockMap, CameraMismatch, CorrectionSource, Corrections, MapPart, Radiometric, RawCorrection, RawParts,
 };
 use gonio_calibration::intrinsics::CameraModel;
 use gonio_calibration::radiometric::ResponseCurve;
@@ -395,4 +395,3 @@ fn check_white_corrections(results: &[LoadedResult], raw: Option<&RawCorrection>
         ),
     })
 }
-

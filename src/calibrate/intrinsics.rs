@@ -142,7 +142,8 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
     for (index, pose) in recipe.poses.iter().enumerate() {
         let light = pose.light.unwrap_or(recipe.light);
         let (q, _) = reach_pose(recipe, rig, index, pose.view, light, prev.as_deref()).await?;
-        let (frame, exposure) = capture_unclipped(recipe, rig, &policy, &mut config, auto_exposure, (index, pose.view)).await?;
+        let (frame, exposure) =
+            capture_unclipped(recipe, rig, &policy, &mut config, auto_exposure, (index, pose.view)).await?;
         view_exposure.push(exposure);
         let raw = frame_to_linear(&frame);
         let det = detect_board(recipe, &board, &raw, index, pose.view)?;

@@ -18,7 +18,9 @@
 //! light-direction error over all Bonn 81 × 81 pairs before and after applying the estimate,
 //! and the error against the number of poses.
 
-use super::offset_fit::{camera_model, corrected, direction_errors, nominal_rig, DirectionErrors, EffortFigures, ParameterError};
+use super::offset_fit::{
+    camera_model, corrected, direction_errors, nominal_rig, DirectionErrors, EffortFigures, ParameterError,
+};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::develop::frame_to_linear;
 use crate::rig::Rig;

@@ -603,15 +603,17 @@ impl AxisRun<'_> {
         if let Some(cam) = self.camera {
             let read_back = read_back_rad.to_degrees();
             let (policy, config) = self.capture.as_ref().expect("set with a camera reference");
-            let (frame, _) = self.rig.capture(policy, config).await.map_err(|f| {
-                MechanicalError::Capture {
+            let (frame, _) = self
+                .rig
+                .capture(policy, config)
+                .await
+                .map_err(|f| MechanicalError::Capture {
                     recipe: self.recipe.into(),
                     axis: self.axis.name().into(),
                     read_back_deg: read_back,
                     attempts: f.attempts,
                     cause: f.source,
-                }
-            })?;
+                })?;
             let reference =
                 cam.position_deg(&frame, read_back)
                     .map_err(|message| MechanicalError::CameraReference {

@@ -56,7 +56,7 @@ pub enum CalibrateError {
     Device {
         recipe: String,
         rig: String,
-        cause: gonio_devices::DeviceError,
+        cause: Box<gonio_devices::DeviceError>,
     },
     /// The camera failed every attempt the rig's capture policy allows at one pose.
     #[error("recipe `{recipe}`: pose {index} (view {view:?}): camera failed after {attempts} attempt(s): {cause}")]
@@ -65,7 +65,7 @@ pub enum CalibrateError {
         index: usize,
         view: [f64; 2],
         attempts: u32,
-        cause: gonio_devices::DeviceError,
+        cause: Box<gonio_devices::DeviceError>,
     },
     #[error("recipe `{recipe}`: rig `{rig}`: {device}: {cause}")]
     Move {
@@ -338,11 +338,13 @@ pub(crate) async fn reach_pose(
 /// The capture policy calibrations use: the rig file's timeout, retries and stale-frame
 /// rule, but saturation only flagged (each recipe decides what a clipped frame means:
 /// a response bracket clips on purpose, intrinsics exposes shorter itself).
+// Called once per recipe; the error's size costs nothing next to a capture.
+#[allow(clippy::result_large_err)]
 pub(crate) fn calibration_policy(recipe: &Recipe, rig: &Rig) -> Result<CapturePolicy, CalibrateError> {
     let mut policy = rig.capture_policy().map_err(|cause| CalibrateError::Device {
         recipe: recipe.name.clone(),
         rig: rig.spec.name.clone(),
-        cause,
+        cause: Box::new(cause),
     })?;
     policy.saturation = SaturationPolicy::Flag;
     Ok(policy)
@@ -363,7 +365,7 @@ pub(crate) async fn capture_at(
         index,
         view,
         attempts: f.attempts,
-        cause: f.source,
+        cause: Box::new(f.source),
     })?;
     if notes.retries > 0 {
         tracing::warn!(recipe = %recipe.name, pose = index, retries = notes.retries, faults = ?notes.faults, "calibration capture needed retries");
@@ -377,7 +379,7 @@ pub(crate) async fn prepare_rig(recipe: &Recipe, rig: &Rig) -> Result<gonio_devi
     let mut config = rig.prepare().await.map_err(|cause| CalibrateError::Device {
         recipe: recipe.name.clone(),
         rig: rig.spec.name.clone(),
-        cause,
+        cause: Box::new(cause),
     })?;
     if let Some(e) = recipe.exposure_s {
         config.exposure = e;
@@ -425,4 +427,3 @@ fn detect_board(
             cause,
         })
 }
-

@@ -31,7 +31,6 @@ pub struct DirectionErrors {
     pub light_mean_deg: f64,
 }
 
-
 /// Direction errors when the planner uses `nominal` and the mechanism is `truth`: each Bonn
 /// pair is solved by `nominal`'s IK (first solution) and evaluated by `truth`'s FK.
 pub fn direction_errors(nominal: &RigSpec, truth: &RigSpec) -> DirectionErrors {
@@ -78,7 +77,6 @@ pub(super) fn camera_model(spec: &RigSpec) -> CameraModel {
         distortion,
     }
 }
-
 
 /// The rig as the planner knows it: the rig file without its simulator-only truth
 /// (`[sim_misalignment]`).

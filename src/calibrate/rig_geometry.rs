@@ -14,8 +14,8 @@
 //! error of the view and light directions over all Bonn 81 × 81 pairs before and after
 //! applying the estimate, and the error against the number of views.
 
-pub use super::offset_fit::{direction_errors, DirectionErrors, ParameterError};
 use super::offset_fit::{camera_model, corrected, nominal_rig, EffortFigures};
+pub use super::offset_fit::{direction_errors, DirectionErrors, ParameterError};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::develop::frame_to_linear;
 use crate::rig::Rig;

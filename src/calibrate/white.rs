@@ -13,11 +13,11 @@
 //! (vignetting, stray light, a lamp that is not where the kinematics say). Exposure and
 //! gain are divided out, so a calibration made at one exposure applies at another.
 
-use crate::develop::{LampModel, Radiometric};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::develop::frame_to_linear;
-use crate::rig::Rig;
 use crate::develop::rectify::{rectify_frame, RectifyParams};
+use crate::develop::{LampModel, Radiometric};
+use crate::rig::Rig;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 use thiserror::Error;

@@ -2,8 +2,8 @@
 
 use super::common::{load_sample, parse_angles, RigArgs};
 use crate::develop::frame_to_linear;
-use crate::rig::Rig;
 use crate::develop::rectify::{self, RectifyParams};
+use crate::rig::Rig;
 use crate::store;
 use anyhow::{bail, Context, Result};
 use gonio_devices::image::RgbImage;

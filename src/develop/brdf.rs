@@ -14,7 +14,6 @@ use gonio_devices::rig::RigSpec;
 use gonio_devices::Vec3;
 use serde::{Deserialize, Serialize};
 
-
 /// The lamp as the radiometric model sees it: a point (radius 0) or a disc of isotropic
 /// emitters facing the sample centre, with the rig file's nominal intensity. A wrong
 /// nominal intensity does no harm as long as calibration and acquisition use the same rig
@@ -152,4 +151,3 @@ impl Radiometric {
         Ok(())
     }
 }
-

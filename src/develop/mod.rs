@@ -31,7 +31,7 @@ use gonio_devices::image::RgbImage;
 use gonio_devices::kinematics::CameraPose;
 use gonio_devices::target::MarkerBorder;
 use gonio_devices::{Frame, Intrinsics, Vec3};
-use rectify::{RectifyParams, Rectified};
+use rectify::{Rectified, RectifyParams};
 use thiserror::Error;
 
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -174,7 +174,13 @@ impl Developer {
         let mut rectified = rectify::rectify_frame(&raw, &self.intrinsics, pose, &self.border, &self.params)
             .map_err(|e| DevelopError::Rectify(e.to_string()))?;
         if let Some(r) = &c.radiometric {
-            r.to_brdf(&mut rectified.image, lamp, &self.params, frame.meta.exposure, frame.meta.gain)?;
+            r.to_brdf(
+                &mut rectified.image,
+                lamp,
+                &self.params,
+                frame.meta.exposure,
+                frame.meta.gain,
+            )?;
         }
         Ok(Developed { rectified, saturated })
     }
@@ -183,12 +189,21 @@ impl Developer {
     /// sensor) to the unit of the developed images, so the truth error compares like with
     /// like. With raw corrections the fitted `K` is on the response curve's scale, so the
     /// truth is converted with the simulated sensor's true `K` instead.
-    pub fn develop_truth(&self, truth: &mut RgbImage, lamp: Vec3, exposure_s: f64, gain: f64) -> Result<(), DevelopError> {
+    pub fn develop_truth(
+        &self,
+        truth: &mut RgbImage,
+        lamp: Vec3,
+        exposure_s: f64,
+        gain: f64,
+    ) -> Result<(), DevelopError> {
         let Some(r) = &self.corrections.radiometric else {
             return Ok(());
         };
         let radio = match (&self.corrections.raw, self.truth_k) {
-            (Some(_), Some(k)) => Radiometric { k: [k; 3], lamp: r.lamp },
+            (Some(_), Some(k)) => Radiometric {
+                k: [k; 3],
+                lamp: r.lamp,
+            },
             _ => *r,
         };
         radio.to_brdf(truth, lamp, &self.params, exposure_s, gain)

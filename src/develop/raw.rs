@@ -241,7 +241,12 @@ pub(super) fn fill_empty_blocks(map: &BlockMap) -> Option<Vec<f32>> {
 
 /// Bilinear interpolation of block values (`blocks_x × blocks_y × 3`) between block centres
 /// to every pixel of a `w × h` frame; constant beyond the outermost centres.
-pub(super) fn expand_blocks(values: &[f32], block: usize, (bx, by): (usize, usize), (w, h): (usize, usize)) -> Vec<f32> {
+pub(super) fn expand_blocks(
+    values: &[f32],
+    block: usize,
+    (bx, by): (usize, usize),
+    (w, h): (usize, usize),
+) -> Vec<f32> {
     // (lower block, upper block, weight of the upper) for each pixel centre along an axis
     let axis = |n: usize, blocks: usize| -> Vec<(usize, usize, f32)> {
         let centre = |b: usize| (b * block + ((b + 1) * block).min(n)) as f64 / 2.0;

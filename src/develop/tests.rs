@@ -97,8 +97,7 @@ fn raw_correction_inverts_the_sensor_in_reverse_order() {
     let x = [[0.85, 0.12, 0.03], [0.08, 0.84, 0.08], [0.03, 0.15, 0.82]];
     // the colour correction: the crosstalk's inverse (rows · columns)
     let m = {
-        let d = x[0][0] * (x[1][1] * x[2][2] - x[1][2] * x[2][1])
-            - x[0][1] * (x[1][0] * x[2][2] - x[1][2] * x[2][0])
+        let d = x[0][0] * (x[1][1] * x[2][2] - x[1][2] * x[2][1]) - x[0][1] * (x[1][0] * x[2][2] - x[1][2] * x[2][0])
             + x[0][2] * (x[1][0] * x[2][1] - x[1][1] * x[2][0]);
         let cof = |r: usize, k: usize| {
             let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
@@ -340,4 +339,3 @@ fn undistortion_moves_content_to_its_pinhole_position() {
     };
     assert_eq!(undistort_frame(&raw, &flat), raw);
 }
-

@@ -53,6 +53,8 @@ pub enum EngineError {
 
 #[derive(Clone, Debug)]
 pub struct RunOptions {
+    /// Develops every frame into the stored values (see `crate::develop`).
+    pub developer: Arc<Developer>,
     pub raw_frames: bool,
     /// Compare with the simulator's ground truth (if the rig has one).
     pub truth: bool,
@@ -147,7 +149,7 @@ pub fn skipped_record(index: usize, light_deg: [f64; 2], view_deg: [f64; 2], rea
 }
 
 /// Execute the plan's steps that are not in `done`, developing every frame with
-/// `developer` (see `crate::develop`). Returns the dataset (for `finish`) and a report; on a
+/// `opts.developer` (see `crate::develop`). Returns the dataset (for `finish`) and a report; on a
 /// failure the error says which measurement, and the dataset is handed back when it is
 /// still consistent.
 pub async fn run(
@@ -157,7 +159,6 @@ pub async fn run(
     done: HashSet<usize>,
     opts: RunOptions,
     pause: Arc<AtomicBool>,
-    developer: Arc<Developer>,
     observer: Observer,
 ) -> Result<(Dataset, RunReport), (Option<Dataset>, EngineError)> {
     let t_wall = Instant::now();
@@ -182,7 +183,7 @@ pub async fn run(
         let observer = observer.clone();
         std::thread::Builder::new()
             .name("gonio-store".into())
-            .spawn(move || store_loop(rig, dataset, rx, opts, failed, developer, observer))
+            .spawn(move || store_loop(rig, dataset, rx, opts, failed, observer))
             .map_err(|_| (None, EngineError::StoreThread))?
     };
     let mut drive_err = None;
@@ -312,9 +313,9 @@ fn store_loop(
     mut rx: tokio::sync::mpsc::Receiver<Job>,
     opts: RunOptions,
     failed: Arc<AtomicBool>,
-    developer: Arc<Developer>,
     observer: Observer,
 ) -> StoreResult {
+    let developer = opts.developer.clone();
     let mut stats = StoreStats {
         times: StageSeconds::default(),
         stored: 0,
@@ -423,4 +424,3 @@ fn store_loop(
     }
     Ok((dataset, stats))
 }
-

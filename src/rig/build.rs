@@ -132,7 +132,6 @@ impl Rig {
     }
 }
 
-
 /// A simulated camera that takes its exposure and readout time on the wall clock (a mixed
 /// rig in `--realtime` mode: the serial axes move in real time, so must the captures).
 struct WallPacedCamera {

@@ -8,12 +8,12 @@
 use gonio_devices::image::RgbImage;
 use gonio_simulator::SimWorld;
 
-/// The simulator's non-linear response and colour crosstalk (re-exported: the radiometric
-/// calibration checks its curve against it).
-pub use gonio_simulator::sensor::SensorResponse;
 /// The simulator's mechanical error model of one axis (re-exported: the mechanical
 /// calibration checks its estimates against it).
 pub use gonio_simulator::mechanics::MechanicalErrors;
+/// The simulator's non-linear response and colour crosstalk (re-exported: the radiometric
+/// calibration checks its curve against it).
+pub use gonio_simulator::sensor::SensorResponse;
 
 /// The simulated sensor's numbers, as the simulator uses them.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -98,4 +98,3 @@ impl GroundTruth for SimWorld {
         self.axes.get(index).and_then(|a| a.mechanics())
     }
 }
-

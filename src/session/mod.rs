@@ -43,11 +43,15 @@ pub const MAX_SUPERSAMPLE: usize = 8;
 #[derive(Debug, Error)]
 pub enum SessionError {
     #[error("creating dataset {dir} (use --force to replace a dataset, --resume to continue one)")]
-    Create { dir: String, source: StoreError },
+    Create { dir: String, source: Box<StoreError> },
     #[error("resuming dataset {dir}")]
-    Resume { dir: String, source: StoreError },
+    Resume { dir: String, source: Box<StoreError> },
     #[error("dataset {dir}: {what}")]
-    Store { dir: String, what: String, source: StoreError },
+    Store {
+        dir: String,
+        what: String,
+        source: Box<StoreError>,
+    },
     #[error("planning the sweep")]
     Plan(#[source] PlanError),
     #[error("dataset {dir}: {message}")]
@@ -59,14 +63,20 @@ pub enum SessionError {
         source: serde_json::Error,
     },
     #[error("loading the calibration of {dir}")]
-    DatasetCalibration { dir: String, source: LoadError },
+    DatasetCalibration { dir: String, source: Box<LoadError> },
     #[error(transparent)]
-    Calibration(#[from] LoadError),
+    Calibration(Box<LoadError>),
     #[error("building the rig")]
     Rig(#[source] RigBuildError),
     /// The engine stopped; the journal is consistent, so the dataset can be resumed.
     #[error("the journal is consistent; fix the cause and run `gonio acquire --resume {dir}`")]
-    Engine { dir: String, source: EngineError },
+    Engine { dir: String, source: Box<EngineError> },
+}
+
+impl From<LoadError> for SessionError {
+    fn from(e: LoadError) -> Self {
+        SessionError::Calibration(Box::new(e))
+    }
 }
 
 /// Settings recorded in the manifest so `--resume` rebuilds the same rig.
@@ -169,12 +179,12 @@ impl Session {
         }
         let dataset = Dataset::create(&new.out, &header, new.force).map_err(|source| SessionError::Create {
             dir: out.clone(),
-            source,
+            source: Box::new(source),
         })?;
         let store_err = |what: String, source| SessionError::Store {
             dir: out.clone(),
             what,
-            source,
+            source: Box::new(source),
         };
         for r in calibration.iter().flatten() {
             dataset
@@ -201,21 +211,21 @@ impl Session {
         let name = dir.display().to_string();
         let (dataset, header, records) = Dataset::resume(dir).map_err(|source| SessionError::Resume {
             dir: name.clone(),
-            source,
+            source: Box::new(source),
         })?;
         let json = |what: &str, e: serde_json::Error| SessionError::Json {
             dir: name.clone(),
             what: what.into(),
             source: e,
         };
-        let rig: RigSpec =
-            serde_json::from_value(header.rig.clone()).map_err(|e| json("reading the rig snapshot from the manifest", e))?;
+        let rig: RigSpec = serde_json::from_value(header.rig.clone())
+            .map_err(|e| json("reading the rig snapshot from the manifest", e))?;
         let sample: SampleSpec = serde_json::from_value(header.sample.clone())
             .map_err(|e| json("reading the sample snapshot from the manifest", e))?;
         let stored = dataset.read_plan().map_err(|source| SessionError::Store {
             dir: name.clone(),
             what: "reading plan.json".into(),
-            source,
+            source: Box::new(source),
         })?;
         let plan: Plan = match stored {
             None if records.is_empty() => {
@@ -238,7 +248,7 @@ impl Session {
                 dataset.write_plan(&bytes).map_err(|source| SessionError::Store {
                     dir: name.clone(),
                     what: "writing plan.json".into(),
-                    source,
+                    source: Box::new(source),
                 })?;
                 plan
             }
@@ -321,7 +331,7 @@ impl Session {
                 dataset.store(rec, None, None).map_err(|source| SessionError::Store {
                     dir: name.clone(),
                     what: format!("recording skipped pair {}", s.index),
-                    source,
+                    source: Box::new(source),
                 })?;
             }
         }
@@ -358,6 +368,7 @@ impl Session {
             truth_k,
         );
         let opts = RunOptions {
+            developer: Arc::new(developer),
             raw_frames: settings.raw,
             truth: settings.truth,
             store_truth: settings.store_truth,
@@ -369,23 +380,14 @@ impl Session {
             done.clone(),
             opts,
             pause,
-            Arc::new(developer),
             observer,
         )
         .await;
         let (mut dataset, report) = result.map_err(|(_, source)| SessionError::Engine {
             dir: name.clone(),
-            source,
+            source: Box::new(source),
         })?;
-        let summary = Summary::new(
-            &name,
-            &rig_spec,
-            &sample,
-            &plan,
-            &done,
-            &report,
-            calibration.as_deref(),
-        );
+        let summary = Summary::new(&name, &rig_spec, &sample, &plan, &done, &report, calibration.as_deref());
         if summary.complete {
             let value = serde_json::to_value(&summary).map_err(|e| SessionError::Json {
                 dir: name.clone(),
@@ -395,7 +397,7 @@ impl Session {
             dataset.finish(&value).map_err(|source| SessionError::Store {
                 dir: name.clone(),
                 what: "writing the final manifest".into(),
-                source,
+                source: Box::new(source),
             })?;
         }
         Ok(summary)
@@ -486,7 +488,7 @@ fn dataset_calibration(
         .collect();
     let results = load_files(&files, &rig.name).map_err(|source| SessionError::DatasetCalibration {
         dir: dir.display().to_string(),
-        source,
+        source: Box::new(source),
     })?;
     let (applied, _) = AppliedCalibration::from_results(&results)?;
     check_raw_correction(&applied, rig)?;

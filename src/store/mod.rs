@@ -75,11 +75,12 @@ pub mod verify;
 mod tests;
 
 pub use error::StoreError;
+pub use export::{
+    entry_name, export_npy, export_ubo2003, integer_angles, linear_to_srgb8, npy_sidecar_path, ExportReport,
+    JPEG_QUALITY,
+};
 pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
 pub use manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
-pub use export::{
-    entry_name, export_npy, export_ubo2003, integer_angles, linear_to_srgb8, npy_sidecar_path, ExportReport, JPEG_QUALITY,
-};
 pub use verify::{verify, VerifyReport};
 
 use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};

@@ -286,4 +286,3 @@ pub(crate) fn ensure_parent(out: &Path) -> Result<(), StoreError> {
     }
     Ok(())
 }
-

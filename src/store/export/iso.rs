@@ -201,9 +201,9 @@ mod tests {
     /// as texel permutations of it, and counts the third as not exported.
     #[test]
     fn npy_and_ubo2003_exports_contain_the_reconstructed_pairs() {
-        use crate::store::manifest::ManifestHeader;
         use crate::store::export::export_npy;
         use crate::store::export::export_ubo2003;
+        use crate::store::manifest::ManifestHeader;
         use crate::store::{Dataset, FORMAT, FORMAT_VERSION};
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("ds");

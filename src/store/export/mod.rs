@@ -22,11 +22,7 @@ use std::path::Path;
 /// The entries an export writes and the number of pairs it cannot export: the measured
 /// records ([`plan_export`]) and, for isotropic acquisitions, the reconstructed pairs
 /// (a no-op for other datasets).
-pub fn entries(
-    dir: &Path,
-    records: &[MeasurementRecord],
-    out: &Path,
-) -> Result<(Vec<ExportEntry>, usize), StoreError> {
+pub fn entries(dir: &Path, records: &[MeasurementRecord], out: &Path) -> Result<(Vec<ExportEntry>, usize), StoreError> {
     let (mut entries, skipped) = plan_export(dir, records, out)?;
     let missing = iso::extend(dir, records, &mut entries, out)?;
     Ok((entries, skipped + missing))

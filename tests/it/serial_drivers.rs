@@ -5,7 +5,7 @@
 //!
 //! Run: `cargo test --test serial_drivers -- --nocapture`.
 
-mod common;
+use crate::common;
 
 use gonio_devices::rig::AxisSpec;
 use gonio_devices::serial::PortRegistry;

@@ -14,7 +14,7 @@
 //! CI budget: `GONIO_FUZZ_CASES` cases per target (default 1024, about 10 s in all).
 //! Long campaign: `GONIO_FUZZ_CASES=200000 cargo test --release --test fuzz_inputs -- --nocapture`.
 
-mod fuzzing;
+use crate::fuzzing;
 
 use fuzzing::{cases, guarded};
 use gonio::plan::{Plan, PlanOptions};

@@ -18,7 +18,7 @@
 //! `cargo test -p gonio --test calibration_radiometric_apply -- --nocapture` prints the
 //! figures.
 
-mod common;
+use crate::common;
 
 use common::{fresh_tmp, gonio, gonio_in, root};
 use std::path::{Path, PathBuf};

@@ -17,7 +17,7 @@
 //! CI budget: `GONIO_FUZZ_CASES` (default 512 per target). Long campaign:
 //! `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_protocols -- --nocapture`.
 
-mod fuzzing;
+use crate::fuzzing;
 
 use fuzzing::{cases, check, corpus};
 use gonio::calibrate::recipe::Recipe;

@@ -4,7 +4,7 @@
 //! A reduced set of Bonn directions keeps it short; the full 81 × 81 run is a command in
 //! the report (`gonio acquire --sample white-standard --calibration …`).
 
-mod common;
+use crate::common;
 
 use common::{fresh_tmp, gonio};
 use std::path::{Path, PathBuf};

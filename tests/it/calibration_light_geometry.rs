@@ -4,7 +4,7 @@
 //! the estimate makes the planner's commanded light directions the true ones. Degenerate
 //! pose sets and unusable frames are refused with their diagnosis.
 
-mod common;
+use crate::common;
 
 use common::run_recipe;
 use gonio::calibrate::apply::{AppliedCalibration, LoadedResult};

@@ -12,7 +12,7 @@
 //!
 //! Run: `cargo test --test campaign_faults -- --nocapture --test-threads 1`.
 
-mod common;
+use crate::common;
 
 use gonio::store;
 use std::collections::BTreeMap;

@@ -5,7 +5,7 @@
 //! 32² texels) on the default simulated rig, faults injected by the simulated camera
 //! (`camera.options.fault`, see `simulator/src/camera_faults.rs`).
 
-mod common;
+use crate::common;
 
 use common::{root, run_recipe};
 use gonio::calibrate::{CalibrateError, Recipe};
@@ -24,6 +24,8 @@ fn rig(options: &[(&str, toml::Value)]) -> RigSpec {
     spec
 }
 
+// The error is matched by variant; its size does not matter here.
+#[allow(clippy::result_large_err)]
 fn k_of(spec: &RigSpec) -> Result<[f64; 3], CalibrateError> {
     let out = run_recipe(&recipe(), spec)?;
     Ok(out.result.white_standard.expect("white-standard part").radiometric.k)

@@ -8,7 +8,7 @@
 //!
 //! Run: `cargo test --test calibration_mechanical_camera -- --nocapture` (prints the figures).
 
-mod common;
+use crate::common;
 
 use common::run_recipe;
 use gonio::calibrate::mechanical::MechanicalError;

@@ -1,5 +1,5 @@
-//! Helpers shared by the campaign tests (each `tests/*.rs` that needs them says `mod common;`).
-//! Each test binary uses a subset of them, hence the `dead_code` allowance.
+//! Helpers shared by the integration tests (`use crate::common;`).
+//! Each module uses a subset of them, hence the `dead_code` allowance.
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};

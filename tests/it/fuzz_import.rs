@@ -11,7 +11,7 @@
 //! CI budget: `GONIO_FUZZ_CASES` cases (default 256, a few seconds).
 //! Long campaign: `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_import -- --nocapture`.
 
-mod fuzzing;
+use crate::fuzzing;
 
 use fuzzing::{cases, guarded};
 use gonio::store::import_ubo2003::{import_ubo2003, ImportError, ImportLimits};

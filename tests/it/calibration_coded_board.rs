@@ -4,7 +4,7 @@
 //! 0.1 px), and a partly hidden board (`simulator/samples/coded-target-occluded.toml`)
 //! gives fewer corners per view, every one of them where the truth puts it.
 
-mod common;
+use crate::common;
 
 use common::{root, run_recipe};
 use gonio::calibrate::Recipe;

@@ -10,9 +10,9 @@
 //! `GONIO_FUZZ_CASES=100000 cargo test --release --test fuzz_resume -- --nocapture`.
 //! Every file of `tests/campaigns/corpus/journal/` is also replayed as a journal.
 
+use crate::fuzzing;
 use gonio::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
 use gonio_devices::image::RgbImage;
-mod fuzzing;
 
 use fuzzing::cases;
 use proptest::prelude::*;

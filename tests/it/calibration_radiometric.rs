@@ -3,7 +3,7 @@
 //! recovered within the stated tolerance of the simulator's truth, and brackets that cannot
 //! work are refused with a typed error.
 
-mod common;
+use crate::common;
 
 use common::run_recipe;
 use gonio::calibrate::{self, CalibrateError, Recipe};

@@ -9,7 +9,7 @@
 //! rendering); the second half reuses its corners, so checking that the wedge matters
 //! costs no rendering.
 
-mod common;
+use crate::common;
 
 use common::{root, run_recipe};
 use gonio::calibrate::Recipe;

@@ -17,7 +17,7 @@
 //! measurement 3 at order 3 in one run, order 19 with another IK branch in the next), and
 //! no run would match the reference. With 0 the plan is the same in every run.
 
-mod common;
+use crate::common;
 
 use gonio::store::{self, MeasurementRecord};
 use std::collections::{BTreeMap, BTreeSet};

@@ -108,9 +108,13 @@ async fn reduced_sweep_end_to_end_with_resume() {
     // Combine the two runs' figures (sums of squares over images of equal size).
     let images = (error.images + e2.images) as usize;
     assert_eq!(images, 12);
-    error.rmse = ((error.rmse.powi(2) * error.images as f64 + e2.rmse.powi(2) * e2.images as f64) / images as f64).sqrt();
+    error.rmse =
+        ((error.rmse.powi(2) * error.images as f64 + e2.rmse.powi(2) * e2.images as f64) / images as f64).sqrt();
     let fig = error;
-    eprintln!("reduced sweep vs truth: rmse {} ({} + {} images)", fig.rmse, s1.stored_this_run, s2.stored_this_run);
+    eprintln!(
+        "reduced sweep vs truth: rmse {} ({} + {} images)",
+        fig.rmse, s1.stored_this_run, s2.stored_this_run
+    );
     // 64² texels from ~1 raw pixel per 0.2 mm: what is left is the blur of hard shadow
     // and highlight edges by resampling (measured 0.035, PSNR 29 dB). A misregistration
     // of one texel already doubles it.

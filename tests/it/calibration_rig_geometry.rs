@@ -4,7 +4,7 @@
 //! corners, and applying the estimate makes the planner's commanded directions the true
 //! ones.
 
-mod common;
+use crate::common;
 
 use common::run_recipe;
 use gonio::calibrate::recipe::PoseSpec;

@@ -1,4 +1,4 @@
-//! The harness every fuzz campaign shares (`tests/fuzz_*.rs` say `mod fuzzing;`): the case
+//! The harness every fuzz campaign shares (`fuzz_*.rs` say `use crate::fuzzing;`): the case
 //! budget and running one case on a helper thread with a time limit, so that a panic and a
 //! hang are both reported as failures of that case instead of killing or stalling the run.
 //! Each target uses a part of it, hence the `allow`.

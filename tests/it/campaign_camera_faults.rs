@@ -11,7 +11,7 @@
 //! Prints rows in the `faults:` table of `tests/run.sh` (same columns as campaign_faults).
 //! Run: `cargo test --test campaign_camera_faults -- --nocapture --test-threads 1`.
 
-mod common;
+use crate::common;
 
 use gonio::store::{self, MeasurementRecord};
 use std::collections::BTreeMap;
