@@ -46,7 +46,17 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
     ok(&["compress", s(&ds), "--method", "pca", "-c", "4", "--out", s(&ex)]);
     let out = dir.path().join("big.gbtf");
     let report = ok(&[
-        "synthesize", s(&ex), "--method", "quilting", "--size", "50x40", "--block", "8", "--out", s(&out), "--json",
+        "synthesize",
+        s(&ex),
+        "--method",
+        "quilting",
+        "--size",
+        "50x40",
+        "--block",
+        "8",
+        "--out",
+        s(&out),
+        "--json",
     ]);
     let r: serde_json::Value = serde_json::from_str(&report).unwrap();
     assert_eq!(r["width"], 50);
@@ -60,7 +70,17 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
     let d = |v: &serde_json::Value| format!("{},{}", v[0], v[1]);
     let (l, v) = (d(&header["lights_deg"][0]), d(&header["views_deg"][1]));
     let exr = dir.path().join("pair.exr");
-    let rec = ok(&["reconstruct", s(&out), "--light", &l, "--view", &v, "--out", s(&exr), "--json"]);
+    let rec = ok(&[
+        "reconstruct",
+        s(&out),
+        "--light",
+        &l,
+        "--view",
+        &v,
+        "--out",
+        s(&exr),
+        "--json",
+    ]);
     assert!(rec.contains("50"), "{rec}");
 
     // Same seed, one thread versus two: identical files.
@@ -69,7 +89,22 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
         let b = dir.path().join(format!("2-{name}"));
         for (p, t) in [(&a, "1"), (&b, "2")] {
             let o = gonio(
-                &["synthesize", s(&ex), "--method", method, "--size", "30x28", "--levels", "2", "--neighbourhood", "5", "--window", "5", "--out", s(p)],
+                &[
+                    "synthesize",
+                    s(&ex),
+                    "--method",
+                    method,
+                    "--size",
+                    "30x28",
+                    "--levels",
+                    "2",
+                    "--neighbourhood",
+                    "5",
+                    "--window",
+                    "5",
+                    "--out",
+                    s(p),
+                ],
                 Some(t),
             );
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -78,13 +113,74 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
     }
 
     let bad = dir.path().join("bad.gbtf");
-    refused(&["synthesize", s(&ex), "--method", "quilting", "--size", "20x40", "--out", s(&bad)], &["smaller than the exemplar", "24×24"]);
     refused(
-        &["synthesize", s(&ex), "--method", "quilting", "--size", "48x48", "--block", "30", "--out", s(&bad)],
+        &[
+            "synthesize",
+            s(&ex),
+            "--method",
+            "quilting",
+            "--size",
+            "20x40",
+            "--out",
+            s(&bad),
+        ],
+        &["smaller than the exemplar", "24×24"],
+    );
+    refused(
+        &[
+            "synthesize",
+            s(&ex),
+            "--method",
+            "quilting",
+            "--size",
+            "48x48",
+            "--block",
+            "30",
+            "--out",
+            s(&bad),
+        ],
         &["--block 30", "exemplar"],
     );
-    refused(&["synthesize", s(&ex), "--method", "tile", "--size", "48x48", "--k", "0", "--out", s(&bad)], &["--k 0"]);
-    refused(&["synthesize", s(&ds), "--method", "tile", "--size", "48x48", "--out", s(&bad)], &["dataset directory", "gonio compress"]);
-    refused(&["synthesize", s(&ex), "--method", "magic", "--size", "48x48", "--out", s(&bad)], &["unknown synthesis method"]);
+    refused(
+        &[
+            "synthesize",
+            s(&ex),
+            "--method",
+            "tile",
+            "--size",
+            "48x48",
+            "--k",
+            "0",
+            "--out",
+            s(&bad),
+        ],
+        &["--k 0"],
+    );
+    refused(
+        &[
+            "synthesize",
+            s(&ds),
+            "--method",
+            "tile",
+            "--size",
+            "48x48",
+            "--out",
+            s(&bad),
+        ],
+        &["dataset directory", "gonio compress"],
+    );
+    refused(
+        &[
+            "synthesize",
+            s(&ex),
+            "--method",
+            "magic",
+            "--size",
+            "48x48",
+            "--out",
+            s(&bad),
+        ],
+        &["unknown synthesis method"],
+    );
     assert!(!bad.exists());
 }

@@ -25,7 +25,7 @@ pub enum BenchCommand {
     /// Every compression method over its knob: error vs. encode time and vs. ratio (table + SVG).
     Compress(super::bench_compress::CompressBenchArgs),
     /// Every synthesis method against a 4×-area simulator reference: seams, statistics, repetition, time.
-    Synthesize(super::bench_synthesize::SynthesizeBenchArgs),
+    Synthesize(Box<super::bench_synthesize::SynthesizeBenchArgs>),
 }
 
 #[derive(clap::Args, Debug)]
@@ -376,7 +376,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Render(a) => render(a),
         BenchCommand::Serial(a) => super::bench_serial::run(a),
         BenchCommand::Compress(a) => super::bench_compress::run(a),
-        BenchCommand::Synthesize(a) => super::bench_synthesize::run(a),
+        BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
     }
 }
 

@@ -106,7 +106,9 @@ fn pick_pairs(lights: &[[f64; 2]], views: &[[f64; 2]], n: usize) -> Pairs {
         .map(|p| (p % nl, p / nl))
         .max_by(|a, b| {
             let (x, y) = (theta(a.0, a.1), theta(b.0, b.1));
-            x.1.max(x.0).total_cmp(&y.1.max(y.0)).then((x.0 + x.1).total_cmp(&(y.0 + y.1)))
+            x.1.max(x.0)
+                .total_cmp(&y.1.max(y.0))
+                .then((x.0 + x.1).total_cmp(&(y.0 + y.1)))
         })
         .unwrap();
     for p in [best_normal, best_grazing] {
@@ -183,13 +185,25 @@ impl Scorer<'_> {
         };
         let (hn, fnm) = stats(&self.pairs.normal);
         let (hg, fg) = stats(&self.pairs.grazing);
-        [sw(&all), sw(&self.pairs.normal), sw(&self.pairs.grazing), hn, hg, fnm, fg]
+        [
+            sw(&all),
+            sw(&self.pairs.normal),
+            sw(&self.pairs.grazing),
+            hn,
+            hg,
+            fnm,
+            fg,
+        ]
     }
 }
 
 fn srgb8(v: f32) -> u8 {
     let v = v.clamp(0.0, 1.0);
-    let s = if v <= 0.003_130_8 { 12.92 * v } else { 1.055 * v.powf(1.0 / 2.4) - 0.055 };
+    let s = if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    };
     (s * 255.0 + 0.5) as u8
 }
 
@@ -203,7 +217,10 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     let reference = DatasetViews::open(&a.reference).with_context(|| format!("opening {}", a.reference.display()))?;
     let (lights, views) = (model.header().lights_deg.clone(), model.header().views_deg.clone());
     let same = |x: &[[f64; 2]], y: &[[f64; 2]]| {
-        x.len() == y.len() && x.iter().zip(y).all(|(p, q)| (p[0] - q[0]).abs() < 0.01 && (p[1] - q[1]).abs() < 0.01)
+        x.len() == y.len()
+            && x.iter()
+                .zip(y)
+                .all(|(p, q)| (p[0] - q[0]).abs() < 0.01 && (p[1] - q[1]).abs() < 0.01)
     };
     if !same(&lights, &reference.lights_deg) || !same(&views, &reference.views_deg) {
         bail!(
@@ -225,7 +242,10 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
         ref_images.push(img);
     }
     let ref_size = (reference.width, reference.height);
-    let ref_stats: Vec<ImageStats> = ref_images.iter().map(|i| ImageStats::of(i, ref_size.0, ref_size.1)).collect();
+    let ref_stats: Vec<ImageStats> = ref_images
+        .iter()
+        .map(|i| ImageStats::of(i, ref_size.0, ref_size.1))
+        .collect();
     let ex_images: Vec<Vec<f32>> = pairs
         .list
         .iter()
@@ -242,13 +262,19 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     let t0 = Instant::now();
     let emb = features::embed(&model)?;
     let embed_seconds = t0.elapsed().as_secs_f64();
-    let methods: Vec<SynthMethod> =
-        a.methods.split(',').map(|m| SynthMethod::parse(m.trim())).collect::<Result<_, _>>()?;
-    let ks: Vec<usize> = a
-        .ks
+    let methods: Vec<SynthMethod> = a
+        .methods
         .split(',')
-        .map(|k| k.trim().parse::<usize>().with_context(|| format!("--ks: {k:?} is not a count")))
-        .collect::<Result<_>>()?;
+        .map(|m| SynthMethod::parse(m.trim()))
+        .collect::<Result<_, _>>()?;
+    let ks: Vec<usize> =
+        a.ks.split(',')
+            .map(|k| {
+                k.trim()
+                    .parse::<usize>()
+                    .with_context(|| format!("--ks: {k:?} is not a count"))
+            })
+            .collect::<Result<_>>()?;
     let mut rows: Vec<Row> = Vec::new();
     let s = scorer.score(&ex_images, ew, eh);
     rows.push(Row {
@@ -273,7 +299,7 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
         let p = synthesize::SynthParams { method, ..p };
         tracing::info!("bench synthesize: {label}");
         let t = Instant::now();
-        let map = synthesize::synthesize(feats, &p).with_context(|| format!("{label}"))?;
+        let map = synthesize::synthesize(feats, &p).with_context(|| label.clone())?;
         let seconds = t.elapsed().as_secs_f64();
         let out: Vec<Vec<f32>> = ex_images.iter().map(|i| gather(i, &map)).collect();
         let s = scorer.score(&out, ow, oh);
@@ -298,9 +324,17 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
         Ok(())
     };
     for &m in &methods {
-        run_one(m, &default_feats.image, format!("{} (k = {})", m.name(), default_feats.image.dims), true)?;
+        run_one(
+            m,
+            &default_feats.image,
+            format!("{} (k = {})", m.name(), default_feats.image.dims),
+            true,
+        )?;
     }
-    for &m in methods.iter().filter(|m| matches!(m, SynthMethod::Quilting | SynthMethod::WeiLevoy)) {
+    for &m in methods
+        .iter()
+        .filter(|m| matches!(m, SynthMethod::Quilting | SynthMethod::WeiLevoy))
+    {
         for &k in &ks {
             if k == default_feats.image.dims || k == 0 || k > emb.image.dims {
                 continue;
@@ -333,12 +367,20 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     md.push_str(
         "| run | k | time s | seam ratio | seam pairs % | SW all | SW normal | SW grazing | hist normal | hist grazing | filter normal | filter grazing | largest copy % of output | reuse max | unused % |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
-    let f = |v: f64| if v.is_nan() { "–".to_string() } else { format!("{v:.4}") };
+    let f = |v: f64| {
+        if v.is_nan() {
+            "–".to_string()
+        } else {
+            format!("{v:.4}")
+        }
+    };
     for r in &rows {
-        let (sr, sp) = r
-            .seams
-            .as_ref()
-            .map_or(("–".into(), "–".into()), |s| (format!("{:.3}", s.ratio), format!("{:.1}", 100.0 * s.seam_pair_fraction)));
+        let (sr, sp) = r.seams.as_ref().map_or(("–".into(), "–".into()), |s| {
+            (
+                format!("{:.3}", s.ratio),
+                format!("{:.1}", 100.0 * s.seam_pair_fraction),
+            )
+        });
         let (lc, rm, un) = r.repetition.as_ref().map_or(("–".into(), "–".into(), "–".into()), |x| {
             (
                 format!("{:.2}", 100.0 * x.largest_copy_fraction),

@@ -155,8 +155,8 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
         "features": { "embedding": emb.kind, "embedding_dims": emb.image.dims, "k": k, "explained": explained },
     });
     let t2 = Instant::now();
-    let written = output::write(&model, &map, &a.out, provenance)
-        .with_context(|| format!("writing {}", a.out.display()))?;
+    let written =
+        output::write(&model, &map, &a.out, provenance).with_context(|| format!("writing {}", a.out.display()))?;
     let write_seconds = t2.elapsed().as_secs_f64();
     let compact = !matches!(
         model.method(),
@@ -193,15 +193,17 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
             emb.kind,
             emb.image.dims
         );
-        println!(
-            "  features {feature_seconds:.2} s, synthesis {synth_seconds:.2} s, write {write_seconds:.2} s"
-        );
+        println!("  features {feature_seconds:.2} s, synthesis {synth_seconds:.2} s, write {write_seconds:.2} s");
         println!(
             "  wrote {} ({} bytes, {} bytes per texel{}) and {} ({} bytes)",
             written.file.display(),
             written.bytes,
             written.bytes_per_texel,
-            if compact { "" } else { ": not compact, every texel stores its own factor rows" },
+            if compact {
+                ""
+            } else {
+                ": not compact, every texel stores its own factor rows"
+            },
             written.texel_map.display(),
             written.texel_map_bytes
         );

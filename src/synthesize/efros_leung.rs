@@ -18,7 +18,7 @@ use super::{FeatureImage, SplitMix64, SynthError, SynthParams, TexelMap};
 use rayon::prelude::*;
 
 pub fn check(ex: &FeatureImage, p: &SynthParams) -> Result<(), SynthError> {
-    if p.window < 3 || p.window % 2 == 0 || p.window > ex.width.min(ex.height) {
+    if p.window < 3 || p.window.is_multiple_of(2) || p.window > ex.width.min(ex.height) {
         return Err(SynthError::Invalid(format!(
             "--window {}: the Efros–Leung window must be odd, ≥ 3 and fit the {}×{} exemplar",
             p.window, ex.width, ex.height

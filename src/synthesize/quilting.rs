@@ -79,7 +79,7 @@ fn exemplar_spectra(ex: &FeatureImage) -> Spectra {
             for y in 0..ex.height {
                 for x in 0..ex.width {
                     let re = channel(2 * j, x, y);
-                    let im = if 2 * j + 1 <= k { channel(2 * j + 1, x, y) } else { 0.0 };
+                    let im = if 2 * j < k { channel(2 * j + 1, x, y) } else { 0.0 };
                     a[y * nx + x] = C64::new(re, im);
                 }
             }
@@ -116,7 +116,7 @@ fn overlap_errors<'a>(
             let mut a = vec![C64::default(); nx * ny];
             for i in 0..bh {
                 for j in 0..bw {
-                    let im = if 2 * jp + 1 <= k { chan(2 * jp + 1, j, i) } else { 0.0 };
+                    let im = if 2 * jp < k { chan(2 * jp + 1, j, i) } else { 0.0 };
                     a[i * nx + j] = C64::new(chan(2 * jp, j, i), im);
                 }
             }
@@ -266,9 +266,9 @@ pub fn synthesize(ex: &FeatureImage, p: &SynthParams) -> Result<TexelMap, SynthE
             } else {
                 vec![0; bw]
             };
-            for i in 0..bh {
-                for j in 0..bw {
-                    let new = (lw == 0 || j >= vcut[i]) && (th == 0 || i >= hcut[j]);
+            for (i, &vc) in vcut.iter().enumerate() {
+                for (j, &hc) in hcut.iter().enumerate() {
+                    let new = (lw == 0 || j >= vc) && (th == 0 || i >= hc);
                     let o = (y0 + i) * ow + x0 + j;
                     if new || map[o] == u32::MAX {
                         map[o] = ((sy + i) * w + sx + j) as u32;

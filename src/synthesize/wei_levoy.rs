@@ -29,7 +29,7 @@ pub fn check(ex: &FeatureImage, p: &SynthParams) -> Result<(), SynthError> {
         ("--neighbourhood", p.neighbourhood, 3),
         ("--parent-neighbourhood", p.parent_neighbourhood, 1),
     ] {
-        if v < min || v % 2 == 0 {
+        if v < min || v.is_multiple_of(2) {
             return Err(SynthError::Invalid(format!("{name} {v}: must be odd and ≥ {min}")));
         }
     }
