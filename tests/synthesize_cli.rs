@@ -113,7 +113,10 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
             );
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         }
-        assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(), "{method}: 1 and 2 threads differ");
+        assert!(
+            std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+            "{method}: 1 and 2 threads differ"
+        );
     }
 
     let bad = dir.path().join("bad.gbtf");
