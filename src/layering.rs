@@ -26,6 +26,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("engine", &["plan", "rig", "develop", "store", "sweep"]),
     ("calibrate", &["rig", "develop", "sweep"]),
     ("compress", &["store", "sweep"]),
+    ("synthesize", &["compress", "store", "sweep"]),
     // the acquisition session, then the command line on top
     (
         "session",
@@ -44,6 +45,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "store",
             "sweep",
             "synth",
+            "synthesize",
         ],
     ),
 ];

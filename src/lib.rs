@@ -2,7 +2,8 @@
 //!
 //! See ARCHITECTURE.md for the map and its invariants. Data flows sweep → [`plan`] →
 //! [`session`] → [`engine`] (steps the [`rig`]) → [`develop`] → [`store`]; [`calibrate`]
-//! steps the same rig through recipes, [`compress`] reads the stored datasets.
+//! steps the same rig through recipes, [`compress`] reads the stored datasets and
+//! [`synthesize`] grows compressed ones.
 
 pub mod calibrate;
 pub mod cli;
@@ -15,6 +16,7 @@ pub mod session;
 pub mod store;
 pub mod sweep;
 pub mod synth;
+pub mod synthesize;
 
 #[cfg(test)]
 mod layering;

@@ -24,6 +24,8 @@ pub enum BenchCommand {
     Serial(super::bench_serial::SerialBenchArgs),
     /// Every compression method over its knob: error vs. encode time and vs. ratio (table + SVG).
     Compress(super::bench_compress::CompressBenchArgs),
+    /// Every synthesis method against a 4×-area simulator reference: seams, statistics, repetition, time.
+    Synthesize(Box<super::bench_synthesize::SynthesizeBenchArgs>),
 }
 
 #[derive(clap::Args, Debug)]
@@ -374,6 +376,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Render(a) => render(a),
         BenchCommand::Serial(a) => super::bench_serial::run(a),
         BenchCommand::Compress(a) => super::bench_compress::run(a),
+        BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
     }
 }
 

@@ -7,6 +7,7 @@ mod acquire;
 mod bench;
 mod bench_compress;
 mod bench_serial;
+mod bench_synthesize;
 mod brdf;
 mod calibrate;
 mod common;
@@ -20,6 +21,7 @@ mod serve_stage;
 mod sim;
 mod sim_btf;
 mod svg_plot;
+mod synthesize;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -73,6 +75,8 @@ pub enum Command {
     Reconstruct(compress::ReconstructArgs),
     /// A new BTF from one median-cut file's index image and another's BRDF block.
     Generate(generate::GenerateArgs),
+    /// Grow a compressed BTF to any size (tile, efros-leung, wei-levoy, quilting).
+    Synthesize(synthesize::SynthesizeArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -107,6 +111,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Devices(c) => devices::run(c),
         Command::Reconstruct(a) => compress::reconstruct(a),
         Command::Generate(a) => generate::run(a),
+        Command::Synthesize(a) => synthesize::run(a),
         Command::Calibrate(a) => calibrate::run(a),
     }
 }

@@ -183,3 +183,133 @@ impl Gbtf {
         Gbtf::from_bytes(&bytes, path)
     }
 }
+
+/// Writes a `.gbtf` block by block, so a file larger than memory (a synthesized BTF of
+/// 4096² texels) never has to be held whole: the bytes are the ones [`Gbtf::to_bytes`]
+/// would produce for the same header and values. Values are appended in block order with
+/// [`GbtfStreamWriter::push`]; [`GbtfStreamWriter::finish`] checks that every declared
+/// value arrived, then renames the temporary file into place (nothing is left under the
+/// final name on error).
+pub struct GbtfStreamWriter {
+    tmp: crate::store::atomic::TempFile,
+    buf: Vec<u8>,
+    path: std::path::PathBuf,
+    /// Values of each block, in order.
+    sizes: Vec<u64>,
+    block: usize,
+    /// Values still expected in the current block (0 before a block is started).
+    remaining: u64,
+    crc: crc32fast::Hasher,
+    written: u64,
+}
+
+impl GbtfStreamWriter {
+    const FLUSH: usize = 1 << 20;
+
+    /// Create the temporary file and write magic, version and header.
+    pub fn create(path: &Path, header: &GbtfHeader) -> Result<Self, CompressError> {
+        let hbytes = serde_json::to_vec(header).map_err(|e| CompressError::Invalid(e.to_string()))?;
+        let tmp = crate::store::atomic::TempFile::create(path, None)?;
+        let mut w = GbtfStreamWriter {
+            tmp,
+            buf: Vec::with_capacity(Self::FLUSH + (1 << 18)),
+            path: path.to_path_buf(),
+            sizes: header.blocks.iter().map(|b| b.rows as u64 * b.cols as u64).collect(),
+            block: 0,
+            remaining: 0,
+            crc: crc32fast::Hasher::new(),
+            written: 0,
+        };
+        w.put(MAGIC)?;
+        w.put(&VERSION.to_le_bytes())?;
+        w.put(&(hbytes.len() as u64).to_le_bytes())?;
+        w.put(&hbytes)?;
+        w.put(&crc32fast::hash(&hbytes).to_le_bytes())?;
+        w.open_next()?;
+        Ok(w)
+    }
+
+    fn put(&mut self, bytes: &[u8]) -> Result<(), CompressError> {
+        self.buf.extend_from_slice(bytes);
+        self.written += bytes.len() as u64;
+        if self.buf.len() >= Self::FLUSH {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), CompressError> {
+        use std::io::Write;
+        let res = self.tmp.file().write_all(&self.buf);
+        self.buf.clear();
+        res.map_err(|source| CompressError::Io {
+            path: self.path.clone(),
+            source,
+        })
+    }
+
+    /// Start the next non-empty block, closing empty ones (their length and CRC).
+    fn open_next(&mut self) -> Result<(), CompressError> {
+        while self.remaining == 0 && self.block < self.sizes.len() {
+            let n = self.sizes[self.block];
+            self.put(&(n * 4).to_le_bytes())?;
+            self.crc = crc32fast::Hasher::new();
+            self.remaining = n;
+            if n == 0 {
+                self.close_block()?;
+            }
+        }
+        Ok(())
+    }
+
+    fn close_block(&mut self) -> Result<(), CompressError> {
+        let crc = std::mem::replace(&mut self.crc, crc32fast::Hasher::new()).finalize();
+        self.put(&crc.to_le_bytes())?;
+        self.block += 1;
+        Ok(())
+    }
+
+    /// Append values; they may span block boundaries.
+    pub fn push(&mut self, mut values: &[f32]) -> Result<(), CompressError> {
+        let mut bytes = Vec::with_capacity(values.len().min(1 << 16) * 4);
+        while !values.is_empty() {
+            if self.remaining == 0 {
+                return Err(CompressError::Invalid(format!(
+                    "{}: {} values more than the header's blocks declare",
+                    self.path.display(),
+                    values.len()
+                )));
+            }
+            let n = (self.remaining.min(values.len() as u64) as usize).min(1 << 16);
+            bytes.clear();
+            for v in &values[..n] {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            self.crc.update(&bytes);
+            self.put(&bytes)?;
+            self.remaining -= n as u64;
+            values = &values[n..];
+            if self.remaining == 0 {
+                self.close_block()?;
+                self.open_next()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Check completeness, flush, fsync and rename into place; returns the file size.
+    pub fn finish(mut self) -> Result<u64, CompressError> {
+        if self.block < self.sizes.len() {
+            return Err(CompressError::Invalid(format!(
+                "{}: block {} of {} is missing {} values",
+                self.path.display(),
+                self.block,
+                self.sizes.len(),
+                self.remaining
+            )));
+        }
+        self.flush()?;
+        self.tmp.commit()?;
+        Ok(self.written)
+    }
+}

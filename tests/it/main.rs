@@ -24,3 +24,4 @@ mod fuzz_inputs;
 mod fuzz_protocols;
 mod fuzz_resume;
 mod serial_drivers;
+mod synthesize_cli;

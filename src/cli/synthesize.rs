@@ -1,0 +1,212 @@
+//! `gonio synthesize`: grow a compressed BTF to any size (thesis ch. 6) by tiling,
+//! Efros–Leung, Wei–Levoy or image quilting on ABRDF features; the output is a `.gbtf` of
+//! the input's kind (readable by `reconstruct`, `render`, `export`) plus its texel map.
+
+use crate::compress::interp::AnyModel;
+use crate::compress::CompressedBtf;
+use crate::synthesize::{self, features, output, SynthMethod, SynthParams};
+use anyhow::{bail, Context, Result};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct SynthArgs {
+    /// Method and its knobs (shared with `gonio bench synthesize`).
+    #[arg(long, default_value = "quilting")]
+    pub method: String,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Matching features: keep this many principal components (overrides --energy).
+    #[arg(long)]
+    pub k: Option<usize>,
+    /// Matching features: the fewest principal components explaining this fraction of the
+    /// ABRDF variance.
+    #[arg(long, default_value_t = 0.95)]
+    pub energy: f64,
+    /// Quilting block edge in texels (default: exemplar side / 4, 4 ..= 64).
+    #[arg(long)]
+    pub block: Option<usize>,
+    /// Quilting overlap in texels (default: block / 6).
+    #[arg(long)]
+    pub overlap: Option<usize>,
+    /// Quilting: accept blocks within (1 + tolerance) of the best overlap error.
+    #[arg(long, default_value_t = 0.1)]
+    pub tolerance: f64,
+    /// Efros–Leung window edge (odd).
+    #[arg(long, default_value_t = 7)]
+    pub window: usize,
+    /// Efros–Leung acceptance ε (thesis eq. 78).
+    #[arg(long, default_value_t = 0.1)]
+    pub epsilon: f64,
+    /// Wei–Levoy pyramid levels (default: down to ≥ 32 texels, at most 5).
+    #[arg(long)]
+    pub levels: Option<usize>,
+    /// Wei–Levoy neighbourhood edge at the current level (odd; causal half used).
+    #[arg(long, default_value_t = 7)]
+    pub neighbourhood: usize,
+    /// Wei–Levoy neighbourhood edge at the coarser level (odd).
+    #[arg(long, default_value_t = 5)]
+    pub parent_neighbourhood: usize,
+    /// Wei–Levoy TSVQ leaf size.
+    #[arg(long, default_value_t = 8)]
+    pub leaf: usize,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct SynthesizeArgs {
+    /// A compressed BTF (`.gbtf` of PCA, PVMF, local PCA, median cut or homomorphic).
+    pub input: PathBuf,
+    /// Output size, `WxH` texels (at least the exemplar's).
+    #[arg(long)]
+    pub size: String,
+    /// Output `.gbtf`; the texel map goes beside it as `<stem>.texelmap.png`.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub synth: SynthArgs,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn parse_size(s: &str) -> Result<(usize, usize)> {
+    let parse = || -> Option<(usize, usize)> {
+        let (w, h) = s.split_once(['x', 'X'])?;
+        Some((w.trim().parse().ok()?, h.trim().parse().ok()?))
+    };
+    match parse() {
+        Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
+        _ => bail!("--size {s:?}: expected WxH in texels, e.g. 1024x1024"),
+    }
+}
+
+/// Open a compressed BTF that synthesis can gather rows from, or say why not.
+pub fn open_exemplar(path: &Path) -> Result<CompressedBtf> {
+    if path.is_dir() {
+        bail!(
+            "{} is a dataset directory: synthesis matches ABRDFs through a compressed model; compress it \
+             first (`gonio compress {} --method pca --out ex.gbtf`) and synthesize from the .gbtf",
+            path.display(),
+            path.display()
+        );
+    }
+    match AnyModel::open(path).with_context(|| format!("reading {}", path.display()))? {
+        AnyModel::Gbtf(m) => Ok(m),
+        AnyModel::Dfmf(_) => bail!(
+            "{}: synthesizing from a UBO2014 DFMF .btf is not implemented (its texel factors are \
+             per channel in a log colour space); compress the dataset to a .gbtf instead",
+            path.display()
+        ),
+    }
+}
+
+impl SynthArgs {
+    pub fn params(&self, width: usize, height: usize, ex_w: usize, ex_h: usize) -> Result<SynthParams> {
+        let method = SynthMethod::parse(&self.method)?;
+        let mut p = SynthParams::new(method, width, height, ex_w, ex_h);
+        p.seed = self.seed;
+        if let Some(b) = self.block {
+            p.block = b;
+            p.overlap = (b / 6).max(1);
+        }
+        if let Some(o) = self.overlap {
+            p.overlap = o;
+        }
+        p.tolerance = self.tolerance;
+        p.window = self.window;
+        p.epsilon = self.epsilon;
+        if let Some(l) = self.levels {
+            p.levels = l;
+        }
+        p.neighbourhood = self.neighbourhood;
+        p.parent_neighbourhood = self.parent_neighbourhood;
+        p.leaf = self.leaf;
+        Ok(p)
+    }
+
+    pub fn k_choice(&self) -> features::KChoice {
+        match self.k {
+            Some(k) => features::KChoice::Fixed(k),
+            None => features::KChoice::Energy(self.energy),
+        }
+    }
+}
+
+pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
+    let (w, h) = parse_size(&a.size)?;
+    let model = open_exemplar(&a.input)?;
+    let (ew, eh) = (model.header().width, model.header().height);
+    let p = a.synth.params(w, h, ew, eh)?;
+    let t0 = Instant::now();
+    let emb = features::embed(&model).with_context(|| format!("embedding the ABRDFs of {}", a.input.display()))?;
+    let feats = features::principal(&emb.image, a.synth.k_choice())?;
+    let feature_seconds = t0.elapsed().as_secs_f64();
+    let k = feats.image.dims;
+    let explained: f64 = feats.explained[..k].iter().sum();
+    let t1 = Instant::now();
+    let map = synthesize::synthesize(&feats.image, &p)
+        .with_context(|| format!("synthesizing {w}×{h} from {}", a.input.display()))?;
+    let synth_seconds = t1.elapsed().as_secs_f64();
+    let provenance = serde_json::json!({
+        "method": p.method.name(),
+        "params": &p,
+        "exemplar": a.input.display().to_string(),
+        "exemplar_size": [ew, eh],
+        "features": { "embedding": emb.kind, "embedding_dims": emb.image.dims, "k": k, "explained": explained },
+    });
+    let t2 = Instant::now();
+    let written =
+        output::write(&model, &map, &a.out, provenance).with_context(|| format!("writing {}", a.out.display()))?;
+    let write_seconds = t2.elapsed().as_secs_f64();
+    let compact = !matches!(
+        model.method(),
+        crate::compress::Method::Pvmf | crate::compress::Method::Homomorphic { .. }
+    );
+    if a.json {
+        let r = serde_json::json!({
+            "input": a.input.display().to_string(),
+            "model": model.method().name(),
+            "method": p.method.name(),
+            "width": w,
+            "height": h,
+            "seed": p.seed,
+            "params": &p,
+            "embedding": emb.kind,
+            "embedding_dims": emb.image.dims,
+            "k": k,
+            "explained_energy": explained,
+            "feature_seconds": feature_seconds,
+            "synthesis_seconds": synth_seconds,
+            "write_seconds": write_seconds,
+            "out": written,
+            "compact": compact,
+            "peak_memory_bytes": crate::compress::peak_memory_bytes(),
+        });
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        println!(
+            "{} {w}×{h} from {} ({ew}×{eh}, {}): k = {k} features ({:.1} % of the ABRDF variance, {} embedding of {} dims)",
+            p.method.name(),
+            a.input.display(),
+            model.method().name(),
+            100.0 * explained,
+            emb.kind,
+            emb.image.dims
+        );
+        println!("  features {feature_seconds:.2} s, synthesis {synth_seconds:.2} s, write {write_seconds:.2} s");
+        println!(
+            "  wrote {} ({} bytes, {} bytes per texel{}) and {} ({} bytes)",
+            written.file.display(),
+            written.bytes,
+            written.bytes_per_texel,
+            if compact {
+                ""
+            } else {
+                ": not compact, every texel stores its own factor rows"
+            },
+            written.texel_map.display(),
+            written.texel_map_bytes
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
