@@ -12,3 +12,4 @@ pub mod rectify;
 pub mod store;
 pub mod sweep;
 pub mod synth;
+pub mod view;

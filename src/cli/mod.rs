@@ -16,10 +16,12 @@ mod export;
 mod generate;
 mod import;
 mod plan;
+mod render;
 mod serve_stage;
 mod sim;
 mod sim_btf;
 mod svg_plot;
+mod view;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -73,6 +75,10 @@ pub enum Command {
     Reconstruct(compress::ReconstructArgs),
     /// A new BTF from one median-cut file's index image and another's BRDF block.
     Generate(generate::GenerateArgs),
+    /// Render a dataset or compressed file on a plane, sphere or cylinder (the viewer's CPU reference).
+    Render(render::RenderArgs),
+    /// Serve the browser viewer (relight, inspect, live monitor) for a dataset or compressed file.
+    View(view::ViewArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -108,5 +114,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Reconstruct(a) => compress::reconstruct(a),
         Command::Generate(a) => generate::run(a),
         Command::Calibrate(a) => calibrate::run(a),
+        Command::Render(a) => render::run(a),
+        Command::View(a) => view::run(a),
     }
 }
