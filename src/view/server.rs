@@ -255,6 +255,7 @@ fn router(state: Arc<AppState>) -> Router {
             "/assets/monitor.js",
             asset!("monitor.js", "text/javascript; charset=utf-8"),
         )
+        .route("/favicon.ico", get(|| async { StatusCode::NO_CONTENT }))
         .route("/api/info", get(info))
         .route("/api/factors", get(factors))
         .route("/api/raw", get(raw_view))
