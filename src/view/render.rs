@@ -11,8 +11,8 @@
 //!   `u = w × r`. At view θ = 0 this is the rectified frame (right = +x, up = +y). The
 //!   image spans [−1, 1] world units on its shorter side (pixel centres).
 //! * **plane**: the square [−1, 1]² at z = 0, frame (x, y, z), texture once over it
-//!   (column with +x, row with −y as in a rectified image), so the plane seen from θ = 0 at
-//!   the texture's size is the BTF image texel for texel.
+//!   (column with +x, row with −y as in a rectified image), so the plane seen from θ = 0 on
+//!   a square canvas of a square texture's size is the BTF image texel for texel.
 //! * **sphere**: radius 1 at the origin; tangent `T` = east (increasing longitude about
 //!   +z), `B = N × T` (north); texture repeated twice around, once pole to pole.
 //! * **cylinder**: radius 1, axis +y, y ∈ [−1, 1], no caps; `T` = around the axis,
@@ -208,6 +208,9 @@ pub fn texel(uv: [f64; 2], w: usize, h: usize) -> usize {
     row * w + col
 }
 
+/// `(pixel, texel, weight)`: one pixel's use of one grid pair.
+type Use = (usize, usize, f32);
+
 /// One pixel's lookups: texel and `(light, view, weight)` grid pairs.
 struct PixelLookup {
     pixel: usize,
@@ -266,7 +269,7 @@ pub fn render(model: &dyn BtfModel, scene: &Scene) -> Result<Rendered, CompressE
         }
     }
     // Group by grid pair (BTreeMap: a fixed summation order for every pixel).
-    let mut by_pair: BTreeMap<(usize, usize), Vec<(usize, usize, f32)>> = BTreeMap::new();
+    let mut by_pair: BTreeMap<(usize, usize), Vec<Use>> = BTreeMap::new();
     for lk in &lookups {
         for &(l, v, wt) in &lk.pairs {
             by_pair.entry((v, l)).or_default().push((lk.pixel, lk.texel, wt));
@@ -352,4 +355,137 @@ pub fn png(width: usize, height: usize, rgb: &[u8]) -> Result<Vec<u8>, CompressE
         .write_image(rgb, width as u32, height as u32, image::ExtendedColorType::Rgb8)
         .map_err(|e| CompressError::Invalid(format!("PNG encoding: {e}")))?;
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::compress::dfmf::tests::write_test_dataset;
+    use crate::compress::factor::{compress, Params};
+    use crate::compress::interp::reconstruct_at;
+
+    fn model() -> (tempfile::TempDir, CompressedBtf) {
+        let dir = tempfile::tempdir().unwrap();
+        // θ 0°, a ring of 6 at 30° and a ring of 8 at 60°: dense enough that every local
+        // direction of a curved shape has measurements within 30°.
+        let mut grid = vec![[0.0, 0.0]];
+        for (th, n) in [(30.0, 6), (60.0, 8)] {
+            for k in 0..n {
+                grid.push([th, 360.0 * k as f64 / n as f64]);
+            }
+        }
+        let ds = write_test_dataset(dir.path(), (6, 6), &grid, &grid, &[], |l, v, t, c| {
+            0.05 + 0.04 * ((l * 3 + v * 7 + t + c) % 11) as f32
+        });
+        let m = CompressedBtf::new(compress(&ds, &Params::new(Method::Pvmf, 3)).unwrap().0).unwrap();
+        (dir, m)
+    }
+
+    /// The plane seen from θ = 0 at the texture's size is the interpolated BTF image,
+    /// texel for texel (the per-texel factor path against `reconstruct_at`).
+    #[test]
+    fn the_plane_from_above_is_the_reconstructed_image() {
+        let (_d, m) = model();
+        for light in [[30.0, 0.0], [20.0, 50.0], [45.0, 200.0]] {
+            let scene = Scene {
+                light_deg: light,
+                view_deg: [0.0, 0.0],
+                shape: Shape::Plane,
+                width: 6,
+                height: 6,
+                exposure: 2.0,
+            };
+            let pic = render(&m, &scene).unwrap();
+            let (img, _) = reconstruct_at(&m, light, [0.0, 0.0]).unwrap();
+            for (a, b) in pic.linear.iter().zip(&img) {
+                assert!((a - b).abs() < 1e-5, "{light:?}: {a} vs {b}");
+            }
+            let want: Vec<u8> = img.iter().map(|&x| crate::store::linear_to_srgb8(2.0 * x)).collect();
+            assert_eq!(pic.srgb8, want);
+            assert_eq!(pic.stats.shape_pixels, 36);
+        }
+    }
+
+    /// The factor fast path and the generic image path give the same picture.
+    #[test]
+    fn factor_path_equals_image_path_on_curved_shapes() {
+        struct Generic<'a>(&'a CompressedBtf);
+        impl BtfModel for Generic<'_> {
+            fn width(&self) -> usize {
+                self.0.width()
+            }
+            fn height(&self) -> usize {
+                self.0.height()
+            }
+            fn lights_deg(&self) -> &[[f64; 2]] {
+                BtfModel::lights_deg(self.0)
+            }
+            fn views_deg(&self) -> &[[f64; 2]] {
+                BtfModel::views_deg(self.0)
+            }
+            fn reconstruct(&self, l: usize, v: usize) -> Result<Vec<f32>, CompressError> {
+                self.0.reconstruct(l, v)
+            }
+        }
+        let (_d, m) = model();
+        for shape in [Shape::Sphere, Shape::Cylinder, Shape::Plane] {
+            let scene = Scene {
+                light_deg: [35.0, 60.0],
+                view_deg: [25.0, 200.0],
+                shape,
+                width: 24,
+                height: 20,
+                exposure: 1.0,
+            };
+            let a = render(&m, &scene).unwrap();
+            let b = render(&Generic(&m), &scene).unwrap();
+            assert_eq!(a.stats, b.stats);
+            assert!(a.stats.shape_pixels > 100 && a.stats.grid_pairs > 1, "{:?}", a.stats);
+            for (x, y) in a.linear.iter().zip(&b.linear) {
+                assert!((x - y).abs() < 1e-5, "{shape:?}: {x} vs {y}");
+            }
+        }
+    }
+
+    /// Geometry: the sphere's centre faces the camera; the shadowed side is black; the
+    /// local frame is orthonormal.
+    #[test]
+    fn hits_have_orthonormal_local_directions() {
+        for shape in [Shape::Plane, Shape::Sphere, Shape::Cylinder] {
+            let scene = Scene {
+                light_deg: [50.0, 10.0],
+                view_deg: [30.0, 120.0],
+                shape,
+                width: 33,
+                height: 33,
+                exposure: 1.0,
+            };
+            let mut n = 0;
+            for py in 0..33 {
+                for px in 0..33 {
+                    if let Some(h) = hit(&scene, px, py) {
+                        n += 1;
+                        assert!((dot(h.light_local, h.light_local) - 1.0).abs() < 1e-9);
+                        assert!((dot(h.view_local, h.view_local) - 1.0).abs() < 1e-9);
+                        // The angle between light and view does not depend on the frame.
+                        let cos = dot(unit(scene.light_deg), unit(scene.view_deg));
+                        assert!((dot(h.light_local, h.view_local) - cos).abs() < 1e-9);
+                        assert!(h.uv.iter().all(|&x| (0.0..=1.0).contains(&x)), "{:?}", h.uv);
+                    }
+                }
+            }
+            assert!(n > 200, "{shape:?}: {n} hits");
+        }
+        // Sphere centre pixel seen along the view: local view = normal.
+        let scene = Scene {
+            light_deg: [0.0, 0.0],
+            view_deg: [40.0, 70.0],
+            shape: Shape::Sphere,
+            width: 33,
+            height: 33,
+            exposure: 1.0,
+        };
+        let h = hit(&scene, 16, 16).unwrap();
+        assert!((h.view_local[2] - 1.0).abs() < 1e-9, "{:?}", h.view_local);
+    }
 }

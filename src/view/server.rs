@@ -454,7 +454,7 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
 /// f16 little-endian values of a matrix with `cols` columns padded to a multiple of 4.
 fn f16_padded(data: &[f32], cols: usize) -> Vec<u8> {
     let c4 = cols.div_ceil(4) * 4;
-    let rows = if cols == 0 { 0 } else { data.len() / cols };
+    let rows = data.len().checked_div(cols).unwrap_or(0);
     let mut out = Vec::with_capacity(rows * c4 * 2);
     for r in 0..rows {
         for j in 0..c4 {
@@ -466,7 +466,7 @@ fn f16_padded(data: &[f32], cols: usize) -> Vec<u8> {
 }
 fn f32_padded(data: &[f32], cols: usize) -> Vec<u8> {
     let c4 = cols.div_ceil(4) * 4;
-    let rows = if cols == 0 { 0 } else { data.len() / cols };
+    let rows = data.len().checked_div(cols).unwrap_or(0);
     let mut out = Vec::with_capacity(rows * c4 * 4);
     for r in 0..rows {
         for j in 0..c4 {
@@ -688,7 +688,7 @@ async fn compare(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     blocking(move || {
         let sources = pair_sources(&src, l, v);
         let mut rows = Vec::new();
-        if let Some(reference) = sources.iter().rev().next() {
+        if let Some(reference) = sources.last() {
             let r = pair_image(&src, l, v, reference)?;
             for s in &sources {
                 if s == reference {
