@@ -1,7 +1,7 @@
 """Real-browser checks of `gonio view` (Debian chromium, headless, WebGL2 via SwiftShader,
 driven by Playwright's Python package with executable_path: no browser download).
 
-Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR
+Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [BTF]
 
 * every page loads with no console error (relight, inspect, monitor);
 * the relight canvas matches `gonio render` for the same URL state (>= 99 % of pixel
@@ -24,6 +24,7 @@ from PIL import Image
 from playwright.sync_api import sync_playwright
 
 GONIO, DATASET, GBTF, SCRATCH, SHOTS = sys.argv[1:6]
+BTF = sys.argv[6] if len(sys.argv) > 6 else None
 FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -143,6 +144,20 @@ def main():
                     shot = os.path.join(SHOTS, "viewer-relight.png")
                     page.screenshot(path=shot)
                     check(os.path.getsize(shot) > 1000, f"screenshot written: {shot}")
+            finally:
+                srv.close()
+
+        # A method without a GPU decoder (DFMF .btf): the page shows the server's CPU render.
+        if BTF:
+            srv = Server(BTF)
+            try:
+                q = "light=40,60&view=20,200&shape=sphere"
+                errs = open_page(page, srv.url + "&" + q + "&size=" + SIZE, errors)
+                check(not errs, f"DFMF .btf: relight page (server-rendered) loads without console error {errs}")
+                shown = page.evaluate("!document.getElementById('fallback').hidden")
+                check(shown, "DFMF .btf: the page shows the server's reference picture")
+                errs = open_page(page, srv.base + "/inspect", errors)
+                check(not errs, f"DFMF .btf: /inspect loads without console error {errs}")
             finally:
                 srv.close()
 

@@ -22,5 +22,6 @@ trap 'rm -rf "$scratch"' EXIT
 # A small simulated dataset (with its ground truth) and its PVMF compression.
 "$gonio" -q acquire --size 32x32 --sweep fibonacci:12 --store-truth --out "$scratch/ds" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method pvmf -c 8 --out "$scratch/pvmf.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method dfmf -c 8 --format btf --out "$scratch/dfmf.btf" >/dev/null
 # Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/viewer.md shows them).
-"$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img
+"$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img "$scratch/dfmf.btf"
