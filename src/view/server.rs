@@ -403,6 +403,7 @@ fn gpu_kind(src: &Source) -> Option<&'static str> {
         } => match m.method() {
             Method::Pvmf => Some("pvmf"),
             Method::Pca => Some("pca"),
+            Method::LocalPca { .. } => Some("local-pca"),
             _ => None,
         },
         Source::Model { .. } => None,
@@ -416,7 +417,7 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         Source::Model {
             model: AnyModel::Gbtf(g),
             ..
-        } => (g.method().name(), g.components(), g.gbtf.blocks.len()),
+        } => (g.method().name(), g.components(), gpu_block_count(g)),
         Source::Model {
             model: AnyModel::Dfmf(_),
             ..
@@ -441,6 +442,15 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         "gpu": gpu_kind(&src),
         "components": components,
         "blocks": blocks,
+        // Columns of the GPU blocks (local PCA: 1, the coefficients, the cluster index).
+        "gpu_cols": if method == "local-pca" { components + 2 } else { components },
+        "clusters": match &*src {
+            Source::Model { model: AnyModel::Gbtf(g), .. } => match g.method() {
+                Method::LocalPca { clusters, .. } => clusters,
+                _ => 1,
+            },
+            _ => 1,
+        },
         "width": m.width(),
         "height": m.height(),
         "lights_deg": m.lights_deg(),
@@ -494,7 +504,7 @@ async fn factors(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
             m.method().name()
         )));
     }
-    let n = m.gbtf.blocks.len();
+    let n = gpu_block_count(m);
     let i = params::index("block", get_param(&q, "block")?, n)?;
     let src2 = src.clone();
     blocking(move || {
@@ -505,15 +515,62 @@ async fn factors(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
         else {
             unreachable!()
         };
-        let c = m.components();
-        let b = &m.gbtf.blocks[i];
+        let (data, cols) = gpu_blocks(m).swap_remove(i);
         Ok(bytes_response(if i % 2 == 0 {
-            f16_padded(b, c)
+            f16_padded(&data, cols)
         } else {
-            f32_padded(b, c)
+            f32_padded(&data, cols)
         }))
     })
     .await
+}
+
+/// Number of [`gpu_blocks`] (without building them).
+fn gpu_block_count(m: &CompressedBtf) -> usize {
+    match m.method() {
+        Method::LocalPca { .. } => 2,
+        Method::Pvmf | Method::Pca => m.gbtf.blocks.len(),
+        _ => 0,
+    }
+}
+
+/// The factor blocks the page's shader reads, `(values, columns)`: even blocks are texel
+/// bases, odd blocks weight rows. PVMF and PCA: the file's blocks. Local PCA is a PCA
+/// whose rows depend on the texel's cluster: basis row `[1, coefficients…, cluster]`,
+/// rows `[mean, eigen-ABRDF values…, 0]` for every (cluster, view, light, channel), so that
+/// `basis · row` is `mean + Σ coef · basis` and the cluster column contributes nothing.
+fn gpu_blocks(m: &CompressedBtf) -> Vec<(std::borrow::Cow<'_, [f32]>, usize)> {
+    use std::borrow::Cow;
+    let c = m.components();
+    match m.method() {
+        Method::LocalPca { clusters: k, .. } => {
+            let h = m.header();
+            let (t, dims) = (h.width * h.height, h.lights_deg.len() * h.views_deg.len() * 3);
+            let (cluster, coef, mean, basis) = (
+                &m.gbtf.blocks[0],
+                &m.gbtf.blocks[1],
+                &m.gbtf.blocks[2],
+                &m.gbtf.blocks[3],
+            );
+            let mut b0 = Vec::with_capacity(t * (c + 2));
+            for i in 0..t {
+                b0.push(1.0);
+                b0.extend_from_slice(&coef[i * c..(i + 1) * c]);
+                b0.push(cluster[i]);
+            }
+            let mut b1 = Vec::with_capacity(k * dims * (c + 2));
+            for j in 0..k {
+                for r in 0..dims {
+                    b1.push(mean[j * dims + r]);
+                    b1.extend((0..c).map(|q| basis[(j * c + q) * dims + r]));
+                    b1.push(0.0);
+                }
+            }
+            vec![(Cow::Owned(b0), c + 2), (Cow::Owned(b1), c + 2)]
+        }
+        Method::Pvmf | Method::Pca => m.gbtf.blocks.iter().map(|b| (Cow::Borrowed(&b[..]), c)).collect(),
+        _ => Vec::new(),
+    }
 }
 
 /// `/api/raw?view=V`: every light's image of view V of a dataset, f16 RGBA (A = 1),

@@ -83,12 +83,12 @@ def main():
             res["all_resource_bytes"] = page.evaluate(
                 "performance.getEntriesByType('resource').reduce((s, e) => s + e.encodedBodySize, 0)"
                 " + performance.getEntriesByType('navigation')[0].encodedBodySize")
-            for shape in ("plane", "sphere"):
-                page.goto(base + f"/?light=30,20&view=20,200&shape={shape}&size=512x512")
+            for shape, side in (("plane", 512), ("sphere", 512), ("sphere", 128)):
+                page.goto(base + f"/?light=30,20&view=20,200&shape={shape}&size={side}x{side}")
                 while not page.evaluate("window.gonio && window.gonio.frames > 0"):
                     time.sleep(0.05)
                 page.evaluate("window.gonio.bench(1)")  # warm-up
-                res[f"fps_512_{shape}"] = page.evaluate("window.gonio.bench(5)")
+                res[f"fps_{side}_{shape}"] = page.evaluate("window.gonio.bench(5)")
             b.close()
     finally:
         srv.terminate()
@@ -103,6 +103,7 @@ def main():
     print(f"first picture   {res['first_picture_s']:.2f} s")
     print(f"transferred     {res['factor_bytes'] / 2**20:.1f} MiB factors, {res['all_resource_bytes'] / 2**20:.1f} MiB in all")
     print(f"relight 512²    plane {res['fps_512_plane']:.2f} fps, sphere {res['fps_512_sphere']:.2f} fps (SwiftShader)")
+    print(f"relight 128²    sphere {res['fps_128_sphere']:.2f} fps (SwiftShader)")
     print(f"gonio render    plane {res['cpu_render_512_plane_s']:.2f} s, sphere {res['cpu_render_512_sphere_s']:.2f} s (512², incl. loading the file)")
     print(json.dumps(res))
 

@@ -1,7 +1,7 @@
 """Real-browser checks of `gonio view` (Debian chromium, headless, WebGL2 via SwiftShader,
 driven by Playwright's Python package with executable_path: no browser download).
 
-Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [BTF]
+Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [BTF [LOCAL_PCA_GBTF]]
 
 * every page loads with no console error (relight, inspect, monitor);
 * the relight canvas matches `gonio render` for the same URL state (>= 99 % of pixel
@@ -25,6 +25,7 @@ from playwright.sync_api import sync_playwright
 
 GONIO, DATASET, GBTF, SCRATCH, SHOTS = sys.argv[1:6]
 BTF = sys.argv[6] if len(sys.argv) > 6 else None
+LPCA = sys.argv[7] if len(sys.argv) > 7 else None
 FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -105,7 +106,10 @@ def main():
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: errors.append(str(e)))
 
-        for label, path in (("pvmf .gbtf", GBTF), ("raw dataset", DATASET)):
+        sources = [("pvmf .gbtf", GBTF), ("raw dataset", DATASET)]
+        if LPCA:
+            sources.append(("local-pca .gbtf", LPCA))
+        for label, path in sources:
             srv = Server(path)
             try:
                 print(f"{label}: {path}", flush=True)

@@ -1,5 +1,5 @@
 // The relight page: the same scene as `gonio render` (src/view/render.rs), drawn by a
-// WebGL2 fragment shader that decodes the BTF from its factors (PVMF, PCA) or from the
+// WebGL2 fragment shader that decodes the BTF from its factors (PVMF, PCA, local PCA) or from the
 // raw images of a dataset, interpolating light and view exactly as `gonio reconstruct`
 // does (src/compress/interp.rs: barycentric weights in the gnomonic projection of the 8
 // nearest measured directions).
@@ -16,7 +16,7 @@ precision highp float; precision highp int;
 precision highp sampler2D; precision highp sampler2DArray;
 uniform vec2 uSize; uniform vec3 uLight; uniform vec3 uView; uniform int uShape;
 uniform float uExposure; uniform ivec2 uTex; uniform int uKind; uniform int uC4;
-uniform int uNL; uniform int uNV; uniform int uTilesX;
+uniform int uNL; uniform int uNV; uniform int uTilesX; uniform int uClusterCol;
 uniform sampler2D uDirs; uniform sampler2DArray uBasis; uniform sampler2D uRows;
 out vec4 outColor;
 const float COS_MAX_GAP = 0.8660254037844387; // cos 30°: MAX_GAP_DEG
@@ -93,13 +93,18 @@ vec3 texelValue(int l, int v, ivec2 t) {
     return texelFetch(uBasis, ivec3(tile.x * uTex.x + t.x, tile.y * uTex.y + t.y, v), 0).rgb;
   }
   int layer = uKind == 0 ? v : 0;
+  int y = l * 3;
+  if (uKind == 3) { // local PCA: the texel's cluster selects its block of rows
+    vec4 cb = texelFetch(uBasis, ivec3(t.x * uC4 + uClusterCol / 4, t.y, 0), 0);
+    y += int(cb[uClusterCol % 4] + 0.5) * uNL * 3;
+  }
   vec3 s = vec3(0);
   for (int k = 0; k < uC4; k++) {
     vec4 b = texelFetch(uBasis, ivec3(t.x * uC4 + k, t.y, layer), 0);
     int x = v * uC4 + k;
-    s.r += dot(b, texelFetch(uRows, ivec2(x, l * 3), 0));
-    s.g += dot(b, texelFetch(uRows, ivec2(x, l * 3 + 1), 0));
-    s.b += dot(b, texelFetch(uRows, ivec2(x, l * 3 + 2), 0));
+    s.r += dot(b, texelFetch(uRows, ivec2(x, y), 0));
+    s.g += dot(b, texelFetch(uRows, ivec2(x, y + 1), 0));
+    s.b += dot(b, texelFetch(uRows, ivec2(x, y + 2), 0));
   }
   return s;
 }
@@ -190,7 +195,7 @@ function compile() {
   if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error("link: " + gl.getProgramInfoLog(prog));
   gl.useProgram(prog);
   for (const n of ["uSize", "uLight", "uView", "uShape", "uExposure", "uTex", "uKind", "uC4", "uNL", "uNV",
-    "uTilesX", "uDirs", "uBasis", "uRows"]) U[n] = gl.getUniformLocation(prog, n);
+    "uTilesX", "uClusterCol", "uDirs", "uBasis", "uRows"]) U[n] = gl.getUniformLocation(prog, n);
 }
 
 function tex(unit, target) {
@@ -222,13 +227,13 @@ async function pool(n, k, f) {
 
 async function loadFactors() {
   const W = info.width, H = info.height, nl = info.lights_deg.length, nv = info.views_deg.length;
-  const c4 = Math.ceil(info.components / 4), pvmf = info.gpu === "pvmf";
+  const c4 = Math.ceil(info.gpu_cols / 4), pvmf = info.gpu === "pvmf", K = info.clusters;
   const max = gl.getParameter(gl.MAX_TEXTURE_SIZE);
-  if (W * c4 > max || c4 * nv > max) throw new Error("factors too large for this GPU's textures");
+  if (W * c4 > max || c4 * nv > max || nl * 3 * K > max) throw new Error("factors too large for this GPU's textures");
   tex(1, gl.TEXTURE_2D_ARRAY);
   gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA16F, W * c4, H, pvmf ? nv : 1);
   tex(2, gl.TEXTURE_2D);
-  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, c4 * nv, nl * 3);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, c4 * nv, nl * 3 * K);
   let done = 0;
   await pool(info.blocks, 4, async (i) => {
     const buf = await api("/api/factors?block=" + i);
@@ -240,9 +245,11 @@ async function loadFactors() {
       const rows = new Float32Array(buf);
       if (pvmf) {
         gl.texSubImage2D(gl.TEXTURE_2D, 0, ((i - 1) / 2) * c4, 0, c4, nl * 3, gl.RGBA, gl.FLOAT, rows);
-      } else {
-        for (let v = 0; v < nv; v++)
-          gl.texSubImage2D(gl.TEXTURE_2D, 0, v * c4, 0, c4, nl * 3, gl.RGBA, gl.FLOAT, rows, v * nl * 3 * c4 * 4);
+      } else { // PCA (K = 1) and local PCA: rows (cluster, view, light, channel)
+        for (let j = 0; j < K; j++)
+          for (let v = 0; v < nv; v++)
+            gl.texSubImage2D(gl.TEXTURE_2D, 0, v * c4, j * nl * 3, c4, nl * 3, gl.RGBA, gl.FLOAT, rows,
+              (j * nv + v) * nl * 3 * c4 * 4);
       }
     }
     setStatus("factors " + ++done + " / " + info.blocks);
@@ -348,7 +355,8 @@ async function main() {
     else c4 = await loadFactors();
     gl.uniform1i(U.uDirs, 0); gl.uniform1i(U.uBasis, 1); gl.uniform1i(U.uRows, 2);
     gl.uniform2i(U.uTex, info.width, info.height);
-    gl.uniform1i(U.uKind, { pvmf: 0, pca: 1, raw: 2 }[info.gpu]);
+    gl.uniform1i(U.uKind, { pvmf: 0, pca: 1, raw: 2, "local-pca": 3 }[info.gpu]);
+    gl.uniform1i(U.uClusterCol, info.gpu_cols - 1);
     gl.uniform1i(U.uC4, c4); gl.uniform1i(U.uTilesX, tilesX);
     gl.uniform1i(U.uNL, info.lights_deg.length); gl.uniform1i(U.uNV, info.views_deg.length);
     const err = gl.getError();
