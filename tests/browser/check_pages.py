@@ -1,7 +1,9 @@
 """Real-browser checks of `gonio view` (Debian chromium, headless, WebGL2 via SwiftShader,
 driven by Playwright's Python package with executable_path: no browser download).
 
-Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [BTF [LOCAL_PCA_GBTF]]
+Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [MORE_FILES…]
+(more .gbtf files get the same canvas checks as GBTF; a UBO2014 .btf, which has no GPU
+decoder, is checked for loading without error and showing the server's picture)
 
 * every page loads with no console error (relight, inspect, monitor);
 * the relight canvas matches `gonio render` for the same URL state (>= 99 % of pixel
@@ -24,8 +26,8 @@ from PIL import Image
 from playwright.sync_api import sync_playwright
 
 GONIO, DATASET, GBTF, SCRATCH, SHOTS = sys.argv[1:6]
-BTF = sys.argv[6] if len(sys.argv) > 6 else None
-LPCA = sys.argv[7] if len(sys.argv) > 7 else None
+MORE = sys.argv[6:]
+BTF = next((f for f in MORE if f.endswith(".btf")), None)
 FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -106,9 +108,8 @@ def main():
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: errors.append(str(e)))
 
-        sources = [("pvmf .gbtf", GBTF), ("raw dataset", DATASET)]
-        if LPCA:
-            sources.append(("local-pca .gbtf", LPCA))
+        sources = [(os.path.basename(GBTF), GBTF), ("raw dataset", DATASET)]
+        sources += [(os.path.basename(f), f) for f in MORE if f.endswith(".gbtf")]
         for label, path in sources:
             srv = Server(path)
             try:

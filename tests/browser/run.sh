@@ -19,10 +19,12 @@ cargo build -q -p gonio
 gonio="$PWD/target/debug/gonio"
 scratch=$(mktemp -d)
 trap 'rm -rf "$scratch"' EXIT
-# A small simulated dataset (with its ground truth) and its PVMF, DFMF and local-PCA compressions.
+# A small simulated dataset (with its ground truth) and its PVMF, DFMF, local-PCA and PCA compressions.
 "$gonio" -q acquire --size 32x32 --sweep fibonacci:12 --store-truth --out "$scratch/ds" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method pvmf -c 8 --out "$scratch/pvmf.gbtf" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method dfmf -c 8 --format btf --out "$scratch/dfmf.btf" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method local-pca --clusters 4 -c 4 --out "$scratch/lpca.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method pca -c 8 --out "$scratch/pca.gbtf" >/dev/null
 # Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/viewer.md shows them).
-"$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img "$scratch/dfmf.btf" "$scratch/lpca.gbtf"
+"$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img \
+  "$scratch/dfmf.btf" "$scratch/lpca.gbtf" "$scratch/pca.gbtf"
