@@ -27,6 +27,8 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("calibrate", &["rig", "develop", "sweep"]),
     ("compress", &["store", "sweep"]),
     ("synthesize", &["compress", "store", "sweep"]),
+    // the viewer reads datasets and compressed files (and renders them)
+    ("view", &["compress", "store", "sweep"]),
     // the acquisition session, then the command line on top
     (
         "session",
@@ -46,6 +48,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "sweep",
             "synth",
             "synthesize",
+            "view",
         ],
     ),
 ];

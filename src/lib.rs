@@ -17,6 +17,7 @@ pub mod store;
 pub mod sweep;
 pub mod synth;
 pub mod synthesize;
+pub mod view;
 
 #[cfg(test)]
 mod layering;

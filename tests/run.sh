@@ -33,6 +33,8 @@ echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh
 echo "== interop"
 bash tests/interop/run.sh
+echo "== browser (gonio view in headless chromium)"
+bash tests/browser/run.sh
 
 # --- V4L2 camera backend against the kernel's vivid driver in a QEMU VM (tests/vivid/).
 # Needs apt-get (to download the Debian kernel/busybox/QEMU packages, never installed) and

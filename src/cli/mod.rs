@@ -17,11 +17,13 @@ mod export;
 mod generate;
 mod import;
 mod plan;
+mod render;
 mod serve_stage;
 mod sim;
 mod sim_btf;
 mod svg_plot;
 mod synthesize;
+mod view;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -77,6 +79,10 @@ pub enum Command {
     Generate(generate::GenerateArgs),
     /// Grow a compressed BTF to any size (tile, efros-leung, wei-levoy, quilting).
     Synthesize(synthesize::SynthesizeArgs),
+    /// Render a dataset or compressed file on a plane, sphere or cylinder (the viewer's CPU reference).
+    Render(render::RenderArgs),
+    /// Serve the browser viewer (relight, inspect, live monitor) for a dataset or compressed file.
+    View(view::ViewArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -113,5 +119,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Generate(a) => generate::run(a),
         Command::Synthesize(a) => synthesize::run(a),
         Command::Calibrate(a) => calibrate::run(a),
+        Command::Render(a) => render::run(a),
+        Command::View(a) => view::run(a),
     }
 }

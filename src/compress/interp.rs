@@ -59,6 +59,11 @@ pub trait BtfModel {
         }
         Ok(out)
     }
+    /// The model as `Any`, for callers with a faster path for one concrete type (the
+    /// viewer reads PCA/PVMF factors texel by texel). `None`: no such path.
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        None
+    }
 }
 
 impl BtfModel for Dfmf {
@@ -112,6 +117,9 @@ impl BtfModel for CompressedBtf {
     }
     fn reconstruct(&self, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
         CompressedBtf::reconstruct(self, light, view)
+    }
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        Some(self)
     }
     fn reconstruct_weighted(&self, weights: &[(usize, usize, f32)]) -> Result<Vec<f32>, CompressError> {
         let (nl, nv, c) = (self.lights_deg().len(), self.views_deg().len(), self.components());

@@ -61,6 +61,10 @@ runtime_pins=(
     "pyqtgraph==0.14.0"
     "qtpy==2.4.3"
     "colorama==0.4.6"
+    # Playwright's Python client drives Debian's /usr/bin/chromium in tests/browser/
+    # (executable_path; its own browser download is never used).
+    "playwright==1.65.2"
+    "greenlet==3.5.6"
 )
 
 check() {
@@ -74,6 +78,7 @@ import cv2  # noqa: F401
 import zaber_motion.ascii  # noqa: F401
 import pymeasure.instruments.newport  # noqa: F401
 import pyvisa_py  # noqa: F401
+import playwright.sync_api  # noqa: F401
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
 sys.exit(1 if bad else 0)

@@ -25,3 +25,4 @@ mod fuzz_protocols;
 mod fuzz_resume;
 mod serial_drivers;
 mod synthesize_cli;
+mod view_server;

@@ -1,0 +1,15 @@
+//! Looking at the data: the CPU reference renderer (`gonio render`) and the browser
+//! viewer's server (`gonio view`).
+//!
+//! * [`render`]: a BTF on a plane, sphere or cylinder under a directional light, seen by an
+//!   orthographic camera (thesis ch. 7); the page's WebGL2 shader draws the same scene.
+//! * [`params`]: parsing of the scene parameters, one parser for the CLI and the HTTP API.
+//! * [`source`]: what is shown (a dataset, a `.gbtf`, a UBO2014 `.btf`).
+//! * [`server`]: the HTTP server (axum) with its token, path and parameter checks.
+//! * [`monitor`]: progress of a dataset being written, read from its journal.
+
+pub mod monitor;
+pub mod params;
+pub mod render;
+pub mod server;
+pub mod source;

@@ -1,0 +1,159 @@
+//! Progress of a dataset, read from its directory only (manifest + journal), so that the
+//! monitor works the same on a dataset written by another process (`gonio acquire`) as on
+//! one written in-process: nothing here talks to the rig, and nothing can move it.
+
+use crate::store::{self, MeasurementStatus};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// One planned pair as the timeline shows it: `(order, index, kind)`, kind 0 measured,
+/// 1 substituted, 2 skipped.
+pub type TimelineEntry = (usize, usize, u8);
+
+/// The last stored measurement.
+#[derive(Serialize, Clone, Debug, PartialEq)]
+pub struct LastMeasurement {
+    pub index: usize,
+    pub order: usize,
+    pub light_deg: [f64; 2],
+    pub view_deg: [f64; 2],
+    pub axes_deg: Vec<f64>,
+    pub rig_time_s: f64,
+    pub wall_time_unix: f64,
+    /// Whether it has an image (`/api/frame?index=…`).
+    pub has_image: bool,
+}
+
+/// What the monitor page shows.
+#[derive(Serialize, Clone, Debug, PartialEq)]
+pub struct Snapshot {
+    /// Pairs of the sweep (lights × views).
+    pub total: usize,
+    /// Journal records (measured + substituted + skipped).
+    pub done: usize,
+    pub measured: usize,
+    pub substituted: usize,
+    pub skipped: usize,
+    /// `reason → count` of skipped pairs.
+    pub skipped_reasons: BTreeMap<String, usize>,
+    /// `manifest.json` says the acquisition finished.
+    pub complete: bool,
+    /// Stored measurements per wall-clock second over the journal so far.
+    pub rate_per_s: Option<f64>,
+    /// Remaining pairs at that rate, seconds.
+    pub eta_s: Option<f64>,
+    pub last: Option<LastMeasurement>,
+    /// In plan order.
+    pub timeline: Vec<TimelineEntry>,
+    /// `(order, truth RMSE)` of measurements compared with the simulator's truth.
+    pub truth_rmse: Vec<(usize, f64)>,
+    /// The summary's stage seconds once the acquisition has finished (`null` before).
+    pub stage_seconds: serde_json::Value,
+    /// Bytes of the journal read (the page's "something changed" marker).
+    pub journal_bytes: u64,
+}
+
+/// Size of the journal file (0 when it does not exist yet).
+pub fn journal_len(dir: &Path) -> u64 {
+    std::fs::metadata(dir.join(store::JOURNAL_FILE))
+        .map(|m| m.len())
+        .unwrap_or(0)
+}
+
+/// Read the dataset in `dir` as it is now.
+pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
+    let journal_bytes = journal_len(dir);
+    let (header, mut records) = store::load(dir)?;
+    let n = |k: &str| header.sweep.get(k).and_then(|a| a.as_array()).map_or(0, |a| a.len());
+    let total = n("lights_deg") * n("views_deg");
+    records.sort_by_key(|r| (r.order, r.index));
+    let manifest: serde_json::Value = std::fs::read(dir.join(store::MANIFEST_FILE))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_default();
+    let complete = manifest.get("complete").and_then(|c| c.as_bool()).unwrap_or(false);
+    let stage_seconds = manifest
+        .get("summary")
+        .and_then(|s| s.get("stage_seconds"))
+        .cloned()
+        .unwrap_or(serde_json::Value::Null);
+    let mut s = Snapshot {
+        total,
+        done: records.len(),
+        measured: 0,
+        substituted: 0,
+        skipped: 0,
+        skipped_reasons: BTreeMap::new(),
+        complete,
+        rate_per_s: None,
+        eta_s: None,
+        last: None,
+        timeline: Vec::with_capacity(records.len()),
+        truth_rmse: Vec::new(),
+        stage_seconds,
+        journal_bytes,
+    };
+    for r in &records {
+        let kind = match &r.status {
+            MeasurementStatus::Measured => {
+                s.measured += 1;
+                0
+            }
+            MeasurementStatus::Substituted { .. } => {
+                s.substituted += 1;
+                1
+            }
+            MeasurementStatus::Skipped { reason } => {
+                s.skipped += 1;
+                *s.skipped_reasons.entry(reason.clone()).or_default() += 1;
+                2
+            }
+        };
+        s.timeline.push((r.order, r.index, kind));
+        if let Some(e) = r.extra.get("truth_rmse").and_then(|x| x.as_f64()) {
+            s.truth_rmse.push((r.order, e));
+        }
+    }
+    let stored: Vec<_> = records
+        .iter()
+        .filter(|r| !matches!(r.status, MeasurementStatus::Skipped { .. }))
+        .collect();
+    if let Some(r) = stored
+        .iter()
+        .max_by(|a, b| a.wall_time_unix.total_cmp(&b.wall_time_unix))
+    {
+        s.last = Some(LastMeasurement {
+            index: r.index,
+            order: r.order,
+            light_deg: r.light_deg,
+            view_deg: r.view_deg,
+            axes_deg: if r.axes_read_back_deg.is_empty() {
+                r.axes_commanded_deg.clone()
+            } else {
+                r.axes_read_back_deg.clone()
+            },
+            rig_time_s: r.rig_time_s,
+            wall_time_unix: r.wall_time_unix,
+            has_image: r.image.is_some(),
+        });
+    }
+    if stored.len() >= 2 {
+        let t0 = stored.iter().map(|r| r.wall_time_unix).fold(f64::INFINITY, f64::min);
+        let t1 = stored
+            .iter()
+            .map(|r| r.wall_time_unix)
+            .fold(f64::NEG_INFINITY, f64::max);
+        if t1 > t0 {
+            let rate = (stored.len() - 1) as f64 / (t1 - t0);
+            s.rate_per_s = Some(rate);
+            if !complete {
+                s.eta_s = Some(total.saturating_sub(s.done) as f64 / rate);
+            }
+        }
+    }
+    if complete {
+        s.eta_s = Some(0.0);
+    }
+    Ok(s)
+}

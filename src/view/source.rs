@@ -1,0 +1,153 @@
+//! What the viewer shows: a native dataset (raw measurements) or a compressed file.
+
+use crate::compress::data::DatasetViews;
+use crate::compress::interp::{AnyModel, BtfModel};
+use crate::compress::CompressError;
+use crate::store;
+use std::path::{Path, PathBuf};
+
+/// Errors of opening a viewer source.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    #[error(
+        "{path}: {why}; expected a gonio dataset directory (with {manifest}), a .gbtf file or a \
+         UBO2014 .btf file",
+        manifest = store::MANIFEST_FILE
+    )]
+    NotViewable { path: PathBuf, why: String },
+    #[error(transparent)]
+    Compress(#[from] CompressError),
+}
+
+/// A native dataset seen as a BTF model: grid pair (l, v) is its measured image. A pair
+/// that was not measured (skipped, or not yet acquired) takes the image of the nearest
+/// measured light of the same view (smallest angle, ties to the lower index) as
+/// `gonio compress` fills it; a view with no measurement yet is black.
+pub struct RawModel {
+    pub views: DatasetViews,
+}
+
+impl RawModel {
+    pub fn open(dir: &Path) -> Result<Self, CompressError> {
+        Ok(RawModel {
+            views: DatasetViews::open(dir)?,
+        })
+    }
+
+    /// The light whose image stands for pair (`light`, `view`), `None` if the view has no
+    /// measured light at all.
+    pub fn source_light(&self, light: usize, view: usize) -> Option<usize> {
+        if self.views.is_measured(light, view) {
+            return Some(light);
+        }
+        let u = |d: [f64; 2]| {
+            let (t, p) = (d[0].to_radians(), d[1].to_radians());
+            [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+        };
+        let q = u(self.views.lights_deg[light]);
+        (0..self.views.n_lights())
+            .filter(|&l| self.views.is_measured(l, view))
+            .map(|l| {
+                let d = u(self.views.lights_deg[l]);
+                (l, q[0] * d[0] + q[1] * d[1] + q[2] * d[2])
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
+            .map(|(l, _)| l)
+    }
+}
+
+impl BtfModel for RawModel {
+    fn width(&self) -> usize {
+        self.views.width
+    }
+    fn height(&self) -> usize {
+        self.views.height
+    }
+    fn lights_deg(&self) -> &[[f64; 2]] {
+        &self.views.lights_deg
+    }
+    fn views_deg(&self) -> &[[f64; 2]] {
+        &self.views.views_deg
+    }
+    fn reconstruct(&self, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        let (nl, nv) = (self.views.n_lights(), self.views.n_views());
+        if light >= nl || view >= nv {
+            return Err(CompressError::Invalid(format!(
+                "pair (light {light}, view {view}) outside the {nl} × {nv} grid"
+            )));
+        }
+        match self.source_light(light, view) {
+            Some(l) => Ok(self.views.read_image(l, view)?.unwrap_or_default()),
+            None => Ok(vec![0.0; self.views.texels() * 3]),
+        }
+    }
+}
+
+/// The kind of a viewer source.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SourceKind {
+    Dataset,
+    Gbtf,
+    Btf,
+}
+
+/// An opened viewer source.
+pub enum Source {
+    Dataset(RawModel),
+    Model { model: AnyModel, kind: SourceKind },
+}
+
+impl Source {
+    /// Open `path`: a directory must be a gonio dataset (it has a manifest), a file must
+    /// be a `.gbtf` or a UBO2014 `.btf` (recognised by its first bytes).
+    pub fn open(path: &Path) -> Result<Source, SourceError> {
+        let not = |why: String| SourceError::NotViewable {
+            path: path.to_path_buf(),
+            why,
+        };
+        let meta = std::fs::metadata(path).map_err(|e| not(format!("cannot be read ({e})")))?;
+        if meta.is_dir() {
+            if !path.join(store::MANIFEST_FILE).is_file() {
+                return Err(not(format!("a directory without {}", store::MANIFEST_FILE)));
+            }
+            return Ok(Source::Dataset(RawModel::open(path)?));
+        }
+        let mut head = [0u8; 16];
+        {
+            use std::io::Read;
+            let mut f = std::fs::File::open(path).map_err(|e| not(format!("cannot be read ({e})")))?;
+            let n = f.read(&mut head).map_err(|e| not(format!("cannot be read ({e})")))?;
+            if n < 9 {
+                return Err(not(format!("only {n} bytes long")));
+            }
+        }
+        let kind = if head[..8] == crate::compress::container::MAGIC[..] {
+            SourceKind::Gbtf
+        } else if crate::compress::btf_ubo2014::is_dfmf(&head) {
+            SourceKind::Btf
+        } else {
+            return Err(not(
+                "a file of unknown type (neither .gbtf nor UBO2014 .btf signature)".into()
+            ));
+        };
+        Ok(Source::Model {
+            model: AnyModel::open(path)?,
+            kind,
+        })
+    }
+
+    pub fn kind(&self) -> SourceKind {
+        match self {
+            Source::Dataset(_) => SourceKind::Dataset,
+            Source::Model { kind, .. } => *kind,
+        }
+    }
+
+    pub fn model(&self) -> &dyn BtfModel {
+        match self {
+            Source::Dataset(m) => m,
+            Source::Model { model, .. } => model.model(),
+        }
+    }
+}

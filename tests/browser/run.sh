@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Real-browser tests of `gonio view` (tests/browser/check_pages.py): Debian's chromium,
+# headless, WebGL2 through SwiftShader, driven by Python Playwright with executable_path
+# (no browser download). Needs /usr/bin/chromium (.ci/run installs it with apt) and a
+# Python with playwright, pillow and numpy (tests/interop/setup_python.sh installs them).
+# Mandatory under CI; elsewhere skipped with a notice when either is missing.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+py="${GONIO_PYTHON:-${GONIO_VENV:-$PWD/target/venv}/bin/python}"
+if [ ! -x /usr/bin/chromium ] || ! "$py" -c "import playwright, PIL, numpy" 2>/dev/null; then
+  if [ -n "${CI:-}" ]; then
+    echo "browser: /usr/bin/chromium or Playwright ($py) missing under CI (.ci/run and tests/interop/setup_python.sh install them)" >&2
+    exit 1
+  fi
+  echo "browser: skipped (needs /usr/bin/chromium and Playwright in $py; run .ci/run)"
+  exit 0
+fi
+cargo build -q -p gonio
+gonio="$PWD/target/debug/gonio"
+scratch=$(mktemp -d)
+trap 'rm -rf "$scratch"' EXIT
+# A small simulated dataset (with its ground truth) and its PVMF, DFMF, local-PCA and PCA compressions.
+"$gonio" -q acquire --size 32x32 --sweep fibonacci:12 --store-truth --out "$scratch/ds" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method pvmf -c 8 --out "$scratch/pvmf.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method dfmf -c 8 --format btf --out "$scratch/dfmf.btf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method local-pca --clusters 4 -c 4 --out "$scratch/lpca.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method pca -c 8 --out "$scratch/pca.gbtf" >/dev/null
+# Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/viewer.md shows them).
+"$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img \
+  "$scratch/dfmf.btf" "$scratch/lpca.gbtf" "$scratch/pca.gbtf"
