@@ -11,7 +11,6 @@ use gonio_simulator::{SampleSpec, SimOptions};
 use std::collections::HashSet;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::Duration;
 
 fn reduced_sweep() -> Sweep {
     let d = vec![
@@ -68,7 +67,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
         &rig_spec,
         &reduced_sweep(),
         &PlanOptions {
-            time_budget: Duration::from_millis(100),
+            kicks: 2_000,
             ..Default::default()
         },
     )

@@ -400,7 +400,7 @@ fn plan_json_round_trips_axis_targets_exactly() {
         &rig,
         &sweep,
         &gonio::plan::PlanOptions {
-            time_budget: Duration::ZERO,
+            kicks: 0,
             ..Default::default()
         },
     )

@@ -16,7 +16,6 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
 
 #[derive(clap::Args, Debug)]
 pub struct AcquireArgs {
@@ -501,7 +500,8 @@ fn open_resume(dir: &Path) -> Result<Opened> {
             &sweep,
             &PlanOptions {
                 policy,
-                time_budget: Duration::ZERO,
+                kicks: 0,
+                time_cap: None,
                 seed: 1,
             },
         )?;

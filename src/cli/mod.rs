@@ -4,6 +4,7 @@
 //! `anyhow`. Every command that prints figures has `--json` for scripts.
 
 mod acquire;
+mod batch;
 mod bench;
 mod bench_compress;
 mod bench_serial;
@@ -15,6 +16,7 @@ mod devices;
 mod export;
 mod generate;
 mod import;
+mod merge;
 mod plan;
 mod serve_stage;
 mod sim;
@@ -73,6 +75,11 @@ pub enum Command {
     Reconstruct(compress::ReconstructArgs),
     /// A new BTF from one median-cut file's index image and another's BRDF block.
     Generate(generate::GenerateArgs),
+    /// Join the parts of a sharded run (`--shard I/N`) into the single-process output.
+    Merge(merge::MergeArgs),
+    /// Run a sharded command on a cluster scheduler (Slurm job array + merge job).
+    #[command(subcommand)]
+    Batch(batch::BatchCommand),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -108,5 +115,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Reconstruct(a) => compress::reconstruct(a),
         Command::Generate(a) => generate::run(a),
         Command::Calibrate(a) => calibrate::run(a),
+        Command::Merge(a) => merge::run(a),
+        Command::Batch(c) => batch::run(c),
     }
 }

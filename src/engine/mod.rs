@@ -326,6 +326,7 @@ async fn drive_step(
     rig.camera.rig_still();
     let still_at = frames_on_rig_clock(&rig.spec, rig.clock.is_some()).then(|| rig.time());
     let t1 = Instant::now();
+    rig.camera.begin_measurement(index as u64);
     let (frame, notes) = capture::capture_measurement(rig.camera.as_ref(), policy, camera_config, still_at)
         .await
         .map_err(|f| EngineError::Capture {
