@@ -292,7 +292,9 @@ impl SimWorld {
 }
 
 /// Which measurement a capture belongs to: canonical pair index and exposure index within
-/// the measurement (see `Camera::begin_measurement`).
+/// the measurement (see `Camera::begin_measurement`). The exposure index starts at 0 and
+/// advances with every `configure` inside the measurement (a re-exposure at another
+/// exposure time); retries of the same exposure keep it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct CaptureIdentity {
     pub index: u64,
@@ -392,6 +394,11 @@ impl Camera for SimCamera {
         "sim-camera"
     }
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
+        // A new setting inside a measurement (a re-exposure at another exposure time) is
+        // the measurement's next exposure: it gets its own noise.
+        if let Some(id) = self.measurement.lock().expect("measurement poisoned").as_mut() {
+            id.exposure += 1;
+        }
         let mut s = self.world.sensor.lock().expect("sensor poisoned");
         if config.width != self.world.width || config.height != self.world.height {
             return Err(DeviceError::Rejected {
@@ -421,17 +428,10 @@ impl Camera for SimCamera {
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
-        // Every attempt counts as an exposure of the measurement, including failed ones.
-        let identity = self
-            .measurement
-            .lock()
-            .expect("measurement poisoned")
-            .as_mut()
-            .map(|id| {
-                let this = *id;
-                id.exposure += 1;
-                this
-            });
+        // A retry (after a dropped, timed-out or stale frame) is the same exposure again,
+        // so it gets the same noise: a run with a transient fault stores the same bytes as
+        // one without.
+        let identity = *self.measurement.lock().expect("measurement poisoned");
         let fault = self.fault.as_ref().and_then(|f| f.next_capture());
         if let Some(kind) = fault {
             if let Some(result) = self.injected(kind).await {

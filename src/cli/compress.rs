@@ -206,6 +206,12 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
+    if args.shard.is_some() && !matches!(args.method, MethodArg::Pvmf) {
+        anyhow::bail!(
+            "--shard splits --method pvmf by views; other methods are compressed in one process \
+             (leave out --shard)"
+        );
+    }
     let t0 = Instant::now();
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
     let format = args.format.unwrap_or(match args.method {
@@ -215,12 +221,6 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     if matches!(args.method, MethodArg::Dfmf) != (format == FormatArg::Btf) {
         anyhow::bail!(
             "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
-        );
-    }
-    if args.shard.is_some() && !matches!(args.method, MethodArg::Pvmf) {
-        anyhow::bail!(
-            "--shard splits --method pvmf by views; other methods are compressed in one process \
-             (leave out --shard)"
         );
     }
     let needs_c = !matches!(args.method, MethodArg::MedianCut | MethodArg::Homomorphic);
