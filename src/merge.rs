@@ -75,6 +75,15 @@ pub fn merge(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, 
     if !absent.is_empty() {
         return Err(MergeError::Absent { parts: absent });
     }
+    // `--out` naming one of the parts would delete that part (--force) before it is read.
+    if let Ok(o) = out.canonicalize() {
+        if let Some(p) = parts.iter().find(|p| p.canonicalize().is_ok_and(|c| c == o)) {
+            return Err(part_err(
+                p,
+                "is also the --out of the merge; write the merged result elsewhere",
+            ));
+        }
+    }
     if first.is_dir() {
         merge_datasets(parts, out, force)
     } else {

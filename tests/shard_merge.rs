@@ -144,6 +144,13 @@ fn sharded_sim_btf_and_pvmf_merge_to_the_single_process_bytes() {
     );
     let e = fails(t, &["merge", "p1.gbtf", "q2.gbtf", "--out", "m.gbtf"]);
     assert!(e.contains("q2.gbtf") && e.contains("params differs"), "{e}");
+    // A part as the output would be deleted before it is read: refused.
+    let e = fails(
+        t,
+        &["merge", "part-1", "part-2", "part-3", "--out", "part-2", "--force"],
+    );
+    assert!(e.contains("part-2: is also the --out"), "{e}");
+    assert!(t.join("part-2/manifest.json").is_file());
     // An existing output is kept unless --force.
     let e = fails(t, &["merge", "p1.gbtf", "p2.gbtf", "--out", "merged.gbtf"]);
     assert!(e.contains("--force"), "{e}");
