@@ -29,6 +29,10 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("synthesize", &["compress", "store", "sweep"]),
     // the viewer reads datasets and compressed files (and renders them)
     ("view", &["compress", "store", "sweep"]),
+    // shards of the heavy jobs, their merge, and the scheduler that runs them
+    ("shard", &[]),
+    ("merge", &["shard", "compress", "store", "sweep"]),
+    ("slurm", &["shard"]),
     // the acquisition session, then the command line on top
     (
         "session",
@@ -49,6 +53,9 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "synth",
             "synthesize",
             "view",
+            "shard",
+            "merge",
+            "slurm",
         ],
     ),
 ];

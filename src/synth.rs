@@ -50,9 +50,26 @@ pub fn render_btf<E>(
     sweep: &Sweep,
     size: usize,
     scale: f32,
+    sink: impl FnMut(usize, usize, RgbImage) -> Result<(), E>,
+) -> Result<(), E> {
+    render_btf_views(renderer, rig, radius, sweep, 0..sweep.views.len(), size, scale, sink)
+}
+
+/// [`render_btf`] for the views `views` only (a shard, see `crate::shard`); `sink` gets
+/// the canonical view index. Each view is rendered exactly as in a full run, so the
+/// shards of a split give the same images as one process.
+#[allow(clippy::too_many_arguments)]
+pub fn render_btf_views<E>(
+    renderer: &Renderer,
+    rig: &RigSpec,
+    radius: f64,
+    sweep: &Sweep,
+    views: std::ops::Range<usize>,
+    size: usize,
+    scale: f32,
     mut sink: impl FnMut(usize, usize, RgbImage) -> Result<(), E>,
 ) -> Result<(), E> {
-    for (vi, &view) in sweep.views.iter().enumerate() {
+    for (vi, &view) in sweep.views.iter().enumerate().skip(views.start).take(views.len()) {
         let (camera, _) = positions(rig, sweep.lights[0], view);
         let traced = renderer.truth_view(camera, size, size);
         for (li, &light) in sweep.lights.iter().enumerate() {

@@ -33,6 +33,15 @@ echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh
 echo "== interop"
 bash tests/interop/run.sh
+echo "== slurm (sharded sim btf and PVMF through a one-node Slurm)"
+if command -v sbatch >/dev/null && command -v slurmctld >/dev/null && [ "$(id -u)" = 0 ]; then
+  bash tests/slurm/run.sh
+elif [ -n "${CI:-}" ]; then
+  echo "slurm: sbatch/slurmctld missing or not root under CI (.ci/run installs slurmctld slurmd slurm-client munge)" >&2
+  exit 1
+else
+  echo "slurm: skipped (needs root and apt-get install slurmctld slurmd slurm-client munge; run .ci/run)"
+fi
 echo "== browser (gonio view in headless chromium)"
 bash tests/browser/run.sh
 

@@ -76,4 +76,12 @@ pub trait Camera: Send + Sync {
     /// whose exposure started before this call. Cameras that expose only when `capture`
     /// is called (the simulated one) need nothing, hence the empty default.
     fn rig_still(&self) {}
+    /// The captures that follow (until the next call) belong to the measurement with
+    /// canonical pair index `index` (the plan step's `index`): exposure 0 until the camera
+    /// is reconfigured (a re-exposure), then 1, …; retries of a failed capture repeat their
+    /// exposure. The engine calls it just before a step's capture.
+    /// A simulated camera derives its sensor noise from this identity (and its seed), so a
+    /// measurement gets the same noise whatever order, machine or resume it was taken in;
+    /// real cameras have nothing to do with it, hence the empty default.
+    fn begin_measurement(&self, _index: u64) {}
 }

@@ -240,8 +240,9 @@ pub struct SimWorld {
     /// `response_compression`, `crosstalk`); `None` = the linear colour-clean default.
     pub response: Option<crate::sensor::SensorResponse>,
     /// Independent noise in every frame (`camera.options.frame_noise = true`), as a real
-    /// camera has; default: noise seeded by the pose, so a resumed acquisition is
-    /// reproducible — but then repeated frames of one pose (dark and flat frames) are equal.
+    /// camera has; default: noise seeded by the measurement's identity (see
+    /// [`noise_key`]), so a resumed acquisition is reproducible — but then repeated frames
+    /// of one pose outside a measurement (dark and flat frames) are equal.
     pub frame_noise: bool,
 }
 
@@ -290,10 +291,48 @@ impl SimWorld {
     }
 }
 
+/// Which measurement a capture belongs to: canonical pair index and exposure index within
+/// the measurement (see `Camera::begin_measurement`). The exposure index starts at 0 and
+/// advances with every `configure` inside the measurement (a re-exposure at another
+/// exposure time); retries of the same exposure keep it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CaptureIdentity {
+    pub index: u64,
+    pub exposure: u64,
+}
+
+/// Domain tag of measurement keys, so that no measurement key equals a pose key.
+const MEASUREMENT_KEY: u64 = 0x6D65_6173_7572_656D;
+
+/// The noise key of one capture (the sensor mixes it with its seed and the row).
+///
+/// * Inside a measurement: (canonical pair index, exposure index) only. The pose is left
+///   out on purpose: read-backs of the same commanded pose can differ in the last bit
+///   between runs that took different paths to it, and noise must not change with them.
+/// * Outside a measurement (calibration recipes, `gonio sim` captures): the pose bits, as
+///   before. Those poses come from a recipe in a fixed order, never from the order
+///   optimiser, so they repeat exactly; repeated frames of one pose share their noise
+///   unless `frame_noise` is set.
+/// * `frame_noise` mixes in the camera's frame counter (independent noise per frame).
+pub fn noise_key(identity: Option<CaptureIdentity>, q: &[f64], frame_noise: bool, sequence: u64) -> u64 {
+    use crate::noise::mix64;
+    let mut key = match identity {
+        Some(id) => mix64(mix64(MEASUREMENT_KEY ^ id.index) ^ id.exposure),
+        None => q.iter().fold(0u64, |h, x| mix64(h ^ x.to_bits())),
+    };
+    if frame_noise {
+        key = mix64(key ^ sequence.wrapping_add(1));
+    }
+    key
+}
+
 /// The simulated camera.
 pub struct SimCamera {
     world: Arc<SimWorld>,
     sequence: AtomicU64,
+    /// The measurement being captured and the exposures taken of it so far
+    /// (`Camera::begin_measurement`); `None` outside measurements.
+    measurement: Mutex<Option<CaptureIdentity>>,
     /// Opt-in injected fault (rig file `camera.options.fault`, see [`crate::camera_faults`]).
     fault: Option<crate::camera_faults::CameraFault>,
     /// The last frame handed out, kept only with a `stale` fault (to hand it out again).
@@ -355,6 +394,11 @@ impl Camera for SimCamera {
         "sim-camera"
     }
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
+        // A new setting inside a measurement (a re-exposure at another exposure time) is
+        // the measurement's next exposure: it gets its own noise.
+        if let Some(id) = self.measurement.lock().expect("measurement poisoned").as_mut() {
+            id.exposure += 1;
+        }
         let mut s = self.world.sensor.lock().expect("sensor poisoned");
         if config.width != self.world.width || config.height != self.world.height {
             return Err(DeviceError::Rejected {
@@ -379,7 +423,15 @@ impl Camera for SimCamera {
         })
     }
 
+    fn begin_measurement(&self, index: u64) {
+        *self.measurement.lock().expect("measurement poisoned") = Some(CaptureIdentity { index, exposure: 0 });
+    }
+
     async fn capture(&self) -> Result<Frame, DeviceError> {
+        // A retry (after a dropped, timed-out or stale frame) is the same exposure again,
+        // so it gets the same noise: a run with a transient fault stores the same bytes as
+        // one without.
+        let identity = *self.measurement.lock().expect("measurement poisoned");
         let fault = self.fault.as_ref().and_then(|f| f.next_capture());
         if let Some(kind) = fault {
             if let Some(result) = self.injected(kind).await {
@@ -394,12 +446,9 @@ impl Camera for SimCamera {
             (s.exposure_s, s.gain, s.bit_depth)
         };
         let timestamp = world.clock.now();
-        // Noise is seeded by the pose, not the frame counter: the same measurement gets the
-        // same noise whether the run was interrupted and resumed or not.
-        let mut noise_key = q.iter().fold(0u64, |h, x| crate::noise::mix64(h ^ x.to_bits()));
-        if world.frame_noise {
-            noise_key = crate::noise::mix64(noise_key ^ seq.wrapping_add(1));
-        }
+        // Noise is seeded by the measurement's identity, not the frame counter: the same
+        // measurement gets the same noise whether the run was interrupted and resumed or not.
+        let noise_key = noise_key(identity, &q, world.frame_noise, seq);
         let w2 = world.clone();
         let data = tokio::task::spawn_blocking(move || {
             let rad = w2.raw_radiance(&q);
@@ -668,6 +717,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
     let camera = Arc::new(SimCamera {
         world: world.clone(),
         sequence: AtomicU64::new(0),
+        measurement: Mutex::new(None),
         fault,
         last_frame: Mutex::new(None),
     });
@@ -678,4 +728,26 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         world,
         clock,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{noise_key, CaptureIdentity};
+
+    #[test]
+    fn measurement_noise_depends_on_identity_not_pose() {
+        let id = |index, exposure| Some(CaptureIdentity { index, exposure });
+        // Read-backs one ulp apart (what different paths to one pose gave): same key.
+        let a = [0.1f64, 0.7, -1.2];
+        let b = [f64::from_bits(0.1f64.to_bits() + 1), 0.7, -1.2];
+        assert_eq!(noise_key(id(42, 0), &a, false, 3), noise_key(id(42, 0), &b, false, 9));
+        // Another measurement, another exposure of the same one: other keys.
+        assert_ne!(noise_key(id(42, 0), &a, false, 0), noise_key(id(43, 0), &a, false, 0));
+        assert_ne!(noise_key(id(42, 0), &a, false, 0), noise_key(id(42, 1), &a, false, 0));
+        // Outside a measurement the pose decides (calibration recipes), bit for bit.
+        assert_ne!(noise_key(None, &a, false, 0), noise_key(None, &b, false, 0));
+        assert_eq!(noise_key(None, &a, false, 0), noise_key(None, &a, false, 5));
+        // frame_noise: the frame counter makes every frame independent.
+        assert_ne!(noise_key(id(42, 0), &a, true, 0), noise_key(id(42, 0), &a, true, 1));
+    }
 }

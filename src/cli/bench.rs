@@ -241,9 +241,14 @@ pub struct PlanBenchArgs {
     /// `bonn81` (default), `uniform15`, `fibonacci:N` or a file.
     #[arg(long, default_value = "bonn81")]
     pub sweep: String,
-    /// Optimizer budgets in seconds.
+    /// Optimizer wall-clock caps in seconds (kicks unlimited): how the order improves
+    /// with time on this machine, and how many kicks fit (`kicks` column; the reproducible
+    /// budget of `gonio plan --plan-kicks`).
     #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.5, 1.0, 2.0, 5.0])]
     pub budgets: Vec<f64>,
+    /// Kick budgets (reproducible), one row each, in addition to --budgets.
+    #[arg(long, value_delimiter = ',')]
+    pub kicks: Vec<usize>,
     /// Several rig files, comma-separated (e.g. every file in devices/rigs/): one table with
     /// a row per rig and budget. Takes the place of `--rig`.
     #[arg(long, value_delimiter = ',')]
@@ -256,7 +261,10 @@ pub struct PlanBenchArgs {
 struct PlanRow {
     rig: String,
     measured: usize,
-    budget_s: f64,
+    /// Wall-clock cap (null for a kick budget).
+    budget_s: Option<f64>,
+    /// Kicks that ran.
+    kicks: usize,
     canonical_s: f64,
     optimized_s: f64,
     lower_bound_s: f64,
@@ -285,9 +293,16 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
         );
     }
     let mut rows = Vec::new();
-    for (rig, &b) in rigs.iter().flat_map(|r| a.budgets.iter().map(move |b| (r, b))) {
+    let budgets: Vec<(Option<f64>, usize)> = a
+        .budgets
+        .iter()
+        .map(|&b| (Some(b), usize::MAX))
+        .chain(a.kicks.iter().map(|&k| (None, k)))
+        .collect();
+    for (rig, &(b, kicks)) in rigs.iter().flat_map(|r| budgets.iter().map(move |b| (r, b))) {
         let opts = crate::plan::PlanOptions {
-            time_budget: std::time::Duration::from_secs_f64(b),
+            kicks,
+            time_cap: b.map(std::time::Duration::from_secs_f64),
             ..Default::default()
         };
         let p = crate::plan::Plan::build(rig, &sweep, &opts)
@@ -297,6 +312,7 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
             rig: rig.name.clone(),
             measured: p.steps.len(),
             budget_s: b,
+            kicks: p.budget.kicks_done,
             canonical_s: d.canonical_s,
             optimized_s: d.optimized_s,
             lower_bound_s: d.lower_bound_s,
@@ -311,10 +327,11 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
     } else {
         println!("sweep {}", sweep.name);
         println!(
-            "{:<20} {:>8} {:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>11} {:>10}",
+            "{:<20} {:>8} {:>8} {:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>11} {:>10}",
             "rig",
             "measured",
             "budget s",
+            "kicks",
             "canonical s",
             "optimized s",
             "bound s",
@@ -325,10 +342,11 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
         );
         for r in &rows {
             println!(
-                "{:<20} {:>8} {:>8.2} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>11.3} {:>10.2}",
+                "{:<20} {:>8} {:>8} {:>8} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>11.3} {:>10.2}",
                 r.rig,
                 r.measured,
-                r.budget_s,
+                r.budget_s.map(|b| format!("{b:.2}")).unwrap_or_else(|| "-".into()),
+                r.kicks,
                 r.canonical_s,
                 r.optimized_s,
                 r.lower_bound_s,

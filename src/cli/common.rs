@@ -32,9 +32,14 @@ pub struct SweepArgs {
     /// What to do with pairs the rig cannot measure: `skip` or `substitute`.
     #[arg(long, default_value = "skip")]
     pub policy: Policy,
-    /// Seconds the order optimizer may spend.
-    #[arg(long, default_value_t = 2.0)]
-    pub plan_time: f64,
+    /// Kicks (improvement steps) of the order optimizer: a work count, so the same inputs
+    /// give the same plan on any machine and under any load.
+    #[arg(long, default_value_t = crate::plan::order::DEFAULT_KICKS)]
+    pub plan_kicks: usize,
+    /// Optional wall-clock cap (seconds) on the order optimizer. The plan then depends on
+    /// the machine's speed and load; plan.json records the cap (`budget.time_cap_s`).
+    #[arg(long)]
+    pub plan_time: Option<f64>,
     #[arg(long, default_value_t = 1)]
     pub plan_seed: u64,
     /// The sample is isotropic: measure only pairs distinct in (θ_l, θ_v, |φ_l − φ_v|);
@@ -47,16 +52,24 @@ impl SweepArgs {
     pub fn load(&self) -> Result<Sweep> {
         Sweep::resolve(&self.sweep).with_context(|| format!("loading sweep `{}`", self.sweep))
     }
-    /// The planner options these flags give (`--plan-time` checked).
+    /// The planner options these flags give (`--plan-time` and `--plan-kicks` checked).
     pub fn plan_options(&self) -> Result<PlanOptions> {
+        if let Some(t) = self.plan_time {
+            anyhow::ensure!(
+                t.is_finite() && (0.0..=3600.0).contains(&t),
+                "--plan-time {t}: must be between 0 and 3600 seconds (or leave it out: the \
+                 default budget is --plan-kicks, which is reproducible)"
+            );
+        }
         anyhow::ensure!(
-            self.plan_time.is_finite() && self.plan_time >= 0.0 && self.plan_time <= 3600.0,
-            "--plan-time {}: must be between 0 and 3600 seconds",
-            self.plan_time
+            self.plan_kicks <= 100_000_000,
+            "--plan-kicks {}: at most 100000000",
+            self.plan_kicks
         );
         Ok(PlanOptions {
             policy: self.policy,
-            time_budget: Duration::from_secs_f64(self.plan_time),
+            kicks: self.plan_kicks,
+            time_cap: self.plan_time.map(Duration::from_secs_f64),
             seed: self.plan_seed,
         })
     }

@@ -116,6 +116,11 @@ pub struct CompressArgs {
     /// Skip the error evaluation (a second pass reading every image).
     #[arg(long)]
     pub no_eval: bool,
+    /// PVMF only: factorize only shard I of N (1-based; a contiguous range of views) and
+    /// write that part to --out; `gonio merge` joins the parts into the file one process
+    /// would have written. A part is not evaluated (evaluate the merged file).
+    #[arg(long)]
+    pub shard: Option<crate::shard::Shard>,
     #[arg(long)]
     pub json: bool,
 }
@@ -201,6 +206,12 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
+    if args.shard.is_some() && !matches!(args.method, MethodArg::Pvmf) {
+        anyhow::bail!(
+            "--shard splits --method pvmf by views; other methods are compressed in one process \
+             (leave out --shard)"
+        );
+    }
     let t0 = Instant::now();
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
     let format = args.format.unwrap_or(match args.method {
@@ -243,8 +254,11 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         oversample: args.oversample,
         power_iters: args.power_iters,
     };
-    let (gbtf, mut info) =
-        compress::compress(&ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
+    let (gbtf, mut info) = match args.shard {
+        Some(shard) => compress::compress_pvmf_shard(&ds, &params, shard),
+        None => compress::compress(&ds, &params),
+    }
+    .with_context(|| format!("compressing {}", args.dataset.display()))?;
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -300,7 +314,7 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
 /// Read the written file back (checks every CRC or length), evaluate it against the
 /// dataset (and its truth), record peak memory.
 fn finish_report(args: &CompressArgs, ds: &DatasetViews, r: &mut Report) -> Result<()> {
-    if !args.no_eval {
+    if !args.no_eval && args.shard.is_none() {
         let model = AnyModel::open(&args.out).with_context(|| format!("reading {}", args.out.display()))?;
         let ev = compress::evaluate(ds, model.model()).context("evaluating the reconstruction")?;
         r.rmse_8bit = Some(ev.stats.rmse_8bit());

@@ -4,6 +4,7 @@
 //! `anyhow`. Every command that prints figures has `--json` for scripts.
 
 mod acquire;
+mod batch;
 mod bench;
 mod bench_compress;
 mod bench_serial;
@@ -16,6 +17,7 @@ mod devices;
 mod export;
 mod generate;
 mod import;
+mod merge;
 mod plan;
 mod render;
 mod serve_stage;
@@ -83,6 +85,11 @@ pub enum Command {
     Render(render::RenderArgs),
     /// Serve the browser viewer (relight, inspect, live monitor) for a dataset or compressed file.
     View(view::ViewArgs),
+    /// Join the parts of a sharded run (`--shard I/N`) into the single-process output.
+    Merge(merge::MergeArgs),
+    /// Run a sharded command on a cluster scheduler (Slurm job array + merge job).
+    #[command(subcommand)]
+    Batch(batch::BatchCommand),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -121,5 +128,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Calibrate(a) => calibrate::run(a),
         Command::Render(a) => render::run(a),
         Command::View(a) => view::run(a),
+        Command::Merge(a) => merge::run(a),
+        Command::Batch(c) => batch::run(c),
     }
 }

@@ -33,6 +33,8 @@ struct PlanJson<'a> {
     /// Whether the reduced isotropic set was planned because the sample declares it.
     #[serde(skip_serializing_if = "Option::is_none")]
     isotropic_from_sample: Option<String>,
+    /// Wall seconds spent planning (not part of the plan, which is reproducible data).
+    plan_time_s: f64,
     #[serde(flatten)]
     plan: &'a Plan,
 }
@@ -58,6 +60,7 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
             counts,
             bound_over_canonical,
             isotropic_from_sample: from_sample,
+            plan_time_s: plan.plan_time_s,
             plan: &plan,
         };
         println!("{}", serde_json::to_string(&out)?);
@@ -115,7 +118,16 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
             100.0 * iso.saved_s / iso.full_durations.optimized_s
         );
     }
-    println!("  plan computed in {:.2} s", plan.plan_time_s);
+    println!(
+        "  plan computed in {:.2} s ({} of {} kicks{})",
+        plan.plan_time_s,
+        plan.budget.kicks_done,
+        plan.budget.kicks,
+        plan.budget
+            .time_cap_s
+            .map(|c| format!(", wall-clock cap {c} s: not reproducible"))
+            .unwrap_or_default()
+    );
     if args.show > 0 {
         println!("  first steps (index: light θ,φ → view θ,φ; axes °; move s):");
         for s in plan.steps.iter().take(args.show) {

@@ -39,6 +39,10 @@ pub struct BtfArgs {
     /// view: the baseline the per-view path is measured against.
     #[arg(long)]
     pub per_pair: bool,
+    /// Render only shard I of N (1-based; a contiguous range of views) into --out; `gonio
+    /// merge` joins the parts into the dataset one process would have written.
+    #[arg(long)]
+    pub shard: Option<crate::shard::Shard>,
     #[arg(long)]
     pub json: bool,
 }
@@ -52,6 +56,9 @@ struct Report {
     images: usize,
     size: usize,
     mode: &'static str,
+    /// `I/N` and the views rendered, for a shard.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    shard: Option<crate::shard::ShardInfo>,
     /// Wall seconds rendering (both cores) and, with --out, storing (the store runs on its
     /// own thread, overlapped with rendering; `total_seconds` is the wall time of both).
     render_seconds: f64,
@@ -71,6 +78,14 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
     let rig = a.rig.load()?;
     let spec = load_sample(&a.sample)?;
     let sweep = Sweep::resolve(&a.sweep).with_context(|| format!("loading sweep `{}`", a.sweep))?;
+    let shard = match a.shard {
+        Some(s) => {
+            s.check_views(sweep.views.len()).map_err(anyhow::Error::msg)?;
+            Some(s.info(sweep.views.len()))
+        }
+        None => None,
+    };
+    let views = shard.map_or(0..sweep.views.len(), |s| s.first_view..s.end_view);
     let quality = RenderQuality {
         truth_supersample: a.supersample,
         ..Default::default()
@@ -97,15 +112,18 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
                  no noise (synthetic BTF, `gonio sim btf`)",
             );
             header.extra = serde_json::json!({ "synthetic": { "ideal_rig": true, "supersample": a.supersample } });
+            if let Some(s) = &shard {
+                header.extra["shard"] = serde_json::to_value(s)?;
+            }
             let mut ds = Dataset::create(out, &header, a.force)
                 .with_context(|| format!("creating the dataset {}", out.display()))?;
             let nl = sweep.lights.len();
-            let (lights, views) = (sweep.lights.clone(), sweep.views.clone());
+            let (lights, view_dirs) = (sweep.lights.clone(), sweep.views.clone());
             Some(std::thread::spawn(move || -> Result<()> {
                 for (vi, li, img) in rx {
                     let index = vi * nl + li;
                     let d = |x: gonio_devices::Direction| [x.theta_deg(), x.phi_deg()];
-                    let rec = MeasurementRecord::new(index, index, d(lights[li]), d(views[vi]));
+                    let rec = MeasurementRecord::new(index, index, d(lights[li]), d(view_dirs[vi]));
                     ds.store(rec, Some(&img), None)?;
                 }
                 ds.finish(&serde_json::json!({ "synthetic": true }))?;
@@ -114,7 +132,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         }
     };
 
-    let bar = indicatif::ProgressBar::new((sweep.lights.len() * sweep.views.len()) as u64);
+    let bar = indicatif::ProgressBar::new((sweep.lights.len() * views.len()) as u64);
     if a.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
@@ -132,7 +150,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
     };
     let result = if a.per_pair {
         let mut r = Ok(());
-        'outer: for (vi, &view) in sweep.views.iter().enumerate() {
+        'outer: for (vi, &view) in sweep.views.iter().enumerate().skip(views.start).take(views.len()) {
             for (li, &light) in sweep.lights.iter().enumerate() {
                 let (cam, lamp) = synth::positions(&rig, light, view);
                 let mut img = renderer.render_truth(cam, a.size, a.size, &synth::lamp_at(&rig, radius, lamp));
@@ -147,12 +165,21 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         }
         r
     } else {
-        synth::render_btf(&renderer, &rig, radius, &sweep, a.size, scale, |vi, li, img| {
-            render_s += last.elapsed().as_secs_f64();
-            send(vi, li, img)?;
-            last = Instant::now();
-            Ok(())
-        })
+        synth::render_btf_views(
+            &renderer,
+            &rig,
+            radius,
+            &sweep,
+            views.clone(),
+            a.size,
+            scale,
+            |vi, li, img| {
+                render_s += last.elapsed().as_secs_f64();
+                send(vi, li, img)?;
+                last = Instant::now();
+                Ok(())
+            },
+        )
     };
     drop(tx);
     bar.finish_and_clear();
@@ -161,7 +188,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
     }
     result?;
     let total = t0.elapsed().as_secs_f64();
-    let images = sweep.lights.len() * sweep.views.len();
+    let images = sweep.lights.len() * views.len();
     let report = Report {
         sample: spec.name.clone(),
         sweep: sweep.name.clone(),
@@ -170,6 +197,7 @@ pub fn run(a: BtfArgs) -> Result<ExitCode> {
         images,
         size: a.size,
         mode: if a.per_pair { "per-pair" } else { "per-view" },
+        shard,
         render_seconds: render_s,
         total_seconds: total,
         ms_per_image: render_s * 1e3 / images as f64,

@@ -311,13 +311,37 @@ pub(super) fn header_for(
     }
 }
 
+/// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
+/// views only, exactly as [`compress`] computes them (each view is factorized on its own),
+/// with the shard recorded as `source.shard` for `gonio merge`.
+pub fn compress_pvmf_shard(
+    ds: &DatasetViews,
+    params: &Params,
+    shard: crate::shard::Shard,
+) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    if params.components == 0 {
+        return Err(CompressError::Invalid("components must be at least 1".into()));
+    }
+    if params.method != Method::Pvmf {
+        return Err(CompressError::Invalid(format!(
+            "--shard splits PVMF by views; method {} is not split (compress it in one process)",
+            params.method.name()
+        )));
+    }
+    shard.check_views(ds.n_views()).map_err(CompressError::Invalid)?;
+    let info = shard.info(ds.n_views());
+    let (mut g, e) = compress_pvmf(ds, params, info.first_view..info.end_view)?;
+    g.header.source["shard"] = serde_json::to_value(info).map_err(|e| CompressError::Invalid(e.to_string()))?;
+    Ok((g, e))
+}
+
 /// Compress the dataset with `params`.
 pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
     if params.components == 0 {
         return Err(CompressError::Invalid("components must be at least 1".into()));
     }
     match params.method {
-        Method::Pvmf => compress_pvmf(ds, params),
+        Method::Pvmf => compress_pvmf(ds, params, 0..ds.n_views()),
         Method::Pca => compress_pca(ds, params),
         Method::LocalPca { .. } => super::local_pca::compress(ds, params),
         Method::MedianCut { .. } => super::median_cut::compress(ds, params),
@@ -330,19 +354,24 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
 /// view `k`; both use the rayon pool, so on a small machine this fills the gaps of each
 /// stage rather than doubling the throughput. At most three view matrices (f64, 127 MiB
 /// each at 256² × 243) are alive at once.
-fn compress_pvmf(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+fn compress_pvmf(
+    ds: &DatasetViews,
+    params: &Params,
+    views: std::ops::Range<usize>,
+) -> Result<(Gbtf, EncodeInfo), CompressError> {
     use std::sync::mpsc::sync_channel;
     use std::time::Instant;
     let c = params.components;
-    let (t, cols, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
+    let (t, cols, nv) = (ds.texels(), ds.n_lights() * 3, views.len());
     let mut blocks = Vec::with_capacity(2 * nv);
     let mut infos = Vec::with_capacity(2 * nv);
     let mut filled = Vec::new();
     let (mut wait_s, mut factor_s, mut gram_views, mut svd_views) = (0.0, 0.0, 0usize, 0usize);
     std::thread::scope(|scope| -> Result<(), CompressError> {
         let (tx, rx) = sync_channel(1);
+        let reader_views = views.clone();
         scope.spawn(move || {
-            for v in 0..nv {
+            for v in reader_views {
                 let r = ds.view_columns(v);
                 let failed = r.is_err();
                 // A closed channel means the factorization stopped (error): stop too.
@@ -351,7 +380,7 @@ fn compress_pvmf(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo
                 }
             }
         });
-        for v in 0..nv {
+        for v in views.clone() {
             let t0 = Instant::now();
             let (a, vf) = rx
                 .recv()

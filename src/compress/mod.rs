@@ -70,7 +70,7 @@ mod tests;
 
 pub use container::{BlockInfo, Gbtf, GbtfHeader};
 pub use data::{DatasetViews, ViewMatrix};
-pub use factor::{compress, find_direction, CompressedBtf, EncodeInfo, Method, Params, Stage};
+pub use factor::{compress, compress_pvmf_shard, find_direction, CompressedBtf, EncodeInfo, Method, Params, Stage};
 pub use metrics::{evaluate, peak_memory_bytes, ErrorStats, Evaluation};
 
 use crate::store::StoreError;

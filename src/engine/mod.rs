@@ -284,6 +284,9 @@ async fn drive_step(
         .await
         .map_err(|source| EngineError::Device { index, source })?;
     let t1 = Instant::now();
+    // The measurement's identity (its canonical pair index): a simulated camera keys its
+    // noise on it, so the same measurement gives the same bytes in any order or run.
+    rig.camera.begin_measurement(index as u64);
     let (frame, notes) = rig
         .capture(policy, camera_config)
         .await

@@ -110,6 +110,13 @@ pub struct Plan {
     pub steps: Vec<Step>,
     pub skipped: Vec<Skipped>,
     pub durations: Durations,
+    /// The order optimiser's budget and what it used: part of the plan, so two plans can
+    /// be told apart by their inputs (a wall-clock cap makes the order machine-dependent).
+    #[serde(default)]
+    pub budget: PlanBudget,
+    /// Wall seconds spent planning. Not stored in `plan.json` (it differs between
+    /// identical runs, and a plan is byte-identical data); `gonio plan` prints it.
+    #[serde(skip)]
     pub plan_time_s: f64,
     /// Number of directions in the sweep's light list (for the canonical index).
     pub light_count: usize,
@@ -141,11 +148,27 @@ pub struct IsotropicPlan {
     pub equivalents: Vec<isotropic::Equivalent>,
 }
 
+/// The order optimiser's budget as recorded in `plan.json`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PlanBudget {
+    /// Kicks of the iterated local search asked for ([`order::OrderOptions::kicks`]).
+    pub kicks: usize,
+    /// Kicks that ran (summed over the plans an isotropic plan builds); fewer than asked
+    /// only when the wall-clock cap stopped the search or the instance was solved exactly.
+    pub kicks_done: usize,
+    /// The wall-clock cap, if one was given (`--plan-time`). Present means the order may
+    /// differ between machines and runs; absent means it depends only on the inputs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_cap_s: Option<f64>,
+}
+
 #[derive(Clone, Debug)]
 pub struct PlanOptions {
     pub policy: Policy,
-    /// Time the optimizer may spend improving the order.
-    pub time_budget: Duration,
+    /// Kicks the optimizer may spend improving the order (deterministic budget).
+    pub kicks: usize,
+    /// Optional wall-clock cap on the improvement (not reproducible; recorded in the plan).
+    pub time_cap: Option<Duration>,
     pub seed: u64,
 }
 
@@ -153,7 +176,8 @@ impl Default for PlanOptions {
     fn default() -> Self {
         PlanOptions {
             policy: Policy::Skip,
-            time_budget: Duration::from_secs(2),
+            kicks: order::DEFAULT_KICKS,
+            time_cap: None,
             seed: 1,
         }
     }
@@ -210,12 +234,13 @@ impl Plan {
 
     /// Plan for a sample declared isotropic: measure one reachable pair per isotropy class
     /// (see [`isotropic`]) and record how every other pair is reconstructed. The full plan
-    /// is computed too (half the time budget each), so the saving is a planned figure, not
-    /// an estimate.
+    /// is computed too (half the kick budget and half of any time cap each), so the saving
+    /// is a planned figure, not an estimate.
     pub fn build_isotropic(rig: &RigSpec, sweep: &Sweep, opts: &PlanOptions) -> Result<Plan, PlanError> {
         let t0 = Instant::now();
         let half = PlanOptions {
-            time_budget: opts.time_budget / 2,
+            kicks: opts.kicks / 2,
+            time_cap: opts.time_cap.map(|c| c / 2),
             ..opts.clone()
         };
         let pairs = sweep.pairs();
@@ -265,6 +290,11 @@ impl Plan {
             equivalents,
         });
         plan.pairs = pairs.len();
+        plan.budget = PlanBudget {
+            kicks: opts.kicks,
+            kicks_done: full.budget.kicks_done + plan.budget.kicks_done,
+            time_cap_s: opts.time_cap.map(|c| c.as_secs_f64()),
+        };
         plan.plan_time_s = t0.elapsed().as_secs_f64();
         Ok(plan)
     }
@@ -337,7 +367,8 @@ impl Plan {
             &motions,
             &home,
             &OrderOptions {
-                time_budget: opts.time_budget,
+                kicks: opts.kicks,
+                time_cap: opts.time_cap,
                 seed: opts.seed,
             },
         );
@@ -383,6 +414,11 @@ impl Plan {
                 lower_bound_s: bound + n * capture,
                 capture_per_measurement_s: capture,
                 optimized_motion_s: opt.motion_time,
+            },
+            budget: PlanBudget {
+                kicks: opts.kicks,
+                kicks_done: opt.kicks_done,
+                time_cap_s: opts.time_cap.map(|c| c.as_secs_f64()),
             },
             plan_time_s: t0.elapsed().as_secs_f64(),
             light_count: sweep.lights.len(),
@@ -459,7 +495,7 @@ mod tests {
             &rig,
             &small_sweep(),
             &PlanOptions {
-                time_budget: Duration::from_millis(50),
+                kicks: 1_000,
                 ..Default::default()
             },
         )
@@ -498,7 +534,8 @@ mod tests {
             &small_sweep(),
             &PlanOptions {
                 policy: Policy::Substitute,
-                time_budget: Duration::from_millis(50),
+                kicks: 1_000,
+                time_cap: None,
                 seed: 1,
             },
         )
@@ -541,7 +578,7 @@ mod tests {
         let rig = RigSpec::default_rig();
         let sweep = Sweep::resolve("bonn81").unwrap();
         let opts = PlanOptions {
-            time_budget: Duration::from_millis(100),
+            kicks: 2_000,
             ..Default::default()
         };
         let plan = Plan::build_isotropic(&rig, &sweep, &opts).unwrap();

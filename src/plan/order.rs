@@ -37,15 +37,20 @@
 //!    a segment and therefore relies on symmetric transition times, which
 //!    [`MotionModel::move_time`] guarantees (it depends on `|distance|` only); the DP and
 //!    [`route_time`] do not rely on symmetry.
-//! 5. **Iterated local search** until the time budget is spent: a local double-bridge kick
+//! 5. **Iterated local search** for a fixed number of kicks ([`OrderOptions::kicks`]; an
+//!    optional wall-clock cap may stop it earlier): a local double-bridge kick
 //!    (two adjacent segments of up to 30 nodes swapped — a move 2-opt and Or-opt cannot
 //!    undo in one step), local search around it, keep if the exact time is not worse,
 //!    otherwise roll back the touched range. Every `max(64, N/8)` kicks the DP
 //!    re-optimizes all candidate choices for the current order; the best route by exact
 //!    time is returned.
 //!
-//! The construction, the first DP and the first full descent do not look at the clock, so
-//! a (near-)zero budget gives a deterministic result; the seed only drives the kicks.
+//! **Determinism.** The budget is a work count (kicks), not a time: the same nodes, seed
+//! and kick count give the same route on any machine, at any load and thread count (the
+//! only parallel step, the neighbour lists, collects in node order). A wall-clock cap
+//! ([`OrderOptions::time_cap`]) is available for interactive use; it makes the route
+//! depend on the machine's speed, so the plan records it. The construction, the first DP
+//! and the first full descent never look at the cap.
 //!
 //! **Free axes in local search.** Every node remembers where its predecessor left the
 //! axes (`inh`), refreshed after every applied move, so the cost of each edge of the
@@ -81,6 +86,9 @@ pub struct Node {
 /// A measurement order and the configuration used for each measurement.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Route {
+    /// Kicks of the iterated local search that ran (0 for instances solved exactly);
+    /// below [`OrderOptions::kicks`] only when a wall-clock cap stopped the search.
+    pub kicks_done: usize,
     /// Node indices, each exactly once.
     pub order: Vec<usize>,
     /// Candidate index for each position of `order` (`choice[i]` indexes
@@ -93,18 +101,27 @@ pub struct Route {
 /// Knobs of [`optimize`].
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct OrderOptions {
-    /// Wall-clock budget for the improvement phase (iterated local search). Construction,
-    /// the candidate DP and the first local-search descent always run to completion, so a
-    /// zero budget returns that (deterministic) local optimum.
-    pub time_budget: Duration,
-    /// Seed of the random kicks; same seed and a zero budget give the same route.
+    /// Kicks of the improvement phase (iterated local search): the deterministic budget.
+    /// Construction, the candidate DP and the first local-search descent always run to
+    /// completion, so 0 returns that local optimum.
+    pub kicks: usize,
+    /// Optional wall-clock cap on the improvement phase. `None` (default): the route
+    /// depends only on the inputs; `Some`: a slow or loaded machine may stop earlier and
+    /// plan a different route.
+    pub time_cap: Option<Duration>,
+    /// Seed of the random kicks.
     pub seed: u64,
 }
+
+/// Default kick budget: on the default rig's full Bonn sweep (6480 nodes) about as many
+/// kicks as the former 2 s wall-clock budget ran on an idle 2-core machine (docs/scale.md).
+pub const DEFAULT_KICKS: usize = 20_000;
 
 impl Default for OrderOptions {
     fn default() -> Self {
         OrderOptions {
-            time_budget: Duration::from_secs(2),
+            kicks: DEFAULT_KICKS,
+            time_cap: None,
             seed: 0,
         }
     }
@@ -203,6 +220,7 @@ pub fn canonical(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> Rout
     let order: Vec<usize> = (0..nodes.len()).collect();
     let motion_time = route_time(nodes, motions, start, &order, &choice);
     Route {
+        kicks_done: 0,
         order,
         choice,
         motion_time,
@@ -215,26 +233,30 @@ pub fn canonical(nodes: &[Node], motions: &[MotionModel], start: &[f64]) -> Rout
 /// (visited set, last candidate) when `2^N·C² ≤ 4·10⁷` (C = total candidates), with free
 /// axes by enumerating all orders for `N ≤ 8` (each with the exact candidate DP) when
 /// `N!·C²/N ≤ 2·10⁷`.
-/// Everything else goes through the heuristic, which spends about `opts.time_budget`
-/// beyond its mandatory first descent.
+/// Everything else goes through the heuristic, which runs `opts.kicks` kicks beyond its
+/// mandatory first descent (fewer if `opts.time_cap` runs out first).
 ///
 /// # Panics
 /// If a node has no candidate or a configuration has the wrong number of axes.
 pub fn optimize(nodes: &[Node], motions: &[MotionModel], start: &[f64], opts: &OrderOptions) -> Route {
-    let deadline = Instant::now() + opts.time_budget;
+    let deadline = opts.time_cap.map(|cap| Instant::now() + cap);
     let p = Problem::new(nodes, motions, start);
     if p.n == 0 {
         return Route {
+            kicks_done: 0,
             order: vec![],
             choice: vec![],
             motion_time: 0.0,
         };
     }
-    let (order, sel) = match exact_small(&p) {
-        Some(r) => r,
-        None => heuristic(&p, opts.seed, deadline, usize::MAX),
+    let (order, sel, kicks_done) = match exact_small(&p) {
+        Some((order, sel)) => (order, sel, 0),
+        None => heuristic(&p, opts.seed, deadline, opts.kicks),
     };
-    p.route(nodes, &order, &sel)
+    Route {
+        kicks_done,
+        ..p.route(nodes, &order, &sel)
+    }
 }
 
 /// A provable lower bound on the motion time of *any* route through `nodes` from `start`.
@@ -647,6 +669,7 @@ impl<'m> Problem<'m> {
             .collect();
         let motion_time = route_time(nodes, self.m, &self.start, &order_u, &choice);
         Route {
+            kicks_done: 0,
             order: order_u,
             choice,
             motion_time,
@@ -1675,19 +1698,17 @@ impl<'a, 'm> Ls<'a, 'm> {
     }
 }
 
-/// SplitMix64 stream: tiny, seedable, good enough for picking kick positions. The planner
-/// keeps its own few lines rather than import the simulator's (a planner needs no
-/// simulator; ARCHITECTURE.md invariant 3).
+/// SplitMix64 stream: tiny, seedable, good enough for picking kick positions. The
+/// planner keeps its own copy so that plans never change with the simulator's noise code.
 struct Rng(u64);
 
 impl Rng {
     fn next(&mut self) -> u64 {
-        let mut z = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        let out = z ^ (z >> 31);
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        out
+        z ^ (z >> 31)
     }
     fn below(&mut self, n: usize) -> usize {
         (self.next() % n.max(1) as u64) as usize
@@ -1715,8 +1736,9 @@ fn checkpoint(p: &Problem, ls: &mut Ls, best: &mut Best) {
 }
 
 /// The heuristic pipeline of the module documentation. Returns (order, global candidate
-/// ids per position).
-fn heuristic(p: &Problem, seed: u64, deadline: Instant, max_kicks: usize) -> (Vec<u32>, Vec<u32>) {
+/// ids per position, kicks run). Without a `deadline` the result depends only on the
+/// inputs.
+fn heuristic(p: &Problem, seed: u64, deadline: Option<Instant>, max_kicks: usize) -> (Vec<u32>, Vec<u32>, usize) {
     let n = p.n;
     let clock = Instant::now();
     let idx = Index::build(p);
@@ -1737,7 +1759,7 @@ fn heuristic(p: &Problem, seed: u64, deadline: Instant, max_kicks: usize) -> (Ve
     let mut backup = ls.r.clone();
     let every = (n / 8).max(64);
     let (mut since, mut stagnation, mut iterations) = (0usize, 0usize, 0usize);
-    while n >= 3 && iterations < max_kicks && Instant::now() < deadline {
+    while n >= 3 && iterations < max_kicks && deadline.is_none_or(|d| Instant::now() < d) {
         iterations += 1;
         if stagnation >= 20 * n {
             // Stuck for long (only happens on small instances within any sensible budget):
@@ -1789,7 +1811,7 @@ fn heuristic(p: &Problem, seed: u64, deadline: Instant, max_kicks: usize) -> (Ve
         best.2,
         clock.elapsed().as_secs_f64()
     );
-    (best.0, best.1)
+    (best.0, best.1, iterations)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -2148,7 +2170,8 @@ mod tests {
         let m = rig_motions();
         let start = [0.0; 4];
         let opts = OrderOptions {
-            time_budget: Duration::from_millis(50),
+            kicks: 2_000,
+            time_cap: None,
             seed: 3,
         };
         for seed in 0..4u64 {
@@ -2183,9 +2206,8 @@ mod tests {
                 let nodes = random_nodes(seed * 11 + 5, 8, 2, free);
                 let exact = brute_force(&nodes, &m, &start);
                 let p = Problem::new(&nodes, &m, &start);
-                // A kick budget instead of a time budget keeps the test independent of load.
-                let deadline = Instant::now() + Duration::from_secs(60);
-                let (order, sel) = heuristic(&p, seed, deadline, 30_000);
+                let (order, sel, kicks) = heuristic(&p, seed, None, 30_000);
+                assert_eq!(kicks, 30_000);
                 let r = p.route(&nodes, &order, &sel);
                 assert_valid(&nodes, &r);
                 assert!(
@@ -2432,7 +2454,8 @@ mod tests {
         let canon = canonical(&nodes, &m, &home);
         assert_valid(&nodes, &canon);
         let opts = OrderOptions {
-            time_budget: Duration::from_millis(300),
+            kicks: 3_000,
+            time_cap: None,
             seed: 9,
         };
         let r = optimize(&nodes, &m, &home, &opts);
@@ -2454,13 +2477,48 @@ mod tests {
     fn zero_budget_is_deterministic() {
         let (nodes, m, home) = bonn_nodes(&[(0.0, 1), (45.0, 18), (75.0, 24)], PoleViews::Sampled);
         let opts = OrderOptions {
-            time_budget: Duration::ZERO,
+            kicks: 0,
+            time_cap: None,
             seed: 42,
         };
         let a = optimize(&nodes, &m, &home, &opts);
         let b = optimize(&nodes, &m, &home, &opts);
         assert_valid(&nodes, &a);
         assert_eq!(a, b);
+    }
+
+    /// The kick budget is a work count: the same route whatever the thread count (the
+    /// neighbour lists are built in parallel) and however long each kick takes.
+    #[test]
+    fn kick_budget_is_deterministic_across_thread_counts() {
+        let (nodes, m, home) = bonn_nodes(&[(0.0, 1), (45.0, 18), (75.0, 24)], PoleViews::Sampled);
+        let opts = OrderOptions {
+            kicks: 1_500,
+            time_cap: None,
+            seed: 7,
+        };
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| optimize(&nodes, &m, &home, &opts))
+        };
+        let one = run(1);
+        assert_eq!(one.kicks_done, 1_500);
+        // A zero budget is a different (worse or equal) route: the kicks did run.
+        let zero = optimize(
+            &nodes,
+            &m,
+            &home,
+            &OrderOptions {
+                kicks: 0,
+                ..opts.clone()
+            },
+        );
+        assert!(one.motion_time <= zero.motion_time + 1e-9);
+        assert_eq!(one, run(2));
+        assert_eq!(one, run(3));
     }
 
     /// `cargo test -p gonio --release --lib plan::order -- --ignored --nocapture`
@@ -2505,9 +2563,10 @@ mod tests {
             let t0 = Instant::now();
             let lb = lower_bound(&nodes, &m, &home);
             println!("lower bound: {lb:.1} s  [{:.3} s]", t0.elapsed().as_secs_f64());
-            for budget in [0.0, 0.5, 1.0, 2.0, 5.0] {
+            for kicks in [0usize, 5_000, 10_000, 20_000, 50_000] {
                 let opts = OrderOptions {
-                    time_budget: Duration::from_secs_f64(budget),
+                    kicks,
+                    time_cap: None,
                     seed: 1,
                 };
                 let t0 = Instant::now();
@@ -2515,7 +2574,7 @@ mod tests {
                 let secs = t0.elapsed().as_secs_f64();
                 assert_valid(&nodes, &r);
                 println!(
-                    "budget {budget:>3} s: optimized {:.1} s = {:.3} × canonical = {:.3} × bound  [{secs:.3} s]",
+                    "kicks {kicks:>6}: optimized {:.1} s = {:.3} × canonical = {:.3} × bound  [{secs:.3} s]",
                     r.motion_time,
                     r.motion_time / canon.motion_time,
                     r.motion_time / lb

@@ -162,6 +162,9 @@ impl Camera for WallPacedCamera {
     fn rig_still(&self) {
         self.inner.rig_still()
     }
+    fn begin_measurement(&self, index: u64) {
+        self.inner.begin_measurement(index)
+    }
 }
 
 /// A real axis whose settled read-back is copied to a simulated axis, so the simulated

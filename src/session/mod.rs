@@ -32,7 +32,6 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::Duration;
 use thiserror::Error;
 
 /// Supersampling cap of the rectification filter in acquisitions.
@@ -239,7 +238,8 @@ impl Session {
                     &sweep,
                     &PlanOptions {
                         policy,
-                        time_budget: Duration::ZERO,
+                        kicks: 0,
+                        time_cap: None,
                         seed: 1,
                     },
                 )

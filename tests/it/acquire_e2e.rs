@@ -14,7 +14,6 @@ use gonio_simulator::SampleSpec;
 use std::collections::HashSet;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
 fn reduced_sweep() -> Sweep {
     let d = vec![
         Direction::from_degrees(0.0, 0.0),
@@ -57,7 +56,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
         sweep: reduced_sweep(),
         plan: PlanRequest {
             options: PlanOptions {
-                time_budget: Duration::from_millis(100),
+                kicks: 2_000,
                 ..Default::default()
             },
             isotropic: false,

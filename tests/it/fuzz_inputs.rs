@@ -294,7 +294,7 @@ fn plan_small(rig: &RigSpec) {
         rig,
         &sweep,
         &PlanOptions {
-            time_budget: Duration::ZERO,
+            kicks: 0,
             ..Default::default()
         },
     );

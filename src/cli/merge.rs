@@ -1,0 +1,46 @@
+//! `gonio merge`: join the parts of a sharded run (`--shard I/N`) into one output.
+
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+#[derive(clap::Args, Debug)]
+pub struct MergeArgs {
+    /// The parts: dataset directories of `gonio sim btf --shard`, or `.gbtf` files of
+    /// `gonio compress --method pvmf --shard`; every shard 1..=N exactly once, any order.
+    #[arg(required = true)]
+    pub parts: Vec<PathBuf>,
+    /// The merged dataset directory or `.gbtf` file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Replace an existing output.
+    #[arg(long)]
+    pub force: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: MergeArgs) -> Result<ExitCode> {
+    let t0 = Instant::now();
+    let report = crate::merge::merge(&a.parts, &a.out, a.force)
+        .with_context(|| format!("merging {} part(s) into {}", a.parts.len(), a.out.display()))?;
+    let seconds = t0.elapsed().as_secs_f64();
+    if a.json {
+        let mut v = serde_json::to_value(&report)?;
+        v["seconds"] = serde_json::json!(seconds);
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "merged {} {} part(s) ({} shards, {} views, {} {}) into {} in {seconds:.2} s",
+            report.parts,
+            report.kind,
+            report.shards,
+            report.views,
+            report.items,
+            if report.kind == "dataset" { "records" } else { "blocks" },
+            report.out.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,376 @@
+//! `gonio merge`: put the parts of a sharded job back together ([`crate::shard`]).
+//!
+//! Two kinds of parts:
+//! * **datasets** (`gonio sim btf --shard`): every record and image of every part, written
+//!   through [`Dataset::store`] in the single-process order (shards in order, each in its
+//!   journal order). Each image is decoded and stored again, and the hash of the stored
+//!   file must equal the part's recorded `image_sha256`, so the merged dataset is proven
+//!   byte-identical image by image. The manifest is the parts' manifest without
+//!   `extra.shard`; its `created_unix` is the earliest part's.
+//! * **`.gbtf` files** (`gonio compress --method pvmf --shard`): PVMF's blocks are per
+//!   view, so the merged file is the parts' blocks and filled pairs concatenated in view
+//!   order under the parts' common header (without `source.shard`): byte-identical to the
+//!   single-process file.
+//!
+//! Every part must be a complete part of the same job: missing, duplicate, overlapping,
+//! incomplete or mismatched parts are refused, naming the part and the field.
+
+use crate::compress::{Gbtf, GbtfHeader};
+use crate::shard::{self, first_difference, ShardError, ShardInfo};
+use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
+use std::path::{Path, PathBuf};
+
+/// Errors of a merge; each names the part (or output) concerned.
+#[derive(Debug, thiserror::Error)]
+pub enum MergeError {
+    #[error(transparent)]
+    Shard(#[from] ShardError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(transparent)]
+    Compress(#[from] crate::compress::CompressError),
+    #[error("{path}: {reason}")]
+    Part { path: PathBuf, reason: String },
+    #[error(
+        "missing part(s) {}: their shard did not write them (failed or not run); re-run those shards \
+         and merge again",
+        parts.join(", ")
+    )]
+    Absent { parts: Vec<String> },
+    #[error("{path} exists; pass --force to replace it")]
+    Exists { path: PathBuf },
+    #[error(
+        "{path}: measurement {index} stored as {stored} but the part recorded {recorded}: the merged image \
+         would not be byte-identical"
+    )]
+    HashMismatch {
+        path: PathBuf,
+        index: usize,
+        stored: String,
+        recorded: String,
+    },
+}
+
+/// What a merge did.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MergeReport {
+    /// `dataset` or `gbtf`.
+    pub kind: &'static str,
+    pub parts: usize,
+    pub shards: usize,
+    pub views: usize,
+    /// Records (dataset) or factor blocks (gbtf) written.
+    pub items: usize,
+    pub out: PathBuf,
+}
+
+/// Merge `parts` into `out` (a dataset directory or a `.gbtf` file, by the parts' kind).
+pub fn merge(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let first = parts.first().ok_or(ShardError::NoParts)?;
+    let absent: Vec<String> = parts
+        .iter()
+        .filter(|p| !p.exists())
+        .map(|p| p.display().to_string())
+        .collect();
+    if !absent.is_empty() {
+        return Err(MergeError::Absent { parts: absent });
+    }
+    // `--out` naming one of the parts would delete that part (--force) before it is read.
+    if let Ok(o) = out.canonicalize() {
+        if let Some(p) = parts.iter().find(|p| p.canonicalize().is_ok_and(|c| c == o)) {
+            return Err(part_err(
+                p,
+                "is also the --out of the merge; write the merged result elsewhere",
+            ));
+        }
+    }
+    if first.is_dir() {
+        merge_datasets(parts, out, force)
+    } else {
+        merge_gbtf(parts, out, force)
+    }
+}
+
+fn part_err(path: &Path, reason: impl Into<String>) -> MergeError {
+    MergeError::Part {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
+}
+
+fn not_a_part(path: &Path, reason: impl Into<String>) -> MergeError {
+    MergeError::Shard(ShardError::NotAPart {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    })
+}
+
+fn shard_of(path: &Path, v: Option<&serde_json::Value>, where_: &str) -> Result<ShardInfo, MergeError> {
+    let v = v.ok_or_else(|| not_a_part(path, format!("it has no {where_}")))?;
+    serde_json::from_value(v.clone()).map_err(|e| not_a_part(path, format!("{where_} does not parse: {e}")))
+}
+
+/// Check that every part agrees with the first on `normalised` (a JSON value of what
+/// must be equal), naming the first field that differs.
+fn check_same(parts: &[PathBuf], normalised: &[serde_json::Value]) -> Result<(), MergeError> {
+    for (p, v) in parts.iter().zip(normalised).skip(1) {
+        if let Some((field, detail)) = first_difference(&normalised[0], v) {
+            return Err(ShardError::Mismatch {
+                path: p.clone(),
+                first: parts[0].clone(),
+                field,
+                detail,
+            }
+            .into());
+        }
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------
+// Datasets
+// ---------------------------------------------------------------------------------------
+
+struct DatasetPart {
+    header: ManifestHeader,
+    records: Vec<MeasurementRecord>,
+    shard: ShardInfo,
+}
+
+/// Files a dataset part may hold besides what the store writes per record.
+const STORE_FILES: [&str; 3] = [store::MANIFEST_FILE, store::JOURNAL_FILE, store::IMAGES_DIR];
+
+fn read_dataset_part(dir: &Path) -> Result<(DatasetPart, serde_json::Value), MergeError> {
+    let mpath = dir.join(store::MANIFEST_FILE);
+    let bytes = std::fs::read(&mpath).map_err(|e| part_err(dir, format!("reading {}: {e}", mpath.display())))?;
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&bytes).map_err(|e| part_err(dir, format!("manifest.json: {e}")))?;
+    let shard = shard_of(dir, manifest.pointer("/extra/shard"), "extra.shard in manifest.json")?;
+    if manifest.get("complete") != Some(&serde_json::Value::Bool(true)) {
+        return Err(part_err(
+            dir,
+            format!(
+                "shard {}/{} is incomplete (its run did not finish); run it again with --shard {}/{} --force",
+                shard.index, shard.count, shard.index, shard.count
+            ),
+        ));
+    }
+    for entry in std::fs::read_dir(dir).map_err(|e| part_err(dir, format!("listing: {e}")))? {
+        let entry = entry.map_err(|e| part_err(dir, format!("listing: {e}")))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if !STORE_FILES.contains(&name.as_str()) && !name.starts_with('.') {
+            return Err(part_err(
+                dir,
+                format!("holds `{name}`, which merge does not know how to combine (only sharded `gonio sim btf` datasets merge)"),
+            ));
+        }
+    }
+    let (header, mut records) = store::load(dir)?;
+    records.sort_by_key(|r| (r.order, r.index));
+    // What must be equal across parts: everything but the records, the creation time and
+    // the part's own shard.
+    let mut norm = manifest;
+    if let Some(o) = norm.as_object_mut() {
+        o.remove("records");
+        o.remove("created_unix");
+    }
+    if let Some(extra) = norm.get_mut("extra").and_then(|e| e.as_object_mut()) {
+        extra.remove("shard");
+    }
+    Ok((DatasetPart { header, records, shard }, norm))
+}
+
+fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let mut read = Vec::with_capacity(parts.len());
+    let mut norms = Vec::with_capacity(parts.len());
+    for p in parts {
+        if !p.is_dir() {
+            return Err(not_a_part(p, "the first part is a dataset directory, this is not"));
+        }
+        let (part, norm) = read_dataset_part(p)?;
+        read.push(part);
+        norms.push(norm);
+    }
+    let infos: Vec<(PathBuf, ShardInfo)> = parts.iter().cloned().zip(read.iter().map(|r| r.shard)).collect();
+    let order = shard::check_complete(&infos)?;
+    check_same(parts, &norms)?;
+    let n_lights = read[0]
+        .header
+        .sweep
+        .get("lights_deg")
+        .and_then(|l| l.as_array())
+        .map(|l| l.len())
+        .ok_or_else(|| part_err(&parts[0], "manifest sweep has no lights_deg"))?;
+    // Each part holds exactly the pairs of its views.
+    for (p, part) in parts.iter().zip(&read) {
+        let want: Vec<usize> = (part.shard.first_view * n_lights..part.shard.end_view * n_lights).collect();
+        let mut have: Vec<usize> = part.records.iter().map(|r| r.index).collect();
+        have.sort_unstable();
+        if have != want {
+            let missing = want.iter().filter(|i| have.binary_search(i).is_err()).count();
+            let foreign = have.iter().filter(|i| want.binary_search(i).is_err()).count();
+            return Err(part_err(
+                p,
+                format!(
+                    "shard {}/{} should hold the {} pairs of views {}..{}; {missing} of them are missing and \
+                     {foreign} records belong to other views",
+                    part.shard.index,
+                    part.shard.count,
+                    want.len(),
+                    part.shard.first_view,
+                    part.shard.end_view
+                ),
+            ));
+        }
+        if let Some(r) = part.records.iter().find(|r| r.raw.is_some()) {
+            return Err(part_err(
+                p,
+                format!(
+                    "measurement {} has a raw frame; merge handles rectified images only",
+                    r.index
+                ),
+            ));
+        }
+    }
+    if out.exists() && !force {
+        return Err(MergeError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    let mut header = read[0].header.clone();
+    header.created_unix = read.iter().map(|r| r.header.created_unix).fold(f64::INFINITY, f64::min);
+    if let Some(extra) = header.extra.as_object_mut() {
+        extra.remove("shard");
+    }
+    let summary = norms[0].get("summary").cloned().unwrap_or(serde_json::Value::Null);
+    let mut ds = Dataset::create(out, &header, force)?;
+    let mut items = 0;
+    for &k in &order {
+        let dir = &parts[k];
+        for rec in &read[k].records {
+            let image = match &rec.image {
+                Some(rel) => Some(store::read_exr(&dir.join(rel))?),
+                None => None,
+            };
+            let stored = ds.store(rec.clone(), image.as_ref(), None)?;
+            if stored.image_sha256 != rec.image_sha256 {
+                return Err(MergeError::HashMismatch {
+                    path: dir.clone(),
+                    index: rec.index,
+                    stored: stored.image_sha256.unwrap_or_default(),
+                    recorded: rec.image_sha256.clone().unwrap_or_default(),
+                });
+            }
+            items += 1;
+        }
+    }
+    ds.finish(&summary)?;
+    Ok(MergeReport {
+        kind: "dataset",
+        parts: parts.len(),
+        shards: read[0].shard.count,
+        views: read[0].shard.views_total,
+        items,
+        out: out.to_path_buf(),
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// .gbtf (PVMF)
+// ---------------------------------------------------------------------------------------
+
+fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let mut read: Vec<(Gbtf, ShardInfo)> = Vec::with_capacity(parts.len());
+    let mut norms = Vec::with_capacity(parts.len());
+    for p in parts {
+        if p.is_dir() {
+            return Err(not_a_part(p, "the first part is a .gbtf file, this is a directory"));
+        }
+        let g = Gbtf::read(p)?;
+        let shard = shard_of(p, g.header.source.get("shard"), "source.shard in its header")?;
+        if g.header.method != "pvmf" {
+            return Err(part_err(
+                p,
+                format!(
+                    "method {}: only PVMF parts merge (its blocks are per view)",
+                    g.header.method
+                ),
+            ));
+        }
+        let nv = g.header.views_deg.len();
+        if shard.views_total != nv {
+            return Err(part_err(
+                p,
+                format!("its shard says {} views, its header lists {nv}", shard.views_total),
+            ));
+        }
+        let want: Vec<String> = (shard.first_view..shard.end_view)
+            .flat_map(|v| [format!("us{v}"), format!("v{v}")])
+            .collect();
+        let have: Vec<&str> = g.header.blocks.iter().map(|b| b.name.as_str()).collect();
+        if have != want {
+            return Err(part_err(
+                p,
+                format!(
+                    "shard {}/{} should hold blocks {} … {} of views {}..{}, it holds {} blocks",
+                    shard.index,
+                    shard.count,
+                    want.first().map(String::as_str).unwrap_or("-"),
+                    want.last().map(String::as_str).unwrap_or("-"),
+                    shard.first_view,
+                    shard.end_view,
+                    have.len()
+                ),
+            ));
+        }
+        if let Some(f) = g
+            .header
+            .filled
+            .iter()
+            .find(|f| !(shard.first_view..shard.end_view).contains(&f[1]))
+        {
+            return Err(part_err(p, format!("filled pair {f:?} lies outside its views")));
+        }
+        let mut norm = serde_json::to_value(&g.header).map_err(|e| part_err(p, e.to_string()))?;
+        if let Some(o) = norm.as_object_mut() {
+            o.remove("blocks");
+            o.remove("filled");
+        }
+        if let Some(s) = norm.get_mut("source").and_then(|s| s.as_object_mut()) {
+            s.remove("shard");
+        }
+        norms.push(norm);
+        read.push((g, shard));
+    }
+    let infos: Vec<(PathBuf, ShardInfo)> = parts.iter().cloned().zip(read.iter().map(|r| r.1)).collect();
+    let order = shard::check_complete(&infos)?;
+    check_same(parts, &norms)?;
+    if out.exists() && !force {
+        return Err(MergeError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    let mut header: GbtfHeader = read[0].0.header.clone();
+    if let Some(s) = header.source.as_object_mut() {
+        s.remove("shard");
+    }
+    header.blocks.clear();
+    header.filled.clear();
+    let mut blocks = Vec::new();
+    for &k in &order {
+        let g = &mut read[k].0;
+        header.blocks.append(&mut g.header.blocks);
+        header.filled.append(&mut g.header.filled);
+        blocks.append(&mut g.blocks);
+    }
+    let items = blocks.len();
+    Gbtf { header, blocks }.write(out)?;
+    Ok(MergeReport {
+        kind: "gbtf",
+        parts: parts.len(),
+        shards: read[0].1.count,
+        views: read[0].1.views_total,
+        items,
+        out: out.to_path_buf(),
+    })
+}

@@ -1,0 +1,273 @@
+//! Slurm job arrays for sharded runs (`gonio batch slurm`): one array task per shard
+//! (`--shard $SLURM_ARRAY_TASK_ID/N`) and a merge job that depends on the whole array.
+//!
+//! The merge job depends on the array with `afterany`, not `afterok`: it runs even when a
+//! shard failed for good, so the merge's error (which names the missing or incomplete
+//! shards) is in its log instead of a merge job pending forever on an unsatisfiable
+//! dependency.
+//!
+//! A failed shard is retried ([`RetryMode`]): by default inside its own allocation (the
+//! array task runs the command again, immediately), or by asking Slurm to requeue the task
+//! (`scontrol requeue`; on the test's Slurm 22.05 a requeued task became eligible again
+//! only ~2 minutes later, see docs/scale.md). Both kinds of retry are bounded by
+//! `retries`; `#SBATCH --requeue` also lets Slurm requeue tasks whose node failed.
+
+use std::path::{Path, PathBuf};
+
+/// Which sharded gonio command the array runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ShardedKind {
+    /// `gonio sim btf …`: parts are dataset directories.
+    SimBtf,
+    /// `gonio compress … --method pvmf`: parts are `.gbtf` files.
+    CompressPvmf,
+}
+
+impl ShardedKind {
+    /// Recognise the command from its arguments (without the program name); refuse
+    /// commands that cannot be sharded and arguments the batch sets itself.
+    pub fn of(args: &[String]) -> Result<ShardedKind, String> {
+        let kind = match args {
+            [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
+            [a, ..] if a == "compress" => {
+                let pvmf = args.windows(2).any(|w| w[0] == "--method" && w[1] == "pvmf")
+                    || args.iter().any(|a| a == "--method=pvmf");
+                if !pvmf {
+                    return Err("`compress` is sharded for --method pvmf only (its blocks are per view)".into());
+                }
+                ShardedKind::CompressPvmf
+            }
+            _ => {
+                return Err(format!(
+                    "`{}` cannot be sharded; give `sim btf …` or `compress DATASET --method pvmf …` after --",
+                    args.join(" ")
+                ))
+            }
+        };
+        if let Some(a) = args
+            .iter()
+            .find(|a| matches!(a.split('=').next(), Some("--shard" | "--out" | "--force")))
+        {
+            return Err(format!(
+                "`{a}` is set by the batch for every shard (parts go to --work DIR/parts, the merged result to --out)"
+            ));
+        }
+        Ok(kind)
+    }
+
+    fn part_suffix(self) -> &'static str {
+        match self {
+            ShardedKind::SimBtf => "",
+            ShardedKind::CompressPvmf => ".gbtf",
+        }
+    }
+}
+
+/// How a failed shard is retried.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RetryMode {
+    /// The array task runs the command again in its allocation (immediate).
+    InJob,
+    /// The array task asks Slurm to requeue it (`scontrol requeue`); Slurm restarts it
+    /// later, possibly on another node.
+    Requeue,
+}
+
+/// A sharded job as Slurm scripts.
+#[derive(Clone, Debug)]
+pub struct SlurmJob {
+    pub kind: ShardedKind,
+    /// The gonio subcommand and its arguments (without `--shard`, `--out`).
+    pub args: Vec<String>,
+    pub shards: usize,
+    /// Absolute work directory: `parts/`, `logs/` and the scripts go there.
+    pub work: PathBuf,
+    /// Absolute path of the merged output.
+    pub out: PathBuf,
+    /// The gonio executable the jobs run (absolute).
+    pub gonio: PathBuf,
+    pub retries: u32,
+    pub retry_mode: RetryMode,
+    /// `#SBATCH --cpus-per-task` of each shard.
+    pub cpus_per_task: usize,
+    /// Extra `#SBATCH` lines (e.g. `--partition=debug`, `--time=1:00:00`), one option each.
+    pub sbatch_options: Vec<String>,
+}
+
+/// Quote a word for bash (single quotes; `'` as `'\''`).
+pub fn shell_quote(s: &str) -> String {
+    if !s.is_empty()
+        && s.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"-_./=:,+@%".contains(&b))
+    {
+        return s.to_string();
+    }
+    format!("'{}'", s.replace('\'', r"'\''"))
+}
+
+fn q(p: &Path) -> String {
+    shell_quote(&p.display().to_string())
+}
+
+impl SlurmJob {
+    /// Output of shard `i` (1-based).
+    pub fn part(&self, i: usize) -> PathBuf {
+        self.work
+            .join("parts")
+            .join(format!("part-{i}{}", self.kind.part_suffix()))
+    }
+
+    pub fn array_script_path(&self) -> PathBuf {
+        self.work.join("shards.sbatch")
+    }
+
+    pub fn merge_script_path(&self) -> PathBuf {
+        self.work.join("merge.sbatch")
+    }
+
+    fn header(&self, name: &str, log: &str) -> String {
+        let mut s = format!(
+            "#!/bin/bash\n# Written by `gonio batch slurm`; submit with sbatch (see docs/scale.md).\n\
+             #SBATCH --job-name=gonio-{name}\n#SBATCH --output={}\n#SBATCH --open-mode=append\n",
+            self.work.join("logs").join(log).display()
+        );
+        for o in &self.sbatch_options {
+            s.push_str(&format!("#SBATCH {o}\n"));
+        }
+        s
+    }
+
+    /// The job array: task `I` runs the command with `--shard I/N --out parts/part-I`.
+    pub fn array_script(&self) -> String {
+        let n = self.shards;
+        let mut s = self.header("shards", "shard-%a.log");
+        s.push_str(&format!(
+            "#SBATCH --array=1-{n}\n#SBATCH --requeue\n#SBATCH --cpus-per-task={}\nset -u\n",
+            self.cpus_per_task
+        ));
+        s.push_str("I=${SLURM_ARRAY_TASK_ID:?submit this script with sbatch (it is a job array)}\n");
+        s.push_str(&format!(
+            "export RAYON_NUM_THREADS=${{SLURM_CPUS_PER_TASK:-{}}}\n",
+            self.cpus_per_task
+        ));
+        let mut cmd: Vec<String> = vec![q(&self.gonio)];
+        cmd.extend(self.args.iter().map(|a| shell_quote(a)));
+        cmd.push("--shard".into());
+        cmd.push(format!("\"$I/{n}\""));
+        cmd.push("--out".into());
+        // Inside double quotes so `$I` expands (the CLI refuses work paths that need escaping there).
+        cmd.push(format!(
+            "\"{}/part-$I{}\"",
+            self.work.join("parts").display(),
+            self.kind.part_suffix()
+        ));
+        if self.kind == ShardedKind::SimBtf {
+            cmd.push("--force".into());
+        }
+        s.push_str(&format!("run() {{ {}; }}\n", cmd.join(" ")));
+        s.push_str("stamp() { date -u +%Y-%m-%dT%H:%M:%SZ; }\n");
+        match self.retry_mode {
+            RetryMode::InJob => s.push_str(&format!(
+                "rc=0\nfor attempt in $(seq 1 {tries}); do\n  \
+                 echo \"gonio shard $I/{n}: attempt $attempt of {tries} at $(stamp) on $(hostname)\"\n  \
+                 if run; then echo \"gonio shard $I/{n}: done at $(stamp)\"; exit 0; else rc=$?; fi\n  \
+                 echo \"gonio shard $I/{n}: attempt $attempt failed (exit $rc)\"\n\
+                 done\nexit $rc\n",
+                tries = self.retries + 1
+            )),
+            RetryMode::Requeue => s.push_str(&format!(
+                "restart=${{SLURM_RESTART_COUNT:-0}}\n\
+                 echo \"gonio shard $I/{n}: run $((restart + 1)) at $(stamp) on $(hostname)\"\n\
+                 if run; then echo \"gonio shard $I/{n}: done at $(stamp)\"; exit 0; else rc=$?; fi\n\
+                 if [ \"$restart\" -lt {r} ]; then\n  \
+                 echo \"gonio shard $I/{n}: failed (exit $rc); asking Slurm to requeue it\"\n  \
+                 scontrol requeue \"${{SLURM_ARRAY_JOB_ID}}_${{SLURM_ARRAY_TASK_ID}}\" && sleep 600\n\
+                 fi\n\
+                 echo \"gonio shard $I/{n}: failed (exit $rc), no retries left\"\nexit $rc\n",
+                r = self.retries
+            )),
+        }
+        s
+    }
+
+    /// The merge job: every part, in shard order, into `out`.
+    pub fn merge_script(&self) -> String {
+        let mut s = self.header("merge", "merge.log");
+        s.push_str("set -u\n");
+        let mut cmd: Vec<String> = vec!["exec".into(), q(&self.gonio), "merge".into()];
+        cmd.extend((1..=self.shards).map(|i| q(&self.part(i))));
+        cmd.extend(["--out".into(), q(&self.out), "--force".into(), "--json".into()]);
+        s.push_str(&cmd.join(" "));
+        s.push('\n');
+        s
+    }
+}
+
+/// The absolute path of `program` found in `PATH`, if any.
+pub fn which(program: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|d| d.join(program))
+        .find(|p| p.is_file())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(s: &str) -> Vec<String> {
+        s.split_whitespace().map(String::from).collect()
+    }
+
+    #[test]
+    fn only_shardable_commands_without_their_own_shard_or_out() {
+        assert_eq!(ShardedKind::of(&args("sim btf --size 32")), Ok(ShardedKind::SimBtf));
+        assert_eq!(
+            ShardedKind::of(&args("compress ds --method pvmf -c 4")),
+            Ok(ShardedKind::CompressPvmf)
+        );
+        assert!(ShardedKind::of(&args("compress ds --method pca -c 4")).is_err());
+        assert!(ShardedKind::of(&args("acquire --size 32")).is_err());
+        assert!(ShardedKind::of(&args("sim btf --out x")).unwrap_err().contains("--out"));
+        assert!(ShardedKind::of(&args("sim btf --shard=1/2")).is_err());
+    }
+
+    #[test]
+    fn scripts_run_every_shard_and_merge_all_parts() {
+        let job = SlurmJob {
+            kind: ShardedKind::SimBtf,
+            args: args("sim btf --sample it's"),
+            shards: 3,
+            work: "/w d".into(),
+            out: "/o".into(),
+            gonio: "/bin/gonio".into(),
+            retries: 1,
+            retry_mode: RetryMode::InJob,
+            cpus_per_task: 2,
+            sbatch_options: vec!["--time=10".into()],
+        };
+        let a = job.array_script();
+        assert!(a.contains("#SBATCH --array=1-3\n"), "{a}");
+        assert!(a.contains("#SBATCH --time=10\n"), "{a}");
+        assert!(a.contains(r"'it'\''s' --shard "), "{a}");
+        assert!(a.contains(r#"--out "/w d/parts/part-$I" --force"#), "{a}");
+        assert!(a.contains("seq 1 2"), "{a}");
+        let m = job.merge_script();
+        assert!(
+            m.contains("merge '/w d/parts/part-1' '/w d/parts/part-2' '/w d/parts/part-3' --out /o"),
+            "{m}"
+        );
+        let r = SlurmJob {
+            kind: ShardedKind::CompressPvmf,
+            retry_mode: RetryMode::Requeue,
+            ..job
+        };
+        let a = r.array_script();
+        assert!(
+            a.contains(r#"--out "/w d/parts/part-$I.gbtf""#) && !a.contains("--force"),
+            "{a}"
+        );
+        assert!(a.contains("scontrol requeue"), "{a}");
+    }
+}

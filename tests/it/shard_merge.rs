@@ -1,0 +1,227 @@
+//! Shards and merge through the gonio binary: `gonio sim btf --shard I/N` and
+//! `gonio compress --method pvmf --shard I/N` merged by `gonio merge` equal the
+//! single-process outputs byte for byte (a dataset's manifest: all but `created_unix`);
+//! bad shard specs and bad part sets are refused by name; `gonio batch slurm` writes its
+//! scripts without Slurm and, asked to submit without sbatch, says what to install.
+//! (tests/slurm/run.sh runs the same through a real Slurm.)
+
+use crate::common;
+
+use common::bin;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn gonio(cwd: &Path, args: &[&str]) -> Output {
+    Command::new(bin()).current_dir(cwd).args(args).output().unwrap()
+}
+
+fn ok(cwd: &Path, args: &[&str]) {
+    let o = gonio(cwd, args);
+    assert!(
+        o.status.success(),
+        "gonio {} failed: {}",
+        args.join(" "),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// stderr of a run that must fail.
+fn fails(cwd: &Path, args: &[&str]) -> String {
+    let o = gonio(cwd, args);
+    assert!(!o.status.success(), "gonio {} should have failed", args.join(" "));
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Relative path → bytes of every file under `dir` (the manifest without `created_unix`).
+fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    fn walk(root: &Path, d: &Path, out: &mut Vec<(PathBuf, Vec<u8>)>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+                continue;
+            }
+            let mut bytes = std::fs::read(&p).unwrap();
+            if p.file_name().unwrap() == "manifest.json" {
+                let text = String::from_utf8(bytes).unwrap();
+                bytes = text
+                    .lines()
+                    .filter(|l| !l.trim_start().starts_with("\"created_unix\""))
+                    .collect::<Vec<_>>()
+                    .join("\n")
+                    .into_bytes();
+            }
+            out.push((p.strip_prefix(root).unwrap().to_path_buf(), bytes));
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+const BTF: [&str; 7] = ["sim", "btf", "--sweep", "fibonacci:5", "--size", "16", "--json"];
+
+#[test]
+fn sharded_sim_btf_and_pvmf_merge_to_the_single_process_bytes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    ok(t, &[&BTF[..], &["--out", "full"]].concat());
+    for i in 1..=3 {
+        let shard = format!("{i}/3");
+        let out = format!("part-{i}");
+        ok(t, &[&BTF[..], &["--shard", &shard, "--out", &out]].concat());
+    }
+    // Any order of the parts.
+    ok(t, &["merge", "part-3", "part-1", "part-2", "--out", "merged", "--json"]);
+    let (full, merged) = (files(&t.join("full")), files(&t.join("merged")));
+    assert_eq!(full.len(), 2 + 25, "manifest, journal and 25 images");
+    assert_eq!(
+        full.iter().map(|f| &f.0).collect::<Vec<_>>(),
+        merged.iter().map(|f| &f.0).collect::<Vec<_>>()
+    );
+    for (a, b) in full.iter().zip(&merged) {
+        assert!(
+            a.1 == b.1,
+            "{} differs between the single-process and the merged dataset",
+            a.0.display()
+        );
+    }
+
+    let pvmf = ["compress", "full", "--method", "pvmf", "-c", "3", "--no-eval", "--json"];
+    ok(t, &[&pvmf[..], &["--out", "full.gbtf"]].concat());
+    for i in 1..=2 {
+        let (shard, out) = (format!("{i}/2"), format!("p{i}.gbtf"));
+        ok(t, &[&pvmf[..], &["--shard", &shard, "--out", &out]].concat());
+    }
+    ok(t, &["merge", "p1.gbtf", "p2.gbtf", "--out", "merged.gbtf"]);
+    assert!(
+        std::fs::read(t.join("full.gbtf")).unwrap() == std::fs::read(t.join("merged.gbtf")).unwrap(),
+        "merged PVMF differs from the single-process file"
+    );
+    // The merged file is a complete model: it reconstructs like the single-process one.
+    ok(
+        t,
+        &[
+            "reconstruct",
+            "merged.gbtf",
+            "--light",
+            "30,0",
+            "--view",
+            "0,0",
+            "--out",
+            "r.exr",
+        ],
+    );
+
+    // Bad part sets, each refused by name.
+    let e = fails(t, &["merge", "part-1", "part-3", "--out", "m"]);
+    assert!(e.contains("missing shard 2/3 (views 1..3)"), "{e}");
+    let e = fails(t, &["merge", "part-1", "part-2", "part-2", "part-3", "--out", "m"]);
+    assert!(e.contains("shard 2/3 (views 1..3) given twice"), "{e}");
+    let e = fails(t, &["merge", "part-1", "part-2", "part-4", "--out", "m"]);
+    assert!(e.contains("missing part(s) part-4"), "{e}");
+    let e = fails(t, &["merge", "p1.gbtf", "part-2", "--out", "m"]);
+    assert!(e.contains("part-2") && e.contains("directory"), "{e}");
+    let e = fails(t, &["merge", "full", "--out", "m"]);
+    assert!(e.contains("full: not a shard part"), "{e}");
+    // A part of another job (other components) is named with the field that differs.
+    ok(
+        t,
+        &[
+            "compress",
+            "full",
+            "--method",
+            "pvmf",
+            "-c",
+            "2",
+            "--no-eval",
+            "--shard",
+            "2/2",
+            "--out",
+            "q2.gbtf",
+        ],
+    );
+    let e = fails(t, &["merge", "p1.gbtf", "q2.gbtf", "--out", "m.gbtf"]);
+    assert!(e.contains("q2.gbtf") && e.contains("params differs"), "{e}");
+    // A part as the output would be deleted before it is read: refused.
+    let e = fails(
+        t,
+        &["merge", "part-1", "part-2", "part-3", "--out", "part-2", "--force"],
+    );
+    assert!(e.contains("part-2: is also the --out"), "{e}");
+    assert!(t.join("part-2/manifest.json").is_file());
+    // An existing output is kept unless --force.
+    let e = fails(t, &["merge", "p1.gbtf", "p2.gbtf", "--out", "merged.gbtf"]);
+    assert!(e.contains("--force"), "{e}");
+    assert!(!t.join("m").exists() && !t.join("m.gbtf").exists());
+}
+
+#[test]
+fn bad_shard_specs_are_refused_with_the_valid_form() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    for bad in ["3/2", "0/0", "0/2", "a/b"] {
+        let e = fails(t, &[&BTF[..], &["--shard", bad]].concat());
+        assert!(e.contains(bad) && e.contains("valid form is I/N"), "{bad}: {e}");
+    }
+    let e = fails(t, &[&BTF[..], &["--shard", "1/6"]].concat());
+    assert!(e.contains("5 views cannot be split into 6 shards"), "{e}");
+    let e = fails(
+        t,
+        &[
+            "compress", ".", "--method", "pca", "-c", "2", "--shard", "1/2", "--out", "x.gbtf",
+        ],
+    );
+    assert!(e.contains("--shard splits --method pvmf"), "{e}");
+}
+
+#[test]
+fn batch_slurm_writes_scripts_and_names_what_to_install_without_sbatch() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    ok(
+        t,
+        &[
+            "batch", "slurm", "--shards", "4", "--work", "w", "--out", "btf", "--", "sim", "btf", "--size", "16",
+        ],
+    );
+    let array = std::fs::read_to_string(t.join("w/shards.sbatch")).unwrap();
+    assert!(
+        array.contains("#SBATCH --array=1-4") && array.contains("--shard \"$I/4\""),
+        "{array}"
+    );
+    let merge = std::fs::read_to_string(t.join("w/merge.sbatch")).unwrap();
+    assert!(merge.contains(" merge ") && merge.contains("parts/part-4 "), "{merge}");
+    // The array script refuses to run outside Slurm (no array task id).
+    let o = Command::new("bash").arg(t.join("w/shards.sbatch")).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("sbatch"));
+
+    let o = Command::new(bin())
+        .current_dir(t)
+        .env("PATH", t.join("no-such-dir"))
+        .args([
+            "batch", "slurm", "--shards", "2", "--work", "w2", "--out", "o", "--submit", "--", "sim", "btf",
+        ])
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("sbatch is not installed") && e.contains("apt-get install slurm-client"),
+        "{e}"
+    );
+    let e = fails(
+        t,
+        &[
+            "batch", "slurm", "--shards", "2", "--work", "w3", "--out", "o", "--", "acquire",
+        ],
+    );
+    assert!(e.contains("cannot be sharded"), "{e}");
+    let e = fails(
+        t,
+        &[
+            "batch", "slurm", "--shards", "2", "--work", "w3", "--out", "o", "--", "sim", "btf", "--out", "x",
+        ],
+    );
+    assert!(e.contains("--out"), "{e}");
+}
