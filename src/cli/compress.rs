@@ -62,7 +62,7 @@ pub struct CompressArgs {
     /// factorization have no components and ignore it.
     #[arg(long, short = 'c')]
     pub components: Option<usize>,
-    /// Output `.gbtf` file.
+    /// Output file: `.gbtf`, or UBO2014 `.btf` for `--method dfmf`.
     #[arg(long)]
     pub out: PathBuf,
     /// PCA: seed of the random sketch.

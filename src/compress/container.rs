@@ -17,7 +17,7 @@
 //! The header is self-describing: method, parameters, image size, light and view
 //! directions (degrees), and the name and shape of every block.
 
-use super::CompressError;
+use super::error::CompressError;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -35,7 +35,7 @@ pub struct BlockInfo {
 /// The JSON header of a `.gbtf` file.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct GbtfHeader {
-    /// `"pvmf"` or `"pca"`.
+    /// `"pca"`, `"pvmf"`, `"local-pca"`, `"median-cut"` or `"homomorphic"`.
     pub method: String,
     /// Method parameters (components, seed, oversampling, power iterations, …).
     pub params: serde_json::Value,

@@ -19,7 +19,7 @@ fn views() -> Vec<[f64; 2]> {
 /// Write a dataset whose image (light, view) is `f(light, view, texel, channel)`;
 /// pairs in `skip` are recorded as skipped.
 fn write_dataset(dir: &Path, skip: &[(usize, usize)], f: impl Fn(usize, usize, usize, usize) -> f32) {
-    super::dfmf::tests::write_test_dataset(dir, (W, H), &lights(), &views(), skip, f);
+    super::testdata::write_test_dataset(dir, (W, H), &lights(), &views(), skip, f);
 }
 
 /// An exactly rank-3 BTF whose values are exact in half float (multiples of 1/128 below
@@ -296,7 +296,7 @@ fn f32_versus_f64_svd_accuracy() {
     let (u32m, s32, v32) = (svd.U(), svd.S().column_vector(), svd.V());
     for c in [4, 12, 24, 36, 42] {
         let optimal = sigma[c..].iter().map(|s| s * s).sum::<f64>().sqrt();
-        let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+        let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
         let e64 = (&a - &us * vv.transpose()).norm_l2();
         let r32 = Mat::<f64>::from_fn(m, n, |i, j| {
             (0..c)
@@ -358,7 +358,7 @@ fn f32_versus_f64_on_a_dataset() {
         let svd = a32.thin_svd().unwrap();
         let (u, s, v) = (svd.U(), svd.S().column_vector(), svd.V());
         for c in [2, 4, 9, 15, 30] {
-            let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+            let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
             let e64 = (&a - &us * vv.transpose()).norm_l2() / norm;
             let r32 = Mat::<f64>::from_fn(vm.rows, vm.cols, |i, j| {
                 (0..c).map(|k| u[(i, k)] as f64 * s[k] as f64 * v[(j, k)] as f64).sum()
@@ -373,7 +373,7 @@ fn f32_versus_f64_on_a_dataset() {
     }
 }
 
-/// The Gram path of PVMF (`factor::gram_truncated`: f64 `AᵀA`, its eigen-decomposition,
+/// The Gram path of PVMF (`linalg::gram_truncated`: f64 `AᵀA`, its eigen-decomposition,
 /// `U·S = A·V`) against the QR + SVD path on a view-sized matrix with singular values
 /// 1 … 1e-7: where it accepts `c` its rank-`c` error equals the optimal one, where the
 /// Gram matrix is too ill-conditioned for `c` it declines (and PVMF falls back). The same
@@ -389,11 +389,11 @@ fn gram_path_matches_the_svd_path() {
     let eig32 = g32.self_adjoint_eigen(faer::Side::Lower).unwrap();
     for c in [1, 4, 12, 24, 26, 27, 36, 42] {
         let optimal = sigma[c..].iter().map(|s| s * s).sum::<f64>().sqrt();
-        let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+        let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
         let e_svd = (&a - &us * vv.transpose()).norm_l2();
         // λ_c / λ_1 = σ_{c-1}² (0-based σ) against the documented threshold.
-        let accept = sigma[c - 1] * sigma[c - 1] >= factor::GRAM_MIN_EIGEN_RATIO;
-        let gram = factor::gram_truncated(a.as_ref(), c).unwrap();
+        let accept = sigma[c - 1] * sigma[c - 1] >= linalg::GRAM_MIN_EIGEN_RATIO;
+        let gram = linalg::gram_truncated(a.as_ref(), c).unwrap();
         assert_eq!(gram.is_some(), accept, "c = {c}: σ_c = {:.2e}", sigma[c - 1]);
         let v32 = Mat::<f64>::from_fn(n, c, |i, j| eig32.U()[(i, n - 1 - j)] as f64);
         let e_g32 = (&a - &a * &v32 * v32.transpose()).norm_l2();
@@ -490,9 +490,9 @@ fn gram_versus_svd_on_a_dataset() {
         let (a, _) = ds.view_columns(view).unwrap();
         let norm = a.norm_l2();
         for c in [2, 4, 8, 15, 30] {
-            let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+            let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
             let e_svd = (&a - &us * vv.transpose()).norm_l2() / norm;
-            match factor::gram_truncated(a.as_ref(), c).unwrap() {
+            match linalg::gram_truncated(a.as_ref(), c).unwrap() {
                 Some((usg, vg)) => {
                     let e_gram = (&a - &usg * vg.transpose()).norm_l2() / norm;
                     println!(
@@ -535,7 +535,7 @@ fn decode_cost_on_a_dataset() {
     }
 }
 
-/// PVMF's row-chunked Gram product (`factor::gram_by_row_chunks`) against faer's plain
+/// PVMF's row-chunked Gram product (`linalg::gram_by_row_chunks`) against faer's plain
 /// `AᵀA` on a matrix that is not a multiple of the chunk size (so the last chunk is
 /// short), and bit-for-bit the same result with one thread and with four: the chunks and
 /// their summation order do not depend on the thread count, so a fixed input gives the
@@ -550,7 +550,7 @@ fn chunked_gram_equals_the_plain_product_and_is_thread_count_independent() {
             .num_threads(threads)
             .build()
             .unwrap()
-            .install(|| factor::gram_by_row_chunks(a.as_ref()))
+            .install(|| linalg::gram_by_row_chunks(a.as_ref()))
     };
     let (g1, g4) = (run(1), run(4));
     let scale = plain.norm_max();
@@ -573,4 +573,119 @@ fn chunked_gram_equals_the_plain_product_and_is_thread_count_independent() {
             }
         }
     }
+}
+
+/// The one Gaussian sketch generator gives, bit for bit, the numbers of the copies it
+/// replaced (PCA's and DFMF's, which were identical, and local PCA's variant), so files
+/// written before and after the split are the same bytes. The old copies are written out
+/// here as they were.
+#[test]
+fn gaussian_sketch_reproduces_the_replaced_generators() {
+    use linalg::{GaussianSketch, SketchKeying};
+    fn old_hashed(seed: u64, row: usize, col: usize) -> f64 {
+        let mix = |k: u64| {
+            let mut z = k.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        };
+        let k = mix(seed ^ mix(((row as u64) << 20) ^ col as u64));
+        let u1 = ((k >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+        let u2 = ((mix(k) >> 11) as f64) / (1u64 << 53) as f64;
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+    fn old_stream(seed: u64, row: usize, col: usize) -> f64 {
+        let mut s = seed ^ ((row as u64) << 24) ^ (col as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
+        let (a, b) = (linalg::splitmix(&mut s), linalg::splitmix(&mut s));
+        let u1 = ((a >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+        let u2 = (b >> 11) as f64 / (1u64 << 53) as f64;
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+    let (mut sum, mut sq, mut n) = (0.0, 0.0, 0.0);
+    for seed in [0u64, 1, 2, 7, 0x6c6f_6361_6c70_6361, u64::MAX] {
+        let (h, s) = (
+            GaussianSketch::new(seed, SketchKeying::Hashed),
+            GaussianSketch::new(seed, SketchKeying::Stream),
+        );
+        for row in (0..20_000).step_by(97) {
+            for col in 0..40 {
+                assert_eq!(h.at(row, col).to_bits(), old_hashed(seed, row, col).to_bits());
+                assert_eq!(s.at(row, col).to_bits(), old_stream(seed, row, col).to_bits());
+                for x in [h.at(row, col), s.at(row, col)] {
+                    assert!(x.is_finite());
+                    sum += x;
+                    sq += x * x;
+                    n += 1.0;
+                }
+            }
+        }
+        let b = h.block(300, 5, 4);
+        assert_eq!(b[(2, 3)].to_bits(), h.at(302, 3).to_bits());
+    }
+    // Standard normal: mean ≈ 0, variance ≈ 1 over ~2.5e5 draws.
+    let (mean, var) = (sum / n, sq / n - (sum / n).powi(2));
+    assert!(
+        mean.abs() < 0.01 && (var - 1.0).abs() < 0.02,
+        "mean {mean}, variance {var}"
+    );
+}
+
+/// The layering rule of the compress folder: a method file imports only the ground floor
+/// (`params`, `linalg`, `abrdf`, `data`, `container`, `error`; DFMF also its own `.btf`
+/// container), the ground floor imports no method file, and only `factor.rs` and
+/// `interp.rs` name method files. Reads the sources (code before the first `#[cfg(test)]`;
+/// comment lines skipped) and lists every `super::x` / `crate::compress::x` it finds.
+#[test]
+fn method_files_import_only_the_ground_floor() {
+    const GROUND: &[&str] = &["params", "linalg", "abrdf", "data", "container", "error"];
+    let files: &[(&str, &str, &[&str])] = &[
+        ("pca", include_str!("pca.rs"), GROUND),
+        ("pvmf", include_str!("pvmf.rs"), GROUND),
+        ("local_pca", include_str!("local_pca.rs"), GROUND),
+        ("median_cut", include_str!("median_cut.rs"), GROUND),
+        ("homomorphic", include_str!("homomorphic.rs"), GROUND),
+        ("dfmf", include_str!("dfmf.rs"), GROUND),
+        ("params", include_str!("params.rs"), &["data", "container"]),
+        ("linalg", include_str!("linalg.rs"), &["error"]),
+        (
+            "abrdf",
+            include_str!("abrdf.rs"),
+            &["params", "data", "container", "error"],
+        ),
+        ("error", include_str!("error.rs"), &[]),
+        ("data", include_str!("data.rs"), &["error"]),
+        ("container", include_str!("container.rs"), &["error"]),
+        ("btf_ubo2014", include_str!("btf_ubo2014.rs"), &["dfmf", "error"]),
+    ];
+    let mut bad = Vec::new();
+    for (name, src, allowed) in files {
+        let code = src.split("#[cfg(test)]").next().unwrap_or("");
+        for line in code.lines().filter(|l| !l.trim_start().starts_with("//")) {
+            for prefix in ["super::", "crate::compress::"] {
+                for (at, _) in line.match_indices(prefix) {
+                    let rest = &line[at + prefix.len()..];
+                    let names: Vec<&str> = if let Some(group) = rest.strip_prefix('{') {
+                        group.split('}').next().unwrap_or("").split(',').collect()
+                    } else {
+                        vec![rest]
+                    };
+                    for n in names {
+                        let id: String = n
+                            .trim()
+                            .chars()
+                            .take_while(|c| c.is_alphanumeric() || *c == '_')
+                            .collect();
+                        if !allowed.contains(&id.as_str()) {
+                            bad.push(format!("{name}.rs imports `{id}`: {}", line.trim()));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        bad.is_empty(),
+        "imports across the compress floors:\n{}",
+        bad.join("\n")
+    );
 }
