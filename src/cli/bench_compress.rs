@@ -392,6 +392,7 @@ mod tests {
                 components: 1,
                 format: "gbtf",
                 params: serde_json::Value::Null,
+                quantize_bits: None,
                 out: String::new(),
                 images_measured: 1,
                 filled_pairs: 0,

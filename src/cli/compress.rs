@@ -113,6 +113,11 @@ pub struct CompressArgs {
     /// DFMF: stored scalar type (f16 like Bonn's files, or f32).
     #[arg(long, value_enum, default_value = "f16")]
     pub precision: PrecisionArg,
+    /// Store the factors quantized to this many bits per value (1–16; 8–12 is the useful
+    /// range) with one scale per factor vector, entropy-coded by zstd (a version-2 .gbtf;
+    /// index blocks stay exact). Default: plain f32. `.gbtf` only.
+    #[arg(long, value_name = "BITS")]
+    pub quantize: Option<u32>,
     /// Skip the error evaluation (a second pass reading every image).
     #[arg(long)]
     pub no_eval: bool,
@@ -149,6 +154,9 @@ pub(crate) struct Report {
     pub(crate) format: &'static str,
     /// The method's parameters as stored in the file's header.
     pub(crate) params: serde_json::Value,
+    /// Bits per stored factor value (`--quantize`); absent for plain f32.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) quantize_bits: Option<u32>,
     pub(crate) out: String,
     pub(crate) images_measured: usize,
     pub(crate) filled_pairs: usize,
@@ -212,6 +220,9 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
             "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
         );
     }
+    if format == FormatArg::Btf && args.quantize.is_some() {
+        anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
+    }
     let needs_c = !matches!(args.method, MethodArg::MedianCut | MethodArg::Homomorphic);
     let components = match (args.components, needs_c) {
         (Some(c), _) => c,
@@ -243,8 +254,11 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         oversample: args.oversample,
         power_iters: args.power_iters,
     };
-    let (gbtf, mut info) =
+    let (mut gbtf, mut info) =
         compress::compress(&ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
+    if let Some(bits) = args.quantize {
+        gbtf.quantize(bits).context("--quantize")?;
+    }
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -256,6 +270,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         components: params.components,
         format: "gbtf",
         params: serde_json::to_value(&params)?,
+        quantize_bits: args.quantize,
         filled_pairs: info.filled,
         dataset_passes: info.passes,
         encode_stages: std::mem::take(&mut info.stages),
@@ -276,6 +291,7 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
         components: 0,
         format: "",
         params: serde_json::Value::Null,
+        quantize_bits: None,
         out: args.out.display().to_string(),
         images_measured: ds.n_measured(),
         filled_pairs: 0,
@@ -371,6 +387,9 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
 
 fn print_report(r: &Report) {
     println!("method         {} c = {} → {}", r.method, r.components, r.out);
+    if let Some(b) = r.quantize_bits {
+        println!("stored         {b}-bit quantized factors, zstd (.gbtf version 2)");
+    }
     println!(
         "images         {} measured, {} unmeasured pairs filled from the nearest light, {} pass(es)",
         r.images_measured, r.filled_pairs, r.dataset_passes

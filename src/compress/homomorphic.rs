@@ -217,29 +217,13 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let m = fit(&a, &ds.lights_deg, &ds.views_deg, half_bins, sweeps)?;
     let t = a.texels;
     let mut infos = vec![
-        BlockInfo {
-            name: "albedo".into(),
-            rows: t,
-            cols: 3,
-        },
-        BlockInfo {
-            name: "light".into(),
-            rows: t,
-            cols: ds.n_lights() * 3,
-        },
-        BlockInfo {
-            name: "view".into(),
-            rows: t,
-            cols: ds.n_views() * 3,
-        },
+        BlockInfo::new("albedo", t, 3),
+        BlockInfo::new("light", t, ds.n_lights() * 3),
+        BlockInfo::new("view", t, ds.n_views() * 3),
     ];
     let mut blocks = vec![m.albedo, m.light, m.view];
     if half_bins > 0 {
-        infos.push(BlockInfo {
-            name: "half".into(),
-            rows: t,
-            cols: half_bins * 3,
-        });
+        infos.push(BlockInfo::new("half", t, half_bins * 3));
         blocks.push(m.half);
     }
     let blocks = infos.into_iter().zip(blocks).collect();

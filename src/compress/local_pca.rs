@@ -451,11 +451,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
     let m = fit_in_subspace(&a, clusters, params.components, iters, params.seed, subspace)?;
     let c = params.components;
-    let info = |name: &str, rows, cols| BlockInfo {
-        name: name.into(),
-        rows,
-        cols,
-    };
+    let info = BlockInfo::new;
     let blocks = vec![
         (
             info("cluster", a.texels, 1),

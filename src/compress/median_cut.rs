@@ -260,16 +260,8 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     };
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
     let m = quantize(&a, boxes, balanced, min_error_cut)?;
-    let index = BlockInfo {
-        name: "index".into(),
-        rows: a.texels,
-        cols: 1,
-    };
-    let brdfs = BlockInfo {
-        name: "brdfs".into(),
-        rows: m.boxes,
-        cols: a.dims,
-    };
+    let index = BlockInfo::new("index", a.texels, 1);
+    let brdfs = BlockInfo::new("brdfs", m.boxes, a.dims);
     let blocks = vec![(index, m.index.iter().map(|&b| b as f32).collect()), (brdfs, m.brdfs)];
     Ok(encode_gbtf(ds, params, &a, blocks, &[("boxes_used", m.boxes.into())]))
 }

@@ -77,6 +77,7 @@
 
 pub mod abrdf;
 pub mod btf_ubo2014;
+pub mod codec;
 pub mod container;
 pub mod data;
 pub mod dfmf;

@@ -99,18 +99,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     })?;
     let (ub, vv) = truncated_svd(b.as_ref(), c)?;
     let us = &q * &ub;
-    let infos = vec![
-        BlockInfo {
-            name: "us".into(),
-            rows: t,
-            cols: c,
-        },
-        BlockInfo {
-            name: "v".into(),
-            rows: n,
-            cols: c,
-        },
-    ];
+    let infos = vec![BlockInfo::new("us", t, c), BlockInfo::new("v", n, c)];
     let blocks = vec![row_major_f32(us.as_ref()), row_major_f32(vv.as_ref())];
     let info = EncodeInfo {
         filled: cache.filled.len(),

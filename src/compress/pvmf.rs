@@ -57,17 +57,9 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
             };
             drop(a);
             blocks.push(row_major_f32(us.as_ref()));
-            infos.push(BlockInfo {
-                name: format!("us{v}"),
-                rows: t,
-                cols: c,
-            });
+            infos.push(BlockInfo::new(format!("us{v}"), t, c));
             blocks.push(row_major_f32(vv.as_ref()));
-            infos.push(BlockInfo {
-                name: format!("v{v}"),
-                rows: cols,
-                cols: c,
-            });
+            infos.push(BlockInfo::new(format!("v{v}"), cols, c));
             factor_s += t1.elapsed().as_secs_f64();
         }
         Ok(())

@@ -200,8 +200,8 @@ fn container_corruption_is_detected() {
     b[0] ^= 1;
     assert!(err(&b).contains("magic"));
     let mut b = bytes.clone();
-    b[8] = 2;
-    assert!(err(&b).contains("version 2"));
+    b[8] = 3;
+    assert!(err(&b).contains("version 3"));
     let mut b = bytes.clone();
     b[25] ^= 0x20;
     assert!(err(&b).contains("header CRC"));
@@ -654,7 +654,8 @@ fn method_files_import_only_the_ground_floor() {
         ),
         ("error", include_str!("error.rs"), &[]),
         ("data", include_str!("data.rs"), &["error"]),
-        ("container", include_str!("container.rs"), &["error"]),
+        ("container", include_str!("container.rs"), &["codec", "error"]),
+        ("codec", include_str!("codec.rs"), &[]),
         ("btf_ubo2014", include_str!("btf_ubo2014.rs"), &["dfmf", "error"]),
     ];
     let mut bad = Vec::new();
@@ -688,4 +689,152 @@ fn method_files_import_only_the_ground_floor() {
         "imports across the compress floors:\n{}",
         bad.join("\n")
     );
+}
+
+/// Write `g` quantized at `bits`, read it back (version 2) and wrap it.
+fn quantized_round_trip(g: &Gbtf, bits: u32, file: &Path) -> CompressedBtf {
+    let mut q = g.clone();
+    q.quantize(bits).unwrap();
+    q.write(file).unwrap();
+    let bytes = std::fs::read(file).unwrap();
+    assert_eq!(
+        u32::from_le_bytes(bytes[8..12].try_into().unwrap()),
+        container::VERSION_CODED
+    );
+    let back = Gbtf::read(file).unwrap();
+    assert_eq!(back.header.blocks, q.header.blocks);
+    CompressedBtf::new(back).unwrap()
+}
+
+/// Every `.gbtf` method decodes a quantized file (reconstruction and interpolation) to
+/// within its quantization error of the f32 file, index blocks exactly; 12 bits is
+/// closer than 8. Plain files are still version 1.
+#[test]
+fn quantized_files_decode_for_every_method() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let methods = [
+        Params::new(Method::Pvmf, 3),
+        Params::new(Method::Pca, 4),
+        Params::new(
+            Method::LocalPca {
+                clusters: 3,
+                iters: 5,
+                subspace: 0,
+            },
+            2,
+        ),
+        Params::new(
+            Method::MedianCut {
+                boxes: 5,
+                balanced: false,
+                min_error_cut: false,
+            },
+            1,
+        ),
+        Params::new(
+            Method::Homomorphic {
+                half_bins: 4,
+                sweeps: 5,
+            },
+            1,
+        ),
+    ];
+    for p in &methods {
+        let name = p.method.name();
+        let (g, _) = compress(&ds, p).unwrap();
+        let plain_file = tmp.path().join(format!("{name}.gbtf"));
+        g.write(&plain_file).unwrap();
+        let plain_bytes = std::fs::read(&plain_file).unwrap();
+        assert_eq!(
+            u32::from_le_bytes(plain_bytes[8..12].try_into().unwrap()),
+            container::VERSION
+        );
+        let exact = CompressedBtf::new(g.clone()).unwrap();
+        let mut last = f32::INFINITY;
+        for bits in [8, 12] {
+            let file = tmp.path().join(format!("{name}-{bits}.gbtf"));
+            let q = quantized_round_trip(&g, bits, &file);
+            assert!(
+                std::fs::metadata(&file).unwrap().len() < plain_bytes.len() as u64,
+                "{name}: not smaller"
+            );
+            for (info, b) in q.gbtf.header.blocks.iter().zip(&q.gbtf.blocks) {
+                if info.codec == Some(codec::BlockCodec::Integer) {
+                    let i = g.header.blocks.iter().position(|x| x.name == info.name).unwrap();
+                    assert_eq!(b, &g.blocks[i], "{name}: index block {} must be exact", info.name);
+                }
+            }
+            let mut e = 0f32;
+            for v in 0..ds.n_views() {
+                for l in 0..ds.n_lights() {
+                    let (a, b) = (exact.reconstruct(l, v).unwrap(), q.reconstruct(l, v).unwrap());
+                    for (x, y) in a.iter().zip(&b) {
+                        assert!(y.is_finite(), "{name} {bits} bits: non-finite");
+                        e = e.max((x - y).abs());
+                    }
+                }
+            }
+            // Values here are ≤ ~1: a few quantization steps of a unit-range factor.
+            let tol = if bits == 8 { 0.08 } else { 0.006 };
+            assert!(e < tol, "{name} {bits} bits: max deviation {e} from the f32 file");
+            assert!(e <= last, "{name}: {bits} bits worse than fewer bits");
+            last = e;
+            let (img, _) = interp::reconstruct_at(&q, [20.0, 40.0], [30.0, 100.0]).unwrap();
+            assert!(img.iter().all(|x| x.is_finite()));
+        }
+    }
+}
+
+/// Quantization never turns a constant, zero or rank-deficient input into NaN: the
+/// unused components are zero columns, which decode exactly.
+#[test]
+fn quantizing_constant_and_rank_deficient_inputs_stays_finite() {
+    let tmp = tempfile::tempdir().unwrap();
+    for (i, f) in [
+        (|_, _, _, _| 0.0) as fn(usize, usize, usize, usize) -> f32,
+        |_, _, _, _| 0.375,
+        rank3,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let dir = tmp.path().join(format!("ds{i}"));
+        write_dataset(&dir, &[], f);
+        let ds = DatasetViews::open(&dir).unwrap();
+        for method in [Method::Pvmf, Method::Pca] {
+            let (g, _) = compress(&ds, &Params::new(method, 6)).unwrap();
+            let q = quantized_round_trip(&g, 8, &tmp.path().join(format!("q{i}.gbtf")));
+            assert!(q.gbtf.blocks.iter().flatten().all(|v| v.is_finite()));
+            let e = max_err(&ds, &q);
+            // Constant inputs are exact up to f32; rank 3 within 8-bit steps.
+            let tol = if i < 2 { 1e-6 } else { 0.02 };
+            assert!(e <= tol, "dataset {i} {method:?}: max error {e}");
+        }
+    }
+}
+
+/// Version 1 may not carry coded blocks; a damaged coded block is reported by name.
+#[test]
+fn coded_block_corruption_is_detected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let (mut g, _) = compress(&ds, &Params::new(Method::Pca, 3)).unwrap();
+    g.quantize(10).unwrap();
+    let mut bytes = g.to_bytes().unwrap();
+    let p = Path::new("q.gbtf");
+    assert!(Gbtf::from_bytes(&bytes, p).is_ok());
+    let mut v1 = bytes.clone();
+    v1[8..12].copy_from_slice(&container::VERSION.to_le_bytes());
+    let e = Gbtf::from_bytes(&v1, p).unwrap_err().to_string();
+    assert!(e.contains("version 1"), "{e}");
+    let n = bytes.len();
+    bytes[n - 10] ^= 0x40;
+    let e = Gbtf::from_bytes(&bytes, p).unwrap_err().to_string();
+    assert!(e.contains("block v") && e.contains("CRC"), "{e}");
+    assert!(g.clone().quantize(0).is_err() && g.quantize(17).is_err());
 }
