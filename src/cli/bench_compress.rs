@@ -393,6 +393,7 @@ mod tests {
                 format: "gbtf",
                 params: serde_json::Value::Null,
                 quantize_bits: None,
+                target: None,
                 out: String::new(),
                 images_measured: 1,
                 filled_pairs: 0,

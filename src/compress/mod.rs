@@ -92,6 +92,7 @@ pub mod metrics;
 pub mod params;
 pub mod pca;
 pub mod pvmf;
+pub mod target;
 
 #[cfg(test)]
 pub(crate) mod testdata;
