@@ -191,15 +191,37 @@ pub fn decode(bytes: &[u8], rows: usize, cols: usize, codec: BlockCodec) -> Resu
         }
     };
     let (n, len, at) = vectors(rows, cols, axis);
-    let scale_bytes = if matches!(codec, BlockCodec::Integer) { 0 } else { n * 8 };
-    let want = scale_bytes + total * if bits <= 8 { 1 } else { 2 };
-    let p = zstd::bulk::decompress(z, want).map_err(|e| format!("zstd: {e}"))?;
+    let scale_bytes = if matches!(codec, BlockCodec::Integer) {
+        0
+    } else {
+        n.checked_mul(8).ok_or("block size overflows")?
+    };
+    let want = total
+        .checked_mul(if bits <= 8 { 1 } else { 2 })
+        .and_then(|b| b.checked_add(scale_bytes))
+        .ok_or("block size overflows")?;
+    // The frame states its size: check it against the shape before allocating, and
+    // allocate fallibly, so a damaged or hostile header is an error, not an abort.
+    match zstd::zstd_safe::get_frame_content_size(z) {
+        Ok(Some(n)) if n == want as u64 => {}
+        Ok(n) => return Err(format!("zstd frame holds {n:?} bytes, the shape needs {want}")),
+        Err(_) => return Err("not a zstd frame".into()),
+    }
+    let mut p = Vec::new();
+    p.try_reserve_exact(want)
+        .map_err(|_| format!("cannot allocate {want} bytes for a {rows}×{cols} block"))?;
+    zstd::bulk::Decompressor::new()
+        .and_then(|mut d| d.decompress_to_buffer(z, &mut p))
+        .map_err(|e| format!("zstd: {e}"))?;
     if p.len() != want {
         return Err(format!("{} bytes after decompression, the shape needs {want}", p.len()));
     }
     let (scales, planes_bytes) = p.split_at(scale_bytes);
     let codes = unfiltered(&unplanes(planes_bytes, total, bits), len, bits, filter);
-    let mut out = vec![0f32; total];
+    let mut out = Vec::new();
+    out.try_reserve_exact(total)
+        .map_err(|_| format!("cannot allocate {total} values for a {rows}×{cols} block"))?;
+    out.resize(total, 0f32);
     for j in 0..n {
         let (lo, step) = match codec {
             BlockCodec::Integer => (0.0, 1.0),
@@ -430,6 +452,8 @@ mod tests {
         let codec = choose(&v, 50, 1, 8);
         let mut bytes = encode(&v, 50, 1, codec).unwrap();
         assert!(decode(&bytes, 51, 1, codec).is_err(), "wrong shape");
+        let e = decode(&bytes, 1 << 40, 1 << 20, codec).unwrap_err();
+        assert!(e.contains("zstd frame holds") || e.contains("overflows"), "{e}");
         assert!(decode(&[], 50, 1, codec).is_err());
         bytes[0] = 9;
         assert!(decode(&bytes, 50, 1, codec).is_err(), "unknown filter");
