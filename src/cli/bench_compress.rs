@@ -360,7 +360,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let ds = tmp.path().join("ds");
         let dirs = [[0.0, 0.0], [40.0, 90.0], [60.0, 200.0]];
-        crate::compress::dfmf::tests::write_test_dataset(&ds, (4, 3), &dirs, &dirs, &[], |l, v, t, c| {
+        crate::compress::testdata::write_test_dataset(&ds, (4, 3), &dirs, &dirs, &[], |l, v, t, c| {
             0.1 + 0.02 * (l + 2 * v + 3 * c) as f32 + 0.01 * (t % 5) as f32
         });
         let out = tmp.path().join("x.gbtf");
@@ -392,6 +392,8 @@ mod tests {
                 components: 1,
                 format: "gbtf",
                 params: serde_json::Value::Null,
+                quantize_bits: None,
+                target: None,
                 out: String::new(),
                 images_measured: 1,
                 filled_pairs: 0,
@@ -438,9 +440,9 @@ struct SpeedReport {
     views_timed: usize,
     /// EXR decode + column-major f64 view matrix (`DatasetViews::view_columns`).
     read_seconds_per_view: f64,
-    /// Householder QR + SVD of R (`factor::truncated_svd`, PVMF's fallback), c = 8.
+    /// Householder QR + SVD of R (`linalg::truncated_svd`, PVMF's fallback), c = 8.
     qr_svd_seconds_per_view: f64,
-    /// Gram path (`factor::gram_truncated`, PVMF's default): AᵀA (lower triangle), its
+    /// Gram path (`linalg::gram_truncated`, PVMF's default): AᵀA (lower triangle), its
     /// eigen-decomposition, A·V; c = 8.
     gram_seconds_per_view: f64,
     /// Views of the timed ones on which the Gram path declined (ill-conditioned for c).
@@ -460,14 +462,14 @@ struct SpeedReport {
     /// GEMM on the same shapes.
     full_view_qr_svd_seconds: f64,
     full_view_gram_seconds: f64,
-    /// AᵀA lower triangle as PVMF computes it (`factor::gram_by_row_chunks`), GFLOP/s
+    /// AᵀA lower triangle as PVMF computes it (`linalg::gram_by_row_chunks`), GFLOP/s
     /// counting m·n·(n+1).
     full_view_gram_product_gflops: f64,
     /// Plain faer `Aᵀ * A` (all n² entries), GFLOP/s counting 2·m·n².
     full_view_gemm_ata_gflops: f64,
     /// Plain faer `A * Y` with Y n × n, GFLOP/s counting 2·m·n².
     full_view_gemm_gflops: f64,
-    /// `factor::gram_lower` with b column blocks: (b, seconds), the rejected alternative
+    /// `linalg::gram_lower` with b column blocks: (b, seconds), the rejected alternative
     /// to the triangular product PVMF uses (`full_view_triangular_gram_seconds`).
     full_view_gram_blocked_seconds: Vec<(usize, f64)>,
     /// faer's own parallel triangular product (`triangular::matmul`, PVMF's product until
@@ -502,7 +504,7 @@ struct SpeedReport {
 
 fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     use crate::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
-    use crate::compress::factor::{gram_truncated, truncated_svd};
+    use crate::compress::linalg::{gram_truncated, truncated_svd};
     use faer::linalg::matmul::triangular::{matmul as tri_matmul, BlockStructure};
     use faer::Mat;
     use std::time::Instant;
@@ -583,7 +585,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     };
     let tri_s = best(&mut triangular);
     let chunked = |big: &Mat<f64>| {
-        std::hint::black_box(crate::compress::factor::gram_by_row_chunks(big.as_ref()));
+        std::hint::black_box(crate::compress::linalg::gram_by_row_chunks(big.as_ref()));
     };
     let chunk_s = best(&mut || chunked(&big));
     // Both products again while a reader thread loads views, as during PVMF's encode.
@@ -616,7 +618,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
         .into_iter()
         .map(|b| {
             let s = best(&mut || {
-                std::hint::black_box(crate::compress::factor::gram_lower(big.as_ref(), b));
+                std::hint::black_box(crate::compress::linalg::gram_lower(big.as_ref(), b));
             });
             (b, s)
         })

@@ -55,14 +55,21 @@ pub enum PrecisionArg {
 pub struct CompressArgs {
     /// The dataset directory.
     pub dataset: PathBuf,
-    #[arg(long, value_enum)]
-    pub method: MethodArg,
+    /// The method. Optional with --target-psnr (then every method of the search is tried).
+    #[arg(long, value_enum, required_unless_present = "target_psnr")]
+    pub method: Option<MethodArg>,
+    /// Pick the method, components and quantization giving the smallest .gbtf whose PSNR
+    /// (8-bit sRGB, against the dataset's truth if it has one, else its images) is at
+    /// least this many dB; `--method` restricts the search to one method. Every trial and
+    /// the reason for the choice are in `--json` (`target`).
+    #[arg(long, value_name = "DB", conflicts_with_all = ["components", "quantize", "format"])]
+    pub target_psnr: Option<f64>,
     /// Components kept (per view for PVMF, in total for PCA, per cluster for local PCA,
     /// luminance for DFMF). Required by those methods; median cut and homomorphic
     /// factorization have no components and ignore it.
     #[arg(long, short = 'c')]
     pub components: Option<usize>,
-    /// Output `.gbtf` file.
+    /// Output file: `.gbtf`, or UBO2014 `.btf` for `--method dfmf`.
     #[arg(long)]
     pub out: PathBuf,
     /// PCA: seed of the random sketch.
@@ -113,6 +120,11 @@ pub struct CompressArgs {
     /// DFMF: stored scalar type (f16 like Bonn's files, or f32).
     #[arg(long, value_enum, default_value = "f16")]
     pub precision: PrecisionArg,
+    /// Store the factors quantized to this many bits per value (1–16; 8–12 is the useful
+    /// range) with one scale per factor vector, entropy-coded by zstd (a version-2 .gbtf;
+    /// index blocks stay exact). Default: plain f32. `.gbtf` only.
+    #[arg(long, value_name = "BITS")]
+    pub quantize: Option<u32>,
     /// Skip the error evaluation (a second pass reading every image).
     #[arg(long)]
     pub no_eval: bool,
@@ -154,6 +166,9 @@ pub(crate) struct Report {
     pub(crate) format: &'static str,
     /// The method's parameters as stored in the file's header.
     pub(crate) params: serde_json::Value,
+    /// Bits per stored factor value (`--quantize`); absent for plain f32.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) quantize_bits: Option<u32>,
     pub(crate) out: String,
     pub(crate) images_measured: usize,
     pub(crate) filled_pairs: usize,
@@ -177,6 +192,19 @@ pub(crate) struct Report {
     /// Where the encode time went (PVMF: reader wait, factorization, views per path).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub(crate) encode_stages: Vec<compress::Stage>,
+    /// `--target-psnr`: what was tried and why this file was chosen.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) target: Option<TargetReport>,
+}
+
+/// The search of `--target-psnr` (see `compress::target`).
+#[derive(Serialize, Debug, Clone)]
+pub(crate) struct TargetReport {
+    pub(crate) target_psnr_db: f64,
+    /// `truth` or `dataset`.
+    pub(crate) psnr_against: &'static str,
+    pub(crate) reason: String,
+    pub(crate) trials: Vec<compress::target::Trial>,
 }
 
 /// Errors against the simulator's ground truth; same scales as the main figures.
@@ -206,7 +234,7 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
-    if args.shard.is_some() && !matches!(args.method, MethodArg::Pvmf) {
+    if args.shard.is_some() && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some()) {
         anyhow::bail!(
             "--shard splits --method pvmf by views; other methods are compressed in one process \
              (leave out --shard)"
@@ -214,23 +242,30 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     }
     let t0 = Instant::now();
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
-    let format = args.format.unwrap_or(match args.method {
+    if let Some(p) = args.target_psnr {
+        return target_report(args, &ds, p, t0);
+    }
+    let method_arg = args.method.context("--method is required without --target-psnr")?;
+    let format = args.format.unwrap_or(match method_arg {
         MethodArg::Dfmf => FormatArg::Btf,
         _ => FormatArg::Gbtf,
     });
-    if matches!(args.method, MethodArg::Dfmf) != (format == FormatArg::Btf) {
+    if matches!(method_arg, MethodArg::Dfmf) != (format == FormatArg::Btf) {
         anyhow::bail!(
             "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
         );
     }
-    let needs_c = !matches!(args.method, MethodArg::MedianCut | MethodArg::Homomorphic);
+    if format == FormatArg::Btf && args.quantize.is_some() {
+        anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
+    }
+    let needs_c = !matches!(method_arg, MethodArg::MedianCut | MethodArg::Homomorphic);
     let components = match (args.components, needs_c) {
         (Some(c), _) => c,
         (None, false) => 1,
         (None, true) => anyhow::bail!("this --method needs -c (components); only median-cut and homomorphic do not"),
     };
     let params = Params {
-        method: match args.method {
+        method: match method_arg {
             MethodArg::Pca => Method::Pca,
             MethodArg::Pvmf => Method::Pvmf,
             MethodArg::Dfmf => return dfmf_report(args, &ds, t0),
@@ -254,11 +289,14 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         oversample: args.oversample,
         power_iters: args.power_iters,
     };
-    let (gbtf, mut info) = match args.shard {
+    let (mut gbtf, mut info) = match args.shard {
         Some(shard) => compress::compress_pvmf_shard(&ds, &params, shard),
         None => compress::compress(&ds, &params),
     }
     .with_context(|| format!("compressing {}", args.dataset.display()))?;
+    if let Some(bits) = args.quantize {
+        gbtf.quantize(bits).context("--quantize")?;
+    }
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -270,6 +308,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         components: params.components,
         format: "gbtf",
         params: serde_json::to_value(&params)?,
+        quantize_bits: args.quantize,
         filled_pairs: info.filled,
         dataset_passes: info.passes,
         encode_stages: std::mem::take(&mut info.stages),
@@ -290,6 +329,7 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
         components: 0,
         format: "",
         params: serde_json::Value::Null,
+        quantize_bits: None,
         out: args.out.display().to_string(),
         images_measured: ds.n_measured(),
         filled_pairs: 0,
@@ -308,7 +348,105 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
         truth: None,
         peak_memory_bytes: None,
         encode_stages: Vec::new(),
+        target: None,
     }
+}
+
+/// The ladders `--target-psnr` climbs (see `compress::target`): each method's knobs in
+/// order of growing file size. PVMF, median cut and homomorphic factorization are left
+/// out of the default search: on the default sample their files are larger at every
+/// quality PCA or local PCA reach (docs/compression.md); `--method` still searches them.
+fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
+    let p = |method, c| Params {
+        seed: args.seed,
+        oversample: args.oversample,
+        power_iters: args.power_iters,
+        ..Params::new(method, c)
+    };
+    let lpca = |k: usize| Method::LocalPca {
+        clusters: k,
+        iters: args.iters,
+        subspace: args.subspace,
+    };
+    let pca: Vec<Params> = [4, 8, 16, 32, 64].map(|c| p(Method::Pca, c)).to_vec();
+    let local = |k: usize| -> Vec<Params> { [2, 4, 8, 16].map(|c| p(lpca(k), c)).to_vec() };
+    match method {
+        None => vec![pca, local(8), local(32)],
+        Some(MethodArg::Pca) => vec![pca],
+        Some(MethodArg::LocalPca) => vec![local(8), local(32)],
+        Some(MethodArg::Pvmf) => vec![[1, 2, 4, 8, 16].map(|c| p(Method::Pvmf, c)).to_vec()],
+        Some(MethodArg::MedianCut) => vec![[64, 256, 1024, 4096]
+            .map(|b| {
+                p(
+                    Method::MedianCut {
+                        boxes: b,
+                        balanced: args.balanced,
+                        min_error_cut: args.min_error_cut,
+                    },
+                    1,
+                )
+            })
+            .to_vec()],
+        Some(MethodArg::Homomorphic) => vec![vec![p(
+            Method::Homomorphic {
+                half_bins: args.half_bins,
+                sweeps: args.sweeps,
+            },
+            1,
+        )]],
+        Some(MethodArg::Dfmf) => Vec::new(),
+    }
+}
+
+fn target_report(args: &CompressArgs, ds: &DatasetViews, target: f64, t0: Instant) -> Result<Report> {
+    if matches!(args.method, Some(MethodArg::Dfmf)) {
+        anyhow::bail!("--target-psnr searches the .gbtf methods; DFMF writes UBO2014 .btf (run it with -c)");
+    }
+    let choice = compress::target::search(ds, target, &ladders(args.method, args))
+        .with_context(|| format!("searching {} for {target} dB", args.dataset.display()))?;
+    let Some((gbtf, best)) = choice.best else {
+        let top = choice
+            .trials
+            .iter()
+            .map(|t| t.psnr_8bit_db)
+            .fold(f64::NEG_INFINITY, f64::max);
+        anyhow::bail!(
+            "no candidate reached {target} dB (best {top:.2} dB over {} trials); lower --target-psnr or \
+             give --method with more components",
+            choice.trials.len()
+        );
+    };
+    let stored = gbtf
+        .write(&args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let reached = choice.trials.iter().filter(|t| t.meets_target).count();
+    let reason = format!(
+        "smallest of the {reached} candidates (of {} tried) reaching {target} dB against the {}: {} with c = {} at \
+         {} bits, {:.2} dB, {} bytes",
+        choice.trials.len(),
+        choice.against,
+        best.method,
+        best.params.components,
+        best.bits,
+        best.psnr_8bit_db,
+        best.stored_bytes
+    );
+    let mut r = Report {
+        method: best.method,
+        components: best.params.components,
+        format: "gbtf",
+        params: serde_json::to_value(&best.params)?,
+        quantize_bits: Some(best.bits),
+        target: Some(TargetReport {
+            target_psnr_db: target,
+            psnr_against: choice.against,
+            reason,
+            trials: choice.trials,
+        }),
+        ..report_base(args, ds, stored, t0.elapsed().as_secs_f64())
+    };
+    finish_report(args, ds, &mut r)?;
+    Ok(r)
 }
 
 /// Read the written file back (checks every CRC or length), evaluate it against the
@@ -385,6 +523,12 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
 
 fn print_report(r: &Report) {
     println!("method         {} c = {} → {}", r.method, r.components, r.out);
+    if let Some(b) = r.quantize_bits {
+        println!("stored         {b}-bit quantized factors, zstd (.gbtf version 2)");
+    }
+    if let Some(t) = &r.target {
+        println!("chosen         {}", t.reason);
+    }
     println!(
         "images         {} measured, {} unmeasured pairs filled from the nearest light, {} pass(es)",
         r.images_measured, r.filled_pairs, r.dataset_passes

@@ -68,7 +68,8 @@ pub enum Command {
     /// Benchmarks (ratios against a baseline run in the same process).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
-    /// Compress a dataset (PCA or per-view factorization) into a .gbtf file and report its error.
+    /// Compress a dataset (PCA, PVMF, local PCA, median cut, homomorphic: .gbtf; DFMF: UBO2014 .btf)
+    /// and report its size and error.
     Compress(compress::CompressArgs),
     /// Find hardware: list serial ports and video devices, probe a port for a controller.
     #[command(subcommand)]

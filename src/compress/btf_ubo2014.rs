@@ -28,7 +28,7 @@
 //! why [`from_bytes`] checks every length itself.
 
 use super::dfmf::{rgb_to_yuv, ChannelFactors, ColorModel, Dfmf};
-use super::CompressError;
+use super::error::CompressError;
 use half::f16;
 use std::path::Path;
 

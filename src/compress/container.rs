@@ -3,39 +3,62 @@
 //! ```text
 //! offset  size  content
 //! 0       8     magic  b"GBTF\0\r\n\x1a"
-//! 8       4     format version (u32 LE), currently 1
+//! 8       4     format version (u32 LE): 1, or 2 when a block is coded
 //! 12      8     header length H (u64 LE)
 //! 20      H     header: UTF-8 JSON (see [`GbtfHeader`])
 //! 20+H    4     CRC-32 (IEEE) of the header bytes (u32 LE)
 //! then, for each block listed in the header, in order:
-//!         8     block length B in bytes (u64 LE), must equal rows · cols · 4
-//!         B     row-major f32 little-endian values
+//!         8     block length B in bytes (u64 LE); rows · cols · 4 for an f32 block
+//!         B     row-major f32 little-endian values, or (version 2, the block's
+//!               `codec` set) its quantized zstd-coded form (see [`super::codec`])
 //!         4     CRC-32 of the B bytes (u32 LE)
 //! end of file (trailing bytes are an error)
 //! ```
 //!
 //! The header is self-describing: method, parameters, image size, light and view
-//! directions (degrees), and the name and shape of every block.
+//! directions (degrees), and the name, shape and (version 2) codec of every block.
+//! Files without coded blocks are written as version 1, byte for byte as before coded
+//! blocks existed; readers decode coded blocks to f32 on load, so every decoder
+//! (reconstruction, interpolation, evaluation) works on either version unchanged.
 
-use super::CompressError;
+use super::codec::{self, BlockCodec};
+use super::error::CompressError;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 pub const MAGIC: &[u8; 8] = b"GBTF\0\r\n\x1a";
+/// Version of files whose blocks are all plain f32.
 pub const VERSION: u32 = 1;
+/// Version of files with at least one coded block.
+pub const VERSION_CODED: u32 = 2;
 
-/// Name and shape of one factor block (row-major f32).
+/// Name and shape of one factor block (row-major f32 once decoded).
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct BlockInfo {
     pub name: String,
     pub rows: usize,
     pub cols: usize,
+    /// How the block is stored: absent for plain f32 (the only kind in version 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub codec: Option<BlockCodec>,
+}
+
+impl BlockInfo {
+    /// A plain f32 block.
+    pub fn new(name: impl Into<String>, rows: usize, cols: usize) -> Self {
+        BlockInfo {
+            name: name.into(),
+            rows,
+            cols,
+            codec: None,
+        }
+    }
 }
 
 /// The JSON header of a `.gbtf` file.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct GbtfHeader {
-    /// `"pvmf"` or `"pca"`.
+    /// `"pca"`, `"pvmf"`, `"local-pca"`, `"median-cut"` or `"homomorphic"`.
     pub method: String,
     /// Method parameters (components, seed, oversampling, power iterations, …).
     pub params: serde_json::Value,
@@ -72,9 +95,10 @@ impl Gbtf {
         }
         let header = serde_json::to_vec(&self.header).map_err(|e| CompressError::Invalid(e.to_string()))?;
         let total: usize = self.blocks.iter().map(|b| 12 + b.len() * 4).sum::<usize>() + 24 + header.len();
+        let coded = self.header.blocks.iter().any(|b| b.codec.is_some());
         let mut out = Vec::with_capacity(total);
         out.extend_from_slice(MAGIC);
-        out.extend_from_slice(&VERSION.to_le_bytes());
+        out.extend_from_slice(&if coded { VERSION_CODED } else { VERSION }.to_le_bytes());
         out.extend_from_slice(&(header.len() as u64).to_le_bytes());
         out.extend_from_slice(&header);
         out.extend_from_slice(&crc32fast::hash(&header).to_le_bytes());
@@ -89,9 +113,16 @@ impl Gbtf {
                 )));
             }
             let start = out.len() + 8;
-            out.extend_from_slice(&((b.len() * 4) as u64).to_le_bytes());
-            for v in b {
-                out.extend_from_slice(&v.to_le_bytes());
+            if let Some(c) = info.codec {
+                let bytes = codec::encode(b, info.rows, info.cols, c)
+                    .map_err(|e| CompressError::Invalid(format!("block {}: {e}", info.name)))?;
+                out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+                out.extend_from_slice(&bytes);
+            } else {
+                out.extend_from_slice(&((b.len() * 4) as u64).to_le_bytes());
+                for v in b {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
             }
             let crc = crc32fast::hash(&out[start..]);
             out.extend_from_slice(&crc.to_le_bytes());
@@ -122,9 +153,9 @@ impl Gbtf {
             return Err(corrupt("not a .gbtf file (bad magic)".into()));
         }
         let version = u32::from_le_bytes(take(4, "version")?.try_into().unwrap());
-        if version != VERSION {
+        if version != VERSION && version != VERSION_CODED {
             return Err(corrupt(format!(
-                "format version {version}, this gonio reads version {VERSION}"
+                "format version {version}, this gonio reads versions {VERSION} and {VERSION_CODED}"
             )));
         }
         let hlen = u64::from_le_bytes(take(8, "header length")?.try_into().unwrap());
@@ -138,10 +169,28 @@ impl Gbtf {
         if header.dtype != "f32le" {
             return Err(corrupt(format!("unknown dtype {:?}", header.dtype)));
         }
+        if version == VERSION {
+            if let Some(b) = header.blocks.iter().find(|b| b.codec.is_some()) {
+                return Err(corrupt(format!(
+                    "block {} is coded, which version 1 does not allow",
+                    b.name
+                )));
+            }
+        }
         let mut blocks = Vec::with_capacity(header.blocks.len());
         for info in &header.blocks {
             let what = format!("block {}", info.name);
             let len = u64::from_le_bytes(take(8, &what)?.try_into().unwrap());
+            if let Some(c) = info.codec {
+                let len = usize::try_from(len).map_err(|_| corrupt(format!("{what}: length overflows")))?;
+                let data = take(len, &what)?;
+                let crc = u32::from_le_bytes(take(4, &what)?.try_into().unwrap());
+                if crc32fast::hash(data) != crc {
+                    return Err(corrupt(format!("{what}: CRC mismatch")));
+                }
+                blocks.push(codec::decode(data, info.rows, info.cols, c).map_err(|e| corrupt(format!("{what}: {e}")))?);
+                continue;
+            }
             let want = (info.rows as u64) * (info.cols as u64) * 4;
             if len != want {
                 return Err(corrupt(format!(
@@ -167,6 +216,22 @@ impl Gbtf {
             )));
         }
         Ok(Gbtf { header, blocks })
+    }
+
+    /// Mark every block for quantization at `bits` per value ([`codec::choose`]: exact
+    /// integer blocks stay exact); writing then produces a version-2 file.
+    pub fn quantize(&mut self, bits: u32) -> Result<(), CompressError> {
+        if !codec::BITS.contains(&bits) {
+            return Err(CompressError::Invalid(format!(
+                "--quantize {bits}: bits per value must be between {} and {}",
+                codec::BITS.start(),
+                codec::BITS.end()
+            )));
+        }
+        for (info, b) in self.header.blocks.iter_mut().zip(&self.blocks) {
+            info.codec = Some(codec::choose(b, info.rows, info.cols, bits));
+        }
+        Ok(())
     }
 
     pub fn write(&self, path: &Path) -> Result<u64, CompressError> {

@@ -7,7 +7,7 @@
 //! directions; ties go to the lower light index); [`ViewMatrix::filled`] lists them.
 //! Substituted measurements are used as measured at their grid position.
 
-use super::CompressError;
+use super::error::CompressError;
 use crate::store::{self, ManifestHeader, MeasurementRecord, MeasurementStatus};
 use faer::Mat;
 use rayon::prelude::*;

@@ -17,7 +17,7 @@
 //!   Negative inputs (sensor noise below black) are clamped to 0 before the transform,
 //!   and the chroma denominator is at least ε, so dark texels cannot blow up the ratios.
 //!
-//! The factorization is the streamed randomized SVD of [`super::factor`]'s PCA (Halko,
+//! The factorization is the streamed randomized SVD of PCA (`super::pca`) (Halko,
 //! Martinsson, Tropp 2011) run on the three channel matrices in the same passes over the
 //! dataset: the full matrix (6561 × 65536 per channel at 256²) is never held. The final
 //! small SVD runs in f64 (see the module docs of [`super`] for f32 versus f64).
@@ -27,8 +27,9 @@
 //! `btf-extractor` (checked by `tests/interop/check_ubo2014.py`).
 
 use super::data::DatasetViews;
-use super::factor::{truncated_svd, EncodeInfo};
-use super::CompressError;
+use super::error::CompressError;
+use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
+use super::params::EncodeInfo;
 use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
@@ -289,20 +290,6 @@ fn channel_matrices(
     Ok((mats, vm.filled))
 }
 
-/// Deterministic standard normal number for (seed, row, col): splitmix64 + Box-Muller.
-fn gaussian(seed: u64, row: usize, col: usize) -> f64 {
-    let mix = |k: u64| {
-        let mut z = k.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    };
-    let k = mix(seed ^ mix(((row as u64) << 20) ^ col as u64));
-    let u1 = ((k >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
-    let u2 = ((mix(k) >> 11) as f64) / (1u64 << 53) as f64;
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-}
-
 /// Budget for keeping all channel matrices (f64) in memory between the passes.
 pub const DFMF_CACHE_BYTES: usize = 1 << 30;
 
@@ -371,8 +358,8 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
     let mut y: Vec<Mat<f64>> = ks.iter().map(|&k| Mat::zeros(t, k)).collect();
     s.pass(|v, a| {
         for ch in 0..3 {
-            let seed = params.seed.wrapping_add(ch as u64);
-            let omega = Mat::from_fn(nl, ks[ch], |i, j| gaussian(seed, v * nl + i, j));
+            let sketch = GaussianSketch::new(params.seed.wrapping_add(ch as u64), SketchKeying::Hashed);
+            let omega = sketch.block(v * nl, nl, ks[ch]);
             y[ch] += a[ch] * &omega;
         }
     })?;
@@ -428,72 +415,12 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
     ))
 }
 
-fn row_major_f32(m: MatRef<'_, f64>) -> Vec<f32> {
-    let mut out = Vec::with_capacity(m.nrows() * m.ncols());
-    for i in 0..m.nrows() {
-        for j in 0..m.ncols() {
-            out.push(m[(i, j)] as f32);
-        }
-    }
-    out
-}
-
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::super::btf_ubo2014::{self, Precision};
     use super::*;
-    use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, MeasurementStatus};
-    use gonio_devices::image::RgbImage;
+    use crate::compress::testdata::write_test_dataset;
     use std::path::Path;
-
-    /// Write a dataset on the grid `lights` × `views` whose image (light, view) is
-    /// `f(light, view, texel, channel)`; pairs in `skip` are recorded as skipped.
-    pub(crate) fn write_test_dataset(
-        dir: &Path,
-        (w, h): (usize, usize),
-        lights: &[[f64; 2]],
-        views: &[[f64; 2]],
-        skip: &[(usize, usize)],
-        f: impl Fn(usize, usize, usize, usize) -> f32,
-    ) -> DatasetViews {
-        let header = ManifestHeader {
-            format: store::FORMAT.into(),
-            version: store::FORMAT_VERSION,
-            gonio_version: "test".into(),
-            created_unix: 1_700_000_000.0,
-            rig: serde_json::json!({"name": "test rig"}),
-            sample: serde_json::json!({"name": "synthetic"}),
-            sweep: serde_json::json!({"name": "t", "lights_deg": lights, "views_deg": views}),
-            image_width: w,
-            image_height: h,
-            values: "synthetic".into(),
-            seed: 1,
-            raw_frames: false,
-            calibration: None,
-            extra: serde_json::Value::Null,
-        };
-        let mut ds = Dataset::create(dir, &header, false).unwrap();
-        for (v, vd) in views.iter().enumerate() {
-            for (l, ld) in lights.iter().enumerate() {
-                let index = v * lights.len() + l;
-                let mut rec = MeasurementRecord::new(index, index, *ld, *vd);
-                if skip.contains(&(l, v)) {
-                    rec.status = MeasurementStatus::Skipped { reason: "test".into() };
-                    ds.store(rec, None, None).unwrap();
-                    continue;
-                }
-                let mut img = RgbImage::new(w, h);
-                for t in 0..w * h {
-                    for c in 0..3 {
-                        img.data[t * 3 + c] = f(l, v, t, c);
-                    }
-                }
-                ds.store(rec, Some(&img), None).unwrap();
-            }
-        }
-        ds.finish(&serde_json::json!({})).unwrap();
-        DatasetViews::open(dir).unwrap()
-    }
 
     fn lights() -> Vec<[f64; 2]> {
         vec![[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [60.0, 90.0]]

@@ -31,11 +31,11 @@
 //! `view` (texels × views·3) and, if `half_bins > 0`, `half` (texels × half_bins·3);
 //! column `direction · 3 + channel`.
 
+use super::abrdf::{encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
-use super::factor::{EncodeInfo, Method, Params};
-use super::local_pca::{Abrdfs, ABRDF_F32_BUDGET};
-use super::CompressError;
+use super::error::CompressError;
+use super::params::{EncodeInfo, Method, Params};
 use rayon::prelude::*;
 
 /// ε under the logarithm, relative to the ABRDF channel's mean.
@@ -217,45 +217,17 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let m = fit(&a, &ds.lights_deg, &ds.views_deg, half_bins, sweeps)?;
     let t = a.texels;
     let mut infos = vec![
-        BlockInfo {
-            name: "albedo".into(),
-            rows: t,
-            cols: 3,
-        },
-        BlockInfo {
-            name: "light".into(),
-            rows: t,
-            cols: ds.n_lights() * 3,
-        },
-        BlockInfo {
-            name: "view".into(),
-            rows: t,
-            cols: ds.n_views() * 3,
-        },
+        BlockInfo::new("albedo", t, 3),
+        BlockInfo::new("light", t, ds.n_lights() * 3),
+        BlockInfo::new("view", t, ds.n_views() * 3),
     ];
     let mut blocks = vec![m.albedo, m.light, m.view];
     if half_bins > 0 {
-        infos.push(BlockInfo {
-            name: "half".into(),
-            rows: t,
-            cols: half_bins * 3,
-        });
+        infos.push(BlockInfo::new("half", t, half_bins * 3));
         blocks.push(m.half);
     }
-    let mut header = super::factor::header_for(ds, params, a.filled.clone(), infos);
-    if let Some(o) = header.params.as_object_mut() {
-        o.insert("epsilon".into(), EPSILON.into());
-        o.insert(
-            "abrdf_storage".into(),
-            if a.is_exact() { "f32" } else { "srgb8" }.into(),
-        );
-    }
-    let info = EncodeInfo {
-        filled: a.filled.len(),
-        passes: 1,
-        ..Default::default()
-    };
-    Ok((Gbtf { header, blocks }, info))
+    let blocks = infos.into_iter().zip(blocks).collect();
+    Ok(encode_gbtf(ds, params, &a, blocks, &[("epsilon", EPSILON.into())]))
 }
 
 /// Check block shapes; returns the number of half-vector bins.
@@ -386,7 +358,7 @@ pub fn reconstruct(g: &Gbtf, nh: usize, light: usize, view: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::compress::local_pca::testdata::{self, hash, max_err, round_trip};
+    use crate::compress::testdata::{self, hash, max_err, round_trip};
     use crate::compress::{compress, evaluate, CompressedBtf};
 
     fn params(half_bins: usize) -> Params {

@@ -26,8 +26,9 @@
 use super::btf_ubo2014;
 use super::container::Gbtf;
 use super::dfmf::Dfmf;
-use super::factor::{CompressedBtf, Method};
-use super::CompressError;
+use super::error::CompressError;
+use super::factor::CompressedBtf;
+use super::params::Method;
 use serde::Serialize;
 use std::path::Path;
 
@@ -364,10 +365,10 @@ pub fn reconstruct_at(
 
 #[cfg(test)]
 mod tests {
-    use super::super::dfmf::tests::write_test_dataset;
     use super::super::dfmf::{self, ColorModel, DfmfParams};
-    use super::super::factor::{compress, Params};
     use super::*;
+    use crate::compress::testdata::write_test_dataset;
+    use crate::compress::{compress, Params};
     use crate::rig::Rig;
     use gonio_devices::rig::RigSpec;
     use gonio_devices::Direction;

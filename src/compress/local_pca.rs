@@ -26,243 +26,22 @@
 //! 0.0061 / 0.0053 / 0.0055 (/255), where the full-space rounds took 1075 s (under load)
 //! for 0.0063 (README, Benchmarks).
 //!
-//! **Memory.** The methods that need whole ABRDFs (this one, median cut, homomorphic
-//! factorization) read the dataset once into an [`Abrdfs`] matrix. It is kept as f32
-//! while it fits [`ABRDF_F32_BUDGET`] (64² × 19683 values: 308 MiB); larger datasets
-//! (256² × 19683 = 4.8 GiB as f32) are kept as **8-bit sRGB codes of the value divided
-//! by its column's maximum** (1.2 GiB at 256², plus one f32 scale per column). 8 bits of
-//! sRGB is the precision the UBO2003 data were published in and what the error
-//! statistics are computed on; the per-column scale keeps values above 1 (highlights).
-//! All arithmetic runs on decoded blocks of a few hundred rows (≤ 32 MiB), so the peak
-//! stays near the size of the code matrix.
+//! The ABRDFs are read once into an [`Abrdfs`] matrix (module `abrdf`: f32, or 8-bit
+//! sRGB codes with a per-column scale for large datasets).
 //!
 //! Stored blocks (`.gbtf`, f32): `cluster` (texels × 1, the cluster index as an exact
 //! small integer), `coef` (texels × c), `mean` (k × M) and `basis` (k·c × M, row
 //! `j·c + i` is eigen-ABRDF `i` of cluster `j`), with M = views · lights · 3 and column
 //! `(view · lights + light) · 3 + channel` as for PCA.
 
+use super::abrdf::{encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
-use super::factor::{truncated_svd, EncodeInfo, Method, Params};
-use super::CompressError;
-use faer::{Mat, MatRef};
+use super::error::CompressError;
+use super::linalg::{splitmix, truncated_svd, GaussianSketch, SketchKeying};
+use super::params::{EncodeInfo, Method, Params};
+use faer::Mat;
 use rayon::prelude::*;
-
-/// Largest ABRDF matrix kept as f32; larger ones are kept as 8-bit sRGB codes.
-pub const ABRDF_F32_BUDGET: usize = 1 << 30;
-
-/// Rows decoded at a time (bounded to ~32 MiB of f32).
-fn block_rows(dims: usize) -> usize {
-    ((32usize << 20) / (dims.max(1) * 4)).clamp(1, 4096)
-}
-
-enum Store {
-    F32(Vec<f32>),
-    Srgb8 {
-        codes: Vec<u8>,
-        /// Per-column scale (the column's maximum).
-        scale: Vec<f32>,
-        /// sRGB code → linear value in [0, 1].
-        lut: Box<[f32; 256]>,
-    },
-}
-
-/// All ABRDFs of a dataset: `texels × dims`, dims = views · lights · 3, column
-/// `(view · lights + light) · 3 + channel`.
-pub struct Abrdfs {
-    pub texels: usize,
-    pub dims: usize,
-    /// `[light, view]` pairs filled from the nearest measured light.
-    pub filled: Vec<[usize; 2]>,
-    store: Store,
-}
-
-fn srgb_to_linear(code: u8) -> f32 {
-    let s = code as f32 / 255.0;
-    if s <= 0.04045 {
-        s / 12.92
-    } else {
-        ((s + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-impl Abrdfs {
-    /// Read the dataset once, view by view. f32 when `texels · dims · 4 ≤ budget`, else
-    /// 8-bit sRGB codes with a per-column scale (see the module docs).
-    pub fn load(ds: &DatasetViews, budget: usize) -> Result<Self, CompressError> {
-        let (t, lc, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
-        let dims = lc * nv;
-        let exact = t.saturating_mul(dims).saturating_mul(4) <= budget;
-        let mut filled = Vec::new();
-        let mut f32s = if exact { vec![0f32; t * dims] } else { Vec::new() };
-        let mut codes = if exact { Vec::new() } else { vec![0u8; t * dims] };
-        let mut scale = if exact { Vec::new() } else { vec![0f32; dims] };
-        for v in 0..nv {
-            let vm = ds.view_matrix(v)?;
-            filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
-            let off = v * lc;
-            if exact {
-                f32s.par_chunks_mut(dims)
-                    .zip(vm.data.par_chunks(lc))
-                    .for_each(|(row, src)| row[off..off + lc].copy_from_slice(src));
-            } else {
-                for j in 0..lc {
-                    let m = vm.data.chunks(lc).map(|r| r[j]).fold(0f32, f32::max);
-                    scale[off + j] = if m > 0.0 { m } else { 1.0 };
-                }
-                let sc = &scale[off..off + lc];
-                codes
-                    .par_chunks_mut(dims)
-                    .zip(vm.data.par_chunks(lc))
-                    .for_each(|(row, src)| {
-                        for ((o, &x), &s) in row[off..off + lc].iter_mut().zip(src).zip(sc) {
-                            *o = crate::store::linear_to_srgb8(x / s);
-                        }
-                    });
-            }
-        }
-        let store = if exact {
-            Store::F32(f32s)
-        } else {
-            let mut lut = Box::new([0f32; 256]);
-            for (i, l) in lut.iter_mut().enumerate() {
-                *l = srgb_to_linear(i as u8);
-            }
-            Store::Srgb8 { codes, scale, lut }
-        };
-        tracing::info!(texels = t, dims, exact, "ABRDF matrix loaded");
-        Ok(Abrdfs {
-            texels: t,
-            dims,
-            filled,
-            store,
-        })
-    }
-
-    /// Wrap an in-memory f32 matrix (row-major `texels × dims`).
-    pub fn from_f32(texels: usize, dims: usize, data: Vec<f32>) -> Result<Self, CompressError> {
-        if data.len() != texels * dims {
-            return Err(CompressError::Invalid(format!(
-                "ABRDF matrix {texels}×{dims} needs {} values, got {}",
-                texels * dims,
-                data.len()
-            )));
-        }
-        if let Some(p) = data.iter().position(|v| !v.is_finite()) {
-            return Err(CompressError::Invalid(format!(
-                "ABRDF matrix: non-finite value {} at texel {}, column {}",
-                data[p],
-                p / dims.max(1),
-                p % dims.max(1)
-            )));
-        }
-        Ok(Abrdfs {
-            texels,
-            dims,
-            filled: Vec::new(),
-            store: Store::F32(data),
-        })
-    }
-
-    /// Whether values are kept exactly (f32) rather than as 8-bit codes.
-    pub fn is_exact(&self) -> bool {
-        matches!(self.store, Store::F32(_))
-    }
-
-    /// Bytes held by the matrix.
-    pub fn bytes(&self) -> usize {
-        match &self.store {
-            Store::F32(d) => d.len() * 4,
-            Store::Srgb8 { codes, scale, .. } => codes.len() + scale.len() * 4,
-        }
-    }
-
-    /// Decode row `t` into `out` (length `dims`).
-    pub fn row(&self, t: usize, out: &mut [f32]) {
-        let d = self.dims;
-        match &self.store {
-            Store::F32(v) => out.copy_from_slice(&v[t * d..(t + 1) * d]),
-            Store::Srgb8 { codes, scale, lut } => {
-                for ((o, &c), &s) in out.iter_mut().zip(&codes[t * d..(t + 1) * d]).zip(scale) {
-                    *o = lut[c as usize] * s;
-                }
-            }
-        }
-    }
-
-    /// One value.
-    pub fn value(&self, t: usize, j: usize) -> f32 {
-        match &self.store {
-            Store::F32(v) => v[t * self.dims + j],
-            Store::Srgb8 { codes, scale, lut } => lut[codes[t * self.dims + j] as usize] * scale[j],
-        }
-    }
-
-    /// Decode `rows` into the row-major `buf` (resized), subtracting `mean` if given.
-    pub fn decode_rows(&self, rows: &[u32], mean: Option<&[f32]>, buf: &mut Vec<f32>) {
-        buf.resize(rows.len() * self.dims, 0.0);
-        buf.par_chunks_mut(self.dims.max(1))
-            .zip(rows.par_iter())
-            .for_each(|(out, &r)| {
-                self.row(r as usize, out);
-                if let Some(m) = mean {
-                    for (o, &mm) in out.iter_mut().zip(m) {
-                        *o -= mm;
-                    }
-                }
-            });
-    }
-
-    /// Call `f(offset, block)` for consecutive blocks of `rows` (decoded, `mean`
-    /// subtracted); `offset` is the position of the block's first row in `rows`.
-    pub fn for_blocks(
-        &self,
-        rows: &[u32],
-        mean: Option<&[f32]>,
-        mut f: impl FnMut(usize, MatRef<'_, f32>) -> Result<(), CompressError>,
-    ) -> Result<(), CompressError> {
-        let bs = block_rows(self.dims);
-        let mut buf = Vec::new();
-        for (bi, chunk) in rows.chunks(bs).enumerate() {
-            self.decode_rows(chunk, mean, &mut buf);
-            f(bi * bs, MatRef::from_row_major_slice(&buf[..], chunk.len(), self.dims))?;
-        }
-        Ok(())
-    }
-
-    /// Mean (f64 accumulation) of `rows`.
-    pub fn mean_of(&self, rows: &[u32]) -> Vec<f32> {
-        let mut sum = vec![0f64; self.dims];
-        let _ = self.for_blocks(rows, None, |_, b| {
-            for i in 0..b.nrows() {
-                for (s, &x) in sum.iter_mut().zip(b.row(i).iter()) {
-                    *s += x as f64;
-                }
-            }
-            Ok(())
-        });
-        let n = rows.len().max(1) as f64;
-        sum.into_iter().map(|s| (s / n) as f32).collect()
-    }
-}
-
-/// splitmix64: the deterministic generator of seeding and sketches.
-pub(crate) fn splitmix(state: &mut u64) -> u64 {
-    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
-/// Standard normal number for (seed, row, col) (splitmix64 + Box–Muller).
-fn gaussian(seed: u64, row: usize, col: usize) -> f64 {
-    let mut s = seed ^ ((row as u64) << 24) ^ (col as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
-    let (a, b) = (splitmix(&mut s), splitmix(&mut s));
-    let u1 = ((a >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
-    let u2 = (b >> 11) as f64 / (1u64 << 53) as f64;
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-}
 
 /// Candidates for k-means++ seeding: at most this many rows (evenly strided), so seeding
 /// costs `k · 4096 · dims` however large the image.
@@ -356,7 +135,8 @@ fn cluster_basis(
     if c == 0 || kp == 0 {
         return Ok(Mat::zeros(dims, c));
     }
-    let omega = Mat::<f32>::from_fn(dims, kp, |i, j| gaussian(seed, i, j) as f32);
+    let sketch = GaussianSketch::new(seed, SketchKeying::Stream);
+    let omega = Mat::<f32>::from_fn(dims, kp, |i, j| sketch.at(i, j) as f32);
     let mut y = Mat::<f64>::zeros(n, kp);
     let fill_y = |y: &mut Mat<f64>, m: &Mat<f32>| -> Result<(), CompressError> {
         a.for_blocks(members, Some(mean), |off, b| {
@@ -671,45 +451,22 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
     let m = fit_in_subspace(&a, clusters, params.components, iters, params.seed, subspace)?;
     let c = params.components;
-    let infos = vec![
-        BlockInfo {
-            name: "cluster".into(),
-            rows: a.texels,
-            cols: 1,
-        },
-        BlockInfo {
-            name: "coef".into(),
-            rows: a.texels,
-            cols: c,
-        },
-        BlockInfo {
-            name: "mean".into(),
-            rows: m.k,
-            cols: a.dims,
-        },
-        BlockInfo {
-            name: "basis".into(),
-            rows: m.k * c,
-            cols: a.dims,
-        },
+    let info = BlockInfo::new;
+    let blocks = vec![
+        (
+            info("cluster", a.texels, 1),
+            m.assign.iter().map(|&j| j as f32).collect(),
+        ),
+        (info("coef", a.texels, c), m.coef),
+        (info("mean", m.k, a.dims), m.means),
+        (info("basis", m.k * c, a.dims), m.basis),
     ];
-    let blocks = vec![m.assign.iter().map(|&j| j as f32).collect(), m.coef, m.means, m.basis];
-    let mut header = super::factor::header_for(ds, params, a.filled.clone(), infos);
-    if let Some(o) = header.params.as_object_mut() {
-        o.insert("clusters_used".into(), m.k.into());
-        o.insert("rounds".into(), m.rounds.into());
-        o.insert("subspace".into(), subspace.into());
-        o.insert(
-            "abrdf_storage".into(),
-            if a.is_exact() { "f32" } else { "srgb8" }.into(),
-        );
-    }
-    let info = EncodeInfo {
-        filled: a.filled.len(),
-        passes: 1,
-        ..Default::default()
-    };
-    Ok((Gbtf { header, blocks }, info))
+    let extra = [
+        ("clusters_used", m.k.into()),
+        ("rounds", m.rounds.into()),
+        ("subspace", subspace.into()),
+    ];
+    Ok(encode_gbtf(ds, params, &a, blocks, &extra))
 }
 
 /// Check the block shapes of a local-PCA file; returns (k, c).
@@ -727,20 +484,6 @@ pub fn validate(h: &GbtfHeader) -> Result<(usize, usize), CompressError> {
         )));
     }
     Ok((k, c))
-}
-
-/// Check that every texel's index block entry is an integer in `0..n`.
-pub(crate) fn check_indices(idx: &[f32], n: usize, what: &str) -> Result<(), CompressError> {
-    if let Some((t, v)) = idx
-        .iter()
-        .enumerate()
-        .find(|(_, &v)| v.is_nan() || v < 0.0 || v.fract() != 0.0 || v as usize >= n)
-    {
-        return Err(CompressError::Invalid(format!(
-            ".gbtf: {what} index {v} of texel {t} is not an integer in 0..{n}"
-        )));
-    }
-    Ok(())
 }
 
 /// Reconstruct image (`light`, `view`) of a validated local-PCA file.
@@ -777,76 +520,10 @@ pub fn reconstruct(g: &Gbtf, k: usize, c: usize, light: usize, view: usize) -> V
     out
 }
 
-/// Small synthetic datasets for the tests of the ABRDF methods.
-#[cfg(test)]
-pub(crate) mod testdata {
-    use crate::compress::{compress, CompressedBtf, DatasetViews, Gbtf, Params};
-    use std::path::Path;
-
-    pub const W: usize = 8;
-    pub const H: usize = 6;
-
-    pub fn lights() -> Vec<[f64; 2]> {
-        vec![[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [60.0, 90.0]]
-    }
-    pub fn views() -> Vec<[f64; 2]> {
-        vec![[0.0, 0.0], [45.0, 0.0], [45.0, 180.0], [60.0, 270.0]]
-    }
-
-    /// Write a dataset of `w × h` texels on the given grid whose image (light, view) is
-    /// `f(light, view, texel, channel)`, and open it.
-    pub fn write_grid(
-        dir: &Path,
-        w: usize,
-        h: usize,
-        ls: &[[f64; 2]],
-        vs: &[[f64; 2]],
-        f: impl Fn(usize, usize, usize, usize) -> f32,
-    ) -> DatasetViews {
-        crate::compress::dfmf::tests::write_test_dataset(dir, (w, h), ls, vs, &[], f)
-    }
-
-    /// [`write_grid`] on the default 8 × 6 texel, 5 light × 4 view grid.
-    pub fn write(dir: &Path, f: impl Fn(usize, usize, usize, usize) -> f32) -> DatasetViews {
-        write_grid(dir, W, H, &lights(), &views(), f)
-    }
-
-    /// Largest absolute difference between the stored images and the reconstruction.
-    pub fn max_err(ds: &DatasetViews, m: &CompressedBtf) -> f32 {
-        let mut e = 0f32;
-        for v in 0..ds.n_views() {
-            for l in 0..ds.n_lights() {
-                let orig = ds.read_image(l, v).unwrap().unwrap();
-                let rec = m.reconstruct(l, v).unwrap();
-                for (a, b) in orig.iter().zip(&rec) {
-                    assert!(b.is_finite());
-                    e = e.max((a - b).abs());
-                }
-            }
-        }
-        e
-    }
-
-    /// Compress, write, read back (every CRC), compare and wrap.
-    pub fn round_trip(ds: &DatasetViews, p: &Params, file: &Path) -> (Gbtf, CompressedBtf) {
-        let (g, _) = compress(ds, p).unwrap();
-        g.write(file).unwrap();
-        let back = Gbtf::read(file).unwrap();
-        assert_eq!(back, g);
-        (g, CompressedBtf::new(back).unwrap())
-    }
-
-    /// Deterministic hash in [0, 1).
-    pub fn hash(a: usize, b: usize) -> f32 {
-        let mut s = (a as u64) << 32 ^ b as u64;
-        (super::splitmix(&mut s) >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    use super::testdata::{self, hash, max_err, round_trip};
     use super::*;
+    use crate::compress::testdata::{self, hash, max_err, round_trip};
     use crate::compress::{evaluate, CompressedBtf};
 
     /// The full-space algorithm (subspace 0) with a seed.

@@ -25,11 +25,11 @@
 //! columns), so that index images of different materials are comparable (see
 //! `gonio generate`).
 
+use super::abrdf::{check_indices, encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
-use super::factor::{EncodeInfo, Method, Params};
-use super::local_pca::{Abrdfs, ABRDF_F32_BUDGET};
-use super::CompressError;
+use super::error::CompressError;
+use super::params::{EncodeInfo, Method, Params};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -260,33 +260,10 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     };
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
     let m = quantize(&a, boxes, balanced, min_error_cut)?;
-    let infos = vec![
-        BlockInfo {
-            name: "index".into(),
-            rows: a.texels,
-            cols: 1,
-        },
-        BlockInfo {
-            name: "brdfs".into(),
-            rows: m.boxes,
-            cols: a.dims,
-        },
-    ];
-    let blocks = vec![m.index.iter().map(|&b| b as f32).collect(), m.brdfs];
-    let mut header = super::factor::header_for(ds, params, a.filled.clone(), infos);
-    if let Some(o) = header.params.as_object_mut() {
-        o.insert("boxes_used".into(), m.boxes.into());
-        o.insert(
-            "abrdf_storage".into(),
-            if a.is_exact() { "f32" } else { "srgb8" }.into(),
-        );
-    }
-    let info = EncodeInfo {
-        filled: a.filled.len(),
-        passes: 1,
-        ..Default::default()
-    };
-    Ok((Gbtf { header, blocks }, info))
+    let index = BlockInfo::new("index", a.texels, 1);
+    let brdfs = BlockInfo::new("brdfs", m.boxes, a.dims);
+    let blocks = vec![(index, m.index.iter().map(|&b| b as f32).collect()), (brdfs, m.brdfs)];
+    Ok(encode_gbtf(ds, params, &a, blocks, &[("boxes_used", m.boxes.into())]))
 }
 
 /// Check the block shapes and indices of a median-cut file; returns the box count.
@@ -301,7 +278,7 @@ pub fn validate(g: &Gbtf) -> Result<usize, CompressError> {
             ".gbtf median-cut: block shapes {got:?} do not match the header's grid"
         )));
     }
-    super::local_pca::check_indices(&g.blocks[0], n, "box")?;
+    check_indices(&g.blocks[0], n, "box")?;
     Ok(n)
 }
 
@@ -419,7 +396,7 @@ pub fn generate(index_from: &Gbtf, brdfs_from: &Gbtf, map: BoxMap) -> Result<(Gb
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::compress::local_pca::testdata::{self, hash, max_err, round_trip};
+    use crate::compress::testdata::{self, hash, max_err, round_trip};
     use crate::compress::{compress, evaluate, CompressedBtf};
 
     fn params(boxes: usize, balanced: bool, min_error_cut: bool) -> Params {

@@ -16,8 +16,8 @@
 //! because truncation removes some of the noise).
 
 use super::data::DatasetViews;
+use super::error::CompressError;
 use super::interp::BtfModel;
-use super::CompressError;
 use crate::store::linear_to_srgb8;
 use serde::Serialize;
 use std::time::Instant;

@@ -19,7 +19,7 @@ fn views() -> Vec<[f64; 2]> {
 /// Write a dataset whose image (light, view) is `f(light, view, texel, channel)`;
 /// pairs in `skip` are recorded as skipped.
 fn write_dataset(dir: &Path, skip: &[(usize, usize)], f: impl Fn(usize, usize, usize, usize) -> f32) {
-    super::dfmf::tests::write_test_dataset(dir, (W, H), &lights(), &views(), skip, f);
+    super::testdata::write_test_dataset(dir, (W, H), &lights(), &views(), skip, f);
 }
 
 /// An exactly rank-3 BTF whose values are exact in half float (multiples of 1/128 below
@@ -200,8 +200,8 @@ fn container_corruption_is_detected() {
     b[0] ^= 1;
     assert!(err(&b).contains("magic"));
     let mut b = bytes.clone();
-    b[8] = 2;
-    assert!(err(&b).contains("version 2"));
+    b[8] = 3;
+    assert!(err(&b).contains("version 3"));
     let mut b = bytes.clone();
     b[25] ^= 0x20;
     assert!(err(&b).contains("header CRC"));
@@ -296,7 +296,7 @@ fn f32_versus_f64_svd_accuracy() {
     let (u32m, s32, v32) = (svd.U(), svd.S().column_vector(), svd.V());
     for c in [4, 12, 24, 36, 42] {
         let optimal = sigma[c..].iter().map(|s| s * s).sum::<f64>().sqrt();
-        let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+        let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
         let e64 = (&a - &us * vv.transpose()).norm_l2();
         let r32 = Mat::<f64>::from_fn(m, n, |i, j| {
             (0..c)
@@ -358,7 +358,7 @@ fn f32_versus_f64_on_a_dataset() {
         let svd = a32.thin_svd().unwrap();
         let (u, s, v) = (svd.U(), svd.S().column_vector(), svd.V());
         for c in [2, 4, 9, 15, 30] {
-            let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+            let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
             let e64 = (&a - &us * vv.transpose()).norm_l2() / norm;
             let r32 = Mat::<f64>::from_fn(vm.rows, vm.cols, |i, j| {
                 (0..c).map(|k| u[(i, k)] as f64 * s[k] as f64 * v[(j, k)] as f64).sum()
@@ -373,7 +373,7 @@ fn f32_versus_f64_on_a_dataset() {
     }
 }
 
-/// The Gram path of PVMF (`factor::gram_truncated`: f64 `AᵀA`, its eigen-decomposition,
+/// The Gram path of PVMF (`linalg::gram_truncated`: f64 `AᵀA`, its eigen-decomposition,
 /// `U·S = A·V`) against the QR + SVD path on a view-sized matrix with singular values
 /// 1 … 1e-7: where it accepts `c` its rank-`c` error equals the optimal one, where the
 /// Gram matrix is too ill-conditioned for `c` it declines (and PVMF falls back). The same
@@ -389,11 +389,11 @@ fn gram_path_matches_the_svd_path() {
     let eig32 = g32.self_adjoint_eigen(faer::Side::Lower).unwrap();
     for c in [1, 4, 12, 24, 26, 27, 36, 42] {
         let optimal = sigma[c..].iter().map(|s| s * s).sum::<f64>().sqrt();
-        let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+        let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
         let e_svd = (&a - &us * vv.transpose()).norm_l2();
         // λ_c / λ_1 = σ_{c-1}² (0-based σ) against the documented threshold.
-        let accept = sigma[c - 1] * sigma[c - 1] >= factor::GRAM_MIN_EIGEN_RATIO;
-        let gram = factor::gram_truncated(a.as_ref(), c).unwrap();
+        let accept = sigma[c - 1] * sigma[c - 1] >= linalg::GRAM_MIN_EIGEN_RATIO;
+        let gram = linalg::gram_truncated(a.as_ref(), c).unwrap();
         assert_eq!(gram.is_some(), accept, "c = {c}: σ_c = {:.2e}", sigma[c - 1]);
         let v32 = Mat::<f64>::from_fn(n, c, |i, j| eig32.U()[(i, n - 1 - j)] as f64);
         let e_g32 = (&a - &a * &v32 * v32.transpose()).norm_l2();
@@ -490,9 +490,9 @@ fn gram_versus_svd_on_a_dataset() {
         let (a, _) = ds.view_columns(view).unwrap();
         let norm = a.norm_l2();
         for c in [2, 4, 8, 15, 30] {
-            let (us, vv) = factor::truncated_svd(a.as_ref(), c).unwrap();
+            let (us, vv) = linalg::truncated_svd(a.as_ref(), c).unwrap();
             let e_svd = (&a - &us * vv.transpose()).norm_l2() / norm;
-            match factor::gram_truncated(a.as_ref(), c).unwrap() {
+            match linalg::gram_truncated(a.as_ref(), c).unwrap() {
                 Some((usg, vg)) => {
                     let e_gram = (&a - &usg * vg.transpose()).norm_l2() / norm;
                     println!(
@@ -535,7 +535,7 @@ fn decode_cost_on_a_dataset() {
     }
 }
 
-/// PVMF's row-chunked Gram product (`factor::gram_by_row_chunks`) against faer's plain
+/// PVMF's row-chunked Gram product (`linalg::gram_by_row_chunks`) against faer's plain
 /// `AᵀA` on a matrix that is not a multiple of the chunk size (so the last chunk is
 /// short), and bit-for-bit the same result with one thread and with four: the chunks and
 /// their summation order do not depend on the thread count, so a fixed input gives the
@@ -550,7 +550,7 @@ fn chunked_gram_equals_the_plain_product_and_is_thread_count_independent() {
             .num_threads(threads)
             .build()
             .unwrap()
-            .install(|| factor::gram_by_row_chunks(a.as_ref()))
+            .install(|| linalg::gram_by_row_chunks(a.as_ref()))
     };
     let (g1, g4) = (run(1), run(4));
     let scale = plain.norm_max();
@@ -573,4 +573,268 @@ fn chunked_gram_equals_the_plain_product_and_is_thread_count_independent() {
             }
         }
     }
+}
+
+/// The one Gaussian sketch generator gives, bit for bit, the numbers of the copies it
+/// replaced (PCA's and DFMF's, which were identical, and local PCA's variant), so files
+/// written before and after the split are the same bytes. The old copies are written out
+/// here as they were.
+#[test]
+fn gaussian_sketch_reproduces_the_replaced_generators() {
+    use linalg::{GaussianSketch, SketchKeying};
+    fn old_hashed(seed: u64, row: usize, col: usize) -> f64 {
+        let mix = |k: u64| {
+            let mut z = k.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        };
+        let k = mix(seed ^ mix(((row as u64) << 20) ^ col as u64));
+        let u1 = ((k >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+        let u2 = ((mix(k) >> 11) as f64) / (1u64 << 53) as f64;
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+    fn old_stream(seed: u64, row: usize, col: usize) -> f64 {
+        let mut s = seed ^ ((row as u64) << 24) ^ (col as u64).wrapping_mul(0x2545_f491_4f6c_dd1d);
+        let (a, b) = (linalg::splitmix(&mut s), linalg::splitmix(&mut s));
+        let u1 = ((a >> 11) as f64 + 0.5) / (1u64 << 53) as f64;
+        let u2 = (b >> 11) as f64 / (1u64 << 53) as f64;
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+    let (mut sum, mut sq, mut n) = (0.0, 0.0, 0.0);
+    for seed in [0u64, 1, 2, 7, 0x6c6f_6361_6c70_6361, u64::MAX] {
+        let (h, s) = (
+            GaussianSketch::new(seed, SketchKeying::Hashed),
+            GaussianSketch::new(seed, SketchKeying::Stream),
+        );
+        for row in (0..20_000).step_by(97) {
+            for col in 0..40 {
+                assert_eq!(h.at(row, col).to_bits(), old_hashed(seed, row, col).to_bits());
+                assert_eq!(s.at(row, col).to_bits(), old_stream(seed, row, col).to_bits());
+                for x in [h.at(row, col), s.at(row, col)] {
+                    assert!(x.is_finite());
+                    sum += x;
+                    sq += x * x;
+                    n += 1.0;
+                }
+            }
+        }
+        let b = h.block(300, 5, 4);
+        assert_eq!(b[(2, 3)].to_bits(), h.at(302, 3).to_bits());
+    }
+    // Standard normal: mean ≈ 0, variance ≈ 1 over ~2.5e5 draws.
+    let (mean, var) = (sum / n, sq / n - (sum / n).powi(2));
+    assert!(
+        mean.abs() < 0.01 && (var - 1.0).abs() < 0.02,
+        "mean {mean}, variance {var}"
+    );
+}
+
+/// The layering rule of the compress folder: a method file imports only the ground floor
+/// (`params`, `linalg`, `abrdf`, `data`, `container`, `error`; DFMF also its own `.btf`
+/// container), the ground floor imports no method file, and only `factor.rs` and
+/// `interp.rs` name method files. Reads the sources (code before the first `#[cfg(test)]`;
+/// comment lines skipped) and lists every `super::x` / `crate::compress::x` it finds.
+#[test]
+fn method_files_import_only_the_ground_floor() {
+    const GROUND: &[&str] = &["params", "linalg", "abrdf", "data", "container", "error"];
+    let files: &[(&str, &str, &[&str])] = &[
+        ("pca", include_str!("pca.rs"), GROUND),
+        ("pvmf", include_str!("pvmf.rs"), GROUND),
+        ("local_pca", include_str!("local_pca.rs"), GROUND),
+        ("median_cut", include_str!("median_cut.rs"), GROUND),
+        ("homomorphic", include_str!("homomorphic.rs"), GROUND),
+        ("dfmf", include_str!("dfmf.rs"), GROUND),
+        ("params", include_str!("params.rs"), &["data", "container"]),
+        ("linalg", include_str!("linalg.rs"), &["error"]),
+        (
+            "abrdf",
+            include_str!("abrdf.rs"),
+            &["params", "data", "container", "error"],
+        ),
+        ("error", include_str!("error.rs"), &[]),
+        ("data", include_str!("data.rs"), &["error"]),
+        ("container", include_str!("container.rs"), &["codec", "error"]),
+        ("codec", include_str!("codec.rs"), &[]),
+        ("btf_ubo2014", include_str!("btf_ubo2014.rs"), &["dfmf", "error"]),
+    ];
+    let mut bad = Vec::new();
+    for (name, src, allowed) in files {
+        let code = src.split("#[cfg(test)]").next().unwrap_or("");
+        for line in code.lines().filter(|l| !l.trim_start().starts_with("//")) {
+            for prefix in ["super::", "crate::compress::"] {
+                for (at, _) in line.match_indices(prefix) {
+                    let rest = &line[at + prefix.len()..];
+                    let names: Vec<&str> = if let Some(group) = rest.strip_prefix('{') {
+                        group.split('}').next().unwrap_or("").split(',').collect()
+                    } else {
+                        vec![rest]
+                    };
+                    for n in names {
+                        let id: String = n
+                            .trim()
+                            .chars()
+                            .take_while(|c| c.is_alphanumeric() || *c == '_')
+                            .collect();
+                        if !allowed.contains(&id.as_str()) {
+                            bad.push(format!("{name}.rs imports `{id}`: {}", line.trim()));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        bad.is_empty(),
+        "imports across the compress floors:\n{}",
+        bad.join("\n")
+    );
+}
+
+/// Write `g` quantized at `bits`, read it back (version 2) and wrap it.
+fn quantized_round_trip(g: &Gbtf, bits: u32, file: &Path) -> CompressedBtf {
+    let mut q = g.clone();
+    q.quantize(bits).unwrap();
+    q.write(file).unwrap();
+    let bytes = std::fs::read(file).unwrap();
+    assert_eq!(
+        u32::from_le_bytes(bytes[8..12].try_into().unwrap()),
+        container::VERSION_CODED
+    );
+    let back = Gbtf::read(file).unwrap();
+    assert_eq!(back.header.blocks, q.header.blocks);
+    CompressedBtf::new(back).unwrap()
+}
+
+/// Every `.gbtf` method decodes a quantized file (reconstruction and interpolation) to
+/// within its quantization error of the f32 file, index blocks exactly; 12 bits is
+/// closer than 8. Plain files are still version 1.
+#[test]
+fn quantized_files_decode_for_every_method() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let methods = [
+        Params::new(Method::Pvmf, 3),
+        Params::new(Method::Pca, 4),
+        Params::new(
+            Method::LocalPca {
+                clusters: 3,
+                iters: 5,
+                subspace: 0,
+            },
+            2,
+        ),
+        Params::new(
+            Method::MedianCut {
+                boxes: 5,
+                balanced: false,
+                min_error_cut: false,
+            },
+            1,
+        ),
+        Params::new(
+            Method::Homomorphic {
+                half_bins: 4,
+                sweeps: 5,
+            },
+            1,
+        ),
+    ];
+    for p in &methods {
+        let name = p.method.name();
+        let (g, _) = compress(&ds, p).unwrap();
+        let plain_file = tmp.path().join(format!("{name}.gbtf"));
+        g.write(&plain_file).unwrap();
+        let plain_bytes = std::fs::read(&plain_file).unwrap();
+        assert_eq!(
+            u32::from_le_bytes(plain_bytes[8..12].try_into().unwrap()),
+            container::VERSION
+        );
+        let exact = CompressedBtf::new(g.clone()).unwrap();
+        let mut last = f32::INFINITY;
+        for bits in [8, 12] {
+            let file = tmp.path().join(format!("{name}-{bits}.gbtf"));
+            let q = quantized_round_trip(&g, bits, &file);
+            assert!(
+                std::fs::metadata(&file).unwrap().len() < plain_bytes.len() as u64,
+                "{name}: not smaller"
+            );
+            for (info, b) in q.gbtf.header.blocks.iter().zip(&q.gbtf.blocks) {
+                if info.codec == Some(codec::BlockCodec::Integer) {
+                    let i = g.header.blocks.iter().position(|x| x.name == info.name).unwrap();
+                    assert_eq!(b, &g.blocks[i], "{name}: index block {} must be exact", info.name);
+                }
+            }
+            let mut e = 0f32;
+            for v in 0..ds.n_views() {
+                for l in 0..ds.n_lights() {
+                    let (a, b) = (exact.reconstruct(l, v).unwrap(), q.reconstruct(l, v).unwrap());
+                    for (x, y) in a.iter().zip(&b) {
+                        assert!(y.is_finite(), "{name} {bits} bits: non-finite");
+                        e = e.max((x - y).abs());
+                    }
+                }
+            }
+            // Values here are ≤ ~1: a few quantization steps of a unit-range factor.
+            let tol = if bits == 8 { 0.08 } else { 0.006 };
+            assert!(e < tol, "{name} {bits} bits: max deviation {e} from the f32 file");
+            assert!(e <= last, "{name}: {bits} bits worse than fewer bits");
+            last = e;
+            let (img, _) = interp::reconstruct_at(&q, [20.0, 40.0], [30.0, 100.0]).unwrap();
+            assert!(img.iter().all(|x| x.is_finite()));
+        }
+    }
+}
+
+/// Quantization never turns a constant, zero or rank-deficient input into NaN: the
+/// unused components are zero columns, which decode exactly.
+#[test]
+fn quantizing_constant_and_rank_deficient_inputs_stays_finite() {
+    let tmp = tempfile::tempdir().unwrap();
+    for (i, f) in [
+        (|_, _, _, _| 0.0) as fn(usize, usize, usize, usize) -> f32,
+        |_, _, _, _| 0.375,
+        rank3,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let dir = tmp.path().join(format!("ds{i}"));
+        write_dataset(&dir, &[], f);
+        let ds = DatasetViews::open(&dir).unwrap();
+        for method in [Method::Pvmf, Method::Pca] {
+            let (g, _) = compress(&ds, &Params::new(method, 6)).unwrap();
+            let q = quantized_round_trip(&g, 8, &tmp.path().join(format!("q{i}.gbtf")));
+            assert!(q.gbtf.blocks.iter().flatten().all(|v| v.is_finite()));
+            let e = max_err(&ds, &q);
+            // Constant inputs are exact up to f32; rank 3 within 8-bit steps.
+            let tol = if i < 2 { 1e-6 } else { 0.02 };
+            assert!(e <= tol, "dataset {i} {method:?}: max error {e}");
+        }
+    }
+}
+
+/// Version 1 may not carry coded blocks; a damaged coded block is reported by name.
+#[test]
+fn coded_block_corruption_is_detected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    write_dataset(&dir, &[], noisy);
+    let ds = DatasetViews::open(&dir).unwrap();
+    let (mut g, _) = compress(&ds, &Params::new(Method::Pca, 3)).unwrap();
+    g.quantize(10).unwrap();
+    let mut bytes = g.to_bytes().unwrap();
+    let p = Path::new("q.gbtf");
+    assert!(Gbtf::from_bytes(&bytes, p).is_ok());
+    let mut v1 = bytes.clone();
+    v1[8..12].copy_from_slice(&container::VERSION.to_le_bytes());
+    let e = Gbtf::from_bytes(&v1, p).unwrap_err().to_string();
+    assert!(e.contains("version 1"), "{e}");
+    let n = bytes.len();
+    bytes[n - 10] ^= 0x40;
+    let e = Gbtf::from_bytes(&bytes, p).unwrap_err().to_string();
+    assert!(e.contains("block v") && e.contains("CRC"), "{e}");
+    assert!(g.clone().quantize(0).is_err() && g.quantize(17).is_err());
 }

@@ -75,11 +75,9 @@ pub fn header_for(
         .zip(&per_texel)
         .map(|(b, &pt)| {
             debug_assert!(!pt || b.rows == t_in);
-            BlockInfo {
-                name: b.name.clone(),
-                rows: if pt { t_out } else { b.rows },
-                cols: b.cols,
-            }
+            // Rows are written as plain f32 (the exemplar's decoded values), whatever codec
+            // the input used.
+            BlockInfo::new(b.name.clone(), if pt { t_out } else { b.rows }, b.cols)
         })
         .collect();
     h.width = map.width;

@@ -27,9 +27,9 @@
 //!   light's incidence, so no extra cosine is applied. **Tone mapping**: clamp to [0, 1],
 //!   sRGB encoding, 8 bits ([`crate::store::linear_to_srgb8`]). Background: black.
 
-use crate::compress::factor::{CompressedBtf, Method};
 use crate::compress::interp::{direction_weights, BtfModel};
 use crate::compress::CompressError;
+use crate::compress::{CompressedBtf, Method};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -360,9 +360,9 @@ pub fn png(width: usize, height: usize, rgb: &[u8]) -> Result<Vec<u8>, CompressE
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::compress::dfmf::tests::write_test_dataset;
-    use crate::compress::factor::{compress, Params};
     use crate::compress::interp::reconstruct_at;
+    use crate::compress::testdata::write_test_dataset;
+    use crate::compress::{compress, Params};
 
     fn model() -> (tempfile::TempDir, CompressedBtf) {
         let dir = tempfile::tempdir().unwrap();
