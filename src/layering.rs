@@ -17,20 +17,21 @@ const ALLOWED: &[(&str, &[&str])] = &[
     // ground floor
     ("sweep", &[]),
     ("rig", &[]),
+    // which part of a job a shard is (`--shard I/N`): a value every heavy job reads
+    ("shard", &[]),
     ("develop", &[]),
     // data
     ("plan", &["sweep"]),
     ("store", &["sweep"]),
-    ("synth", &["sweep"]),
+    ("synth", &["sweep", "shard"]),
     // drivers and processors: siblings that never import each other
     ("engine", &["plan", "rig", "develop", "store", "sweep"]),
     ("calibrate", &["rig", "develop", "sweep"]),
-    ("compress", &["store", "sweep"]),
+    ("compress", &["store", "sweep", "shard"]),
     ("synthesize", &["compress", "store", "sweep"]),
     // the viewer reads datasets and compressed files (and renders them)
     ("view", &["compress", "store", "sweep"]),
     // shards of the heavy jobs, their merge, and the scheduler that runs them
-    ("shard", &[]),
     ("merge", &["shard", "compress", "store", "sweep"]),
     ("slurm", &["shard"]),
     // the acquisition session, then the command line on top
