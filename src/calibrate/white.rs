@@ -143,18 +143,9 @@ struct PoseData {
     model: Vec<f64>,
 }
 
-/// The simulated sensor's true K: `sensitivity_e_per_radiance_s / full_well_e` from the
-/// rig file's camera options (the simulator's defaults where absent).
-pub(crate) fn sim_truth_k(rig: &Rig) -> f64 {
-    let opt = |key: &str, default: f64| {
-        rig.spec
-            .camera
-            .options
-            .get(key)
-            .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-            .unwrap_or(default)
-    };
-    opt("sensitivity_e_per_radiance_s", 14000.0) / opt("full_well_e", 20000.0).max(1.0)
+/// The simulated sensor's true K (`sensitivity / full well`), from the rig's ground truth.
+fn sim_truth_k(rig: &Rig) -> Option<f64> {
+    rig.truth.as_ref().and_then(|t| t.sensor()).map(|s| s.k())
 }
 
 fn fit_k(data: &[PoseData]) -> [f64; 3] {
@@ -316,7 +307,9 @@ pub(super) async fn run_white(recipe: &Recipe, rig: &Rig) -> Result<RunOutput, C
     let simulated = rig.clock.is_some();
     // The truth K is on the scale of uncorrected values (DN / max DN); corrected values are
     // on the response curve's own scale, which has no truth to compare with.
-    let truth_k = (simulated && correction.is_none()).then(|| [sim_truth_k(rig); 3]);
+    let truth_k = sim_truth_k(rig)
+        .filter(|_| simulated && correction.is_none())
+        .map(|k| [k; 3]);
     let k_error_percent = truth_k.map(|t| std::array::from_fn(|c| 100.0 * (k[c] - t[c]) / t[c]));
     let reference = truth_k.unwrap_or(k);
     let effort = (1..=data.len())
