@@ -254,8 +254,6 @@ pub fn synthesize(ex: &FeatureImage, p: &SynthParams) -> Result<TexelMap, SynthE
 pub(crate) mod testutil {
     use super::FeatureImage;
     use crate::compress::DatasetViews;
-    use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord};
-    use gonio_devices::image::RgbImage;
     use std::path::Path;
 
     pub const LIGHTS: [[f64; 2]; 5] = [[0.0, 0.0], [30.0, 0.0], [30.0, 120.0], [30.0, 240.0], [70.0, 90.0]];
@@ -269,38 +267,9 @@ pub(crate) mod testutil {
         h: usize,
         f: impl Fn(usize, usize, usize, usize, usize) -> f32,
     ) -> DatasetViews {
-        let header = ManifestHeader {
-            format: store::FORMAT.into(),
-            version: store::FORMAT_VERSION,
-            gonio_version: "test".into(),
-            created_unix: 1_700_000_000.0,
-            rig: serde_json::json!({"name": "test rig"}),
-            sample: serde_json::json!({"name": "synthetic"}),
-            sweep: serde_json::json!({"name": "t", "lights_deg": LIGHTS, "views_deg": VIEWS}),
-            image_width: w,
-            image_height: h,
-            values: "synthetic".into(),
-            seed: 1,
-            raw_frames: false,
-            calibration: None,
-            extra: serde_json::Value::Null,
-        };
-        let mut ds = Dataset::create(dir, &header, false).unwrap();
-        for (v, vd) in VIEWS.iter().enumerate() {
-            for (l, ld) in LIGHTS.iter().enumerate() {
-                let index = v * LIGHTS.len() + l;
-                let rec = MeasurementRecord::new(index, index, *ld, *vd);
-                let mut img = RgbImage::new(w, h);
-                for t in 0..w * h {
-                    for c in 0..3 {
-                        img.data[t * 3 + c] = f(l, v, t % w, t / w, c);
-                    }
-                }
-                ds.store(rec, Some(&img), None).unwrap();
-            }
-        }
-        ds.finish(&serde_json::json!({})).unwrap();
-        DatasetViews::open(dir).unwrap()
+        crate::compress::testdata::write_test_dataset(dir, (w, h), &LIGHTS, &VIEWS, &[], |l, v, t, c| {
+            f(l, v, t % w, t / w, c)
+        })
     }
 
     /// A textured test BTF: two materials in blobs, shading that depends on the pair.
