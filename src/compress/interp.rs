@@ -201,21 +201,22 @@ impl AnyModel {
     }
 }
 
-fn unit(d: [f64; 2]) -> [f64; 3] {
+/// Small vector helpers on `[f64; 3]` (the viewer's renderer uses them too).
+pub(crate) fn unit(d: [f64; 2]) -> [f64; 3] {
     let (t, p) = (d[0].to_radians(), d[1].to_radians());
     [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
 }
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
         a[0] * b[1] - a[1] * b[0],
     ]
 }
-fn normalize(a: [f64; 3]) -> [f64; 3] {
+pub(crate) fn normalize(a: [f64; 3]) -> [f64; 3] {
     let n = dot(a, a).sqrt();
     a.map(|x| x / n)
 }

@@ -78,11 +78,6 @@ pub enum RunEvent<'a> {
 /// Receives [`RunEvent`]s.
 pub type Observer = Arc<dyn Fn(&RunEvent<'_>) + Send + Sync>;
 
-/// An observer that ignores everything.
-pub fn no_observer() -> Observer {
-    Arc::new(|_: &RunEvent<'_>| {})
-}
-
 /// What one run of the engine did.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct RunReport {

@@ -27,7 +27,7 @@
 //!   light's incidence, so no extra cosine is applied. **Tone mapping**: clamp to [0, 1],
 //!   sRGB encoding, 8 bits ([`crate::store::linear_to_srgb8`]). Background: black.
 
-use crate::compress::interp::{direction_weights, BtfModel};
+use crate::compress::interp::{cross, direction_weights, dot, normalize, unit, BtfModel};
 use crate::compress::CompressError;
 use crate::compress::{CompressedBtf, Method};
 use serde::Serialize;
@@ -101,24 +101,6 @@ pub struct Hit {
     pub view_local: [f64; 3],
 }
 
-fn unit(d: [f64; 2]) -> [f64; 3] {
-    let (t, p) = (d[0].to_radians(), d[1].to_radians());
-    [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
-}
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn normalize(a: [f64; 3]) -> [f64; 3] {
-    let n = dot(a, a).sqrt();
-    a.map(|x| x / n)
-}
 fn fract(x: f64) -> f64 {
     x - x.floor()
 }
