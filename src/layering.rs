@@ -23,7 +23,8 @@ const ALLOWED: &[(&str, &[&str])] = &[
     // data
     ("plan", &["sweep"]),
     ("store", &["sweep"]),
-    ("synth", &["sweep", "shard"]),
+    // synthetic BTFs and families of them, written as datasets
+    ("synth", &["sweep", "shard", "store"]),
     // drivers and processors: siblings that never import each other
     ("engine", &["plan", "rig", "develop", "store", "sweep"]),
     ("calibrate", &["rig", "develop", "sweep"]),

@@ -21,6 +21,9 @@ pub enum ShardedKind {
     SimBtf,
     /// `gonio compress … --method pvmf`: parts are `.gbtf` files.
     CompressPvmf,
+    /// `gonio dataset generate SPEC …`: every shard writes its own members into the one
+    /// family directory (disjoint, no lock); the "merge" job checks that all are complete.
+    DatasetGenerate,
 }
 
 impl ShardedKind {
@@ -29,6 +32,7 @@ impl ShardedKind {
     pub fn of(args: &[String]) -> Result<ShardedKind, String> {
         let kind = match args {
             [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
+            [a, b, ..] if a == "dataset" && b == "generate" => ShardedKind::DatasetGenerate,
             [a, ..] if a == "compress" => {
                 let pvmf = args.windows(2).any(|w| w[0] == "--method" && w[1] == "pvmf")
                     || args.iter().any(|a| a == "--method=pvmf");
@@ -39,7 +43,7 @@ impl ShardedKind {
             }
             _ => {
                 return Err(format!(
-                    "`{}` cannot be sharded; give `sim btf …` or `compress DATASET --method pvmf …` after --",
+                    "`{}` cannot be sharded; give `sim btf …`, `compress DATASET --method pvmf …` or `dataset generate SPEC` after --",
                     args.join(" ")
                 ))
             }
@@ -57,7 +61,7 @@ impl ShardedKind {
 
     fn part_suffix(self) -> &'static str {
         match self {
-            ShardedKind::SimBtf => "",
+            ShardedKind::SimBtf | ShardedKind::DatasetGenerate => "",
             ShardedKind::CompressPvmf => ".gbtf",
         }
     }
@@ -111,8 +115,11 @@ fn q(p: &Path) -> String {
 }
 
 impl SlurmJob {
-    /// Output of shard `i` (1-based).
+    /// Output of shard `i` (1-based); a family's shards all write into `out`.
     pub fn part(&self, i: usize) -> PathBuf {
+        if self.kind == ShardedKind::DatasetGenerate {
+            return self.out.clone();
+        }
         self.work
             .join("parts")
             .join(format!("part-{i}{}", self.kind.part_suffix()))
@@ -156,12 +163,17 @@ impl SlurmJob {
         cmd.push("--shard".into());
         cmd.push(format!("\"$I/{n}\""));
         cmd.push("--out".into());
-        // Inside double quotes so `$I` expands (the CLI refuses work paths that need escaping there).
-        cmd.push(format!(
-            "\"{}/part-$I{}\"",
-            self.work.join("parts").display(),
-            self.kind.part_suffix()
-        ));
+        if self.kind == ShardedKind::DatasetGenerate {
+            cmd.push(q(&self.out));
+        } else {
+            // Inside double quotes so `$I` expands (the CLI refuses work paths that need
+            // escaping there).
+            cmd.push(format!(
+                "\"{}/part-$I{}\"",
+                self.work.join("parts").display(),
+                self.kind.part_suffix()
+            ));
+        }
         if self.kind == ShardedKind::SimBtf {
             cmd.push("--force".into());
         }
@@ -195,9 +207,14 @@ impl SlurmJob {
     pub fn merge_script(&self) -> String {
         let mut s = self.header("merge", "merge.log");
         s.push_str("set -u\n");
-        let mut cmd: Vec<String> = vec!["exec".into(), q(&self.gonio), "merge".into()];
-        cmd.extend((1..=self.shards).map(|i| q(&self.part(i))));
-        cmd.extend(["--out".into(), q(&self.out), "--force".into(), "--json".into()]);
+        let mut cmd: Vec<String> = vec!["exec".into(), q(&self.gonio)];
+        if self.kind == ShardedKind::DatasetGenerate {
+            cmd.extend(["dataset".into(), "check".into(), q(&self.out), "--json".into()]);
+        } else {
+            cmd.push("merge".into());
+            cmd.extend((1..=self.shards).map(|i| q(&self.part(i))));
+            cmd.extend(["--out".into(), q(&self.out), "--force".into(), "--json".into()]);
+        }
         s.push_str(&cmd.join(" "));
         s.push('\n');
         s
@@ -269,5 +286,23 @@ mod tests {
             "{a}"
         );
         assert!(a.contains("scontrol requeue"), "{a}");
+
+        // A family: every shard writes into the family directory; the last job checks it.
+        assert_eq!(
+            ShardedKind::of(&args("dataset generate /s.toml")),
+            Ok(ShardedKind::DatasetGenerate)
+        );
+        let f = SlurmJob {
+            kind: ShardedKind::DatasetGenerate,
+            args: args("dataset generate /s.toml"),
+            ..r
+        };
+        let a = f.array_script();
+        assert!(a.contains(r#"/s.toml --shard "$I/3" --out /o"#), "{a}");
+        let m = f.merge_script();
+        assert!(
+            m.contains("dataset check /o --json") && !m.contains("gonio merge "),
+            "{m}"
+        );
     }
 }

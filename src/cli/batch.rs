@@ -22,7 +22,8 @@ pub struct SlurmArgs {
     /// Work directory (on a filesystem every node sees): scripts, `parts/`, `logs/`.
     #[arg(long)]
     pub work: PathBuf,
-    /// The merged result (dataset directory or .gbtf file).
+    /// The merged result (dataset directory or .gbtf file; for `dataset generate`, the family
+    /// directory every shard writes into).
     #[arg(long)]
     pub out: PathBuf,
     /// Submit with sbatch (array first, then the merge job with --dependency=afterany).
@@ -45,8 +46,8 @@ pub struct SlurmArgs {
     pub gonio: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
-    /// The command to shard, after `--`: `sim btf …` or `compress DATASET --method pvmf …`
-    /// (without --shard and --out).
+    /// The command to shard, after `--`: `sim btf …`, `compress DATASET --method pvmf …` or
+    /// `dataset generate SPEC` (without --shard and --out).
     #[arg(required = true, allow_hyphen_values = true)]
     pub command: Vec<String>,
 }
@@ -104,11 +105,17 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
         Some(g) => abs(g, "--gonio")?,
         None => std::env::current_exe().context("finding this gonio executable")?,
     };
-    if kind == ShardedKind::CompressPvmf {
-        // The dataset argument must be absolute too: the jobs may start elsewhere.
-        if let Some(ds) = command.get(1).filter(|d| !d.starts_with('-')) {
-            let p = abs(&PathBuf::from(ds), "dataset")?;
-            command[1] = p.display().to_string();
+    // The input argument (a dataset, a family spec) must be absolute too: the jobs may
+    // start elsewhere.
+    let input = match kind {
+        ShardedKind::CompressPvmf => Some((1, "dataset")),
+        ShardedKind::DatasetGenerate => Some((2, "family spec")),
+        ShardedKind::SimBtf => None,
+    };
+    if let Some((at, what)) = input {
+        if let Some(arg) = command.get(at).filter(|d| !d.starts_with('-')) {
+            let p = abs(&PathBuf::from(arg), what)?;
+            command[at] = p.display().to_string();
         }
     }
     let job = SlurmJob {

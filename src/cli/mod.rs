@@ -13,6 +13,7 @@ mod brdf;
 mod calibrate;
 mod common;
 mod compress;
+mod dataset;
 mod devices;
 mod export;
 mod generate;
@@ -91,6 +92,9 @@ pub enum Command {
     /// Run a sharded command on a cluster scheduler (Slurm job array + merge job).
     #[command(subcommand)]
     Batch(batch::BatchCommand),
+    /// Families of synthetic datasets for testing other software.
+    #[command(subcommand)]
+    Dataset(dataset::DatasetCommand),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -131,5 +135,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::View(a) => view::run(a),
         Command::Merge(a) => merge::run(a),
         Command::Batch(c) => batch::run(c),
+        Command::Dataset(c) => dataset::run(c),
     }
 }

@@ -802,6 +802,13 @@ fn encode_raw_png(frame: &Frame, path: &Path) -> Result<Vec<u8>, StoreError> {
     Ok(out)
 }
 
+/// The header of the dataset at `dir` and whether it is complete (`Dataset::finish` ran),
+/// without reading its journal.
+pub fn read_header(dir: &Path) -> Result<(ManifestHeader, bool), StoreError> {
+    let m = read_manifest(dir)?;
+    Ok((m.header, m.complete))
+}
+
 /// Read a dataset for export or inspection: the header and every record of the journal
 /// (the source of truth), first occurrence of each index, sorted by index. A torn last
 /// journal line (an acquisition that crashed or is still running) is ignored with a

@@ -15,6 +15,9 @@
 //! `SimWorld::truth`), so a synthetic BTF and a simulated acquisition of the same sample and
 //! rig can be compared directly.
 
+pub mod dataset;
+pub mod family;
+
 use crate::sweep::Sweep;
 use gonio_devices::image::RgbImage;
 use gonio_devices::rig::RigSpec;

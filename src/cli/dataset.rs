@@ -1,0 +1,115 @@
+//! `gonio dataset generate`: a family of synthetic datasets with their labels (see
+//! `crate::synth::family`).
+
+use crate::shard::Shard;
+use crate::synth::family::Family;
+use anyhow::{Context, Result};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(clap::Subcommand, Debug)]
+pub enum DatasetCommand {
+    /// Generate a family of synthetic samples (parameters drawn from declared ranges), one
+    /// ground-truth dataset each, with a labels table (labels.csv, family.json).
+    Generate(GenerateArgs),
+    /// Check a family directory: every member complete and made from its family.toml; names
+    /// the missing ones (exit status 1 when any is). The merge step of a sharded run.
+    Check(CheckArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CheckArgs {
+    /// The family directory (holding family.toml).
+    pub dir: PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct GenerateArgs {
+    /// The family spec (TOML; see docs/scale.md, "Dataset families").
+    pub spec: PathBuf,
+    /// The family directory (members/NNNN/ datasets, labels.csv, family.json, family.toml).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Generate only shard I of N of the members (1-based, contiguous); the shards write
+    /// disjoint member directories of the same --out, with no lock.
+    #[arg(long)]
+    pub shard: Option<Shard>,
+    /// Replace members (and the spec) of another family at --out.
+    #[arg(long)]
+    pub force: bool,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(c: DatasetCommand) -> Result<ExitCode> {
+    match c {
+        DatasetCommand::Generate(a) => generate(a),
+        DatasetCommand::Check(a) => check(a),
+    }
+}
+
+fn check(a: CheckArgs) -> Result<ExitCode> {
+    let spec = a.dir.join("family.toml");
+    if !spec.is_file() {
+        anyhow::bail!(
+            "{}: not a dataset family (no family.toml); give the --out directory of `gonio dataset generate`",
+            a.dir.display()
+        );
+    }
+    let family = Family::load(&spec).with_context(|| format!("reading {}", spec.display()))?;
+    let r = family
+        .check(&a.dir)
+        .with_context(|| format!("checking the family at {}", a.dir.display()))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        println!("family `{}`: {} of {} members complete", r.name, r.complete, r.members);
+        if !r.missing.is_empty() {
+            println!(
+                "missing or partial: {:?} (rerun `gonio dataset generate` with the same spec and --out)",
+                r.missing
+            );
+        }
+        for (m, why) in &r.stale {
+            println!("member {m} is of another sample: {why}");
+        }
+    }
+    Ok(if r.is_complete() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+fn generate(a: GenerateArgs) -> Result<ExitCode> {
+    let family = Family::load(&a.spec).with_context(|| format!("reading the family spec {}", a.spec.display()))?;
+    let n = a
+        .shard
+        .map_or(family.spec.members, |s| s.views(family.spec.members).len());
+    let bar = indicatif::ProgressBar::new(n as u64);
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let report = family
+        .generate(&a.out, a.shard, a.force, &|_| bar.inc(1))
+        .with_context(|| format!("generating family `{}` into {}", family.spec.name, a.out.display()))?;
+    bar.finish_and_clear();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "family `{}`{}: {} member(s) rendered, {} already complete (of {}); {} images, render {:.1} s; labels in {}",
+            report.name,
+            report.shard.as_ref().map(|s| format!(" shard {s}")).unwrap_or_default(),
+            report.rendered.len(),
+            report.kept.len(),
+            report.members,
+            report.images,
+            report.render_seconds,
+            a.out.join("labels.csv").display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
