@@ -8,7 +8,9 @@
 #   2. a sharded PVMF (`gonio compress --method pvmf`, 3 shards) of that dataset: the merged
 #      .gbtf must equal the single-process file byte for byte;
 #   3. a sharded PVMF whose shard 3 always fails: the retry fails too, the merge job still
-#      runs (afterany) and its error names the missing part.
+#      runs (afterany) and its error names the missing part;
+#   4. a dataset family (`gonio dataset generate`, 3 shards into one directory): the last
+#      job's check finds every member complete, equal to a single-process run byte for byte.
 # Per-task times of the shards and the merges are printed as `slurm:` lines.
 #
 # Usage: tests/slurm/run.sh        (root; Debian packages slurmctld slurmd slurm-client munge)
@@ -178,6 +180,34 @@ grep -q "missing part(s) $S/w-broken/parts/part-3.gbtf" "$S/w-broken/logs/merge.
   die "the merge did not name the missing part: $(cat "$S/w-broken/logs/merge.log")"
 [ ! -e "$S/broken.gbtf" ] || die "a merge with a missing part wrote an output"
 log "PVMF, shard 3 failing for good: retried once, merge failed naming part-3.gbtf"
+
+# --- 4. a dataset family: 3 shards render into one directory, the last job checks it -----
+cat >"$S/family.toml" <<EOF
+name = "tiny"
+members = 3
+seed = 5
+sample = "leather"
+sweep = "fibonacci:2"
+size = 16
+[[vary]]
+key = "material.0.alpha"
+log_uniform = [0.05, 0.5]
+EOF
+"$GONIO" dataset generate "$S/family.toml" --out "$S/ref-family" --json >/dev/null
+"$GONIO" batch slurm --shards 3 --work "$S/w-family" --out "$S/family" --submit --json \
+  -- dataset generate "$S/family.toml" >"$S/w-family.json"
+m=$(json_field "$S/w-family.json" merge_job)
+wait_job "$m" 300
+[ "$(job_state "$m")" = COMPLETED ] || die "family check job $m: $(cat "$S/w-family/logs/merge.log")"
+grep -q '"complete": 3' "$S/w-family/logs/merge.log" || die "family check: $(cat "$S/w-family/logs/merge.log")"
+for f in family.json labels.csv family.toml; do
+  cmp "$S/ref-family/$f" "$S/family/$f" || die "family $f differs from the single-process run"
+done
+for i in 0000 0001 0002; do
+  same_tree "$S/ref-family/members/$i" "$S/family/members/$i" ||
+    die "family member $i differs from the single-process run"
+done
+log "dataset family, 3 shards into one directory: checked complete; = single-process, byte for byte"
 
 # --- per-task times (from the jobs' own logs) --------------------------------------------
 for w in w-btf w-pvmf; do
