@@ -60,6 +60,14 @@ pub struct AcquireArgs {
     /// ids; copies are kept in the dataset for --resume.
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     pub calibration: Option<PathBuf>,
+    /// Serve the browser viewer (monitor, relight, inspect) on the dataset being written,
+    /// on loopback; its tokened URL is the first line on stderr (`view: http://…`). After
+    /// the run it keeps serving until Ctrl-C. Read-only: nothing on the page moves the rig.
+    #[arg(long)]
+    pub view: bool,
+    /// Port of --view (0 picks a free one).
+    #[arg(long, default_value_t = 0, requires = "view")]
+    pub view_port: u16,
 }
 
 fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
@@ -88,8 +96,12 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         Some(dir) => Session::resume(dir)?,
         None => Session::create(&new_session(&args)?)?,
     };
+    let viewer = match args.view {
+        true => Some(serve_view(session.dir(), args.view_port).await?),
+        false => None,
+    };
     let pause = Arc::new(AtomicBool::new(false));
-    {
+    let pause_task = {
         let pause = pause.clone();
         tokio::spawn(async move {
             if tokio::signal::ctrl_c().await.is_ok() {
@@ -100,8 +112,8 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
                     std::process::exit(130);
                 }
             }
-        });
-    }
+        })
+    };
     let show = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
     let bar = progress_bar(show);
     let observer: Observer = {
@@ -124,11 +136,39 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     } else {
         print_summary(&summary);
     }
+    if let Some(url) = viewer {
+        pause_task.abort();
+        eprintln!("view: the acquisition has ended; still serving {url} until Ctrl-C");
+        let _ = tokio::signal::ctrl_c().await;
+    }
     Ok(if summary.complete {
         ExitCode::SUCCESS
     } else {
         ExitCode::from(3)
     })
+}
+
+/// Start the viewer on the session's dataset (loopback only) and print its URL on stderr.
+async fn serve_view(dir: &std::path::Path, port: u16) -> Result<String> {
+    let opts = crate::view::server::ViewOptions {
+        path: dir.to_path_buf(),
+        bind: std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST),
+        port,
+        allow_remote: false,
+        token: None,
+    };
+    let bound = crate::view::server::bind(&opts)
+        .await
+        .with_context(|| format!("--view: serving {}", dir.display()))?;
+    let url = bound.url();
+    eprintln!("view: {url}");
+    eprintln!("view: the monitor is at /monitor (add the token); it follows the acquisition live");
+    tokio::spawn(async move {
+        if let Err(e) = bound.serve().await {
+            tracing::error!(error = %e, "the viewer stopped");
+        }
+    });
+    Ok(url)
 }
 
 /// The new session the arguments describe.

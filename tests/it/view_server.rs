@@ -468,3 +468,75 @@ fn fuzzed_parameters_never_get_a_5xx() {
     assert!(statuses.get(&200).copied().unwrap_or(0) > 0, "{statuses:?}");
     assert!(statuses.get(&400).copied().unwrap_or(0) > 0, "{statuses:?}");
 }
+
+/// `gonio acquire --view`: the viewer of the dataset being written, in the same process. Its
+/// URL is the first stderr line; the monitor's JSON advances while the rig works (real-time
+/// simulated rig: each capture takes its readout time), and only the token opens it.
+#[test]
+fn acquire_view_serves_the_monitor_of_the_running_acquisition() {
+    use std::io::BufRead;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("ds");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_gonio"))
+        .args([
+            "acquire",
+            "--sweep",
+            "fibonacci:4",
+            "--size",
+            "16x16",
+            "--realtime",
+            "--limit",
+            "4",
+        ])
+        .args(["--plan-kicks", "50", "--view", "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    let first = lines.next().expect("a first stderr line").unwrap();
+    let url = first
+        .strip_prefix("view: ")
+        .unwrap_or_else(|| panic!("first stderr line {first:?}"));
+    let rest = url.strip_prefix("http://").unwrap();
+    let (addr, token) = rest.split_once("/?token=").unwrap();
+    let addr: SocketAddr = addr.parse().unwrap();
+    assert!(addr.ip().is_loopback(), "{addr}");
+    assert_eq!(token.len(), 32, "{token}");
+    let monitor = |auth: bool| {
+        let q = if auth { format!("?token={token}") } else { String::new() };
+        raw(
+            addr,
+            &format!("GET /api/monitor{q} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"),
+        )
+    };
+    assert_eq!(monitor(false).status, 401);
+    let done = |r: &Reply| -> u64 {
+        assert_eq!(r.status, 200, "{}", r.body);
+        let v: serde_json::Value = serde_json::from_str(&r.body).unwrap();
+        v["measured"].as_u64().unwrap()
+    };
+    let first = done(&monitor(true));
+    let mut last = first;
+    let t0 = std::time::Instant::now();
+    while last < 4 && t0.elapsed() < Duration::from_secs(120) {
+        std::thread::sleep(Duration::from_millis(300));
+        last = done(&monitor(true));
+    }
+    assert!(first < 4 && last == 4, "measured went {first} → {last}");
+    // After the run it keeps serving until Ctrl-C (SIGINT), then exits with the run's status
+    // (3: stopped by --limit).
+    let mut saw_end = false;
+    for l in lines.by_ref() {
+        if l.unwrap().contains("still serving") {
+            saw_end = true;
+            break;
+        }
+    }
+    assert!(saw_end);
+    assert_eq!(done(&monitor(true)), 4);
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(3));
+}
