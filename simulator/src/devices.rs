@@ -244,7 +244,13 @@ pub struct SimWorld {
     /// [`noise_key`]), so a resumed acquisition is reproducible — but then repeated frames
     /// of one pose outside a measurement (dark and flat frames) are equal.
     pub frame_noise: bool,
+    /// Traced truth views of recent camera positions ([`SimWorld::truth`] shades them).
+    pub truth_views: crate::render::TruthViewCache,
 }
+
+/// Camera positions whose traced truth view [`SimWorld::truth`] keeps (see
+/// [`crate::render::TruthViewCache`]).
+pub const TRUTH_VIEW_CACHE: usize = 8;
 
 /// Which part of the sensor the simulated camera reads out.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -278,7 +284,10 @@ impl SimWorld {
     pub fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
         let light = self.point_light(q);
-        let rad = self.renderer.render_truth(pose.position, width, height, &light);
+        // Traced once per camera position, shaded per light: the same bytes as
+        // `render_truth`, which traces every time.
+        let view = self.truth_views.get(&self.renderer, pose.position, width, height);
+        let rad = self.renderer.shade_truth(&view, &light);
         self.sensor.lock().expect("sensor poisoned").normalize_truth(&rad)
     }
 
@@ -681,6 +690,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
             crate::render::LensDistortion(c)
         },
         response: sensor_response(spec)?,
+        truth_views: crate::render::TruthViewCache::new(TRUTH_VIEW_CACHE),
         frame_noise: match spec.camera.options.get("frame_noise") {
             None => false,
             Some(v) => v.as_bool().ok_or(SimRigError {

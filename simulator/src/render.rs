@@ -767,6 +767,77 @@ pub struct TruthView {
     rays: Vec<(Hit, Vec3)>,
 }
 
+/// Traced truth views kept for reuse ([`Renderer::truth_view`]), so that the truth of many
+/// pairs seen from one camera position is traced once and shaded per light, even when an
+/// acquisition visits the pairs of a view in a tour order rather than view by view.
+///
+/// The key is the exact camera position (its bits) and the image size: a hit is the very
+/// `TruthView` a fresh trace would give, so shading it gives the same bytes as
+/// [`Renderer::render_truth`]. At most `capacity` views are kept (least recently used
+/// first out), so memory is bounded however long the sweep (≈ 6 MiB per 256² view with one
+/// ray per texel).
+pub struct TruthViewCache {
+    capacity: usize,
+    /// Most recently used last.
+    entries: Mutex<Vec<(TruthViewKey, Arc<TruthView>)>>,
+    hits: std::sync::atomic::AtomicU64,
+    misses: std::sync::atomic::AtomicU64,
+}
+
+type TruthViewKey = ([u64; 3], usize, usize);
+
+impl TruthViewCache {
+    /// A cache of at most `capacity` views (0 = no caching: every call traces).
+    pub fn new(capacity: usize) -> Self {
+        TruthViewCache {
+            capacity,
+            entries: Mutex::new(Vec::new()),
+            hits: Default::default(),
+            misses: Default::default(),
+        }
+    }
+
+    /// The traced view of `camera` at `width × height`, from the cache or traced now.
+    pub fn get(&self, renderer: &Renderer, camera: Vec3, width: usize, height: usize) -> Arc<TruthView> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let key = (
+            [camera.x.to_bits(), camera.y.to_bits(), camera.z.to_bits()],
+            width,
+            height,
+        );
+        {
+            let mut entries = self.entries.lock().expect("truth view cache poisoned");
+            if let Some(k) = entries.iter().position(|(e, _)| *e == key) {
+                let entry = entries.remove(k);
+                let view = entry.1.clone();
+                entries.push(entry);
+                self.hits.fetch_add(1, Relaxed);
+                return view;
+            }
+        }
+        self.misses.fetch_add(1, Relaxed);
+        // Traced outside the lock: a second thread asking for the same view traces it too
+        // (same bytes); the cache keeps one copy.
+        let view = Arc::new(renderer.truth_view(camera, width, height));
+        if self.capacity > 0 {
+            let mut entries = self.entries.lock().expect("truth view cache poisoned");
+            if !entries.iter().any(|(e, _)| *e == key) {
+                if entries.len() >= self.capacity {
+                    entries.remove(0);
+                }
+                entries.push((key, view.clone()));
+            }
+        }
+        view
+    }
+
+    /// Views found in the cache and views traced, so far.
+    pub fn stats(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.hits.load(Relaxed), self.misses.load(Relaxed))
+    }
+}
+
 /// Grid cell and fractions for bilinear interpolation at (x, y).
 #[inline]
 fn grid_coords(g: &HeightGrid, half: f64, x: f64, y: f64) -> (usize, usize, f64, f64) {
