@@ -23,5 +23,5 @@ pub mod sample;
 pub mod sensor;
 
 pub use devices::{build_sim_rig, lamp_radius_mm, SimOptions, SimRig, SimWorld};
-pub use render::{PointLight, RenderQuality, Renderer};
+pub use render::{PointLight, RawView, RenderQuality, Renderer, TruthView, ViewCache};
 pub use sample::{Sample, SampleSpec};

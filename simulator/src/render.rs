@@ -1,12 +1,14 @@
 //! The physically based renderer of the simulated camera.
 //!
-//! One routine, [`Renderer::radiance_along`], answers "what radiance (W m⁻² sr⁻¹) arrives
-//! at `origin` along a ray": it finds the first visible surface point (parallax on the
-//! height field, so masking toward the camera comes for free), looks up the texel's
-//! material, tests self-shadowing toward the lamp in a per-light-direction shadow map, and
-//! applies the lamp's inverse-square falloff and cosine. Raw frames ([`Renderer::render_raw`])
-//! and the ground-truth BTF in texture space ([`Renderer::render_truth`]) both call it, so
-//! they cannot disagree about the physics.
+//! Two routines answer "what radiance (W m⁻² sr⁻¹) arrives at `origin` along a ray":
+//! `trace` finds the first visible surface point (parallax on the height field, so masking
+//! toward the camera comes for free) and its texel; `shade` looks up the texel's material,
+//! tests self-shadowing toward the lamp in a per-light-direction shadow map, and applies
+//! the lamp's inverse-square falloff and cosine. Raw frames ([`Renderer::render_raw`]) and
+//! the ground-truth BTF in texture space ([`Renderer::render_truth`]) both call them, so
+//! they cannot disagree about the physics. Tracing depends on the camera only, so both
+//! images split into a traced view ([`RawView`], [`TruthView`]) and its shading per light:
+//! a simulated acquisition traces each camera pose once (see [`ViewCache`]).
 //!
 //! What a scene does not need is not computed: a flat sample intersects one plane and builds
 //! no shadow maps; a homogeneous sample does no map look-ups; pixels outside the holder's
@@ -397,12 +399,6 @@ impl Renderer {
         ShadowMap { n, lit }
     }
 
-    /// Radiance (W m⁻² sr⁻¹, RGB) arriving at `origin` along unit `dir`.
-    #[inline]
-    fn radiance_along(&self, origin: Vec3, dir: Vec3, lamp: &[Emitter]) -> [f64; 3] {
-        self.shade_all(&self.trace(origin, dir), dir, lamp)
-    }
-
     /// [`Self::shade`] summed over a lamp's emitters.
     #[inline]
     fn shade_all(&self, hit: &Hit, dir: Vec3, lamp: &[Emitter]) -> [f64; 3] {
@@ -451,7 +447,7 @@ impl Renderer {
     }
 
     /// Radiance leaving the surface point `hit` (found along unit `dir`) toward the ray's
-    /// origin: the light-dependent half of [`Self::radiance_along`], so a view's hits can
+    /// origin: the light-dependent half of tracing and shading, so a view's hits can
     /// be traced once and shaded for every light ([`TruthView`]).
     #[inline]
     fn shade(&self, hit: &Hit, dir: Vec3, light: &PointLight, shadow: Option<&ShadowMap>) -> [f64; 3] {
@@ -536,65 +532,117 @@ impl Renderer {
         height: usize,
         light: &PointLight,
     ) -> RgbImage {
-        let mut img = RgbImage::new(width, height);
-        let lamp = self.emitters(light);
+        self.shade_raw(&self.raw_view(intr, lens, pose, width, height), light)
+    }
+
+    /// Trace every ray of a raw frame once: the light-independent half of
+    /// [`Self::render_raw_distorted`] (which pixels are traced, how many samples each takes,
+    /// and what each sample's ray hits depend on the camera only).
+    pub fn raw_view(
+        &self,
+        intr: &Intrinsics,
+        lens: &LensDistortion,
+        pose: &CameraPose,
+        width: usize,
+        height: usize,
+    ) -> RawView {
         let (x0, y0, x1, y1) = if lens.is_zero() {
             self.pixel_bounds(intr, pose, width, height)
         } else {
             // The pinhole bounds do not hold through a distorting lens: trace everything.
             (0, 0, width, height)
         };
+        let mut view = RawView {
+            width,
+            height,
+            x0,
+            y0,
+            rows: Vec::new(),
+        };
         if x0 >= x1 || y0 >= y1 {
-            return img;
+            return view;
         }
         let ss = self.quality.supersample.max(1);
-        img.data.par_chunks_mut(width * 3).enumerate().for_each(|(row, out)| {
-            if row < y0 || row >= y1 {
-                return;
-            }
-            for col in x0..x1 {
-                let ray = |u: f64, v: f64| {
-                    let (x, y) = lens.undistort((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy);
-                    (pose.right * x + pose.down * y + pose.forward).normalized()
+        view.rows = (y0..y1)
+            .into_par_iter()
+            .map(|row| {
+                let mut traced = RawRow {
+                    samples: Vec::with_capacity(x1 - x0),
+                    rays: Vec::with_capacity(x1 - x0),
                 };
-                // Pixels off the sample (holder frame, markers, background) are cheap and
-                // hold the sharp marker edges the rectifier measures: integrate them over
-                // the pixel area with a 4×4 sheared grid. Sample pixels use `supersample`.
-                let centre = ray(col as f64 + 0.5, row as f64 + 0.5);
-                let on_sample = self.hits_sample_area(pose.position, centre);
-                let n = if on_sample {
-                    ss
-                } else {
-                    // Only pixels on an edge (corners differ in what they see) need the
-                    // area integral; flat frame or background pixels take one sample.
-                    let c0 = self.frame_class(pose.position, ray(col as f64, row as f64));
-                    let uniform = [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)]
-                        .iter()
-                        .all(|&(dx, dy)| self.frame_class(pose.position, ray(col as f64 + dx, row as f64 + dy)) == c0);
-                    if uniform {
-                        1
+                for col in x0..x1 {
+                    let ray = |u: f64, v: f64| {
+                        let (x, y) = lens.undistort((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy);
+                        (pose.right * x + pose.down * y + pose.forward).normalized()
+                    };
+                    // Pixels off the sample (holder frame, markers, background) are cheap and
+                    // hold the sharp marker edges the rectifier measures: integrate them over
+                    // the pixel area with a 4×4 sheared grid. Sample pixels use `supersample`.
+                    let centre = ray(col as f64 + 0.5, row as f64 + 0.5);
+                    let on_sample = self.hits_sample_area(pose.position, centre);
+                    let n = if on_sample {
+                        ss
                     } else {
-                        FRAME_SS
+                        // Only pixels on an edge (corners differ in what they see) need the
+                        // area integral; flat frame or background pixels take one sample.
+                        let c0 = self.frame_class(pose.position, ray(col as f64, row as f64));
+                        let uniform = [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0)].iter().all(|&(dx, dy)| {
+                            self.frame_class(pose.position, ray(col as f64 + dx, row as f64 + dy)) == c0
+                        });
+                        if uniform {
+                            1
+                        } else {
+                            FRAME_SS
+                        }
+                    };
+                    traced.samples.push(n as u32);
+                    for k in 0..n * n {
+                        let (sx, sy) = (k % n, k / n);
+                        // sheared grid: distinct offsets along both axes (no aligned rows)
+                        let u = col as f64 + (sx as f64 + (sy as f64 + 0.5) / n as f64) / n as f64;
+                        let v = row as f64 + (sy as f64 + (sx as f64 + 0.5) / n as f64) / n as f64;
+                        let d = if n == 1 { centre } else { ray(u, v) };
+                        traced.rays.push((self.trace(pose.position, d), d));
                     }
-                };
-                let mut acc = [0.0; 3];
-                for k in 0..n * n {
-                    let (sx, sy) = (k % n, k / n);
-                    // sheared grid: distinct offsets along both axes (no aligned rows)
-                    let u = col as f64 + (sx as f64 + (sy as f64 + 0.5) / n as f64) / n as f64;
-                    let v = row as f64 + (sy as f64 + (sx as f64 + 0.5) / n as f64) / n as f64;
-                    let d = if n == 1 { centre } else { ray(u, v) };
-                    let r = self.radiance_along(pose.position, d, &lamp);
-                    acc[0] += r[0];
-                    acc[1] += r[1];
-                    acc[2] += r[2];
                 }
-                let w = 1.0 / (n * n) as f64;
-                for c in 0..3 {
-                    out[col * 3 + c] = (acc[c] * w) as f32;
+                traced
+            })
+            .collect();
+        view
+    }
+
+    /// Shade a traced raw frame for one light: the light-dependent half of
+    /// [`Self::render_raw_distorted`]; pixels outside the traced rectangle stay black.
+    pub fn shade_raw(&self, view: &RawView, light: &PointLight) -> RgbImage {
+        let width = view.width;
+        let mut img = RgbImage::new(width, view.height);
+        let lamp = self.emitters(light);
+        if view.rows.is_empty() {
+            return img;
+        }
+        let (x0, y0) = (view.x0, view.y0);
+        img.data
+            .par_chunks_mut(width * 3)
+            .skip(y0)
+            .zip(view.rows.par_iter())
+            .for_each(|(out, traced)| {
+                let mut rays = traced.rays.iter();
+                for (c, &n) in traced.samples.iter().enumerate() {
+                    let col = x0 + c;
+                    let n = n as usize;
+                    let mut acc = [0.0; 3];
+                    for (hit, d) in rays.by_ref().take(n * n) {
+                        let r = self.shade_all(hit, *d, &lamp);
+                        acc[0] += r[0];
+                        acc[1] += r[1];
+                        acc[2] += r[2];
+                    }
+                    let w = 1.0 / (n * n) as f64;
+                    for c in 0..3 {
+                        out[col * 3 + c] = (acc[c] * w) as f32;
+                    }
                 }
-            }
-        });
+            });
         img
     }
 
@@ -765,6 +813,119 @@ pub struct TruthView {
     /// Where the camera was (mm, sample frame).
     pub camera: Vec3,
     rays: Vec<(Hit, Vec3)>,
+}
+
+/// The traced rays of one raw frame ([`Renderer::raw_view`]): which pixels are traced,
+/// with how many samples, and what each sample's ray hits. Shading it for a light
+/// ([`Renderer::shade_raw`]) gives exactly [`Renderer::render_raw_distorted`]'s image.
+/// About 100 bytes per ray.
+pub struct RawView {
+    pub width: usize,
+    pub height: usize,
+    /// Top-left pixel of the traced rectangle.
+    x0: usize,
+    y0: usize,
+    /// One entry per traced row, from `y0` down.
+    rows: Vec<RawRow>,
+}
+
+/// The traced pixels of one row: samples per axis of each pixel, then all rays in order.
+struct RawRow {
+    samples: Vec<u32>,
+    rays: Vec<(Hit, Vec3)>,
+}
+
+impl RawView {
+    /// Rays traced (each is shaded once per light).
+    pub fn rays(&self) -> usize {
+        self.rows.iter().map(|r| r.rays.len()).sum()
+    }
+
+    /// Bytes this view holds (its rays and per-pixel sample counts).
+    pub fn bytes(&self) -> usize {
+        self.rows
+            .iter()
+            .map(|r| r.rays.capacity() * std::mem::size_of::<(Hit, Vec3)>() + r.samples.capacity() * 4)
+            .sum()
+    }
+}
+
+/// Traced views kept for reuse ([`TruthView`], [`RawView`]), so that the many pairs an
+/// acquisition measures from one camera pose are traced once and shaded per light, even
+/// though it visits them in a tour order rather than view by view.
+///
+/// The key is the exact bits of everything the trace depends on (camera pose, image size,
+/// lens): a hit is the very view a fresh trace would give, so shading it gives the same
+/// bytes as tracing again. At most `capacity` views are kept, least recently used first
+/// out, so memory is bounded however long the sweep.
+pub struct ViewCache<V> {
+    capacity: usize,
+    /// Most recently used last.
+    entries: Mutex<Vec<(Vec<u64>, Arc<V>)>>,
+    hits: std::sync::atomic::AtomicU64,
+    misses: std::sync::atomic::AtomicU64,
+}
+
+impl<V> ViewCache<V> {
+    /// A cache of at most `capacity` views (0: nothing is kept, every call traces).
+    pub fn new(capacity: usize) -> Self {
+        ViewCache {
+            capacity,
+            entries: Mutex::new(Vec::new()),
+            hits: Default::default(),
+            misses: Default::default(),
+        }
+    }
+
+    /// The view under `key`, from the cache or made now by `trace`.
+    pub fn get(&self, key: Vec<u64>, trace: impl FnOnce() -> V) -> Arc<V> {
+        use std::sync::atomic::Ordering::Relaxed;
+        {
+            let mut entries = self.entries.lock().expect("view cache poisoned");
+            if let Some(k) = entries.iter().position(|(e, _)| *e == key) {
+                let entry = entries.remove(k);
+                let view = entry.1.clone();
+                entries.push(entry);
+                self.hits.fetch_add(1, Relaxed);
+                return view;
+            }
+        }
+        self.misses.fetch_add(1, Relaxed);
+        // Traced outside the lock; a concurrent miss on the same key traces the same bytes
+        // and the cache keeps one copy.
+        let view = Arc::new(trace());
+        if self.capacity > 0 {
+            let mut entries = self.entries.lock().expect("view cache poisoned");
+            if !entries.iter().any(|(e, _)| *e == key) {
+                if entries.len() >= self.capacity {
+                    entries.remove(0);
+                }
+                entries.push((key, view.clone()));
+            }
+        }
+        view
+    }
+
+    /// Views held now (at most the capacity).
+    pub fn len(&self) -> usize {
+        self.entries.lock().map(|e| e.len()).unwrap_or(0)
+    }
+
+    /// Whether no view is held.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Calls answered from the cache and calls that traced, so far.
+    pub fn stats(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.hits.load(Relaxed), self.misses.load(Relaxed))
+    }
+}
+
+/// The bits of `values`, a [`ViewCache`] key.
+pub fn key_bits(values: &[f64]) -> Vec<u64> {
+    values.iter().map(|v| v.to_bits()).collect()
 }
 
 /// Grid cell and fractions for bilinear interpolation at (x, y).

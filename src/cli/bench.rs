@@ -26,6 +26,9 @@ pub enum BenchCommand {
     Compress(super::bench_compress::CompressBenchArgs),
     /// Every synthesis method against a 4×-area simulator reference: seams, statistics, repetition, time.
     Synthesize(Box<super::bench_synthesize::SynthesizeBenchArgs>),
+    /// The full simulated acquisition against `gonio sim btf` and raw-frame rendering alone
+    /// (ms/image ratios measured in one run, peak memory per phase).
+    Acquire(Box<super::bench_acquire::AcquireBenchArgs>),
 }
 
 #[derive(clap::Args, Debug)]
@@ -395,6 +398,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Serial(a) => super::bench_serial::run(a),
         BenchCommand::Compress(a) => super::bench_compress::run(a),
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
+        BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
     }
 }
 

@@ -6,6 +6,7 @@
 mod acquire;
 mod batch;
 mod bench;
+mod bench_acquire;
 mod bench_compress;
 mod bench_serial;
 mod bench_synthesize;
