@@ -26,6 +26,8 @@ pub enum BenchCommand {
     Compress(super::bench_compress::CompressBenchArgs),
     /// Every synthesis method against a 4×-area simulator reference: seams, statistics, repetition, time.
     Synthesize(Box<super::bench_synthesize::SynthesizeBenchArgs>),
+    /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
+    Hdr(super::bench_hdr::HdrBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -395,6 +397,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Serial(a) => super::bench_serial::run(a),
         BenchCommand::Compress(a) => super::bench_compress::run(a),
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
+        BenchCommand::Hdr(a) => super::bench_hdr::run(a),
     }
 }
 

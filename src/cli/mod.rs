@@ -7,6 +7,7 @@ mod acquire;
 mod batch;
 mod bench;
 mod bench_compress;
+mod bench_hdr;
 mod bench_serial;
 mod bench_synthesize;
 mod brdf;
