@@ -77,8 +77,10 @@ pub struct HdrSpec {
     pub full_well_e: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub read_noise_e: Option<f64>,
-    /// Extra exposures per measurement `auto` is planned with (the plan cannot see the
-    /// sample; the ETA follows the measured rate once the run starts).
+    /// Extra exposures per measurement `auto` is planned with, each costed as a readout
+    /// plus the base exposure (the plan cannot see the sample; the progress bar's ETA
+    /// follows the measured rate once the run starts). The default is what `auto` took on
+    /// `brushed-metal` (docs/hdr.md).
     #[serde(default = "default_planned_extra")]
     pub planned_extra_exposures: f64,
 }
@@ -99,7 +101,7 @@ fn default_snr_floor() -> f64 {
     10.0
 }
 fn default_planned_extra() -> f64 {
-    0.3
+    0.8
 }
 
 impl Default for HdrSpec {
@@ -202,7 +204,7 @@ impl HdrSpec {
                 }
                 t
             }
-            HdrMode::Auto => base + self.planned_extra_exposures * (camera.exposure_s / self.step + camera.readout_s),
+            HdrMode::Auto => base + self.planned_extra_exposures * (camera.exposure_s + camera.readout_s),
         }
     }
 }

@@ -54,6 +54,10 @@ pub struct HdrBenchArgs {
     /// Write the error-against-rig-time plot (SVG) to this file.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Simulated sensor without noise (isolates what is not noise: clipping, and the
+    /// rectification's own difference to the truth rendering).
+    #[arg(long)]
+    pub no_noise: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -111,7 +115,7 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
             settings: RunSettings {
                 width: args.size.0,
                 height: args.size.1,
-                noise: true,
+                noise: !args.no_noise,
                 truth: true,
                 seed: None,
                 raw: false,
