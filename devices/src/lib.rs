@@ -10,6 +10,7 @@ pub mod camera;
 pub mod coded_board;
 pub mod error;
 pub mod geometry;
+pub mod hdr;
 pub mod image;
 pub mod kinematics;
 pub mod light;

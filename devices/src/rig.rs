@@ -237,6 +237,10 @@ pub struct RigSpec {
     /// and a calibration can be checked against the truth. Real backends ignore it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sim_misalignment: Option<AlignmentSpec>,
+    /// Exposure bracketing (`[hdr]`, see [`crate::hdr`]): absent = one exposure per
+    /// measurement, and the rig snapshot is unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hdr: Option<crate::hdr::HdrSpec>,
 }
 
 /// Deviations of a rig from its ideal kinematics (two-arm rigs).
@@ -318,6 +322,20 @@ impl RigSpec {
         r
     }
 
+    /// The HDR mode this rig runs with (`Off` without an `[hdr]` section).
+    pub fn hdr_mode(&self) -> crate::hdr::HdrMode {
+        self.hdr.as_ref().map_or(crate::hdr::HdrMode::Off, |h| h.mode())
+    }
+
+    /// Planned time of one measurement's captures, the HDR bracket's extra exposures
+    /// included (the camera's `capture_time` without `[hdr]`).
+    pub fn planned_capture_time(&self) -> f64 {
+        match &self.hdr {
+            Some(h) => h.planned_capture_time(&self.camera),
+            None => self.camera.capture_time(),
+        }
+    }
+
     /// The axis with a given role, if present.
     pub fn axis_by_role(&self, role: &str) -> Option<(usize, &AxisSpec)> {
         self.axes.iter().enumerate().find(|(_, a)| a.role == role)
@@ -337,6 +355,9 @@ impl RigSpec {
                 Err(bad(key.to_string(), v.to_string(), "must be a finite number > 0"))
             }
         };
+        if let Some(h) = &self.hdr {
+            h.validate(self.camera.exposure_s).map_err(|(k, v, m)| bad(k, v, &m))?;
+        }
         pos("geometry.camera_distance_mm", self.geometry.camera_distance_mm)?;
         pos("geometry.light_distance_mm", self.geometry.light_distance_mm)?;
         if !(self.geometry.camera_body_radius_mm >= 0.0

@@ -9,6 +9,9 @@
 //! - `stale`: the camera hands out the previous frame again (sequence and timestamp from
 //!   before the last move), as a streaming camera does with a frame still in its queue;
 //! - `saturate`: every pixel at the maximum DN (a lamp flash, an exposure far too long);
+//! - `exposure`: a `configure` that changes the exposure keeps the old one and reports it
+//!   (a driver that rounds or ignores the request): counted per such `configure`, not per
+//!   capture, so `exposure:at=1` is the first exposure change after setup;
 //!
 //! and keys `every=N` (every N-th capture) or `at=N` (the N-th capture, 1-based), plus
 //! `count=K` (with `at`: K consecutive faulty captures, default 1; a count above the
@@ -27,6 +30,7 @@ pub enum CameraFaultKind {
     Drop,
     Stale,
     Saturate,
+    Exposure,
 }
 
 impl CameraFaultKind {
@@ -36,6 +40,7 @@ impl CameraFaultKind {
             CameraFaultKind::Drop => "drop",
             CameraFaultKind::Stale => "stale",
             CameraFaultKind::Saturate => "saturate",
+            CameraFaultKind::Exposure => "exposure",
         }
     }
 }
@@ -76,9 +81,10 @@ impl CameraFault {
             "drop" => CameraFaultKind::Drop,
             "stale" => CameraFaultKind::Stale,
             "saturate" => CameraFaultKind::Saturate,
+            "exposure" => CameraFaultKind::Exposure,
             other => {
                 return Err(bad(format!(
-                    "unknown kind `{other}` (known: timeout, drop, stale, saturate)"
+                    "unknown kind `{other}` (known: timeout, drop, stale, saturate, exposure)"
                 )))
             }
         };
@@ -117,8 +123,22 @@ impl CameraFault {
         })
     }
 
-    /// Count one capture; the fault kind if this capture is a faulty one.
+    /// Count one capture; the fault kind if this capture is a faulty one. An `exposure`
+    /// fault is counted by [`CameraFault::next_exposure_change`] instead.
     pub fn next_capture(&self) -> Option<CameraFaultKind> {
+        if self.kind == CameraFaultKind::Exposure {
+            return None;
+        }
+        self.count()
+    }
+
+    /// Count one `configure` that changes the exposure; true if an `exposure` fault makes
+    /// the camera ignore it.
+    pub fn next_exposure_change(&self) -> bool {
+        self.kind == CameraFaultKind::Exposure && self.count().is_some()
+    }
+
+    fn count(&self) -> Option<CameraFaultKind> {
         let n = self.captures.fetch_add(1, Ordering::SeqCst) + 1;
         let fires = match self.trigger {
             CameraFaultTrigger::Every(k) => n.is_multiple_of(k),
@@ -144,7 +164,13 @@ mod tests {
 
     #[test]
     fn parses_round_trips_and_fires() {
-        for s in ["timeout:at=3", "drop:every=4", "stale:at=2", "saturate:at=5,count=3"] {
+        for s in [
+            "timeout:at=3",
+            "drop:every=4",
+            "stale:at=2",
+            "saturate:at=5,count=3",
+            "exposure:every=2",
+        ] {
             assert_eq!(CameraFault::parse(s).unwrap().to_string(), s);
         }
         let f = CameraFault::parse("drop:every=3").unwrap();
@@ -154,6 +180,11 @@ mod tests {
         let fired: Vec<_> = (0..5).map(|_| f.next_capture()).collect();
         let t = Some(CameraFaultKind::Timeout);
         assert_eq!(fired, [None, t, t, None, None]);
+        // An exposure fault does not count captures, only exposure changes.
+        let f = CameraFault::parse("exposure:at=2").unwrap();
+        assert!((0..5).all(|_| f.next_capture().is_none()));
+        let fired: Vec<bool> = (0..3).map(|_| f.next_exposure_change()).collect();
+        assert_eq!(fired, [false, true, false]);
     }
 
     #[test]

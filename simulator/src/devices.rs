@@ -309,6 +309,19 @@ impl SimWorld {
         self.sensor.lock().expect("sensor poisoned").normalize_truth(&rad)
     }
 
+    /// [`SimWorld::truth`] normalised at `exposure_s` and `gain` instead of the sensor's
+    /// current setting (an HDR bracket changes that setting while earlier measurements'
+    /// truths are still being rendered).
+    pub fn truth_at(&self, q: &[f64], width: usize, height: usize, exposure_s: f64, gain: f64) -> RgbImage {
+        let pose = self.kinematics.camera_pose(q);
+        let light = self.point_light(q);
+        let rad = self.renderer.render_truth(pose.position, width, height, &light);
+        let mut sensor = self.sensor.lock().expect("sensor poisoned").clone();
+        sensor.exposure_s = exposure_s;
+        sensor.gain = gain;
+        sensor.normalize_truth(&rad)
+    }
+
     /// Render the raw frame the camera sees in configuration `q`.
     pub fn raw_radiance(&self, q: &[f64]) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
@@ -396,7 +409,7 @@ impl SimCamera {
                 reason: "frame dropped (injected fault `drop`)".into(),
             })),
             K::Stale => self.last_frame.lock().expect("last frame poisoned").clone().map(Ok),
-            K::Saturate => None,
+            K::Saturate | K::Exposure => None,
         }
     }
 
@@ -449,11 +462,22 @@ impl Camera for SimCamera {
                 reason: "exposure and gain must be > 0".into(),
             });
         }
-        s.exposure_s = config.exposure;
+        // An injected `exposure` fault: the camera keeps its exposure and says so.
+        let ignored = config.exposure != s.exposure_s && self.fault.as_ref().is_some_and(|f| f.next_exposure_change());
+        if ignored {
+            tracing::warn!(
+                requested = config.exposure,
+                kept = s.exposure_s,
+                "sim-camera: injected fault `exposure`: the exposure is not applied"
+            );
+        } else {
+            s.exposure_s = config.exposure;
+        }
         s.gain = config.gain;
         s.bit_depth = config.bit_depth.clamp(8, 16);
         Ok(CameraConfig {
             bit_depth: s.bit_depth,
+            exposure: s.exposure_s,
             ..config.clone()
         })
     }

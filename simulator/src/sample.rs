@@ -31,6 +31,7 @@ pub const BUILTIN: &[(&str, &str)] = &[
     ("colour-target", include_str!("../samples/colour-target.toml")),
     ("mirror", include_str!("../samples/mirror.toml")),
     ("coded-target", include_str!("../samples/coded-target.toml")),
+    ("brushed-metal", include_str!("../samples/brushed-metal.toml")),
 ];
 
 /// The default sample of the main job.

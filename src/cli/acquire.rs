@@ -4,6 +4,7 @@ use super::common::{load_sample, RigArgs, SweepArgs};
 use crate::engine::{Observer, RunEvent};
 use crate::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, Summary};
 use anyhow::{Context, Result};
+use gonio_devices::hdr::{HdrMode, HdrSpec};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -68,9 +69,35 @@ pub struct AcquireArgs {
     /// Port of --view (0 picks a free one).
     #[arg(long, default_value_t = 0, requires = "view")]
     pub view_port: u16,
+    /// Exposure bracketing per measurement: `off` (one exposure), `auto` (extra exposures
+    /// only where the sample region saturates or its darkest decile is below the SNR
+    /// floor), or N fixed exposures (2 ..= 8). Default: the rig file's `[hdr] mode`, else
+    /// off. Limits and noise model come from the rig file's `[hdr]` (see docs/hdr.md).
+    #[arg(long, value_name = "off|auto|N", value_parser = parse_hdr, conflicts_with = "resume")]
+    pub hdr: Option<HdrMode>,
 }
 
-fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
+fn parse_hdr(s: &str) -> std::result::Result<HdrMode, String> {
+    HdrMode::parse(s)
+}
+
+/// The rig with `--hdr` applied: `off` on a rig without `[hdr]` leaves it unchanged (so the
+/// manifest's rig snapshot is today's); any other mode sets `[hdr] mode`, keeping the rig
+/// file's limits or the defaults.
+pub fn apply_hdr(rig: &mut gonio_devices::rig::RigSpec, mode: Option<HdrMode>) {
+    match (mode, &mut rig.hdr) {
+        (None, _) | (Some(HdrMode::Off), None) => {}
+        (Some(m), Some(h)) => h.mode = m.word(),
+        (Some(m), None) => {
+            rig.hdr = Some(HdrSpec {
+                mode: m.word(),
+                ..HdrSpec::default()
+            })
+        }
+    }
+}
+
+pub(super) fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
     let (a, b) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
@@ -173,7 +200,12 @@ async fn serve_view(dir: &std::path::Path, port: u16) -> Result<String> {
 
 /// The new session the arguments describe.
 fn new_session(args: &AcquireArgs) -> Result<NewSession> {
-    let rig = args.rig.load()?;
+    let mut rig = args.rig.load()?;
+    apply_hdr(&mut rig, args.hdr);
+    if let Some(h) = &rig.hdr {
+        h.validate(rig.camera.exposure_s)
+            .map_err(|(key, value, message)| anyhow::anyhow!("rig `{}`: {key} = {value}: {message}", rig.name))?;
+    }
     let sample = load_sample(&args.sample)?;
     let sweep = args.sweep.load()?;
     Ok(NewSession {

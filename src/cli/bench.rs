@@ -29,6 +29,8 @@ pub enum BenchCommand {
     /// The full simulated acquisition against `gonio sim btf` and raw-frame rendering alone
     /// (ms/image ratios measured in one run, peak memory per phase).
     Acquire(Box<super::bench_acquire::AcquireBenchArgs>),
+    /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
+    Hdr(super::bench_hdr::HdrBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -399,6 +401,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Compress(a) => super::bench_compress::run(a),
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
+        BenchCommand::Hdr(a) => super::bench_hdr::run(a),
     }
 }
 

@@ -4,7 +4,9 @@
 //!
 //! 1. **raw corrections** (`raw.rs`): inverse response, dark, flat, colour on the frame's
 //!    digital numbers; without them, DN / max DN ([`frame_to_linear`]);
-//! 2. **exposure scale** of a re-exposed frame, back to the nominal exposure;
+//! 2. **exposure scale** of a re-exposed frame, back to the nominal exposure; or, for an
+//!    HDR bracket, the noise-optimal **merge** of its exposures (`hdr.rs`) onto the base
+//!    exposure's scale;
 //! 3. **lens** (`lens.rs`): undistortion to the calibrated pinhole camera;
 //! 4. **rectification** (`rectify.rs`): markers or pose homography onto the sample's texel
 //!    grid;
@@ -16,6 +18,7 @@
 //! folder imports no other folder of `src/` (ARCHITECTURE.md, invariant 2).
 
 pub mod brdf;
+pub mod hdr;
 pub mod lens;
 pub mod raw;
 pub mod rectify;
@@ -156,33 +159,80 @@ impl Developer {
         exposure_scale: Option<f32>,
     ) -> Result<Developed, DevelopError> {
         let c = &self.corrections;
-        // Dark, response, flat, colour: on the raw frame, before the geometry.
-        let (mut raw, saturated) = match &c.raw {
+        let (mut raw, saturated) = self.linearize(frame)?;
+        if let (Some(k), None) = (exposure_scale, &c.radiometric) {
+            // Re-exposed after saturating: back to the nominal exposure's scale.
+            raw.data.iter_mut().for_each(|v| *v *= k);
+        }
+        let rectified = self.develop_linear(raw, pose, lamp, frame.meta.exposure, frame.meta.gain)?;
+        Ok(Developed { rectified, saturated })
+    }
+
+    /// Dark, response, flat, colour: on the raw frame, before the geometry. Returns the
+    /// linear image and the saturated pixel count (with raw corrections).
+    fn linearize(&self, frame: &Frame) -> Result<(RgbImage, Option<usize>), DevelopError> {
+        Ok(match &self.corrections.raw {
             Some(r) => {
                 let (img, n) = r.apply(frame)?;
                 (img, Some(n))
             }
             None => (frame_to_linear(frame), None),
-        };
-        if let (Some(k), None) = (exposure_scale, &c.radiometric) {
-            // Re-exposed after saturating: back to the nominal exposure's scale.
-            raw.data.iter_mut().for_each(|v| *v *= k);
+        })
+    }
+
+    /// Develop an HDR bracket (`frames[0]` the base exposure, `base_exposure_s` the
+    /// nominal one): each frame linearised, merged noise-optimally onto the base exposure's
+    /// scale ([`hdr::merge`]), then lens, rectification and BRDF as for one frame (the BRDF
+    /// conversion divides by the base exposure, the scale of the merged values).
+    pub fn develop_bracket(
+        &self,
+        frames: &[Frame],
+        pose: &CameraPose,
+        lamp: Vec3,
+        base_exposure_s: f64,
+        noise: &gonio_devices::hdr::SensorNoise,
+    ) -> Result<(Developed, hdr::MergeReport), DevelopError> {
+        let mut layers = Vec::with_capacity(frames.len());
+        for f in frames {
+            let (linear, _) = self.linearize(f)?;
+            let saturation_code = match &self.corrections.raw {
+                Some(r) => r.saturation_code(f.max_dn()),
+                None => f.max_dn(),
+            };
+            layers.push(hdr::Layer {
+                linear,
+                frame: f,
+                saturation_code,
+            });
         }
+        let (merged, report) = hdr::merge(&layers, base_exposure_s, noise);
+        drop(layers);
+        let gain = frames[0].meta.gain;
+        let rectified = self.develop_linear(merged, pose, lamp, base_exposure_s, gain)?;
+        let saturated = self.corrections.raw.as_ref().map(|_| report.clipped_pixels);
+        Ok((Developed { rectified, saturated }, report))
+    }
+
+    /// Lens, rectification and BRDF conversion of a linear frame exposed `exposure_s` at
+    /// `gain`.
+    fn develop_linear(
+        &self,
+        mut raw: RgbImage,
+        pose: &CameraPose,
+        lamp: Vec3,
+        exposure_s: f64,
+        gain: f64,
+    ) -> Result<Rectified, DevelopError> {
+        let c = &self.corrections;
         if let Some(cam) = &c.camera {
             raw = undistort_frame(&raw, cam);
         }
         let mut rectified = rectify::rectify_frame(&raw, &self.intrinsics, pose, &self.border, &self.params)
             .map_err(|e| DevelopError::Rectify(e.to_string()))?;
         if let Some(r) = &c.radiometric {
-            r.to_brdf(
-                &mut rectified.image,
-                lamp,
-                &self.params,
-                frame.meta.exposure,
-                frame.meta.gain,
-            )?;
+            r.to_brdf(&mut rectified.image, lamp, &self.params, exposure_s, gain)?;
         }
-        Ok(Developed { rectified, saturated })
+        Ok(rectified)
     }
 
     /// Bring the simulator's ground truth (normalised sensor signal of an ideal linear

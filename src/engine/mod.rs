@@ -17,8 +17,9 @@ pub mod metrics;
 use crate::develop::rectify::HomographySource;
 use crate::develop::{DevelopError, Developer};
 use crate::plan::{Plan, Step, StepStatus};
-use crate::rig::{CaptureNotes, CapturePolicy, Rig};
+use crate::rig::{BracketNotes, CaptureNotes, CapturePolicy, Rig};
 use crate::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
+use gonio_devices::hdr::{HdrMode, HdrSpec};
 use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
 use metrics::ErrorAccumulator;
 use serde::{Deserialize, Serialize};
@@ -122,6 +123,16 @@ struct Job {
     wall_time: f64,
     /// Retries, discarded frames, saturation: written into the record.
     notes: CaptureNotes,
+    /// With HDR on: the bracket's further exposures (`frame` is its base).
+    bracket: Option<Bracket>,
+}
+
+/// The exposures of an HDR bracket beyond its base frame, and what bracketing noted.
+struct Bracket {
+    more: Vec<Frame>,
+    notes: BracketNotes,
+    /// The nominal (base) exposure: the merged values' scale.
+    base_exposure_s: f64,
 }
 
 fn unix_now() -> f64 {
@@ -191,6 +202,8 @@ pub async fn run(
     }
     .map_err(EngineError::Setup);
     let setup = setup.map_err(|e| drive_err = Some(e)).ok();
+    // HDR bracketing (rig file `[hdr]` / `--hdr`); off: exactly the single-exposure path.
+    let hdr = rig.spec.hdr.clone().filter(|h| h.mode() != HdrMode::Off);
     for (order, step) in todo.iter().copied() {
         if drive_err.is_some() || failed.load(Ordering::SeqCst) {
             break;
@@ -202,8 +215,8 @@ pub async fn run(
         let Some((policy, camera_config)) = &setup else {
             break;
         };
-        match drive_step(&rig, step, &mut drive_times, policy, camera_config).await {
-            Ok((frame, notes, q_cmd, q_read)) => {
+        match drive_step(&rig, step, &mut drive_times, policy, camera_config, hdr.as_ref()).await {
+            Ok((frame, notes, bracket, q_cmd, q_read)) => {
                 let job = Job {
                     order,
                     step: step.clone(),
@@ -213,6 +226,7 @@ pub async fn run(
                     rig_time: rig.time(),
                     wall_time: unix_now(),
                     notes,
+                    bracket,
                 };
                 let index = job.step.index;
                 if tx.send(job).await.is_err() {
@@ -259,8 +273,9 @@ pub async fn run(
     ))
 }
 
-/// What the drive loop hands on per step: frame, capture notes, commanded and read-back axes.
-type Driven = (Frame, CaptureNotes, Vec<f64>, Vec<f64>);
+/// What the drive loop hands on per step: frame, capture notes, the HDR bracket's other
+/// exposures, commanded and read-back axes.
+type Driven = (Frame, CaptureNotes, Option<Bracket>, Vec<f64>, Vec<f64>);
 
 /// One step: the rig's shared move-and-capture ([`Rig::reach`], then [`Rig::capture`] under
 /// the capture policy), with the wall time of each part.
@@ -270,6 +285,7 @@ async fn drive_step(
     times: &mut StageSeconds,
     policy: &CapturePolicy,
     camera_config: &CameraConfig,
+    hdr: Option<&HdrSpec>,
 ) -> Result<Driven, EngineError> {
     let index = step.index;
     let t0 = Instant::now();
@@ -282,17 +298,33 @@ async fn drive_step(
     // The measurement's identity (its canonical pair index): a simulated camera keys its
     // noise on it, so the same measurement gives the same bytes in any order or run.
     rig.camera.begin_measurement(index as u64);
-    let (frame, notes) = rig
-        .capture(policy, camera_config)
-        .await
-        .map_err(|f| EngineError::Capture {
-            index,
-            attempts: f.attempts,
-            source: f.source,
-        })?;
+    let failed = |f: crate::rig::CaptureFailed| EngineError::Capture {
+        index,
+        attempts: f.attempts,
+        source: f.source,
+    };
+    let (frame, notes, bracket) = match hdr {
+        None => {
+            let (frame, notes) = rig.capture(policy, camera_config).await.map_err(failed)?;
+            (frame, notes, None)
+        }
+        Some(hdr) => {
+            let (mut frames, notes, bn) = rig
+                .capture_bracket(policy, camera_config, hdr, &read)
+                .await
+                .map_err(failed)?;
+            let base = frames.remove(0);
+            let bracket = Bracket {
+                more: frames,
+                notes: bn,
+                base_exposure_s: camera_config.exposure,
+            };
+            (base, notes, Some(bracket))
+        }
+    };
     times.motion += (t1 - t0).as_secs_f64();
     times.capture += t1.elapsed().as_secs_f64();
-    Ok((frame, notes, q, read))
+    Ok((frame, notes, bracket, q, read))
 }
 
 struct StoreStats {
@@ -322,6 +354,11 @@ fn store_loop(
         pose: 0,
     };
     let (width, height) = (developer.params().width, developer.params().height);
+    let noise = rig
+        .spec
+        .hdr
+        .as_ref()
+        .map(|h| h.noise(&rig.spec.camera, rig.spec.camera.gain));
     let fail = |dataset: Dataset, err: EngineError| {
         failed.store(true, Ordering::SeqCst);
         Err(Box::new((dataset, err)))
@@ -334,13 +371,29 @@ fn store_loop(
         let ((developed, t_rect), (truth, t_truth)) = rayon::join(
             || {
                 let t = Instant::now();
-                let d = developer.develop(&job.frame, &pose, lamp, job.notes.exposure_scale);
+                let d = match (&job.bracket, &noise) {
+                    (Some(b), Some(noise)) => {
+                        let frames: Vec<Frame> = std::iter::once(job.frame.clone())
+                            .chain(b.more.iter().cloned())
+                            .collect();
+                        developer
+                            .develop_bracket(&frames, &pose, lamp, b.base_exposure_s, noise)
+                            .map(|(d, r)| (d, Some(r)))
+                    }
+                    _ => developer
+                        .develop(&job.frame, &pose, lamp, job.notes.exposure_scale)
+                        .map(|d| (d, None)),
+                };
                 (d, t.elapsed().as_secs_f64())
             },
             || {
                 let t = Instant::now();
-                let truth = match (&rig.truth, opts.truth) {
-                    (Some(t), true) => Some(t.truth(&job.q_read, width, height)),
+                let truth = match (&rig.truth, opts.truth, &job.bracket) {
+                    // The camera's setting may be another bracket's exposure by now.
+                    (Some(t), true, Some(b)) => {
+                        Some(t.truth_at(&job.q_read, width, height, b.base_exposure_s, job.frame.meta.gain))
+                    }
+                    (Some(t), true, None) => Some(t.truth(&job.q_read, width, height)),
                     _ => None,
                 };
                 (truth, t.elapsed().as_secs_f64())
@@ -348,14 +401,18 @@ fn store_loop(
         );
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
-        let (rect, saturated) = match developed {
-            Ok(d) => (d.rectified, d.saturated),
+        let (rect, saturated, merge_report) = match developed {
+            Ok((d, report)) => (d.rectified, d.saturated, report),
             Err(DevelopError::Rectify(message)) => return fail(dataset, EngineError::Rectify { index, message }),
             Err(source) => return fail(dataset, EngineError::Calibration { index, source }),
         };
         let mut truth = truth;
         if let Some(img) = truth.as_mut() {
-            let (t, g) = (job.frame.meta.exposure, job.frame.meta.gain);
+            let t = job
+                .bracket
+                .as_ref()
+                .map_or(job.frame.meta.exposure, |b| b.base_exposure_s);
+            let g = job.frame.meta.gain;
             if let Err(source) = developer.develop_truth(img, lamp, t, g) {
                 return fail(dataset, EngineError::Calibration { index, source });
             }
@@ -407,6 +464,17 @@ fn store_loop(
             },
         };
         job.notes.write_extra(&mut extra);
+        if let (Some(b), Some(r)) = (&job.bracket, &merge_report) {
+            extra["hdr"] = serde_json::json!({
+                "mode": rig.spec.hdr_mode().word(),
+                "exposures_s": r.exposures_s,
+                "pixels_contributed": r.pixels_contributed,
+                "clipped_pixels": r.clipped_pixels,
+                "black_pixels": r.black_pixels,
+                "dynamic_range_stops": r.dynamic_range_stops,
+                "reasons": b.notes.reasons,
+            });
+        }
         rec.extra = extra;
         let raw_frame = if opts.raw_frames { Some(&job.frame) } else { None };
         let t_store = Instant::now();

@@ -305,7 +305,7 @@ impl Plan {
         let t0 = Instant::now();
         let kin = kinematics::for_rig(rig);
         let motions: Vec<MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();
-        let capture = rig.camera.capture_time();
+        let capture = rig.planned_capture_time();
         let mut nodes: Vec<Node> = Vec::new();
         let mut info: Vec<(Pair, Direction, StepStatus)> = Vec::new();
         let mut skipped = Vec::new();

@@ -174,7 +174,7 @@ fn retriable(e: &DeviceError) -> bool {
 
 /// Capture one frame, retrying timeouts, errors and stale frames as the policy allows.
 /// `still_at`: rig-clock time the rig became still, when frame timestamps are on that clock.
-async fn capture_fresh(
+pub(super) async fn capture_fresh(
     camera: &dyn Camera,
     policy: &CapturePolicy,
     still_at: Option<f64>,

@@ -11,15 +11,18 @@
 //!    exposed during the move);
 //! 2. [`Rig::capture`]: a frame under the [`CapturePolicy`] (`capture.rs`: capture timeout,
 //!    bounded retries of timeouts, errors and stale frames, saturated frames flagged or
-//!    re-exposed).
+//!    re-exposed); or, with HDR on, [`Rig::capture_bracket`]: the measurement's exposure
+//!    bracket (`bracket.rs`) under the same policy.
 //!
 //! So a calibration gets the same timeouts, retries and stale-frame rule as an acquisition,
 //! and a fault reads the same in both. This folder imports no other folder of `src/`.
 
+pub mod bracket;
 mod build;
 pub mod capture;
 mod truth;
 
+pub use bracket::{BracketNotes, SampleRegion};
 pub use build::{MirroredAxis, RigBuildError};
 pub use capture::{CaptureFailed, CaptureNotes, CapturePolicy, SaturationPolicy};
 pub use truth::{GroundTruth, MechanicalErrors, SensorResponse, SensorTruth};
@@ -117,6 +120,28 @@ impl Rig {
     ) -> Result<(Frame, CaptureNotes), CaptureFailed> {
         let still_at = *self.still_at.lock().expect("still_at poisoned");
         capture::capture_measurement(self.camera.as_ref(), policy, config, still_at).await
+    }
+
+    /// Capture the HDR bracket of the measurement at axes `q` (read back) under `policy`
+    /// (see [`bracket`]); `config` is the nominal configuration, restored afterwards.
+    pub async fn capture_bracket(
+        &self,
+        policy: &CapturePolicy,
+        config: &CameraConfig,
+        hdr: &gonio_devices::hdr::HdrSpec,
+        q: &[f64],
+    ) -> Result<(Vec<Frame>, CaptureNotes, BracketNotes), CaptureFailed> {
+        let still_at = *self.still_at.lock().expect("still_at poisoned");
+        let pose = self.kinematics.camera_pose(q);
+        let region = SampleRegion::project(
+            &pose,
+            &self.spec.camera.intrinsics(),
+            self.sample_mm,
+            config.width,
+            config.height,
+        );
+        let noise = hdr.noise(&self.spec.camera, config.gain);
+        bracket::capture_bracket(self.camera.as_ref(), policy, config, hdr, &noise, &region, still_at).await
     }
 
     /// The capture policy of this rig's camera (rig file `camera.options`).

@@ -41,6 +41,11 @@ pub trait GroundTruth: Send + Sync {
     /// Ground truth for axis configuration `q` (radians) in the units of the rectified
     /// images (normalised sensor signal, not clipped).
     fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage;
+    /// The same, normalised at `exposure_s` and `gain` rather than the camera's current
+    /// setting (HDR brackets change it while truths of earlier measurements are rendered).
+    fn truth_at(&self, q: &[f64], width: usize, height: usize, _exposure_s: f64, _gain: f64) -> RgbImage {
+        self.truth(q, width, height)
+    }
     /// The camera's radiance image (W m⁻² sr⁻¹) at configuration `q`, no sensor effects.
     fn radiance(&self, q: &[f64]) -> RgbImage;
     /// The homing offsets (degrees) the simulator's mechanical error model drew for axis
@@ -71,6 +76,9 @@ pub trait GroundTruth: Send + Sync {
 impl GroundTruth for SimWorld {
     fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage {
         SimWorld::truth(self, q, width, height)
+    }
+    fn truth_at(&self, q: &[f64], width: usize, height: usize, exposure_s: f64, gain: f64) -> RgbImage {
+        SimWorld::truth_at(self, q, width, height, exposure_s, gain)
     }
     fn radiance(&self, q: &[f64]) -> RgbImage {
         self.raw_radiance(q)

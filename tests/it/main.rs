@@ -24,6 +24,7 @@ mod fuzz_import;
 mod fuzz_inputs;
 mod fuzz_protocols;
 mod fuzz_resume;
+mod hdr;
 mod serial_drivers;
 mod shard_merge;
 mod synthesize_cli;
