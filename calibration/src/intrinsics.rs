@@ -124,6 +124,18 @@ pub struct ViewPose {
 }
 
 impl ViewPose {
+    /// A pose from a rotation matrix (rows, orthonormal) and a translation. Converted
+    /// without re-orthonormalizing: `Rotation3::from_matrix` iterates from the identity and
+    /// can miss a half-turn, which is what a board facing the camera is.
+    pub fn from_matrix(r: [[f64; 3]; 3], tvec: [f64; 3]) -> Self {
+        let m = Matrix3::from_fn(|i, j| r[i][j]);
+        let rv = Rotation3::from_matrix_unchecked(m).scaled_axis();
+        ViewPose {
+            rvec: [rv.x, rv.y, rv.z],
+            tvec,
+        }
+    }
+
     fn rotation(&self) -> Rotation3<f64> {
         Rotation3::from_scaled_axis(Vector3::from(self.rvec))
     }

@@ -129,6 +129,8 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
     let rig_name = rig.spec.name.clone();
     let board = recipe.board().expect("validated: intrinsics recipes have a board");
     let t0 = rig.time();
+    // before anything moves: can these poses determine the camera at all?
+    let plan_check = super::uncertainty::check_intrinsics_plan(recipe, rig, &board)?;
     let mut config = prepare_rig(recipe, rig).await?;
     let policy = calibration_policy(recipe, rig)?;
     let auto_exposure = recipe.exposure_s.is_none();
@@ -234,8 +236,25 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
             },
         });
     }
+    let projection = super::uncertainty::report(rig, &fit, &views);
+    if let Some(w) = &projection.warning {
+        tracing::warn!(recipe = %name, "{w}");
+    }
+    let projection_truth = truth.as_ref().map(|t| {
+        let true_cam = CameraModel {
+            fx: t.fx,
+            fy: t.fy,
+            cx: t.cx,
+            cy: t.cy,
+            distortion: t.distortion,
+        };
+        super::uncertainty::truth_check(&fit.camera, &true_cam, &projection)
+    });
     let result = CalibrationResult {
         intrinsics: Some(fit),
+        plan_check,
+        projection_uncertainty: Some(projection),
+        projection_truth,
         truth,
         errors,
         effort,
