@@ -93,6 +93,21 @@ impl CameraModel {
         self.project(&Vector3::from(p))
     }
 
+    /// [`undistort`](Self::undistort) where the model is invertible: `None` where the
+    /// iteration does not reproduce the pixel or the radial map folds over (its derivative
+    /// `1 + 3k1 r² + 5k2 r⁴ + 7k3 r⁶` not positive), as a fitted polynomial can beyond the
+    /// field its corners covered. No ray is defined there.
+    pub fn try_undistort(&self, u: f64, v: f64) -> Option<(f64, f64)> {
+        let (x, y) = self.undistort(u, v);
+        let (xd, yd) = ((u - self.cx) / self.fx, (v - self.cy) / self.fy);
+        let (dx, dy) = self.distort(x, y);
+        let [k1, k2, _, _, k3] = self.distortion;
+        let r2 = x * x + y * y;
+        let slope = 1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + 7.0 * k3 * r2));
+        let ok = x.is_finite() && y.is_finite() && (dx - xd).hypot(dy - yd) < 1e-9 && slope > 0.0;
+        ok.then_some((x, y))
+    }
+
     /// Normalized undistorted coordinates of a pixel (the inverse of [`project`](Self::project)
     /// up to depth), by fixed-point iteration, which converges for the moderate distortion
     /// of measurement lenses (|distortion displacement| ≪ r).
@@ -1276,9 +1291,9 @@ mod tests {
             let mut w: f64 = 0.0;
             for (j, &y) in r.grid_y.iter().enumerate() {
                 for (i, &x) in r.grid_x.iter().enumerate() {
-                    let s = r.sigma_px[j * r.nx() + i];
+                    let s = r.sigma_px[j * r.nx() + i].unwrap();
                     assert!(s > 0.0 && s.is_finite());
-                    w = w.max(projection_error(&c.camera, &cam, x, y) / s);
+                    w = w.max(projection_error(&c.camera, &cam, x, y).unwrap() / s);
                 }
             }
             worst.push(w);

@@ -71,8 +71,12 @@ pub struct ProjectionUncertainty {
     /// Grid node coordinates (px, gonio's convention).
     pub grid_x: Vec<f64>,
     pub grid_y: Vec<f64>,
-    /// One-sigma projection uncertainty (px) at each node, row-major (`grid_y` rows).
-    pub sigma_px: Vec<f64>,
+    /// One-sigma projection uncertainty (px) at each node, row-major (`grid_y` rows);
+    /// `null` where the estimated model folds over and defines no ray (counted as
+    /// exceeding the threshold).
+    pub sigma_px: Vec<Option<f64>>,
+    /// Fraction of grid nodes where the estimated model defines no ray.
+    pub undefined_fraction: f64,
     pub noise_sigma_px: f64,
     pub covariance_condition: f64,
     pub max_px: f64,
@@ -143,9 +147,10 @@ fn projection_jacobian(cam: &CameraModel, x: f64, y: f64) -> [[f64; NCAM]; 2] {
     ]
 }
 
-/// One sigma (px, worst direction) of the projection of the ray through pixel `(u, v)`.
-pub fn sigma_at(cam: &CameraModel, cov: &CameraCovariance, u: f64, v: f64) -> f64 {
-    let (x, y) = cam.undistort(u, v);
+/// One sigma (px, worst direction) of the projection of the ray through pixel `(u, v)`;
+/// `None` where the estimated model defines no ray ([`CameraModel::try_undistort`]).
+pub fn sigma_at(cam: &CameraModel, cov: &CameraCovariance, u: f64, v: f64) -> Option<f64> {
+    let (x, y) = cam.try_undistort(u, v)?;
     let j = projection_jacobian(cam, x, y);
     let mut c = [[0.0; 2]; 2];
     for a in 0..2 {
@@ -167,15 +172,16 @@ pub fn sigma_at(cam: &CameraModel, cov: &CameraCovariance, u: f64, v: f64) -> f6
     let tr = c[0][0] + c[1][1];
     let det = c[0][0] * c[1][1] - c[0][1] * c[1][0];
     let disc = (0.25 * tr * tr - det).max(0.0).sqrt();
-    (0.5 * tr + disc).max(0.0).sqrt()
+    Some((0.5 * tr + disc).max(0.0).sqrt())
 }
 
 /// The true projection error at pixel `(u, v)` (simulator): the estimate's ray through it,
 /// projected by the true camera, distance to `(u, v)` in pixels.
-pub fn projection_error(estimate: &CameraModel, truth: &CameraModel, u: f64, v: f64) -> f64 {
-    let (x, y) = estimate.undistort(u, v);
+/// `None` where the estimate defines no ray.
+pub fn projection_error(estimate: &CameraModel, truth: &CameraModel, u: f64, v: f64) -> Option<f64> {
+    let (x, y) = estimate.try_undistort(u, v)?;
     let (ut, vt) = truth.project_point([x, y, 1.0]);
-    (ut - u).hypot(vt - v)
+    Some((ut - u).hypot(vt - v))
 }
 
 /// Twice the signed area of triangle `o a b`.
@@ -266,8 +272,8 @@ pub fn projection_uncertainty(
     for &y in &grid_y {
         for &x in &grid_x {
             let s = sigma_at(cam, cov, x, y);
-            // NaN (an undetermined fit) counts as exceeding
-            let over = !(s <= opts.threshold_px);
+            // no ray, or NaN (an undetermined fit): counts as exceeding
+            let over = !s.is_some_and(|s| s <= opts.threshold_px);
             if over {
                 exceeding += 1;
                 let name = sector(x, y, image_size);
@@ -276,7 +282,8 @@ pub fn projection_uncertainty(
                 }
             }
             if sample_region.is_some_and(|r| r.contains(x, y)) {
-                sample_max = Some(sample_max.map_or(s, |m: f64| if s.is_nan() { s } else { m.max(s) }));
+                let v = s.unwrap_or(f64::INFINITY);
+                sample_max = Some(sample_max.map_or(v, |m: f64| m.max(v)));
             }
             sigma_px.push(s);
         }
@@ -298,10 +305,12 @@ pub fn projection_uncertainty(
         .filter(|n| sectors.contains(n))
         .map(|n| n.to_string())
         .collect();
-    let mut sorted: Vec<f64> = sigma_px.clone();
+    // over the nodes with a ray
+    let mut sorted: Vec<f64> = sigma_px.iter().flatten().copied().collect();
     sorted.sort_by(|a, b| a.total_cmp(b));
-    let max_px = sorted.last().copied().unwrap_or(0.0);
-    let median_px = sorted[sorted.len() / 2];
+    let max_px = sorted.last().copied().unwrap_or(f64::NAN);
+    let median_px = sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN);
+    let undefined_fraction = 1.0 - sorted.len() as f64 / sigma_px.len().max(1) as f64;
     let all: Vec<[f64; 2]> = views.iter().flat_map(|v| v.image.iter().copied()).collect();
     let corner_bbox_px = all.iter().fold(
         [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY],
@@ -319,8 +328,16 @@ pub fn projection_uncertainty(
                 (Some(_), Some(m)) => format!(" (inside the sample's region at most {m:.3} px)"),
                 _ => String::new(),
             };
+            let undefined = if undefined_fraction > 0.0 {
             format!(
-            "projection uncertainty above {:.2} px over {:.0} % of the image, in the {} ({} up to {:.3} px){inside}; \
+                "; over {:.0} % of the image the fitted distortion folds over and defines no ray at all",
+                100.0 * undefined_fraction
+            )
+        } else {
+            String::new()
+        };
+        format!(
+            "projection uncertainty above {:.2} px over {:.0} % of the image, in the {} ({} up to {:.3} px){inside}{undefined}; \
              the corners covered {:.0} % of the image: the model extrapolates there — add views that put the board \
              into those parts of the image",
             opts.threshold_px,
@@ -340,6 +357,7 @@ pub fn projection_uncertainty(
         grid_x,
         grid_y,
         sigma_px,
+        undefined_fraction,
         noise_sigma_px: cov.noise_sigma_px,
         covariance_condition: cov.condition,
         max_px,
@@ -393,14 +411,22 @@ mod tests {
             condition: 1.0,
         };
         for (u, v) in [(0.0, 0.0), (400.0, 300.0), (700.0, 100.0)] {
-            assert!((sigma_at(&cam, &cov, u, v) - 0.2).abs() < 1e-12);
+            assert!((sigma_at(&cam, &cov, u, v).unwrap() - 0.2).abs() < 1e-12);
         }
         // a k1 variance grows with the radius, zero at the principal point
         let mut params = [[0.0; NCAM]; NCAM];
         params[4][4] = 1e-4;
         let cov = CameraCovariance { params, ..cov };
-        assert!(sigma_at(&cam, &cov, 400.0, 300.0) < 1e-12);
-        assert!(sigma_at(&cam, &cov, 0.0, 0.0) > sigma_at(&cam, &cov, 200.0, 150.0));
+        let at = |u, v| sigma_at(&cam, &cov, u, v).unwrap();
+        assert!(at(400.0, 300.0) < 1e-12);
+        assert!(at(0.0, 0.0) > at(200.0, 150.0));
+        // a polynomial that folds over inside the image defines no ray there
+        let folded = CameraModel {
+            distortion: [-0.1, 1.5, 0.0, 0.0, -90.0],
+            ..cam
+        };
+        assert!(folded.try_undistort(400.0, 300.0).is_some());
+        assert!(sigma_at(&folded, &cov, 0.0, 0.0).is_none());
         let r = projection_uncertainty(&cam, &cov, &[], (800, 600), None, &UncertaintyOptions::default());
         assert_eq!(r.sigma_px.len(), r.nx() * r.ny());
         assert_eq!(r.nx(), 51);

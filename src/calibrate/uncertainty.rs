@@ -16,8 +16,9 @@ use gonio_calibration::uncertainty::{
 /// The true projection error over the same grid as the reported uncertainty (simulator).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ProjectionTruth {
-    /// True projection error (px) at each grid node, row-major like `sigma_px`.
-    pub error_px: Vec<f64>,
+    /// True projection error (px) at each grid node, row-major like `sigma_px` (`null`
+    /// where the estimate defines no ray).
+    pub error_px: Vec<Option<f64>>,
     pub max_error_px: f64,
     /// Where the largest error is (px).
     pub max_error_at_px: [f64; 2],
@@ -25,7 +26,7 @@ pub struct ProjectionTruth {
     /// Largest error / reported sigma over the grid; the report is consistent when this
     /// stays within about 3.
     pub max_error_over_sigma: f64,
-    /// Fraction of grid nodes where the error exceeds three sigma.
+    /// Fraction of grid nodes (with a ray) where the error exceeds three sigma.
     pub beyond_3_sigma_fraction: f64,
 }
 
@@ -147,8 +148,10 @@ pub(super) fn truth_check(estimate: &CameraModel, truth: &CameraModel, r: &Proje
     let mut sample_max: Option<f64> = None;
     for (j, &y) in r.grid_y.iter().enumerate() {
         for (i, &x) in r.grid_x.iter().enumerate() {
-            let e = projection_error(estimate, truth, x, y);
-            let s = r.sigma_px[j * r.nx() + i];
+            let (Some(e), Some(s)) = (projection_error(estimate, truth, x, y), r.sigma_px[j * r.nx() + i]) else {
+                error_px.push(None);
+                continue;
+            };
             if e > max_e {
                 max_e = e;
                 at = [x, y];
@@ -162,10 +165,10 @@ pub(super) fn truth_check(estimate: &CameraModel, truth: &CameraModel, r: &Proje
                     sample_max = Some(sample_max.map_or(e, |m: f64| m.max(e)));
                 }
             }
-            error_px.push(e);
+            error_px.push(Some(e));
         }
     }
-    let n = error_px.len().max(1);
+    let n = error_px.iter().flatten().count().max(1);
     ProjectionTruth {
         error_px,
         max_error_px: max_e,
@@ -184,7 +187,8 @@ pub fn heat_map(r: &ProjectionUncertainty, views: &[TargetView]) -> image::RgbIm
     let [w, h] = r.image_size;
     let (nx, ny) = (r.nx(), r.ny());
     // bilinear interpolation of log10(sigma) between nodes
-    let log_sigma: Vec<f64> = r.sigma_px.iter().map(|s| s.max(1e-6).log10()).collect();
+    // no ray: drawn as the top of the scale
+    let log_sigma: Vec<f64> = r.sigma_px.iter().map(|s| s.map_or(3.0, |s| s.max(1e-6).log10())).collect();
     let node = |gx: &[f64], x: f64| -> (usize, f64) {
         let step = gx[1] - gx[0];
         let k = ((x / step).floor() as usize).min(gx.len() - 2);
