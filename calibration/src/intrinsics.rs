@@ -601,7 +601,7 @@ fn weak_parameters(
     }
     let f = cam.fx.min(cam.fy);
     let weak: Vec<String> = (0..4)
-        .filter(|&i| !(predicted_sigma[i] <= opts.max_relative_sigma * f))
+        .filter(|&i| predicted_sigma[i].is_nan() || predicted_sigma[i] > opts.max_relative_sigma * f)
         .map(|i| {
             format!(
                 "{} (predicted one sigma {:.3} px)",
@@ -1052,7 +1052,7 @@ pub(crate) fn scaled_inverse(jtj: &DMatrix<f64>) -> (Option<DMatrix<f64>>, f64, 
         .fold((0.0f64, f64::INFINITY), |(hi, lo), &l| (hi.max(l), lo.min(l)));
     let condition = if lmin > 0.0 { lmax / lmin } else { f64::INFINITY };
     let unobserved = d.iter().any(|&x| x == 0.0);
-    if unobserved || !(lmin > 1e-14 * lmax) {
+    if unobserved || lmin.is_nan() || lmin <= 1e-14 * lmax {
         return (None, condition, eig.eigenvectors, eig.eigenvalues);
     }
     let mut inv = DMatrix::<f64>::zeros(n, n);

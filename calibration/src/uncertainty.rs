@@ -322,7 +322,7 @@ pub fn projection_uncertainty(
     let warning =
         (exceeding > 0).then(|| {
             let inside = match (sample_region, sample_max) {
-                (Some(_), Some(m)) if !(m <= opts.threshold_px) => {
+                (Some(_), Some(m)) if m.is_nan() || m > opts.threshold_px => {
                     format!(" INCLUDING the sample's region (up to {m:.3} px there)")
                 }
                 (Some(_), Some(m)) => format!(" (inside the sample's region at most {m:.3} px)"),

@@ -337,7 +337,10 @@ mod tests {
         assert!(r.effort[0].failure.is_some(), "{:?}", r.effort[0]);
         // The plan was checked before the rig moved.
         let plan = r.plan_check.as_ref().expect("plan checked");
-        assert!(plan.predicted_sigma[0] > 0.0 && plan.predicted_sigma[0] < 5.5, "{plan:?}");
+        assert!(
+            plan.predicted_sigma[0] > 0.0 && plan.predicted_sigma[0] < 5.5,
+            "{plan:?}"
+        );
         // The board stays near the image centre on this rig, so the distortion model
         // extrapolates to the image corners: the true projection error there is pixels
         // (k2 comes out far from the truth), and the report must say so, with a sigma
@@ -348,11 +351,18 @@ mod tests {
         assert!(pt.max_error_over_sigma < 3.0, "{}", pt.max_error_over_sigma);
         assert_eq!(pt.beyond_3_sigma_fraction, 0.0);
         assert!(u.max_px > 2.0, "{}", u.max_px);
-        assert!(u.coverage_fraction > 0.03 && u.coverage_fraction < 0.15, "{}", u.coverage_fraction);
+        assert!(
+            u.coverage_fraction > 0.03 && u.coverage_fraction < 0.15,
+            "{}",
+            u.coverage_fraction
+        );
         let w = u.warning.as_ref().expect("flagged");
         assert!(w.contains("top-left") && w.contains("bottom-right"), "{w}");
         // inside the sample's region the error is small and so is the sigma
-        assert!(pt.sample_max_error_px.unwrap() < 0.5 && u.sample_max_px.unwrap() < 0.5, "{u:?}");
+        assert!(
+            pt.sample_max_error_px.unwrap() < 0.5 && u.sample_max_px.unwrap() < 0.5,
+            "{u:?}"
+        );
     }
 
     #[test]

@@ -56,7 +56,10 @@ pub(super) fn nominal_board_pose(rig: &Rig, q: &[f64]) -> ViewPose {
         col(gonio_devices::Vec3::new(0.0, 1.0, 0.0)),
         col(gonio_devices::Vec3::new(0.0, 0.0, 1.0)),
     ];
-    ViewPose::from_matrix(std::array::from_fn(|i| std::array::from_fn(|j| cols[j][i])), [o.x, o.y, o.z])
+    ViewPose::from_matrix(
+        std::array::from_fn(|i| std::array::from_fn(|j| cols[j][i])),
+        [o.x, o.y, o.z],
+    )
 }
 
 /// Check the recipe's poses before the rig moves: every pose through the inverse
@@ -125,11 +128,7 @@ pub(super) fn sample_region(rig: &Rig, cam: &CameraModel) -> ImageDisc {
 }
 
 /// The projection-uncertainty report of a fit.
-pub(super) fn report(
-    rig: &Rig,
-    fit: &IntrinsicsCalibration,
-    views: &[TargetView],
-) -> ProjectionUncertainty {
+pub(super) fn report(rig: &Rig, fit: &IntrinsicsCalibration, views: &[TargetView]) -> ProjectionUncertainty {
     let size = (rig.spec.camera.width, rig.spec.camera.height);
     projection_uncertainty(
         &fit.camera,
@@ -157,7 +156,7 @@ pub(super) fn truth_check(estimate: &CameraModel, truth: &CameraModel, r: &Proje
                 at = [x, y];
             }
             ratio = ratio.max(e / s);
-            if !(e <= 3.0 * s) {
+            if e.is_nan() || e > 3.0 * s {
                 beyond += 1;
             }
             if let Some(d) = r.sample_region {
@@ -188,7 +187,11 @@ pub fn heat_map(r: &ProjectionUncertainty, views: &[TargetView]) -> image::RgbIm
     let (nx, ny) = (r.nx(), r.ny());
     // bilinear interpolation of log10(sigma) between nodes
     // no ray: drawn as the top of the scale
-    let log_sigma: Vec<f64> = r.sigma_px.iter().map(|s| s.map_or(3.0, |s| s.max(1e-6).log10())).collect();
+    let log_sigma: Vec<f64> = r
+        .sigma_px
+        .iter()
+        .map(|s| s.map_or(3.0, |s| s.max(1e-6).log10()))
+        .collect();
     let node = |gx: &[f64], x: f64| -> (usize, f64) {
         let step = gx[1] - gx[0];
         let k = ((x / step).floor() as usize).min(gx.len() - 2);
@@ -231,7 +234,10 @@ pub fn heat_map(r: &ProjectionUncertainty, views: &[TargetView]) -> image::RgbIm
         let n = (2.0 * std::f64::consts::PI * d.radius_px).ceil() as usize * 2;
         for k in 0..n.max(8) {
             let a = 2.0 * std::f64::consts::PI * k as f64 / n.max(8) as f64;
-            let (x, y) = (d.centre_px[0] + d.radius_px * a.cos(), d.centre_px[1] + d.radius_px * a.sin());
+            let (x, y) = (
+                d.centre_px[0] + d.radius_px * a.cos(),
+                d.centre_px[1] + d.radius_px * a.sin(),
+            );
             if x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h {
                 img.put_pixel(x as u32, y as u32, image::Rgb([255, 255, 255]));
             }
