@@ -37,4 +37,20 @@ impl Board {
             Board::Coded(spec) => spec.pitch_mm,
         }
     }
+
+    /// Every inner corner's board-plane position (mm), row by row: what a view showing the
+    /// whole board gives (used to predict views before they are captured).
+    pub fn all_corners(&self) -> Vec<[f64; 2]> {
+        match self {
+            Board::Checkerboard(spec) => (0..spec.rows)
+                .flat_map(|j| (0..spec.cols).map(move |i| spec.object_point(i, j)))
+                .collect(),
+            Board::Coded(spec) => {
+                let (nx, ny) = spec.corners();
+                (0..ny)
+                    .flat_map(|j| (0..nx).map(move |i| spec.corner_point(i, j)))
+                    .collect()
+            }
+        }
+    }
 }

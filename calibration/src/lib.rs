@@ -23,6 +23,7 @@
 //!
 //! Fits:
 //! - [`intrinsics`]: Zhang's closed form + LM with OpenCV's distortion model;
+//!   [`uncertainty`]: its projection uncertainty over the whole image and the corners' coverage;
 //! - [`rig_geometry`]: bundle adjustment of axis zero offsets and the camera mount;
 //! - [`light_geometry`]: the lamp axes' zero offsets from a near-mirror's highlight;
 //!   the two offset fits share their checks and parameter table (`offset_fit.rs`);
@@ -41,6 +42,7 @@ pub mod markers;
 pub mod radiometric;
 pub mod rectify;
 pub mod rig_geometry;
+pub mod uncertainty;
 pub mod warp;
 pub mod wedge;
 

@@ -129,6 +129,8 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
     let rig_name = rig.spec.name.clone();
     let board = recipe.board().expect("validated: intrinsics recipes have a board");
     let t0 = rig.time();
+    // before anything moves: can these poses determine the camera at all?
+    let plan_check = super::uncertainty::check_intrinsics_plan(recipe, rig, &board)?;
     let mut config = prepare_rig(recipe, rig).await?;
     let policy = calibration_policy(recipe, rig)?;
     let auto_exposure = recipe.exposure_s.is_none();
@@ -234,8 +236,25 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
             },
         });
     }
+    let projection = super::uncertainty::report(rig, &fit, &views);
+    if let Some(w) = &projection.warning {
+        tracing::warn!(recipe = %name, "{w}");
+    }
+    let projection_truth = truth.as_ref().map(|t| {
+        let true_cam = CameraModel {
+            fx: t.fx,
+            fy: t.fy,
+            cx: t.cx,
+            cy: t.cy,
+            distortion: t.distortion,
+        };
+        super::uncertainty::truth_check(&fit.camera, &true_cam, &projection)
+    });
     let result = CalibrationResult {
         intrinsics: Some(fit),
+        plan_check,
+        projection_uncertainty: Some(projection),
+        projection_truth,
         truth,
         errors,
         effort,
@@ -316,6 +335,34 @@ mod tests {
         // the effort table covers 3 ..= 12 views; too few views are refused, not fitted
         assert_eq!(r.effort.len(), 10);
         assert!(r.effort[0].failure.is_some(), "{:?}", r.effort[0]);
+        // The plan was checked before the rig moved.
+        let plan = r.plan_check.as_ref().expect("plan checked");
+        assert!(
+            plan.predicted_sigma[0] > 0.0 && plan.predicted_sigma[0] < 5.5,
+            "{plan:?}"
+        );
+        // The board stays near the image centre on this rig, so the distortion model
+        // extrapolates to the image corners: the true projection error there is pixels
+        // (k2 comes out far from the truth), and the report must say so, with a sigma
+        // that keeps the true error within 3 sigma over the whole image.
+        let u = r.projection_uncertainty.as_ref().unwrap();
+        let pt = r.projection_truth.as_ref().unwrap();
+        assert!(pt.max_error_px > 5.0, "{pt:?}");
+        assert!(pt.max_error_over_sigma < 3.0, "{}", pt.max_error_over_sigma);
+        assert_eq!(pt.beyond_3_sigma_fraction, 0.0);
+        assert!(u.max_px > 2.0, "{}", u.max_px);
+        assert!(
+            u.coverage_fraction > 0.03 && u.coverage_fraction < 0.15,
+            "{}",
+            u.coverage_fraction
+        );
+        let w = u.warning.as_ref().expect("flagged");
+        assert!(w.contains("top-left") && w.contains("bottom-right"), "{w}");
+        // inside the sample's region the error is small and so is the sigma
+        assert!(
+            pt.sample_max_error_px.unwrap() < 0.5 && u.sample_max_px.unwrap() < 0.5,
+            "{u:?}"
+        );
     }
 
     #[test]
@@ -330,20 +377,32 @@ mod tests {
                 light: None,
             });
         }
-        let e = run_blocking(&recipe).err().expect("refused");
+        // refused from the plan, before the rig moved (no rig time spent), naming what
+        // the poses cannot determine
+        let rig = wide_rig(&recipe);
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let e = rt.block_on(run(&recipe, &rig)).err().expect("refused");
         let msg = e.to_string();
         assert!(
             matches!(
                 e,
                 CalibrateError::Intrinsics {
-                    cause: IntrinsicsError::Degenerate { .. }
-                        | IntrinsicsError::ClosedForm(_)
-                        | IntrinsicsError::Undetermined { .. },
+                    cause: IntrinsicsError::PlanUndetermined { .. },
                     ..
                 }
             ),
             "{msg}"
         );
+        assert!(msg.contains("fx") && msg.contains("cx"), "{msg}");
+        assert_eq!(rig.time(), 0.0, "the rig moved before the refusal");
+        // too few views, likewise
+        let mut recipe = shipped();
+        recipe.poses.truncate(2);
+        let e = run_blocking(&recipe).err().expect("refused");
+        assert!(e.to_string().contains("planned views"), "{e}");
     }
 
     #[test]

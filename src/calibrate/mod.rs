@@ -18,6 +18,7 @@ pub mod mechanical;
 pub mod radiometric;
 pub mod recipe;
 pub mod rig_geometry;
+pub mod uncertainty;
 pub mod white;
 // helpers shared by the rig- and light-geometry recipes
 mod offset_fit;
@@ -230,6 +231,17 @@ pub struct CalibrationResult {
     /// Light-geometry run: the lamp axes' zero offsets from a mirror's highlights.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub light_geometry: Option<light_geometry::LightGeometryCalibration>,
+    /// Intrinsics: the plan check made before the rig moved (predicted conditioning and
+    /// parameter sigmas at the planned poses).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_check: Option<gonio_calibration::intrinsics::PlanCheck>,
+    /// Intrinsics: one-sigma projection uncertainty over the whole image, coverage, and the
+    /// warning naming where it exceeds the threshold.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub projection_uncertainty: Option<gonio_calibration::uncertainty::ProjectionUncertainty>,
+    /// Intrinsics on the simulator: the true projection error on the same grid.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub projection_truth: Option<uncertainty::ProjectionTruth>,
 }
 
 impl CalibrationResult {
@@ -261,6 +273,9 @@ impl CalibrationResult {
             mechanical: None,
             rig_geometry: None,
             light_geometry: None,
+            plan_check: None,
+            projection_uncertainty: None,
+            projection_truth: None,
         }
     }
 

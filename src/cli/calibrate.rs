@@ -43,6 +43,12 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
     if let Some(c) = &out.corners {
         let p = a.out.join("corners.json");
         std::fs::write(&p, serde_json::to_string(c)?).with_context(|| format!("writing {}", p.display()))?;
+        if let Some(u) = &out.result.projection_uncertainty {
+            let p = a.out.join("uncertainty.png");
+            calibrate::uncertainty::heat_map(u, &c.views)
+                .save(&p)
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&out.result)?);
@@ -76,6 +82,37 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
         println!(
             "  truth fx {:.3} fy {:.3} cx {:.3} cy {:.3}: errors fx {:+.4} % fy {:+.4} % cx {:+.3} px ({:+.4} %) cy {:+.3} px ({:+.4} %)",
             t.fx, t.fy, t.cx, t.cy, e.fx_percent, e.fy_percent, e.cx_px, e.cx_percent, e.cy_px, e.cy_percent
+        );
+    }
+    if let Some(u) = &r.projection_uncertainty {
+        println!(
+            "  projection uncertainty (1 sigma): whole image max {:.3} px, median {:.3} px; sample region max {} px; \
+             corners cover {:.1} % of the image (bbox {:.0}-{:.0} x {:.0}-{:.0}); covariance condition {:.2e} \
+             (uncertainty.png)",
+            u.max_px,
+            u.median_px,
+            u.sample_max_px.map_or("-".into(), |m| format!("{m:.3}")),
+            100.0 * u.coverage_fraction,
+            u.corner_bbox_px[0],
+            u.corner_bbox_px[2],
+            u.corner_bbox_px[1],
+            u.corner_bbox_px[3],
+            u.covariance_condition
+        );
+        if let Some(w) = &u.warning {
+            println!("  WARNING: {w}");
+        }
+    }
+    if let Some(t) = &r.projection_truth {
+        println!(
+            "  truth: projection error max {:.3} px at ({:.0}, {:.0}), sample region max {} px; \
+             max error/sigma {:.2}, {:.1} % of the grid beyond 3 sigma",
+            t.max_error_px,
+            t.max_error_at_px[0],
+            t.max_error_at_px[1],
+            t.sample_max_error_px.map_or("-".into(), |m| format!("{m:.3}")),
+            t.max_error_over_sigma,
+            100.0 * t.beyond_3_sigma_fraction
         );
     }
     if !r.corner_truth_rms_px.is_empty() {
