@@ -29,6 +29,10 @@ pub struct CompressBenchArgs {
     /// Keep the compressed files.
     #[arg(long)]
     pub keep: bool,
+    /// Sweep the rate–quality frontier instead ([`frontier_sweep`]): quantized PCA,
+    /// perceptual (CIELab) DFMF and local PCA at the knobs that reach 100–2000 : 1.
+    #[arg(long)]
+    pub frontier: bool,
     /// Instead of the sweep: PVMF speed on this dataset (read vs. factorization per view,
     /// faer's GEMM rate on the same shapes, extrapolation to 81 × 81 × 256²) and decode
     /// time per 256² image.
@@ -66,6 +70,45 @@ pub fn sweep() -> Vec<(&'static str, Vec<String>)> {
     v
 }
 
+/// The rate–quality frontier (`--frontier`): every entry is stored quantized (`.gbtf`
+/// version 2), so the ratios are the ones a user gets with `--quantize`.
+pub fn frontier_sweep() -> Vec<(&'static str, Vec<String>)> {
+    let a = |s: &str| s.split_whitespace().map(String::from).collect::<Vec<_>>();
+    let mut v = Vec::new();
+    for c in [8, 16, 32, 48, 64] {
+        for bits in [6, 8] {
+            v.push(("pca", a(&format!("--method pca -c {c} --quantize {bits}"))));
+        }
+    }
+    for c in [8, 16, 32, 48, 64] {
+        let cc = (c / 4).max(1);
+        for bits in [6, 8] {
+            v.push((
+                "dfmf-lab",
+                a(&format!(
+                    "--method dfmf --color-model lab -c {c} --chroma-components {cc} --format gbtf --quantize {bits}"
+                )),
+            ));
+        }
+    }
+    for c in [16, 32] {
+        v.push((
+            "dfmf-logyuv",
+            a(&format!(
+                "--method dfmf --color-model log-yuv -c {c} --chroma-components {} --format gbtf --quantize 8",
+                c / 4
+            )),
+        ));
+    }
+    for c in [2, 4, 8] {
+        v.push((
+            "local-pca",
+            a(&format!("--method local-pca --clusters 8 -c {c} --quantize 8")),
+        ));
+    }
+    v
+}
+
 #[derive(clap::Parser, Debug)]
 #[command(no_binary_name = true)]
 struct OneRun {
@@ -96,13 +139,15 @@ pub fn run(a: CompressBenchArgs) -> Result<ExitCode> {
     let files = a.out.join("files");
     std::fs::create_dir_all(&files).with_context(|| format!("creating {}", files.display()))?;
     let mut rows = Vec::new();
-    for (i, (method, extra)) in sweep().into_iter().enumerate() {
+    let list = if a.frontier { frontier_sweep() } else { sweep() };
+    for (i, (method, extra)) in list.into_iter().enumerate() {
         if let Some(m) = &a.methods {
             if !m.iter().any(|x| x == method) {
                 continue;
             }
         }
-        let ext = if method.starts_with("dfmf") { "btf" } else { "gbtf" };
+        let gbtf = !method.starts_with("dfmf") || extra.windows(2).any(|w| w[0] == "--format" && w[1] == "gbtf");
+        let ext = if gbtf { "gbtf" } else { "btf" };
         let file = files.join(format!("{i:02}-{method}.{ext}"));
         let mut argv: Vec<String> = vec![
             a.dataset.display().to_string(),
@@ -176,16 +221,16 @@ fn markdown(dataset: &Path, rows: &[Row]) -> String {
     );
     let _ = writeln!(
         s,
-        "| method | arguments | bytes | ratio | RMSE | mean abs | max | PSNR dB | RMSE vs truth | encode s | decode ms/img | peak MiB |"
+        "| method | arguments | bytes | ratio | RMSE | mean abs | max | PSNR dB | RMSE vs truth | PSNR vs truth dB | encode s | decode ms/img | peak MiB |"
     );
-    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in rows {
         match &r.report {
             Some(p) => {
                 let o = |v: Option<f64>, d: usize| v.map_or("–".to_string(), |v| format!("{v:.d$}"));
                 let _ = writeln!(
                     s,
-                    "| {} | `{}` | {} | {:.1} | {} | {} | {} | {} | {} | {:.2} | {} | {} |",
+                    "| {} | `{}` | {} | {:.1} | {} | {} | {} | {} | {} | {} | {:.2} | {} | {} |",
                     r.method,
                     r.args,
                     p.stored_bytes,
@@ -195,6 +240,7 @@ fn markdown(dataset: &Path, rows: &[Row]) -> String {
                     o(p.max_8bit, 4),
                     o(p.psnr_8bit_db, 2),
                     o(p.truth.as_ref().map(|t| t.rmse_8bit), 5),
+                    o(p.truth.as_ref().map(|t| t.psnr_8bit_db), 2),
                     p.encode_seconds,
                     o(p.decode_seconds_per_image.map(|d| d * 1e3), 3),
                     p.peak_memory_bytes.map_or("–".into(), |b| (b >> 20).to_string()),
@@ -203,7 +249,7 @@ fn markdown(dataset: &Path, rows: &[Row]) -> String {
             None => {
                 let _ = writeln!(
                     s,
-                    "| {} | `{}` | failed: {} | | | | | | | | | |",
+                    "| {} | `{}` | failed: {} | | | | | | | | | | |",
                     r.method,
                     r.args,
                     r.error.as_deref().unwrap_or("").replace('|', "\\|").replace('\n', " ")
@@ -345,7 +391,7 @@ mod tests {
 
     #[test]
     fn every_sweep_entry_parses_as_gonio_compress_arguments() {
-        for (method, args) in sweep() {
+        for (method, args) in sweep().into_iter().chain(frontier_sweep()) {
             let mut argv = vec!["DS".to_string(), "--out".into(), "X".into()];
             argv.extend(args.clone());
             let parsed = OneRun::try_parse_from(&argv);

@@ -4,6 +4,7 @@ use super::common::parse_angles;
 use crate::compress::btf_ubo2014::{self, Precision};
 use crate::compress::dfmf::{self, ColorModel, DfmfParams};
 use crate::compress::interp::AnyModel;
+use crate::compress::target::Goal;
 use crate::compress::{self, DatasetViews, Method, Params};
 use anyhow::{Context, Result};
 use gonio_devices::image::RgbImage;
@@ -43,6 +44,9 @@ pub enum ColorModelArg {
     Rgb,
     /// log luminance + chroma/luminance (UBO2014 colour model 11; the reader clamps to [0, 1]).
     LogYuv,
+    /// CIELab (perceptual DFMF after Guthe et al. 2009): least squares in Lab is least
+    /// ΔE*ab. `.gbtf` only.
+    Lab,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -56,14 +60,20 @@ pub struct CompressArgs {
     /// The dataset directory.
     pub dataset: PathBuf,
     /// The method. Optional with --target-psnr (then every method of the search is tried).
-    #[arg(long, value_enum, required_unless_present = "target_psnr")]
+    #[arg(long, value_enum, required_unless_present_any = ["target_psnr", "target_ratio"])]
     pub method: Option<MethodArg>,
     /// Pick the method, components and quantization giving the smallest .gbtf whose PSNR
     /// (8-bit sRGB, against the dataset's truth if it has one, else its images) is at
     /// least this many dB; `--method` restricts the search to one method. Every trial and
     /// the reason for the choice are in `--json` (`target`).
-    #[arg(long, value_name = "DB", conflicts_with_all = ["components", "quantize", "format"])]
+    #[arg(long, value_name = "DB", conflicts_with_all = ["components", "quantize", "format", "target_ratio"])]
     pub target_psnr: Option<f64>,
+    /// Pick the method, components and quantization giving the highest PSNR (measured as
+    /// for --target-psnr) among the .gbtf files at least R times smaller than the raw 8-bit
+    /// images (ratio ≥ R : 1); `--method` restricts the search. Every trial and the reason
+    /// are in `--json` (`target`).
+    #[arg(long, value_name = "R", conflicts_with_all = ["components", "quantize", "format"])]
+    pub target_ratio: Option<f64>,
     /// Components kept (per view for PVMF, in total for PCA, per cluster for local PCA,
     /// luminance for DFMF). Required by those methods; median cut and homomorphic
     /// factorization have no components and ignore it.
@@ -200,7 +210,13 @@ pub(crate) struct Report {
 /// The search of `--target-psnr` (see `compress::target`).
 #[derive(Serialize, Debug, Clone)]
 pub(crate) struct TargetReport {
-    pub(crate) target_psnr_db: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) target_psnr_db: Option<f64>,
+    /// `--target-ratio`: the ratio asked for and the byte budget it gives.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) target_ratio: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(crate) budget_bytes: Option<u64>,
     /// `truth` or `dataset`.
     pub(crate) psnr_against: &'static str,
     pub(crate) reason: String,
@@ -234,7 +250,9 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
-    if args.shard.is_some() && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some()) {
+    if args.shard.is_some()
+        && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some() || args.target_ratio.is_some())
+    {
         anyhow::bail!(
             "--shard splits --method pvmf by views; other methods are compressed in one process \
              (leave out --shard)"
@@ -243,17 +261,18 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     let t0 = Instant::now();
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
     if let Some(p) = args.target_psnr {
-        return target_report(args, &ds, p, t0);
+        return target_report(args, &ds, Goal::Psnr(p), t0);
+    }
+    if let Some(r) = args.target_ratio {
+        return target_report(args, &ds, Goal::Ratio(r), t0);
     }
     let method_arg = args.method.context("--method is required without --target-psnr")?;
-    let format = args.format.unwrap_or(match method_arg {
-        MethodArg::Dfmf => FormatArg::Btf,
+    let format = args.format.unwrap_or(match (method_arg, args.color_model) {
+        (MethodArg::Dfmf, ColorModelArg::Rgb | ColorModelArg::LogYuv) => FormatArg::Btf,
         _ => FormatArg::Gbtf,
     });
-    if matches!(method_arg, MethodArg::Dfmf) != (format == FormatArg::Btf) {
-        anyhow::bail!(
-            "--format btf (UBO2014 DFMF) is written by --method dfmf only, and dfmf writes only --format btf"
-        );
+    if format == FormatArg::Btf && !matches!(method_arg, MethodArg::Dfmf) {
+        anyhow::bail!("--format btf (UBO2014 DFMF) is written by --method dfmf only");
     }
     if format == FormatArg::Btf && args.quantize.is_some() {
         anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
@@ -268,7 +287,11 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         method: match method_arg {
             MethodArg::Pca => Method::Pca,
             MethodArg::Pvmf => Method::Pvmf,
-            MethodArg::Dfmf => return dfmf_report(args, &ds, t0),
+            MethodArg::Dfmf if format == FormatArg::Btf => return dfmf_report(args, &ds, t0),
+            MethodArg::Dfmf => Method::Dfmf {
+                color_model: color_model(args.color_model),
+                chroma_components: args.chroma_components.unwrap_or(components),
+            },
             MethodArg::LocalPca => Method::LocalPca {
                 clusters: args.clusters,
                 iters: args.iters,
@@ -370,8 +393,20 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
     };
     let pca: Vec<Params> = [4, 8, 16, 32, 64].map(|c| p(Method::Pca, c)).to_vec();
     let local = |k: usize| -> Vec<Params> { [2, 4, 8, 16].map(|c| p(lpca(k), c)).to_vec() };
+    // Perceptual DFMF: luminance c, chroma c / 4 (chroma varies less over directions).
+    let lab: Vec<Params> = [8, 16, 32, 64]
+        .map(|c| {
+            p(
+                Method::Dfmf {
+                    color_model: ColorModel::Lab,
+                    chroma_components: (c / 4).max(1),
+                },
+                c,
+            )
+        })
+        .to_vec();
     match method {
-        None => vec![pca, local(8), local(32)],
+        None => vec![pca, lab, local(8), local(32)],
         Some(MethodArg::Pca) => vec![pca],
         Some(MethodArg::LocalPca) => vec![local(8), local(32)],
         Some(MethodArg::Pvmf) => vec![[1, 2, 4, 8, 16].map(|c| p(Method::Pvmf, c)).to_vec()],
@@ -394,43 +429,77 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
             },
             1,
         )]],
-        Some(MethodArg::Dfmf) => Vec::new(),
+        Some(MethodArg::Dfmf) => vec![lab],
     }
 }
 
-fn target_report(args: &CompressArgs, ds: &DatasetViews, target: f64, t0: Instant) -> Result<Report> {
-    if matches!(args.method, Some(MethodArg::Dfmf)) {
-        anyhow::bail!("--target-psnr searches the .gbtf methods; DFMF writes UBO2014 .btf (run it with -c)");
+fn target_report(args: &CompressArgs, ds: &DatasetViews, goal: Goal, t0: Instant) -> Result<Report> {
+    let flag = match goal {
+        Goal::Psnr(_) => "--target-psnr",
+        Goal::Ratio(_) => "--target-ratio",
+    };
+    let ladders = ladders(args.method, args);
+    if ladders.is_empty() {
+        anyhow::bail!("{flag} searches the .gbtf methods; UBO2014 DFMF .btf is not searched (leave out --method dfmf)");
     }
-    let choice = compress::target::search(ds, target, &ladders(args.method, args))
-        .with_context(|| format!("searching {} for {target} dB", args.dataset.display()))?;
+    let choice = compress::target::search(ds, goal, &ladders)
+        .with_context(|| format!("searching {} for {goal:?}", args.dataset.display()))?;
     let Some((gbtf, best)) = choice.best else {
-        let top = choice
-            .trials
-            .iter()
-            .map(|t| t.psnr_8bit_db)
-            .fold(f64::NEG_INFINITY, f64::max);
-        anyhow::bail!(
-            "no candidate reached {target} dB (best {top:.2} dB over {} trials); lower --target-psnr or \
-             give --method with more components",
-            choice.trials.len()
-        );
+        match goal {
+            Goal::Psnr(target) => {
+                let top = choice
+                    .trials
+                    .iter()
+                    .filter_map(|t| t.psnr_8bit_db)
+                    .fold(f64::NEG_INFINITY, f64::max);
+                anyhow::bail!(
+                    "no candidate reached {target} dB (best {top:.2} dB over {} trials); lower --target-psnr or \
+                     give --method with more components",
+                    choice.trials.len()
+                );
+            }
+            Goal::Ratio(r) => {
+                let top = choice.trials.iter().map(|t| t.ratio).fold(0.0, f64::max);
+                anyhow::bail!(
+                    "no candidate reached {r} : 1 (the smallest file tried gives {top:.1} : 1); lower --target-ratio"
+                );
+            }
+        }
     };
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
     let reached = choice.trials.iter().filter(|t| t.meets_target).count();
-    let reason = format!(
-        "smallest of the {reached} candidates (of {} tried) reaching {target} dB against the {}: {} with c = {} at \
-         {} bits, {:.2} dB, {} bytes",
-        choice.trials.len(),
-        choice.against,
+    let what = format!(
+        "{} with c = {}{} at {} bits, {:.2} dB, {} bytes ({:.1} : 1)",
         best.method,
         best.params.components,
+        match best.params.method {
+            Method::LocalPca { clusters, .. } => format!(", k = {clusters}"),
+            Method::Dfmf {
+                color_model,
+                chroma_components,
+            } => format!(" ({}, chroma c = {chroma_components})", color_model.name()),
+            _ => String::new(),
+        },
         best.bits,
-        best.psnr_8bit_db,
-        best.stored_bytes
+        best.psnr_8bit_db.unwrap_or(f64::NAN),
+        best.stored_bytes,
+        best.ratio
     );
+    let reason = match goal {
+        Goal::Psnr(target) => format!(
+            "smallest of the {reached} candidates (of {} tried) reaching {target} dB against the {}: {what}",
+            choice.trials.len(),
+            choice.against,
+        ),
+        Goal::Ratio(r) => format!(
+            "highest PSNR against the {} of the {reached} candidates (of {} tried) at ≥ {r} : 1 (≤ {} bytes): {what}",
+            choice.against,
+            choice.trials.len(),
+            choice.budget_bytes.unwrap_or(0),
+        ),
+    };
     let mut r = Report {
         method: best.method,
         components: best.params.components,
@@ -438,7 +507,15 @@ fn target_report(args: &CompressArgs, ds: &DatasetViews, target: f64, t0: Instan
         params: serde_json::to_value(&best.params)?,
         quantize_bits: Some(best.bits),
         target: Some(TargetReport {
-            target_psnr_db: target,
+            target_psnr_db: match goal {
+                Goal::Psnr(p) => Some(p),
+                Goal::Ratio(_) => None,
+            },
+            target_ratio: match goal {
+                Goal::Ratio(r) => Some(r),
+                Goal::Psnr(_) => None,
+            },
+            budget_bytes: choice.budget_bytes,
             psnr_against: choice.against,
             reason,
             trials: choice.trials,
@@ -476,11 +553,16 @@ fn finish_report(args: &CompressArgs, ds: &DatasetViews, r: &mut Report) -> Resu
     Ok(())
 }
 
-fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Report> {
-    let color_model = match args.color_model {
+fn color_model(a: ColorModelArg) -> ColorModel {
+    match a {
         ColorModelArg::Rgb => ColorModel::Rgb,
         ColorModelArg::LogYuv => ColorModel::LogYuv,
-    };
+        ColorModelArg::Lab => ColorModel::Lab,
+    }
+}
+
+fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Report> {
+    let color_model = color_model(args.color_model);
     let precision = match args.precision {
         PrecisionArg::F16 => Precision::F16,
         PrecisionArg::F32 => Precision::F32,
@@ -490,8 +572,8 @@ fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Re
     let params = DfmfParams {
         color_model,
         components: match color_model {
-            ColorModel::LogYuv => [c, cc, cc],
             ColorModel::Rgb => [c, c, c],
+            _ => [c, cc, cc],
         },
         seed: args.seed,
         oversample: args.oversample,

@@ -96,6 +96,17 @@ fn put_values(out: &mut Vec<u8>, vals: &[f32], p: Precision, what: &str) -> Resu
 /// (provenance; the reader ignores it).
 pub fn to_bytes(d: &Dfmf, p: Precision, xml: &str) -> Result<Vec<u8>, CompressError> {
     d.validate()?;
+    let Some(model_code) = d.color_model.code() else {
+        return Err(CompressError::Invalid(format!(
+            "colour model {} is gonio's own and the UBO2014 reader cannot decode it: \
+             write it as .gbtf (--format gbtf), or use rgb or log-yuv for .btf",
+            d.color_model.name()
+        )));
+    };
+    let m = match d.color_model {
+        ColorModel::LogYuv => rgb_to_yuv(),
+        _ => [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
     let (nl, nv, t, w) = (d.n_lights(), d.n_views(), d.texels(), d.width);
     if nv > nl {
         return Err(CompressError::Invalid(format!(
@@ -142,14 +153,10 @@ pub fn to_bytes(d: &Dfmf, p: Precision, xml: &str) -> Result<Vec<u8>, CompressEr
     put_u32(&mut out, u32_of(d.height, "height")?);
     put_u32(&mut out, 0); // rotations
     put_u32(&mut out, d.channels.iter().map(|c| c.c).max().unwrap_or(0) as u32);
-    put_u32(&mut out, d.color_model.code());
+    put_u32(&mut out, model_code);
     for _ in 0..3 {
         put_f32(&mut out, 0.0);
     }
-    let m = match d.color_model {
-        ColorModel::Rgb => [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        ColorModel::LogYuv => rgb_to_yuv(),
-    };
     for r in m {
         for v in r {
             put_f32(&mut out, v as f32);

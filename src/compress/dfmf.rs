@@ -26,10 +26,11 @@
 //! the same clamping), so a file decodes to the same images in gonio and in
 //! `btf-extractor` (checked by `tests/interop/check_ubo2014.py`).
 
+use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
-use super::params::EncodeInfo;
+use super::params::{header_for, EncodeInfo, Method, Params};
 use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
@@ -39,57 +40,99 @@ pub const DRR_EPS: f32 = 1e-5;
 /// The reader's YUV → RGB matrix (`YUVToRGB` in `btf.hh`); rows give R, G, B.
 pub const YUV_TO_RGB: [[f32; 3]; 3] = [[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]];
 
-/// Colour model of the factorized channels (the `ColorModel` field of a DFMF file).
-#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Hash)]
-#[serde(rename_all = "kebab-case")]
-pub enum ColorModel {
-    /// Linear RGB, no transform (code 0).
-    Rgb,
-    /// log luminance + chroma / luminance (code 11).
-    LogYuv,
+pub use super::params::ColorModel;
+
+/// Linear sRGB (D65) → CIE XYZ (IEC 61966-2-1).
+const RGB_TO_XYZ: [[f64; 3]; 3] = [
+    [0.412_456_4, 0.357_576_1, 0.180_437_5],
+    [0.212_672_9, 0.715_152_2, 0.072_175_0],
+    [0.019_333_9, 0.119_192_0, 0.950_304_1],
+];
+
+/// The white point: XYZ of linear RGB (1, 1, 1), so a grey maps to a* = b* = 0 exactly.
+fn lab_white() -> [f64; 3] {
+    RGB_TO_XYZ.map(|r| r[0] + r[1] + r[2])
 }
 
-impl ColorModel {
-    /// The code stored in the file.
-    pub fn code(self) -> u32 {
-        match self {
-            ColorModel::Rgb => 0,
-            ColorModel::LogYuv => 11,
-        }
-    }
-    pub fn from_code(code: u32) -> Option<Self> {
-        match code {
-            0 => Some(ColorModel::Rgb),
-            11 => Some(ColorModel::LogYuv),
-            _ => None,
-        }
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            ColorModel::Rgb => "rgb",
-            ColorModel::LogYuv => "log-yuv",
-        }
-    }
-    /// Channel names written to the file's header.
-    pub fn channel_names(self) -> [&'static str; 3] {
-        match self {
-            ColorModel::Rgb => ["R", "G", "B"],
-            ColorModel::LogYuv => ["logY", "U/Y", "V/Y"],
-        }
+/// δ = 6/29 of the CIELab companding function.
+const LAB_DELTA: f64 = 6.0 / 29.0;
+
+fn lab_f(t: f64) -> f64 {
+    if t > LAB_DELTA * LAB_DELTA * LAB_DELTA {
+        t.cbrt()
+    } else {
+        // The linear segment, extended below 0 (sensor noise below black stays finite
+        // and invertible).
+        t / (3.0 * LAB_DELTA * LAB_DELTA) + 4.0 / 29.0
     }
 }
 
-/// `M⁻¹`, the RGB → YUV matrix exactly inverse to [`YUV_TO_RGB`] (computed in f64).
-pub fn rgb_to_yuv() -> [[f64; 3]; 3] {
-    let m: [[f64; 3]; 3] = YUV_TO_RGB.map(|r| r.map(f64::from));
+#[inline]
+fn lab_f_inv(t: f32) -> f32 {
+    const D: f32 = 6.0 / 29.0;
+    if t > D {
+        t * t * t
+    } else {
+        3.0 * D * D * (t - 4.0 / 29.0)
+    }
+}
+
+/// Inverse of a 3 × 3 matrix by its adjugate (f64); the callers' matrices are fixed and
+/// well conditioned.
+pub fn inverse3(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     let cof = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
     let det = m[0][0] * cof(1, 2, 1, 2) - m[0][1] * cof(1, 2, 0, 2) + m[0][2] * cof(1, 2, 0, 1);
-    // Adjugate / determinant.
     [
         [cof(1, 2, 1, 2) / det, -cof(0, 2, 1, 2) / det, cof(0, 1, 1, 2) / det],
         [-cof(1, 2, 0, 2) / det, cof(0, 2, 0, 2) / det, -cof(0, 1, 0, 2) / det],
         [cof(1, 2, 0, 1) / det, -cof(0, 2, 0, 1) / det, cof(0, 1, 0, 1) / det],
     ]
+}
+
+/// Linear RGB → CIELab (f64).
+pub fn rgb_to_lab(rgb: [f64; 3]) -> [f64; 3] {
+    let w = lab_white();
+    let xyz = RGB_TO_XYZ.map(|r| r[0] * rgb[0] + r[1] * rgb[1] + r[2] * rgb[2]);
+    let (fx, fy, fz) = (lab_f(xyz[0] / w[0]), lab_f(xyz[1] / w[1]), lab_f(xyz[2] / w[2]));
+    [116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)]
+}
+
+/// What decoding CIELab needs, precomputed in f32: the white point and XYZ → RGB.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LabDecoder {
+    white: [f32; 3],
+    xyz_to_rgb: [[f32; 3]; 3],
+}
+
+impl Default for LabDecoder {
+    fn default() -> Self {
+        LabDecoder {
+            white: lab_white().map(|v| v as f32),
+            xyz_to_rgb: inverse3(&RGB_TO_XYZ).map(|r| r.map(|v| v as f32)),
+        }
+    }
+}
+
+impl LabDecoder {
+    /// CIELab → linear RGB (f32), negative results clamped to 0 (no upper clamp: the
+    /// dataset's linear values may exceed 1 in highlights).
+    #[inline]
+    pub fn to_rgb(&self, lab: [f32; 3]) -> [f32; 3] {
+        let fy = (lab[0] + 16.0) / 116.0;
+        let (fx, fz) = (fy + lab[1] / 500.0, fy - lab[2] / 200.0);
+        let xyz = [
+            self.white[0] * lab_f_inv(fx),
+            self.white[1] * lab_f_inv(fy),
+            self.white[2] * lab_f_inv(fz),
+        ];
+        self.xyz_to_rgb
+            .map(|r| (r[0] * xyz[0] + r[1] * xyz[1] + r[2] * xyz[2]).max(0.0))
+    }
+}
+
+/// `M⁻¹`, the RGB → YUV matrix exactly inverse to [`YUV_TO_RGB`] (computed in f64).
+pub fn rgb_to_yuv() -> [[f64; 3]; 3] {
+    inverse3(&YUV_TO_RGB.map(|r| r.map(f64::from)))
 }
 
 /// Linear RGB → the model's channels.
@@ -104,6 +147,7 @@ pub fn encode_color(model: ColorModel, m_inv: &[[f64; 3]; 3], rgb: [f32; 3]) -> 
             let den = y.max(eps);
             [(y + eps).ln(), (yuv[1] - eps) / den, (yuv[2] - eps) / den]
         }
+        ColorModel::Lab => rgb_to_lab(rgb.map(f64::from)),
     }
 }
 
@@ -117,6 +161,7 @@ pub fn decode_color(model: ColorModel, c: [f32; 3]) -> [f32; 3] {
             let yuv = [y, c[1] * y + DRR_EPS, c[2] * y + DRR_EPS];
             YUV_TO_RGB.map(|r| (r[0] * yuv[0] + r[1] * yuv[1] + r[2] * yuv[2]).clamp(0.0, 1.0))
         }
+        ColorModel::Lab => LabDecoder::default().to_rgb(c),
     }
 }
 
@@ -225,6 +270,15 @@ impl Dfmf {
                 px[ch] = s;
             }
         }
+        if self.color_model == ColorModel::Lab {
+            // The decoder's constants once per image, not per pixel.
+            let lab = LabDecoder::default();
+            for px in out.chunks_exact_mut(3) {
+                let rgb = lab.to_rgb([px[0], px[1], px[2]]);
+                px.copy_from_slice(&rgb);
+            }
+            return out;
+        }
         for px in out.chunks_exact_mut(3) {
             let rgb = decode_color(self.color_model, [px[0], px[1], px[2]]);
             px.copy_from_slice(&rgb);
@@ -300,7 +354,8 @@ struct Stream<'a> {
     m_inv: [[f64; 3]; 3],
     cached: Vec<Option<[Mat<f64>; 3]>>,
     keep: bool,
-    filled: usize,
+    /// `[light, view]` of every filled pair.
+    filled: Vec<[usize; 2]>,
     passes: usize,
 }
 
@@ -316,7 +371,7 @@ impl Stream<'_> {
             read = true;
             let (m, filled) = channel_matrices(self.ds, v, self.model, &self.m_inv)?;
             if first {
-                self.filled += filled.len();
+                self.filled.extend(filled.iter().map(|&(l, _)| [l, v]));
             }
             f(v, [m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
             if self.keep {
@@ -332,6 +387,14 @@ impl Stream<'_> {
 
 /// Factorize `ds` with DFMF.
 pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInfo), CompressError> {
+    encode_listing_filled(ds, params).map(|(d, i, _)| (d, i))
+}
+
+/// [`encode`], also returning the `[light, view]` list of filled pairs.
+fn encode_listing_filled(
+    ds: &DatasetViews,
+    params: &DfmfParams,
+) -> Result<(Dfmf, EncodeInfo, Vec<[usize; 2]>), CompressError> {
     if params.components.contains(&0) {
         return Err(CompressError::Invalid(format!(
             "DFMF components {:?}: every channel needs at least 1",
@@ -351,7 +414,7 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
         m_inv: rgb_to_yuv(),
         cached: vec![None; nv],
         keep: t * n * 3 * 8 <= DFMF_CACHE_BYTES,
-        filled: 0,
+        filled: Vec::new(),
         passes: 0,
     };
     // Y = A Ω per channel (A = texels × measurements), Ω Gaussian, generated per view.
@@ -408,11 +471,88 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
     Ok((
         dfmf,
         EncodeInfo {
-            filled: s.filled,
+            filled: s.filled.len(),
             passes: s.passes,
             ..Default::default()
         },
+        s.filled,
     ))
+}
+
+/// The per-channel components of a `.gbtf` DFMF: luminance `params.components`, chroma
+/// `chroma_components` (all three equal for RGB, which has no luminance channel).
+pub fn channel_components(params: &Params) -> Result<(ColorModel, [usize; 3]), CompressError> {
+    let Method::Dfmf {
+        color_model,
+        chroma_components,
+    } = params.method
+    else {
+        return Err(CompressError::Invalid(format!("{} is not DFMF", params.method.name())));
+    };
+    let c = params.components;
+    Ok(match color_model {
+        ColorModel::Rgb => (color_model, [c; 3]),
+        _ => (color_model, [c, chroma_components, chroma_components]),
+    })
+}
+
+/// DFMF stored as `.gbtf` (`gonio compress --method dfmf --format gbtf`), the home of the
+/// CIELab model and of quantized DFMF factors. Blocks, per channel `ch` of the model:
+/// `u{ch}` (views·lights × c_ch, row `view · L + light`) and `sxv{ch}` (texels × c_ch).
+pub fn compress_gbtf(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    let (color_model, components) = channel_components(params)?;
+    let dp = DfmfParams {
+        color_model,
+        components,
+        seed: params.seed,
+        oversample: params.oversample,
+        power_iters: params.power_iters,
+    };
+    let (d, info, filled) = encode_listing_filled(ds, &dp)?;
+    let mut infos = Vec::with_capacity(6);
+    let mut blocks = Vec::with_capacity(6);
+    for (ch, f) in d.channels.into_iter().enumerate() {
+        infos.push(BlockInfo::new(format!("u{ch}"), ds.n_lights() * ds.n_views(), f.c));
+        blocks.push(f.u);
+        infos.push(BlockInfo::new(format!("sxv{ch}"), ds.texels(), f.c));
+        blocks.push(f.sxv);
+    }
+    let header = header_for(ds, params, filled, infos);
+    Ok((Gbtf { header, blocks }, info))
+}
+
+/// The [`Dfmf`] of a `.gbtf` written by [`compress_gbtf`] (blocks checked against the grid).
+pub fn from_gbtf(g: &Gbtf) -> Result<Dfmf, CompressError> {
+    let h = &g.header;
+    let params: Params = serde_json::from_value(h.params.clone())
+        .map_err(|e| CompressError::Invalid(format!(".gbtf dfmf: parameters in the header: {e}")))?;
+    let (color_model, components) = channel_components(&params)?;
+    let (rows, t) = (h.lights_deg.len() * h.views_deg.len(), h.width * h.height);
+    let want: Vec<(usize, usize)> = components.iter().flat_map(|&c| [(rows, c), (t, c)]).collect();
+    let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
+    if got != want || g.blocks.len() != 6 {
+        return Err(CompressError::Invalid(format!(
+            ".gbtf dfmf: block shapes {got:?}, the header's grid and components need {want:?}"
+        )));
+    }
+    let channels = (0..3)
+        .map(|ch| ChannelFactors {
+            c: components[ch],
+            sigma: Vec::new(),
+            u: g.blocks[2 * ch].clone(),
+            sxv: g.blocks[2 * ch + 1].clone(),
+        })
+        .collect();
+    let d = Dfmf {
+        color_model,
+        width: h.width,
+        height: h.height,
+        lights_deg: h.lights_deg.clone(),
+        views_deg: h.views_deg.clone(),
+        channels,
+    };
+    d.validate()?;
+    Ok(d)
 }
 
 #[cfg(test)]

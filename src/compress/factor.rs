@@ -7,7 +7,7 @@ use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::params::{EncodeInfo, Method, Params};
-use super::{abrdf, homomorphic, local_pca, median_cut, pca, pvmf};
+use super::{abrdf, dfmf, homomorphic, local_pca, median_cut, pca, pvmf};
 
 /// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
 /// views only, exactly as [`compress`] computes them (each view is factorized on its own),
@@ -44,6 +44,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         Method::LocalPca { .. } => local_pca::compress(ds, params),
         Method::MedianCut { .. } => median_cut::compress(ds, params),
         Method::Homomorphic { .. } => homomorphic::compress(ds, params),
+        Method::Dfmf { .. } => dfmf::compress_gbtf(ds, params),
     }
 }
 
@@ -56,6 +57,8 @@ pub struct CompressedBtf {
     /// Homomorphic files only: the factor tables in direction-major order for decoding
     /// (see [`homomorphic::DirectionMajor`]).
     homomorphic: Option<Box<homomorphic::DirectionMajor>>,
+    /// DFMF files only: the factors as [`dfmf::Dfmf`], which decodes them.
+    dfmf: Option<Box<dfmf::Dfmf>>,
 }
 
 /// Index of the direction in `list` within 0.01° of `deg` (angle between the unit vectors).
@@ -99,6 +102,7 @@ impl CompressedBtf {
                     method,
                     c,
                     homomorphic: None,
+                    dfmf: None,
                 });
             }
             "median-cut" => {
@@ -113,6 +117,7 @@ impl CompressedBtf {
                     method,
                     c: 0,
                     homomorphic: None,
+                    dfmf: None,
                 });
             }
             "homomorphic" => {
@@ -124,6 +129,19 @@ impl CompressedBtf {
                     method,
                     c: 0,
                     homomorphic: Some(tables),
+                    dfmf: None,
+                });
+            }
+            "dfmf" => {
+                let d = dfmf::from_gbtf(&gbtf)?;
+                let params: Params = serde_json::from_value(gbtf.header.params.clone())
+                    .map_err(|e| bad(format!("parameters in the header: {e}")))?;
+                return Ok(CompressedBtf {
+                    method: params.method,
+                    c: params.components,
+                    gbtf,
+                    homomorphic: None,
+                    dfmf: Some(Box::new(d)),
                 });
             }
             m => return Err(bad(format!("unknown method {m:?}"))),
@@ -147,6 +165,7 @@ impl CompressedBtf {
             method,
             c,
             homomorphic: None,
+            dfmf: None,
         })
     }
 
@@ -171,6 +190,9 @@ impl CompressedBtf {
             )));
         }
         let c = self.c;
+        if let Some(d) = &self.dfmf {
+            return d.reconstruct(light, view);
+        }
         if let Some(tables) = &self.homomorphic {
             return Ok(tables.reconstruct(&self.gbtf.header, light, view));
         }

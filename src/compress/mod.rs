@@ -8,7 +8,7 @@
 //! | local PCA (PCMF) | [`local_pca`] | `.gbtf` | per texel a cluster index and coefficients; per cluster a mean and eigen-ABRDFs |
 //! | median cut | [`median_cut`] | `.gbtf` | index image + BRDF block |
 //! | homomorphic | [`homomorphic`] | `.gbtf` | per texel light × view × half-vector factor tables |
-//! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) | per colour channel of a decorrelated model, one full-matrix factorization |
+//! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) or `.gbtf` | per colour channel of a decorrelated model (RGB, log-YUV, CIELab: `.gbtf` only), one full-matrix factorization |
 //!
 //! **Floors.** The method files share a ground floor and never import each other:
 //! [`params`] (what a method is and reports, the common header), [`linalg`] (truncated

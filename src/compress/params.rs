@@ -33,6 +33,13 @@ pub enum Method {
     /// Homomorphic factorization per ABRDF (`homomorphic`): light × view × half-vector
     /// factors fitted in the log domain (`half_bins` θ_h bins, `sweeps` backfitting sweeps).
     Homomorphic { half_bins: usize, sweeps: usize },
+    /// DFMF (`dfmf`) stored as `.gbtf`: one factorization per channel of `color_model`,
+    /// `components` for the first (luminance) channel and `chroma_components` for the
+    /// other two (all three get `components` in [`ColorModel::Rgb`]).
+    Dfmf {
+        color_model: ColorModel,
+        chroma_components: usize,
+    },
 }
 
 impl Method {
@@ -43,6 +50,54 @@ impl Method {
             Method::LocalPca { .. } => "local-pca",
             Method::MedianCut { .. } => "median-cut",
             Method::Homomorphic { .. } => "homomorphic",
+            Method::Dfmf { .. } => "dfmf",
+        }
+    }
+}
+
+/// Colour model of the factorized channels (the `ColorModel` field of a DFMF file).
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorModel {
+    /// Linear RGB, no transform (code 0).
+    Rgb,
+    /// log luminance + chroma / luminance (code 11).
+    LogYuv,
+    /// CIELab (D65 white = linear RGB (1, 1, 1)): the perceptual DFMF of Guthe et al. 2009.
+    /// gonio's own model, stored in `.gbtf` only (the UBO2014 reader has no code for it).
+    Lab,
+}
+
+impl ColorModel {
+    /// The code stored in a UBO2014 file; `None` for [`ColorModel::Lab`], which the
+    /// public reader cannot decode.
+    pub fn code(self) -> Option<u32> {
+        match self {
+            ColorModel::Rgb => Some(0),
+            ColorModel::LogYuv => Some(11),
+            ColorModel::Lab => None,
+        }
+    }
+    pub fn from_code(code: u32) -> Option<Self> {
+        match code {
+            0 => Some(ColorModel::Rgb),
+            11 => Some(ColorModel::LogYuv),
+            _ => None,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorModel::Rgb => "rgb",
+            ColorModel::LogYuv => "log-yuv",
+            ColorModel::Lab => "lab",
+        }
+    }
+    /// Channel names written to the file's header.
+    pub fn channel_names(self) -> [&'static str; 3] {
+        match self {
+            ColorModel::Rgb => ["R", "G", "B"],
+            ColorModel::LogYuv => ["logY", "U/Y", "V/Y"],
+            ColorModel::Lab => ["L*", "a*", "b*"],
         }
     }
 }

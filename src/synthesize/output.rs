@@ -35,6 +35,8 @@ pub fn texel_blocks(model: &CompressedBtf) -> Result<Vec<bool>, SynthError> {
         Method::LocalPca { .. } => vec![true, true, false, false],
         Method::MedianCut { .. } => vec![true, false],
         Method::Homomorphic { .. } => vec![true; nb],
+        // Per channel `u{ch}` (measurements) then `sxv{ch}` (texels).
+        Method::Dfmf { .. } => (0..nb).map(|i| i % 2 == 1).collect(),
     })
 }
 
