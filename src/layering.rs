@@ -125,7 +125,7 @@ fn check_file(rel: &str, text: &str) -> Vec<String> {
     let sim_ok = SIMULATOR_ALLOWED.iter().any(|a| *a == module || *a == rel);
     if !sim_ok && code.contains("gonio_simulator") {
         out.push(format!(
-            "{rel}: names gonio_simulator outside rig/, session/, cli/ and synth.rs"
+            "{rel}: names gonio_simulator outside rig/, session/, cli/ and synth/"
         ));
     }
     out
