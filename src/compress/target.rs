@@ -191,18 +191,24 @@ mod tests {
     use crate::compress::params::Method;
     use crate::compress::testdata;
 
-    /// The winner reaches the target, is the smallest file that does, and every ladder
-    /// stops at its first rung that reaches it; an unreachable target chooses nothing.
-    #[test]
-    fn chooses_the_smallest_file_reaching_the_target() {
-        let tmp = tempfile::tempdir().unwrap();
-        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| {
+    /// A small textured dataset and two short ladders (PCA c 1, 2, 4; PVMF c 1, 2).
+    fn fixture(dir: &std::path::Path) -> (crate::compress::DatasetViews, Vec<Vec<Params>>) {
+        let ds = testdata::write(&dir.join("ds"), |l, v, t, c| {
             0.2 + 0.3 * testdata::hash(t % 5, (v * 5 + l) * 3 + c) + 0.02 * testdata::hash(t, l + c)
         });
         let ladders = vec![
             [1, 2, 4].map(|c| Params::new(Method::Pca, c)).to_vec(),
             [1, 2].map(|c| Params::new(Method::Pvmf, c)).to_vec(),
         ];
+        (ds, ladders)
+    }
+
+    /// The winner reaches the target, is the smallest file that does, and every ladder
+    /// stops at its first rung that reaches it; an unreachable target chooses nothing.
+    #[test]
+    fn chooses_the_smallest_file_reaching_the_target() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (ds, ladders) = fixture(tmp.path());
         let all = search(&ds, Goal::Psnr(1e-3), &ladders).unwrap();
         assert_eq!(all.against, "dataset");
         // Everything reaches 0.001 dB: one trial per ladder (first rung, 8 bits).
@@ -237,13 +243,7 @@ mod tests {
     #[test]
     fn ratio_goal_picks_the_best_psnr_within_the_budget() {
         let tmp = tempfile::tempdir().unwrap();
-        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| {
-            0.2 + 0.3 * testdata::hash(t % 5, (v * 5 + l) * 3 + c) + 0.02 * testdata::hash(t, l + c)
-        });
-        let ladders = vec![
-            [1, 2, 4].map(|c| Params::new(Method::Pca, c)).to_vec(),
-            [1, 2].map(|c| Params::new(Method::Pvmf, c)).to_vec(),
-        ];
+        let (ds, ladders) = fixture(tmp.path());
         // Every version, evaluated (an unreachable PSNR).
         let every = search(&ds, Goal::Psnr(500.0), &ladders).unwrap();
         let mut sizes: Vec<u64> = every.trials.iter().map(|t| t.stored_bytes).collect();

@@ -788,22 +788,26 @@ fn quantized_files_decode_for_every_method() {
     }
 }
 
+/// The degenerate inputs of the stability tests: all zero, constant 0.375, rank 3.
+fn degenerate_datasets(dir: &std::path::Path) -> Vec<DatasetViews> {
+    let inputs: [fn(usize, usize, usize, usize) -> f32; 3] = [|_, _, _, _| 0.0, |_, _, _, _| 0.375, rank3];
+    inputs
+        .into_iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let ds = dir.join(format!("ds{i}"));
+            write_dataset(&ds, &[], f);
+            DatasetViews::open(&ds).unwrap()
+        })
+        .collect()
+}
+
 /// Quantization never turns a constant, zero or rank-deficient input into NaN: the
 /// unused components are zero columns, which decode exactly.
 #[test]
 fn quantizing_constant_and_rank_deficient_inputs_stays_finite() {
     let tmp = tempfile::tempdir().unwrap();
-    for (i, f) in [
-        (|_, _, _, _| 0.0) as fn(usize, usize, usize, usize) -> f32,
-        |_, _, _, _| 0.375,
-        rank3,
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let dir = tmp.path().join(format!("ds{i}"));
-        write_dataset(&dir, &[], f);
-        let ds = DatasetViews::open(&dir).unwrap();
+    for (i, ds) in degenerate_datasets(tmp.path()).into_iter().enumerate() {
         for method in [Method::Pvmf, Method::Pca] {
             let (g, _) = compress(&ds, &Params::new(method, 6)).unwrap();
             let q = quantized_round_trip(&g, 8, &tmp.path().join(format!("q{i}.gbtf")));
@@ -912,17 +916,7 @@ fn dfmf_gbtf_round_trips_in_every_colour_model() {
 #[test]
 fn quantized_dfmf_of_constant_and_rank_deficient_inputs_stays_finite() {
     let tmp = tempfile::tempdir().unwrap();
-    for (i, f) in [
-        (|_, _, _, _| 0.0) as fn(usize, usize, usize, usize) -> f32,
-        |_, _, _, _| 0.375,
-        rank3,
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let dir = tmp.path().join(format!("ds{i}"));
-        write_dataset(&dir, &[], f);
-        let ds = DatasetViews::open(&dir).unwrap();
+    for (i, ds) in degenerate_datasets(tmp.path()).into_iter().enumerate() {
         for model in [dfmf::ColorModel::Lab, dfmf::ColorModel::LogYuv] {
             let (g, _) = compress(&ds, &dfmf_params(model, 6, 6)).unwrap();
             for bits in [6, 8] {
