@@ -790,16 +790,19 @@ fn quantized_files_decode_for_every_method() {
 
 /// The degenerate inputs of the stability tests: all zero, constant 0.375, rank 3.
 fn degenerate_datasets(dir: &std::path::Path) -> Vec<DatasetViews> {
-    let inputs: [fn(usize, usize, usize, usize) -> f32; 3] = [|_, _, _, _| 0.0, |_, _, _, _| 0.375, rank3];
-    inputs
-        .into_iter()
-        .enumerate()
-        .map(|(i, f)| {
-            let ds = dir.join(format!("ds{i}"));
-            write_dataset(&ds, &[], f);
-            DatasetViews::open(&ds).unwrap()
-        })
-        .collect()
+    [
+        (|_, _, _, _| 0.0) as fn(usize, usize, usize, usize) -> f32,
+        |_, _, _, _| 0.375,
+        rank3,
+    ]
+    .into_iter()
+    .enumerate()
+    .map(|(i, f)| {
+        let ds = dir.join(format!("ds{i}"));
+        write_dataset(&ds, &[], f);
+        DatasetViews::open(&ds).unwrap()
+    })
+    .collect()
 }
 
 /// Quantization never turns a constant, zero or rank-deficient input into NaN: the
