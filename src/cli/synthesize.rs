@@ -51,12 +51,22 @@ pub struct SynthArgs {
     /// Wei–Levoy TSVQ leaf size.
     #[arg(long, default_value_t = 8)]
     pub leaf: usize,
+    /// Wei–Levoy coherence κ: prefer the texel continuing a neighbour's source patch when
+    /// its neighbourhood distance is within 1 + κ·2⁻ˡ of the tree's match (0 = the tree's
+    /// match alone, as Wei & Levoy; see docs/synthesis.md).
+    #[arg(long, default_value_t = 1.0)]
+    pub coherence: f64,
 }
 
 #[derive(clap::Args, Debug)]
 pub struct SynthesizeArgs {
-    /// A compressed BTF (`.gbtf` of PCA, PVMF, local PCA, median cut or homomorphic).
+    /// A compressed BTF (`.gbtf` of PCA, PVMF, local PCA, median cut or homomorphic), or a
+    /// dataset directory (compressed in memory with PCA, `--components`, first).
     pub input: PathBuf,
+    /// Dataset input only: PCA components of the in-memory model the synthesis gathers
+    /// from (the output is that PCA model of the grown sample).
+    #[arg(long, default_value_t = 16)]
+    pub components: usize,
     /// Output size, `WxH` texels (at least the exemplar's).
     #[arg(long)]
     pub size: String,
@@ -121,6 +131,7 @@ impl SynthArgs {
         p.neighbourhood = self.neighbourhood;
         p.parent_neighbourhood = self.parent_neighbourhood;
         p.leaf = self.leaf;
+        p.coherence = self.coherence;
         Ok(p)
     }
 
@@ -132,9 +143,43 @@ impl SynthArgs {
     }
 }
 
+/// A dataset input is first compressed to PCA with `c` components in memory: synthesis
+/// gathers whole per-texel factor rows, which a dataset of images does not have, and an
+/// output of raw images (6561 × 1024² texels: 41 GB as half floats) would not be a useful
+/// file. What was done is reported as `from_dataset` in `--json`.
+fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::Value)> {
+    if c == 0 {
+        bail!(
+            "--components 0: the in-memory PCA of dataset {} needs at least one component",
+            dir.display()
+        );
+    }
+    let ds = crate::compress::DatasetViews::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?;
+    let t0 = Instant::now();
+    let params = crate::compress::Params::new(crate::compress::Method::Pca, c);
+    let (gbtf, info) = crate::compress::compress(&ds, &params)
+        .with_context(|| format!("compressing dataset {} to PCA c = {c}", dir.display()))?;
+    let model = CompressedBtf::new(gbtf)?;
+    let note = serde_json::json!({
+        "dataset": dir.display().to_string(),
+        "model": "pca",
+        "components": c,
+        "filled_pairs": info.filled,
+        "seconds": t0.elapsed().as_secs_f64(),
+        "note": format!("the output is a PCA c = {c} model; its fidelity to the dataset is that of \
+                         `gonio compress {} --method pca -c {c}`", dir.display()),
+    });
+    Ok((model, note))
+}
+
 pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
     let (w, h) = parse_size(&a.size)?;
-    let model = open_exemplar(&a.input)?;
+    let (model, from_dataset) = if a.input.is_dir() {
+        let (m, note) = dataset_exemplar(&a.input, a.components)?;
+        (m, Some(note))
+    } else {
+        (open_exemplar(&a.input)?, None)
+    };
     let (ew, eh) = (model.header().width, model.header().height);
     let p = a.synth.params(w, h, ew, eh)?;
     let t0 = Instant::now();
@@ -153,6 +198,7 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
         "exemplar": a.input.display().to_string(),
         "exemplar_size": [ew, eh],
         "features": { "embedding": emb.kind, "embedding_dims": emb.image.dims, "k": k, "explained": explained },
+        "from_dataset": &from_dataset,
     });
     let t2 = Instant::now();
     let written =
@@ -180,10 +226,18 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
             "write_seconds": write_seconds,
             "out": written,
             "compact": compact,
+            "from_dataset": &from_dataset,
             "peak_memory_bytes": crate::compress::peak_memory_bytes(),
         });
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
+        if from_dataset.is_some() {
+            println!(
+                "dataset {} compressed in memory to PCA c = {} (the output is that PCA model)",
+                a.input.display(),
+                a.components
+            );
+        }
         println!(
             "{} {w}×{h} from {} ({ew}×{eh}, {}): k = {k} features ({:.1} % of the ABRDF variance, {} embedding of {} dims)",
             p.method.name(),

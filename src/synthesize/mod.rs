@@ -112,6 +112,13 @@ pub struct SynthParams {
     pub parent_neighbourhood: usize,
     /// Wei–Levoy: TSVQ leaf size (vectors searched exhaustively at a leaf).
     pub leaf: usize,
+    /// Wei–Levoy: coherence κ (Ashikhmin 2001 candidates weighed as in Hertzmann et al.
+    /// 2001): the exemplar texel that continues a neighbour's source is kept when its
+    /// neighbourhood distance is within `1 + κ·2⁻ˡ` of the TSVQ match's (level `l`, 0 =
+    /// finest). 0 = the TSVQ match alone, as in the paper. Files written before the knob
+    /// existed read as 0, which is what they were made with.
+    #[serde(default)]
+    pub coherence: f64,
 }
 
 impl SynthParams {
@@ -137,6 +144,7 @@ impl SynthParams {
             neighbourhood: 7,
             parent_neighbourhood: 5,
             leaf: 8,
+            coherence: 1.0,
         }
     }
 }

@@ -27,7 +27,7 @@ pub struct Tsvq {
     centroids: Vec<f32>,
 }
 
-fn dist2(a: &[f32], b: &[f32]) -> f32 {
+pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
     let mut s = 0f32;
     for (x, y) in a.iter().zip(b) {
         let d = x - y;
@@ -163,6 +163,11 @@ impl Tsvq {
 
     pub fn is_empty(&self) -> bool {
         self.ids.is_empty()
+    }
+
+    /// Vector `id` as it was given to [`Tsvq::build`].
+    pub fn vector(&self, id: u32) -> &[f32] {
+        &self.data[id as usize * self.dims..(id as usize + 1) * self.dims]
     }
 
     fn centroid(&self, node: usize) -> &[f32] {

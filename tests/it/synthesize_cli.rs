@@ -163,10 +163,50 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
         ],
         &["--k 0"],
     );
+    // A dataset input is compressed in memory with PCA (--components): the output decodes
+    // to what synthesizing from `gonio compress --method pca -c 4`'s file gives.
+    let (from_ds, from_gbtf) = (dir.path().join("from-ds.gbtf"), dir.path().join("from-gbtf.gbtf"));
+    let r: serde_json::Value = serde_json::from_str(&ok(&[
+        "synthesize",
+        s(&ds),
+        "--components",
+        "4",
+        "--method",
+        "tile",
+        "--size",
+        "48x48",
+        "--out",
+        s(&from_ds),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(r["from_dataset"]["components"], 4, "{r}");
+    assert_eq!(r["model"], "pca", "{r}");
+    ok(&[
+        "synthesize",
+        s(&ex),
+        "--method",
+        "tile",
+        "--size",
+        "48x48",
+        "--out",
+        s(&from_gbtf),
+    ]);
+    let decode = |f: &Path, name: &str| {
+        let img = dir.path().join(name);
+        ok(&["reconstruct", s(f), "--light", &l, "--view", &v, "--out", s(&img)]);
+        std::fs::read(img).unwrap()
+    };
+    assert!(
+        decode(&from_ds, "a.exr") == decode(&from_gbtf, "b.exr"),
+        "dataset input ≠ its PCA file's"
+    );
     refused(
         &[
             "synthesize",
             s(&ds),
+            "--components",
+            "0",
             "--method",
             "tile",
             "--size",
@@ -174,7 +214,7 @@ fn synthesize_reconstruct_refuse_and_reproduce() {
             "--out",
             s(&bad),
         ],
-        &["dataset directory", "gonio compress"],
+        &["--components 0", "ds"],
     );
     refused(
         &[
