@@ -8,6 +8,7 @@ mod batch;
 mod bench;
 mod bench_acquire;
 mod bench_compress;
+mod bench_decode;
 mod bench_hdr;
 mod bench_serial;
 mod bench_synthesize;

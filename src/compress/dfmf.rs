@@ -214,6 +214,47 @@ pub struct Dfmf {
     pub channels: Vec<ChannelFactors>,
 }
 
+/// Channel `ch` of the interleaved pixels `out` from texel rows `sxv` (`texels × c`,
+/// `c = u.len()`): `out[3t + ch] = Σ_k u[k] · sxv[t, k]`.
+///
+/// LANES texels at once: independent sums keep the FPU busy where one texel's sum would
+/// wait on each add. Every texel's sum runs in the order of a plain loop, so the decoded
+/// bytes do not depend on the grouping.
+fn decode_channel(out: &mut [f32], ch: usize, u: &[f32], sxv: &[f32]) {
+    const LANES: usize = 8;
+    let c = u.len();
+    if c == 0 {
+        for px in out.chunks_exact_mut(3) {
+            px[ch] = 0.0;
+        }
+        return;
+    }
+    let mut pxs = out.chunks_exact_mut(3 * LANES);
+    let mut svs = sxv.chunks_exact(c * LANES);
+    for (px, sv) in (&mut pxs).zip(&mut svs) {
+        let mut s = [0f32; LANES];
+        for (k, &uk) in u.iter().enumerate() {
+            for (j, a) in s.iter_mut().enumerate() {
+                *a += uk * sv[j * c + k];
+            }
+        }
+        for (j, a) in s.into_iter().enumerate() {
+            px[3 * j + ch] = a;
+        }
+    }
+    for (px, sv) in pxs
+        .into_remainder()
+        .chunks_exact_mut(3)
+        .zip(svs.remainder().chunks_exact(c))
+    {
+        let mut s = 0f32;
+        for (uk, v) in u.iter().zip(sv) {
+            s += uk * v;
+        }
+        px[ch] = s;
+    }
+}
+
 impl Dfmf {
     pub fn n_lights(&self) -> usize {
         self.lights_deg.len()
@@ -252,37 +293,43 @@ impl Dfmf {
     /// `weights`: `Σ_k (Σ_r w_r U[r, k]) · SxV[t, k]` per channel. Blending the U rows
     /// first (not the images) is what makes interpolation cost one decode.
     fn decode_rows(&self, rows: &[(usize, f32)]) -> Vec<f32> {
+        use rayon::prelude::*;
         let t = self.texels();
+        // The blended U row of every channel.
+        let us: Vec<Vec<f32>> = self
+            .channels
+            .iter()
+            .map(|f| {
+                let c = f.c;
+                let mut u = vec![0f32; c];
+                for &(r, w) in rows {
+                    for (a, b) in u.iter_mut().zip(&f.u[r * c..(r + 1) * c]) {
+                        *a += w * b;
+                    }
+                }
+                u
+            })
+            .collect();
+        // Blocks of texels decode independently (each texel's value depends on its own
+        // factor row only), so the bytes are the same at any thread count.
+        const BLOCK: usize = 4096;
+        let lab = LabDecoder::default();
         let mut out = vec![0f32; t * 3];
-        for (ch, f) in self.channels.iter().enumerate() {
-            let c = f.c;
-            let mut u = vec![0f32; c];
-            for &(r, w) in rows {
-                for (a, b) in u.iter_mut().zip(&f.u[r * c..(r + 1) * c]) {
-                    *a += w * b;
-                }
+        out.par_chunks_mut(3 * BLOCK).enumerate().for_each(|(b, o)| {
+            let t0 = b * BLOCK;
+            let n = o.len() / 3;
+            for (ch, (f, u)) in self.channels.iter().zip(&us).enumerate() {
+                decode_channel(o, ch, u, &f.sxv[t0 * f.c..(t0 + n) * f.c]);
             }
-            for (px, sv) in out.chunks_exact_mut(3).zip(f.sxv.chunks_exact(c)) {
-                let mut s = 0f32;
-                for k in 0..c {
-                    s += u[k] * sv[k];
-                }
-                px[ch] = s;
-            }
-        }
-        if self.color_model == ColorModel::Lab {
-            // The decoder's constants once per image, not per pixel.
-            let lab = LabDecoder::default();
-            for px in out.chunks_exact_mut(3) {
-                let rgb = lab.to_rgb([px[0], px[1], px[2]]);
+            for px in o.chunks_exact_mut(3) {
+                let rgb = if self.color_model == ColorModel::Lab {
+                    lab.to_rgb([px[0], px[1], px[2]])
+                } else {
+                    decode_color(self.color_model, [px[0], px[1], px[2]])
+                };
                 px.copy_from_slice(&rgb);
             }
-            return out;
-        }
-        for px in out.chunks_exact_mut(3) {
-            let rgb = decode_color(self.color_model, [px[0], px[1], px[2]]);
-            px.copy_from_slice(&rgb);
-        }
+        });
         out
     }
 
@@ -572,6 +619,49 @@ mod tests {
     fn smooth(l: usize, v: usize, t: usize, c: usize) -> f32 {
         let x = (t % 7) as f32 / 7.0;
         0.02 + 0.3 * (1.0 + ((l as f32 + 1.3 * v as f32) * 0.7 + x * 2.0 + c as f32).sin()) * (0.5 + 0.1 * c as f32)
+    }
+
+    /// The grouped decode gives the bytes a plain per-texel sum gives, also for the texels
+    /// left over after the last full group (5 × 5 = 25 texels: 3 groups of 8 and 1).
+    #[test]
+    fn grouped_decode_equals_the_plain_sum_bit_for_bit() {
+        let (nl, nv, t) = (3, 2, 25);
+        let ch = |c: usize, seed: usize| ChannelFactors {
+            c,
+            sigma: vec![1.0; c],
+            u: (0..nl * nv * c)
+                .map(|i| (((i * 7 + seed) % 11) as f32 - 5.0) * 0.137)
+                .collect(),
+            sxv: (0..t * c)
+                .map(|i| (((i * 5 + seed) % 13) as f32 - 6.0) * 0.0731)
+                .collect(),
+        };
+        let d = Dfmf {
+            color_model: ColorModel::Rgb,
+            width: 5,
+            height: 5,
+            lights_deg: vec![[0.0, 0.0]; nl],
+            views_deg: vec![[0.0, 0.0]; nv],
+            channels: vec![ch(7, 1), ch(3, 2), ch(1, 3)],
+        };
+        let rows = [(4usize, 1f32)];
+        let got = d.decode_rows(&rows);
+        for (i, px) in got.chunks_exact(3).enumerate() {
+            let mut m = [0f32; 3];
+            for (k, f) in d.channels.iter().enumerate() {
+                let mut s = 0f32;
+                for j in 0..f.c {
+                    s += f.u[4 * f.c + j] * f.sxv[i * f.c + j];
+                }
+                m[k] = s;
+            }
+            let want = decode_color(ColorModel::Rgb, m);
+            assert_eq!(
+                px.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "texel {i}"
+            );
+        }
     }
 
     #[test]
