@@ -865,6 +865,9 @@ impl RawView {
     }
 }
 
+/// A cached view: its key, the view, its size in bytes.
+type CacheEntry<V> = (Vec<u64>, Arc<V>, usize);
+
 /// Traced views kept for reuse ([`TruthView`], [`RawView`]), so that the many pairs an
 /// acquisition measures from one camera pose are traced once and shaded per light, even
 /// though it visits them in a tour order rather than view by view.
@@ -879,7 +882,7 @@ pub struct ViewCache<V> {
     capacity: usize,
     budget_bytes: usize,
     /// Most recently used last, each with its size in bytes.
-    entries: Mutex<Vec<(Vec<u64>, Arc<V>, usize)>>,
+    entries: Mutex<Vec<CacheEntry<V>>>,
     hits: std::sync::atomic::AtomicU64,
     misses: std::sync::atomic::AtomicU64,
 }
@@ -910,7 +913,7 @@ impl<V> ViewCache<V> {
     /// [`ViewCache::get`] for a view of `bytes` bytes (counted against the budget).
     pub fn get_sized(&self, key: Vec<u64>, bytes: usize, trace: impl FnOnce() -> V) -> Arc<V> {
         use std::sync::atomic::Ordering::Relaxed;
-        let over = |entries: &[(Vec<u64>, Arc<V>, usize)]| {
+        let over = |entries: &[CacheEntry<V>]| {
             !entries.is_empty()
                 && (entries.len() >= self.capacity
                     || entries.iter().map(|e| e.2).sum::<usize>().saturating_add(bytes) > self.budget_bytes)
