@@ -12,6 +12,7 @@ use gonio_devices::kinematics::{self, Kinematics};
 use gonio_devices::rig::RigSpec;
 use gonio_devices::{
     Axis, AxisStatus, Camera, CameraConfig, DeviceError, Frame, FrameMeta, Intrinsics, Light, MotionModel, SoftLimits,
+    Vec3,
 };
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -255,6 +256,10 @@ pub struct SimWorld {
 /// rig's Bonn tour (183 distinct camera poses, revisited along the tour) 8 views answer
 /// 94 % of the pairs from the cache.
 pub const TRUTH_VIEW_CACHE: usize = 8;
+/// Bytes the cached truth views may hold together (the newest is always kept): 8 views of
+/// 256² texels with one ray per texel fit; a sample whose truth takes 16 rays per texel
+/// (`truth_rays_per_cell = 4`, ≈ 80 MiB per view) keeps one.
+pub const TRUTH_VIEW_BUDGET: usize = 64 << 20;
 /// Camera poses whose traced raw frame [`SimWorld::raw_radiance`] keeps (see
 /// [`ViewCache`]): about 100 bytes per traced ray, 30–40 MiB per pose of the default rig
 /// (the marker border's edge pixels take 16 rays each). One pose answers 79 % of the
@@ -297,18 +302,19 @@ impl SimWorld {
         let light = self.point_light(q);
         // Traced once per camera position, shaded per light: the same bytes as
         // `render_truth`, which traces every time.
-        let key = key_bits(&[
-            pose.position.x,
-            pose.position.y,
-            pose.position.z,
-            width as f64,
-            height as f64,
-        ]);
+        let rad = self.truth_radiance(pose.position, width, height, &light);
+        self.sensor.lock().expect("sensor poisoned").normalize_truth(&rad)
+    }
+
+    /// The truth's radiance: the camera position's traced view (cached, see
+    /// [`TRUTH_VIEW_CACHE`]) shaded for `light`.
+    fn truth_radiance(&self, camera: Vec3, width: usize, height: usize, light: &PointLight) -> RgbImage {
+        let key = key_bits(&[camera.x, camera.y, camera.z, width as f64, height as f64]);
+        let bytes = self.renderer.truth_view_bytes(width, height);
         let view = self
             .truth_views
-            .get(key, || self.renderer.truth_view(pose.position, width, height));
-        let rad = self.renderer.shade_truth(&view, &light);
-        self.sensor.lock().expect("sensor poisoned").normalize_truth(&rad)
+            .get_sized(key, bytes, || self.renderer.truth_view(camera, width, height));
+        self.renderer.shade_truth(&view, light)
     }
 
     /// [`SimWorld::truth`] normalised at `exposure_s` and `gain` instead of the sensor's
@@ -317,7 +323,7 @@ impl SimWorld {
     pub fn truth_at(&self, q: &[f64], width: usize, height: usize, exposure_s: f64, gain: f64) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
         let light = self.point_light(q);
-        let rad = self.renderer.render_truth(pose.position, width, height, &light);
+        let rad = self.truth_radiance(pose.position, width, height, &light);
         let mut sensor = self.sensor.lock().expect("sensor poisoned").clone();
         sensor.exposure_s = exposure_s;
         sensor.gain = gain;
@@ -742,7 +748,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
             crate::render::LensDistortion(c)
         },
         response: sensor_response(spec)?,
-        truth_views: ViewCache::new(TRUTH_VIEW_CACHE),
+        truth_views: ViewCache::with_budget(TRUTH_VIEW_CACHE, TRUTH_VIEW_BUDGET),
         raw_views: ViewCache::new(RAW_VIEW_CACHE),
         frame_noise: match spec.camera.options.get("frame_noise") {
             None => false,

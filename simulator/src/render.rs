@@ -738,10 +738,18 @@ impl Renderer {
 
     /// Truth samples per texel and axis for a `width × height` truth image: at least one
     /// sample per grid texel of the sample, so coarse outputs still see every detail of
-    /// the structure they average over.
-    fn truth_samples(&self, width: usize, height: usize) -> usize {
+    /// the structure they average over, times the sample's `truth_rays_per_cell` (a sharp
+    /// lobe varies within a grid cell); at most 16.
+    pub fn truth_samples(&self, width: usize, height: usize) -> usize {
         let grid = self.sample.spec.resolution.div_ceil(width.min(height).max(1));
-        self.quality.truth_supersample.max(grid).clamp(1, 16)
+        let per_cell = self.sample.spec.truth_rays_per_cell.max(1);
+        self.quality.truth_supersample.max(grid * per_cell).clamp(1, 16)
+    }
+
+    /// Bytes [`Self::truth_view`] holds for a `width × height` view.
+    pub fn truth_view_bytes(&self, width: usize, height: usize) -> usize {
+        let n = self.truth_samples(width, height);
+        width * height * n * n * std::mem::size_of::<(Hit, Vec3)>()
     }
 
     /// Trace every truth ray of a view once: the light-independent half of
@@ -815,6 +823,13 @@ pub struct TruthView {
     rays: Vec<(Hit, Vec3)>,
 }
 
+impl TruthView {
+    /// Bytes this view holds.
+    pub fn bytes(&self) -> usize {
+        self.rays.capacity() * std::mem::size_of::<(Hit, Vec3)>()
+    }
+}
+
 /// The traced rays of one raw frame ([`Renderer::raw_view`]): which pixels are traced,
 /// with how many samples, and what each sample's ray hits. Shading it for a light
 /// ([`Renderer::shade_raw`]) gives exactly [`Renderer::render_raw_distorted`]'s image.
@@ -850,6 +865,9 @@ impl RawView {
     }
 }
 
+/// A cached view: its key, the view, its size in bytes.
+type CacheEntry<V> = (Vec<u64>, Arc<V>, usize);
+
 /// Traced views kept for reuse ([`TruthView`], [`RawView`]), so that the many pairs an
 /// acquisition measures from one camera pose are traced once and shaded per light, even
 /// though it visits them in a tour order rather than view by view.
@@ -857,11 +875,14 @@ impl RawView {
 /// The key is the exact bits of everything the trace depends on (camera pose, image size,
 /// lens): a hit is the very view a fresh trace would give, so shading it gives the same
 /// bytes as tracing again. At most `capacity` views are kept, least recently used first
-/// out, so memory is bounded however long the sweep.
+/// out, so memory is bounded however long the sweep; with a byte budget
+/// ([`ViewCache::with_budget`]) also at most that many bytes (but always the newest view),
+/// so samples whose truth needs many rays per texel do not hold `capacity` large views.
 pub struct ViewCache<V> {
     capacity: usize,
-    /// Most recently used last.
-    entries: Mutex<Vec<(Vec<u64>, Arc<V>)>>,
+    budget_bytes: usize,
+    /// Most recently used last, each with its size in bytes.
+    entries: Mutex<Vec<CacheEntry<V>>>,
     hits: std::sync::atomic::AtomicU64,
     misses: std::sync::atomic::AtomicU64,
 }
@@ -869,8 +890,15 @@ pub struct ViewCache<V> {
 impl<V> ViewCache<V> {
     /// A cache of at most `capacity` views (0: nothing is kept, every call traces).
     pub fn new(capacity: usize) -> Self {
+        Self::with_budget(capacity, usize::MAX)
+    }
+
+    /// A cache of at most `capacity` views and `budget_bytes` bytes (as given to
+    /// [`ViewCache::get_sized`]), keeping at least the newest view.
+    pub fn with_budget(capacity: usize, budget_bytes: usize) -> Self {
         ViewCache {
             capacity,
+            budget_bytes,
             entries: Mutex::new(Vec::new()),
             hits: Default::default(),
             misses: Default::default(),
@@ -879,10 +907,20 @@ impl<V> ViewCache<V> {
 
     /// The view under `key`, from the cache or made now by `trace`.
     pub fn get(&self, key: Vec<u64>, trace: impl FnOnce() -> V) -> Arc<V> {
+        self.get_sized(key, 0, trace)
+    }
+
+    /// [`ViewCache::get`] for a view of `bytes` bytes (counted against the budget).
+    pub fn get_sized(&self, key: Vec<u64>, bytes: usize, trace: impl FnOnce() -> V) -> Arc<V> {
         use std::sync::atomic::Ordering::Relaxed;
+        let over = |entries: &[CacheEntry<V>]| {
+            !entries.is_empty()
+                && (entries.len() >= self.capacity
+                    || entries.iter().map(|e| e.2).sum::<usize>().saturating_add(bytes) > self.budget_bytes)
+        };
         {
             let mut entries = self.entries.lock().expect("view cache poisoned");
-            if let Some(k) = entries.iter().position(|(e, _)| *e == key) {
+            if let Some(k) = entries.iter().position(|(e, _, _)| *e == key) {
                 let entry = entries.remove(k);
                 let view = entry.1.clone();
                 entries.push(entry);
@@ -896,7 +934,7 @@ impl<V> ViewCache<V> {
         // memory: the process's footprint is flat once the cache is full.
         {
             let mut entries = self.entries.lock().expect("view cache poisoned");
-            while !entries.is_empty() && entries.len() >= self.capacity {
+            while over(&entries) {
                 entries.remove(0);
             }
         }
@@ -905,11 +943,11 @@ impl<V> ViewCache<V> {
         let view = Arc::new(trace());
         if self.capacity > 0 {
             let mut entries = self.entries.lock().expect("view cache poisoned");
-            if !entries.iter().any(|(e, _)| *e == key) {
-                if entries.len() >= self.capacity {
+            if !entries.iter().any(|(e, _, _)| *e == key) {
+                while over(&entries) {
                     entries.remove(0);
                 }
-                entries.push((key, view.clone()));
+                entries.push((key, view.clone(), bytes));
             }
         }
         view
@@ -966,6 +1004,67 @@ mod lens_tests {
         let zero = LensDistortion::default();
         assert!(zero.is_zero());
         assert_eq!(zero.undistort(0.3, -0.2), (0.3, -0.2));
+    }
+}
+
+#[cfg(test)]
+mod view_cache_tests {
+    use super::ViewCache;
+
+    /// A byte budget keeps the cache under it (but always the newest view); without one,
+    /// only the count limits it. A hit never traces.
+    #[test]
+    fn a_byte_budget_bounds_the_cache_and_keeps_the_newest_view() {
+        let cache = ViewCache::with_budget(8, 100);
+        for k in 0..4u64 {
+            cache.get_sized(vec![k], 40, || k);
+        }
+        assert_eq!(cache.len(), 2, "two 40-byte views fit in 100 bytes");
+        assert_eq!(*cache.get_sized(vec![3], 40, || unreachable!()), 3);
+        assert_eq!(*cache.get_sized(vec![9], 500, || 9), 9);
+        assert_eq!(cache.len(), 1, "a view above the budget is kept alone");
+        let count_only = ViewCache::new(3);
+        for k in 0..5u64 {
+            count_only.get_sized(vec![k], 1 << 40, || k);
+        }
+        assert_eq!(count_only.len(), 3);
+        assert_eq!(count_only.stats(), (0, 5));
+    }
+}
+
+#[cfg(test)]
+mod truth_sampling_tests {
+    use super::{RenderQuality, Renderer};
+    use crate::SampleSpec;
+    use std::sync::Arc;
+
+    fn samples(name: &str, per_cell: Option<usize>, size: usize) -> usize {
+        let mut spec = SampleSpec::resolve(name).unwrap();
+        if let Some(k) = per_cell {
+            spec.truth_rays_per_cell = k;
+        }
+        let r = Renderer::new(Arc::new(spec.build().unwrap()), RenderQuality::default());
+        r.truth_samples(size, size)
+    }
+
+    /// One ray per grid cell by default; a sample's `truth_rays_per_cell` multiplies it,
+    /// up to 16 per texel and axis.
+    #[test]
+    fn truth_rays_per_cell_multiplies_the_rays_per_texel() {
+        assert_eq!(samples("wallpaper", None, 64), 4);
+        assert_eq!(samples("wallpaper", None, 256), 1);
+        assert_eq!(samples("wallpaper", Some(2), 64), 8);
+        assert_eq!(samples("brushed-metal", None, 256), 4);
+        assert_eq!(samples("brushed-metal", None, 64), 16);
+        assert_eq!(samples("brushed-metal", None, 32), 16, "clamped");
+    }
+
+    #[test]
+    fn truth_rays_per_cell_out_of_range_is_refused_by_name() {
+        let text =
+            include_str!("../samples/brushed-metal.toml").replace("truth_rays_per_cell = 4", "truth_rays_per_cell = 0");
+        let e = SampleSpec::parse(&text, "bm.toml", None).unwrap_err().to_string();
+        assert!(e.contains("truth_rays_per_cell") && e.contains("1 ..= 16"), "{e}");
     }
 }
 

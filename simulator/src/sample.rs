@@ -202,6 +202,23 @@ pub struct SampleSpec {
     /// Discs painted over the map (`[[occluder]]`); none by default.
     #[serde(default, rename = "occluder")]
     pub occluders: Vec<Occluder>,
+    /// Ground-truth rays per height-grid cell and axis (1 ..= 16; default 1). The truth is
+    /// the mean over each texel's area, estimated with a stratified grid of rays: one per
+    /// grid cell holds where shading varies little within a cell (the normal and the
+    /// material are interpolated and looked up per cell). A lobe much narrower than the
+    /// relief's change of normal across one cell varies within it, and the estimate needs
+    /// more rays (docs/hdr.md measures this on `brushed-metal`). Not written when 1, so
+    /// other samples' manifests keep their bytes.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub truth_rays_per_cell: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+fn is_one(n: &usize) -> bool {
+    *n == 1
 }
 
 /// Steepest plane a `plane` height field may have (degrees).
@@ -306,6 +323,12 @@ impl SampleSpec {
             return Err(bad(
                 "resolution",
                 format!("{}: valid range is 8 ..= 4096", self.resolution),
+            ));
+        }
+        if !(1..=16).contains(&self.truth_rays_per_cell) {
+            return Err(bad(
+                "truth_rays_per_cell",
+                format!("{}: valid range is 1 ..= 16", self.truth_rays_per_cell),
             ));
         }
         if self.materials.is_empty() || self.materials.len() > 255 {

@@ -9,8 +9,10 @@
 //!
 //! A bounded channel between them keeps memory flat however long the sweep (stream, don't
 //! hoard). A measurement is stored only once its image is in place and its journal line
-//! is synced (see `store`), so a crash at any moment loses at most the frame in flight,
-//! which `--resume` measures again.
+//! is synced (see `store`), so a crash at any moment loses at most the frames in flight
+//! (captured, or developed but not yet journaled), which `--resume` measures again. The
+//! store thread writes measurement k (EXR encoding, fsyncs, journal line: `commit`) on a
+//! scoped thread while it develops measurement k + 1.
 
 pub mod metrics;
 
@@ -20,6 +22,7 @@ use crate::plan::{Plan, Step, StepStatus};
 use crate::rig::{BracketNotes, CaptureNotes, CapturePolicy, Rig};
 use crate::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
 use gonio_devices::hdr::{HdrMode, HdrSpec};
+use gonio_devices::image::RgbImage;
 use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
 use metrics::ErrorAccumulator;
 use serde::{Deserialize, Serialize};
@@ -363,42 +366,61 @@ fn store_loop(
         failed.store(true, Ordering::SeqCst);
         Err(Box::new((dataset, err)))
     };
+    // The previous measurement, developed, whose files and journal line are written while
+    // this one develops (see `commit`).
+    let mut pending: Option<Pending> = None;
     while let Some(job) = rx.blocking_recv() {
         let index = job.step.index;
         let pose = rig.kinematics.camera_pose(&job.q_read);
         // The lamp position from the same (corrected) kinematics as the camera pose.
         let lamp = rig.kinematics.light_position(&job.q_read);
-        let ((developed, t_rect), (truth, t_truth)) = rayon::join(
-            || {
-                let t = Instant::now();
-                let d = match (&job.bracket, &noise) {
-                    (Some(b), Some(noise)) => {
-                        let frames: Vec<Frame> = std::iter::once(job.frame.clone())
-                            .chain(b.more.iter().cloned())
-                            .collect();
-                        developer
-                            .develop_bracket(&frames, &pose, lamp, b.base_exposure_s, noise)
-                            .map(|(d, r)| (d, Some(r)))
-                    }
-                    _ => developer
-                        .develop(&job.frame, &pose, lamp, job.notes.exposure_scale)
-                        .map(|d| (d, None)),
-                };
-                (d, t.elapsed().as_secs_f64())
-            },
-            || {
-                let t = Instant::now();
-                let truth = match (&rig.truth, opts.truth, &job.bracket) {
-                    // The camera's setting may be another bracket's exposure by now.
-                    (Some(t), true, Some(b)) => {
-                        Some(t.truth_at(&job.q_read, width, height, b.base_exposure_s, job.frame.meta.gain))
-                    }
-                    (Some(t), true, None) => Some(t.truth(&job.q_read, width, height)),
-                    _ => None,
-                };
-                (truth, t.elapsed().as_secs_f64())
-            },
-        );
+        let (((developed, t_rect), (truth, t_truth)), committed) = std::thread::scope(|s| {
+            let committing = pending.take().map(|p| {
+                let (dataset, observer) = (&mut dataset, &observer);
+                s.spawn(move || commit(dataset, p, observer))
+            });
+            let work = rayon::join(
+                || {
+                    let t = Instant::now();
+                    let d = match (&job.bracket, &noise) {
+                        (Some(b), Some(noise)) => {
+                            let frames: Vec<Frame> = std::iter::once(job.frame.clone())
+                                .chain(b.more.iter().cloned())
+                                .collect();
+                            developer
+                                .develop_bracket(&frames, &pose, lamp, b.base_exposure_s, noise)
+                                .map(|(d, r)| (d, Some(r)))
+                        }
+                        _ => developer
+                            .develop(&job.frame, &pose, lamp, job.notes.exposure_scale)
+                            .map(|d| (d, None)),
+                    };
+                    (d, t.elapsed().as_secs_f64())
+                },
+                || {
+                    let t = Instant::now();
+                    let truth = match (&rig.truth, opts.truth, &job.bracket) {
+                        // The camera's setting may be another bracket's exposure by now.
+                        (Some(t), true, Some(b)) => {
+                            Some(t.truth_at(&job.q_read, width, height, b.base_exposure_s, job.frame.meta.gain))
+                        }
+                        (Some(t), true, None) => Some(t.truth(&job.q_read, width, height)),
+                        _ => None,
+                    };
+                    (truth, t.elapsed().as_secs_f64())
+                },
+            );
+            (work, committing.map(|h| h.join()))
+        });
+        match committed {
+            None => {}
+            Some(Ok(Ok(t))) => {
+                stats.times.store += t;
+                stats.stored += 1;
+            }
+            Some(Ok(Err(e))) => return fail(dataset, e),
+            Some(Err(panic)) => std::panic::resume_unwind(panic),
+        }
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
         let (rect, saturated, merge_report) = match developed {
@@ -476,17 +498,45 @@ fn store_loop(
             });
         }
         rec.extra = extra;
-        let raw_frame = if opts.raw_frames { Some(&job.frame) } else { None };
-        let t_store = Instant::now();
-        let stored = dataset.store(rec, Some(&rect.image), raw_frame);
-        stats.times.store += t_store.elapsed().as_secs_f64();
-        if let Err(e) = stored {
-            return fail(dataset, EngineError::Store { index, source: e });
+        pending = Some(Pending {
+            rec,
+            image: rect.image,
+            raw: if opts.raw_frames { Some(job.frame) } else { None },
+        });
+    }
+    if let Some(p) = pending.take() {
+        match commit(&mut dataset, p, &observer) {
+            Ok(t) => {
+                stats.times.store += t;
+                stats.stored += 1;
+            }
+            Err(e) => return fail(dataset, e),
         }
-        if let Some(record) = dataset.records().last() {
-            observer(&RunEvent::Stored { record });
-        }
-        stats.stored += 1;
     }
     Ok((dataset, stats))
+}
+
+/// A developed measurement on its way to the dataset.
+struct Pending {
+    rec: MeasurementRecord,
+    image: RgbImage,
+    raw: Option<Frame>,
+}
+
+/// Store a developed measurement (EXR encoding, durable writes, then its journal line:
+/// `Dataset::store`) and tell the observer. The store loop runs this for measurement k on
+/// a thread of its own while it develops measurement k + 1: encoding and fsyncs are then
+/// off the critical path, the order of journal lines stays the plan's, and the bytes are
+/// the same. A crash loses at most the measurements not yet journaled (the one being
+/// committed and the one being developed), which `--resume` measures again.
+fn commit(dataset: &mut Dataset, p: Pending, observer: &Observer) -> Result<f64, EngineError> {
+    let t = Instant::now();
+    let index = p.rec.index;
+    dataset
+        .store(p.rec, Some(&p.image), p.raw.as_ref())
+        .map_err(|source| EngineError::Store { index, source })?;
+    if let Some(record) = dataset.records().last() {
+        observer(&RunEvent::Stored { record });
+    }
+    Ok(t.elapsed().as_secs_f64())
 }

@@ -9,13 +9,15 @@
 # its own target dir so the feature flip does not invalidate other builds) and gonio
 # itself. QEMU boots it under software emulation, /init loads vivid, runs two end-to-end
 # `gonio acquire`s with the vivid camera (rigs v4l2-vivid: simulated axes, and
-# v4l2-vivid-zaber: axes on gonio's Zaber emulator over a pty), then the check, whose
+# v4l2-vivid-zaber: axes on gonio's Zaber emulator over a pty) and one with `--hdr 2`
+# (vivid has no exposure control: every measurement must record the exposure it did not
+# apply), then the check, whose
 # PASS/FAIL table is read back from the serial console.
 #
 # Usage: tests/vivid/run.sh            exit 0 = every check passed
 #        VIVID_KVM=1 ...               use KVM instead of software emulation
 #        VIVID_ACQUIRE=0 ...           skip the end-to-end `gonio acquire` with a vivid rig
-#        VIVID_TIMEOUT=300 ...         seconds before the VM is killed
+#        VIVID_TIMEOUT=300 ...         seconds before the VM is killed (default 240)
 # The serial console is kept in target/vivid/serial.log.
 # Downloads and the unpacked tree are cached in target/vivid/; reruns only rebuild the
 # initramfs and boot.
@@ -224,6 +226,16 @@ if [ -x /bin/gonio ]; then
     echo "VIVID_ACQUIRE rig=\$rig rc=\$rc exr=\$(find /tmp/ds-\$rig -name '*.exr' | wc -l) png=\$(find /tmp/ds-\$rig -name '*.png' | wc -l) journal=\$(grep -c . /tmp/ds-\$rig/journal.jsonl)"
     [ -n "\$emu" ] && kill \$emu
   done
+  # HDR bracketing against a camera that cannot apply the exposure it is asked for: vivid
+  # has no exposure control, so the bracket's shorter exposure is not applied and every
+  # measurement must record why (docs/hdr.md), never clip silently.
+  echo
+  echo "VIVID_HDR_BEGIN"
+  /bin/gonio acquire --rig /rigs/v4l2-vivid.toml --sample white-standard --sweep fibonacci:3 \\
+    --plan-time 0 --no-truth --size 64x64 --hdr 2 --out /tmp/ds-hdr --json -q
+  rc=\$?
+  echo
+  echo "VIVID_HDR rc=\$rc images=\$(grep -c '"image":"images/' /tmp/ds-hdr/journal.jsonl) not_applied=\$(grep -c 'camera applied [^"]* for the requested' /tmp/ds-hdr/journal.jsonl)"
 fi
 /bin/v4l2_check /dev/video0
 echo "VIVID_DONE rc=\$?"
@@ -245,7 +257,7 @@ SERIAL=$W/serial.log
 log "booting $KPKG under qemu (${ACCEL[1]})"
 t_boot=$(date +%s.%N)
 set +e
-timeout "${VIVID_TIMEOUT:-180}" "$QEMU" -L "$FW" "${ACCEL[@]}" -m 512 -smp 1 -nographic -no-reboot \
+timeout "${VIVID_TIMEOUT:-240}" "$QEMU" -L "$FW" "${ACCEL[@]}" -m 512 -smp 1 -nographic -no-reboot \
   -vga none -nic none -kernel "$KERNEL" -initrd "$W/initramfs.cpio.gz" \
   -append "console=ttyS0 panic=-1 quiet loglevel=1" >"$SERIAL" 2>&1 </dev/null
 qrc=$?
@@ -274,6 +286,18 @@ if [ -n "$GONIO_BIN" ]; then
     }
     echo "$summary" | grep -q '"complete": true' || die "acquisition with rig $rig did not complete"
   done
+fi
+if [ -n "$GONIO_BIN" ]; then
+  # Every stored measurement of the --hdr 2 run names the exposure vivid did not apply.
+  echo "-- gonio acquire --hdr 2 in the VM (vivid: no exposure control) --"
+  hdr=$(tr -d '\r' <"$SERIAL" | grep -aoE 'VIVID_HDR rc=[0-9]+ images=[0-9]+ not_applied=[0-9]+' || true)
+  echo "${hdr:-no VIVID_HDR line in the serial log}"
+  if [[ $hdr =~ rc=0\ images=([1-9][0-9]*)\ not_applied=([0-9]+) ]] && [ "${BASH_REMATCH[1]}" = "${BASH_REMATCH[2]}" ]; then
+    echo "vivid: every HDR measurement records the exposure the camera did not apply"
+  else
+    tail -n 40 "$SERIAL" >&2
+    die "gonio acquire --hdr 2 with vivid: expected rc=0 and a not-applied reason on every stored measurement"
+  fi
 fi
 grep -aq "VIVID_DONE rc=0" "$SERIAL" || {
   tail -n 30 "$SERIAL" >&2
