@@ -76,9 +76,21 @@ pub struct CheckerboardOptions {
     /// Coded boards only: markers that must agree on a grid's labelling before its corners
     /// are named (one misread marker must not name a grid).
     pub min_markers: usize,
-    /// Coded boards only: fewest corners a view must give (a partial view is used if it
-    /// has this many, over at least two rows and two columns).
+    /// Fewest corners a partial view must give (coded boards always, plain checkerboards
+    /// with `partial`): it is used if it has this many, over at least two rows and two
+    /// columns.
     pub min_corners: usize,
+    /// Plain checkerboards: accept a view that shows only part of the board (a board larger
+    /// than the field of view, one cut off by the frame). The corners of the connected piece
+    /// seen are indexed from the piece, not from the board: which printed corner is which
+    /// is not known, only their lattice. That is all a fit needs where every view has its
+    /// own free board pose (intrinsics): another labelling of the same lattice is a rigid
+    /// motion of the board in its plane, which the view's pose absorbs. Not for fits that
+    /// use the board's absolute position (rig geometry, mechanical); recipes refuse it
+    /// there. Corners closer to the frame's edge than the corner model's window, and
+    /// corners whose refinement fails, are left out. A view showing the whole board still
+    /// gives the board's own labelling.
+    pub partial: bool,
     /// Coded boards only: a corner whose model fit leaves an RMS residual (as a fraction of
     /// the corner's contrast) above the view's median by more than this, in quadrature, is
     /// left out: something else lies in its window.
@@ -100,6 +112,7 @@ impl Default for CheckerboardOptions {
             min_markers: 2,
             min_corners: 8,
             max_corner_residual: 0.02,
+            partial: false,
         }
     }
 }
@@ -418,11 +431,22 @@ fn detect_inner(
         rows: spec.rows,
         hint: hint.into(),
     };
-    if found < spec.cols * spec.rows {
+    if found
+        < if opts.partial {
+            opts.min_corners.max(4)
+        } else {
+            spec.cols * spec.rows
+        }
+    {
         return Err(not_found(
             0,
             0,
-            "too few corner candidates: board out of view, occluded, too blurred or too small",
+            if opts.partial {
+                "too few corner candidates: board out of view, occluded, too blurred or too small"
+            } else {
+                "too few corner candidates: board out of view, occluded, too blurred or too small; \
+                 `partial = true` under [detection] accepts part of the board for intrinsics"
+            },
         ));
     }
     let grid = match central_seed(&candidates, &vec![false; found]) {
@@ -449,11 +473,13 @@ fn detect_inner(
             }
         }
     }
-    let (i0, j0, wc, wr, swap) = match windows.as_slice() {
-        [one] => *one,
+    let complete = match windows.as_slice() {
+        [one] => Some(*one),
+        [] if opts.partial => None,
         [] => {
             let hint = if grid.len() < cols * rows {
-                "corners missing (occlusion, glare, part of the board out of view, too grazing a view)"
+                "corners missing (occlusion, glare, part of the board out of view, too grazing a view; \
+                 `partial = true` under [detection] accepts part of the board for intrinsics)"
             } else {
                 "no complete board-sized window in the grid: holes, or a wrong board spec"
             };
@@ -467,6 +493,24 @@ fn detect_inner(
             ))
         }
     };
+    // A partial view: the whole grown piece, if it fits the board in one orientation.
+    let (i0, j0, wc, wr, swap) = match complete {
+        Some(w) => w,
+        None => {
+            let swap = if gc <= cols && gr <= rows {
+                false
+            } else if gc <= rows && gr <= cols {
+                true
+            } else {
+                return Err(not_found(
+                    gc,
+                    gr,
+                    "the piece of board seen is larger than the board: wrong board spec (too small)?",
+                ));
+            };
+            (imin, jmin, gc as i64, gr as i64, swap)
+        }
+    };
     // Normalize indices to start at 0 and arrange the axes so that i runs along the
     // board's `cols`, the (i, j) → (x, y) map is a proper rotation seen from the camera
     // (no mirror), and — for determinism — the i axis points as far right as possible.
@@ -475,6 +519,8 @@ fn detect_inner(
         .filter(|(&(i, j), _)| i >= i0 && i < i0 + wc && j >= j0 && j < j0 + wr)
         .map(|(&(i, j), &k)| ((i - i0, j - j0), k))
         .collect();
+    // fixed order, whatever the hash map's
+    pts.sort_unstable();
     let (mut nc, mut nr) = (wc, wr);
     if swap {
         for p in pts.iter_mut() {
@@ -483,11 +529,26 @@ fn detect_inner(
         std::mem::swap(&mut nc, &mut nr);
     }
     let lookup = |pts: &[((i64, i64), usize)], i: i64, j: i64| pts.iter().find(|p| p.0 == (i, j)).map(|p| p.1);
+    // The image directions of the board's i and j axes: corner to corner on a complete
+    // board; on a piece, the sum of every step between neighbours along each axis.
     let axis_dirs = |pts: &[((i64, i64), usize)]| -> ([f64; 2], [f64; 2]) {
-        let p00 = candidates[lookup(pts, 0, 0).expect("complete grid")];
-        let pi = candidates[lookup(pts, nc - 1, 0).expect("complete grid")];
-        let pj = candidates[lookup(pts, 0, nr - 1).expect("complete grid")];
-        ([pi[0] - p00[0], pi[1] - p00[1]], [pj[0] - p00[0], pj[1] - p00[1]])
+        if complete.is_some() {
+            let p00 = candidates[lookup(pts, 0, 0).expect("complete grid")];
+            let pi = candidates[lookup(pts, nc - 1, 0).expect("complete grid")];
+            let pj = candidates[lookup(pts, 0, nr - 1).expect("complete grid")];
+            return ([pi[0] - p00[0], pi[1] - p00[1]], [pj[0] - p00[0], pj[1] - p00[1]]);
+        }
+        let (mut a, mut b) = ([0.0; 2], [0.0; 2]);
+        for &((i, j), k) in pts {
+            let p = candidates[k];
+            if let Some(m) = lookup(pts, i + 1, j) {
+                a = [a[0] + candidates[m][0] - p[0], a[1] + candidates[m][1] - p[1]];
+            }
+            if let Some(m) = lookup(pts, i, j + 1) {
+                b = [b[0] + candidates[m][0] - p[0], b[1] + candidates[m][1] - p[1]];
+            }
+        }
+        (a, b)
     };
     let (a, b) = axis_dirs(&pts);
     // Seen from the camera, +x → +u and +y → −v: the image cross product a × b is negative.
@@ -496,8 +557,10 @@ fn detect_inner(
             p.0 .1 = nr - 1 - p.0 .1;
         }
     }
-    // Candidate symmetries keeping handedness: 180° always; 90° steps if square.
-    let rotations: &[u8] = if nc == nr { &[0, 1, 2, 3] } else { &[0, 2] };
+    // Candidate symmetries keeping handedness: 180° always; 90° steps if square (the
+    // window's for a complete board, the board's for a piece, whose extent may then swap).
+    let square = if complete.is_some() { nc == nr } else { cols == rows };
+    let rotations: &[u8] = if square { &[0, 1, 2, 3] } else { &[0, 2] };
     let rotate = |p: (i64, i64), r: u8| -> (i64, i64) {
         match r {
             0 => p,
@@ -515,102 +578,143 @@ fn detect_inner(
             best = (score, r);
         }
     }
-    let pts: Vec<_> = pts.iter().map(|&(ij, k)| (rotate(ij, best.1), k)).collect();
-    let mut ordered = vec![usize::MAX; cols * rows];
-    for &((i, j), k) in &pts {
-        ordered[j as usize * cols + i as usize] = k;
-    }
+    let mut pts: Vec<_> = pts.iter().map(|&(ij, k)| (rotate(ij, best.1), k)).collect();
+    pts.sort_unstable_by_key(|&((i, j), _)| (j, i));
+    let node: HashMap<(i64, i64), usize> = pts.iter().copied().collect();
+    let at = |i: i64, j: i64| node.get(&(i, j)).map(|&k| candidates[k]);
+    // Partial views: corners whose refinement windows would leave the frame are left out.
+    let border = if opts.model_fit {
+        1.5 * opts.max_model_radius_px + 2.0
+    } else {
+        opts.max_window_px as f64 + 2.0
+    };
+    let inside = |p: [f64; 2]| {
+        p[0] >= border && p[1] >= border && p[0] <= gray.w as f64 - border && p[1] <= gray.h as f64 - border
+    };
     // Sub-pixel refinement, window from the local grid spacing.
     // Corners are refined independently (in parallel); the first failure in grid order is
-    // reported, so the message does not depend on the thread count.
+    // reported, so the message does not depend on the thread count. In a partial view a
+    // corner that fails is left out instead.
     use rayon::prelude::*;
-    let refined: Vec<Result<[f64; 2], CheckerboardError>> = (0..rows * cols)
-        .into_par_iter()
-        .map(|k| {
-            let (i, j) = (k % cols, k / cols);
-            let p = candidates[ordered[j * cols + i]];
+    let refined: Vec<Result<Option<[f64; 2]>, CheckerboardError>> = pts
+        .par_iter()
+        .map(|&((i, j), k)| {
+            let p = candidates[k];
+            if complete.is_none() && !inside(p) {
+                return Ok(None);
+            }
+            let fail = |what: &str, q: [f64; 2], advice: &str| {
+                if complete.is_none() {
+                    return Ok(None);
+                }
+                Err(not_found(
+                    cols,
+                    rows,
+                    &format!(
+                        "{what} of corner ({i}, {j}) near ({:.1}, {:.1}) px failed{advice}",
+                        q[0], q[1]
+                    ),
+                ))
+            };
             let mut spacing = f64::INFINITY;
             for (di, dj) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
-                let (ii, jj) = (i as i64 + di, j as i64 + dj);
-                if ii >= 0 && jj >= 0 && (ii as usize) < cols && (jj as usize) < rows {
-                    let q = candidates[ordered[jj as usize * cols + ii as usize]];
+                if let Some(q) = at(i + di, j + dj) {
                     spacing = spacing.min((q[0] - p[0]).hypot(q[1] - p[1]));
                 }
             }
-            let win = ((0.4 * spacing).floor() as usize).clamp(2, opts.max_window_px.max(2));
-            let q = refine_corner(&smooth, p, win).ok_or_else(|| {
-                not_found(
-                    cols,
-                    rows,
-                    &format!(
-                        "sub-pixel refinement of corner ({i}, {j}) near ({:.1}, {:.1}) px failed",
-                        p[0], p[1]
-                    ),
-                )
-            })?;
-            if !opts.model_fit {
-                return Ok(q);
+            if !spacing.is_finite() {
+                return fail("sub-pixel refinement", p, " (no neighbour)");
             }
-            model_refine(gray, &candidates, &ordered, (cols, rows), (i, j), q, spacing, opts).ok_or_else(|| {
-                not_found(
-                    cols,
-                    rows,
-                    &format!(
-                        "corner model fit of corner ({i}, {j}) near ({:.1}, {:.1}) px failed \
-                         (set model_fit = false to keep the gradient estimate)",
-                        q[0], q[1]
-                    ),
-                )
-            })
+            let win = ((0.4 * spacing).floor() as usize).clamp(2, opts.max_window_px.max(2));
+            let Some(q) = refine_corner(&smooth, p, win) else {
+                return fail("sub-pixel refinement", p, "");
+            };
+            if !opts.model_fit {
+                return Ok(Some(q));
+            }
+            match model_refine(gray, &at, (i, j), q, spacing, opts) {
+                Some(m) => Ok(Some(m)),
+                None => fail(
+                    "corner model fit",
+                    q,
+                    " (set model_fit = false to keep the gradient estimate)",
+                ),
+            }
         })
         .collect();
-    let mut image = Vec::with_capacity(cols * rows);
-    let mut object = Vec::with_capacity(cols * rows);
+    let mut image = Vec::with_capacity(pts.len());
+    let mut object = Vec::with_capacity(pts.len());
     let mut moved = 0.0;
-    for (k, r) in refined.into_iter().enumerate() {
-        let (i, j) = (k % cols, k / cols);
-        let q = r?;
-        let p = candidates[ordered[j * cols + i]];
+    let mut dropped = 0;
+    for (&((i, j), k), r) in pts.iter().zip(refined) {
+        let Some(q) = r? else {
+            dropped += 1;
+            continue;
+        };
+        let p = candidates[k];
         moved += (q[0] - p[0]).hypot(q[1] - p[1]);
         image.push(q);
-        object.push(spec.object_point(i, j));
+        object.push(spec.object_point(i as usize, j as usize));
+    }
+    if complete.is_none() {
+        let distinct = |f: fn(&[f64; 2]) -> f64| {
+            let mut v: Vec<i64> = object.iter().map(|o| (f(o) / spec.pitch_mm).round() as i64).collect();
+            v.sort_unstable();
+            v.dedup();
+            v.len()
+        };
+        let need = opts.min_corners.max(4);
+        if image.len() < need || distinct(|o| o[0]) < 2 || distinct(|o| o[1]) < 2 {
+            return Err(not_found(
+                gc,
+                gr,
+                &format!(
+                    "partial view: {} usable corners, at least {need} over two rows and two columns are needed",
+                    image.len()
+                ),
+            ));
+        }
     }
     Ok(CheckerboardDetection {
+        candidates: found,
+        mean_refinement_px: moved / image.len().max(1) as f64,
         image,
         object,
-        candidates: found,
-        mean_refinement_px: moved / (cols * rows) as f64,
         markers: Vec::new(),
-        dropped_corners: 0,
+        dropped_corners: dropped,
     })
 }
 
 /// The model fit of corner (i, j) ([`crate::corner_model::fit_corner`]) on the raw pixels,
 /// started at the gradient estimate `q`, with the board axes' image directions from the
-/// neighbouring corners (both sides where present, so perspective is followed).
-#[allow(clippy::too_many_arguments)]
+/// neighbouring corners (`at`; both sides where present, so perspective is followed).
 fn model_refine(
     gray: &Gray,
-    candidates: &[[f64; 2]],
-    ordered: &[usize],
-    (cols, rows): (usize, usize),
-    (i, j): (usize, usize),
+    at: &(dyn Fn(i64, i64) -> Option<[f64; 2]> + Sync),
+    (i, j): (i64, i64),
     q: [f64; 2],
     spacing: f64,
     opts: &CheckerboardOptions,
 ) -> Option<[f64; 2]> {
-    let at = |ii: usize, jj: usize| candidates[ordered[jj * cols + ii]];
-    let axis = |prev: Option<[f64; 2]>, next: Option<[f64; 2]>| -> f64 {
+    let axis = |prev: Option<[f64; 2]>, next: Option<[f64; 2]>| -> Option<f64> {
         let (a, b) = match (prev, next) {
             (Some(a), Some(b)) => (a, b),
             (None, Some(b)) => (q, b),
             (Some(a), None) => (a, q),
-            (None, None) => return 0.0,
+            (None, None) => return None,
         };
-        (b[1] - a[1]).atan2(b[0] - a[0])
+        Some((b[1] - a[1]).atan2(b[0] - a[0]))
     };
-    let di = axis((i > 0).then(|| at(i - 1, j)), (i + 1 < cols).then(|| at(i + 1, j)));
-    let dj = axis((j > 0).then(|| at(i, j - 1)), (j + 1 < rows).then(|| at(i, j + 1)));
+    let di = axis(at(i - 1, j), at(i + 1, j));
+    let dj = axis(at(i, j - 1), at(i, j + 1));
+    // A corner of a piece with neighbours along one axis only takes the other direction
+    // as the image perpendicular (the fit estimates both).
+    let (di, dj) = match (di, dj) {
+        (Some(a), Some(b)) => (a, b),
+        (Some(a), None) => (a, a - std::f64::consts::FRAC_PI_2),
+        (None, Some(b)) => (b + std::f64::consts::FRAC_PI_2, b),
+        (None, None) => (0.0, 0.0),
+    };
     let radius = (0.45 * spacing).min(opts.max_model_radius_px);
     if radius < 2.5 {
         return None;
@@ -952,5 +1056,60 @@ mod tests {
             detect_checkerboard(&img, &SPEC, &CheckerboardOptions::default()),
             Err(CheckerboardError::NotFound { .. })
         ));
+    }
+
+    /// `partial = true`: the piece of the board seen is taken, corners named up to the
+    /// board's lattice (a proper rotation and a whole number of squares), each where the
+    /// exact projection of some board corner is.
+    #[test]
+    fn partial_views_give_the_lattice_of_the_piece_seen() {
+        // the frame ends across the board (a board larger than the field, cut by the frame)
+        let h = Homography::from_pose(&rig_intrinsics(), &pose(20.0, 30.0));
+        let img = render(&h, 420, 640, 6, (0.04, 0.8));
+        let opts = CheckerboardOptions {
+            partial: true,
+            ..CheckerboardOptions::default()
+        };
+        let d = detect_checkerboard(&img, &SPEC, &opts).unwrap();
+        assert!(d.image.len() >= 30 && d.image.len() < 121, "{}", d.image.len());
+        let board: Vec<[f64; 2]> = (0..11)
+            .flat_map(|j| (0..11).map(move |i| SPEC.object_point(i, j)))
+            .collect();
+        // the true board point of each detected corner: the nearest exact projection
+        let truth: Vec<[f64; 2]> = d
+            .image
+            .iter()
+            .map(|p| {
+                let (b, e) = board
+                    .iter()
+                    .map(|o| {
+                        let (u, v) = h.apply(o[0], o[1]).unwrap();
+                        (*o, (u - p[0]).hypot(v - p[1]))
+                    })
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap();
+                assert!(e < 0.08, "corner {p:?} is {e} px from the nearest board corner");
+                b
+            })
+            .collect();
+        // one proper rotation and one lattice shift map every true point to its label
+        let rot = |o: [f64; 2], r: u8| match r {
+            0 => o,
+            1 => [-o[1], o[0]],
+            2 => [-o[0], -o[1]],
+            _ => [o[1], -o[0]],
+        };
+        let consistent = (0..4u8).any(|r| {
+            let t0 = rot(truth[0], r);
+            let shift = [d.object[0][0] - t0[0], d.object[0][1] - t0[1]];
+            truth.iter().zip(&d.object).all(|(t, o)| {
+                let t = rot(*t, r);
+                (t[0] + shift[0] - o[0]).abs() < 1e-9 && (t[1] + shift[1] - o[1]).abs() < 1e-9
+            })
+        });
+        assert!(consistent, "labels are not one rigid motion of the lattice");
+        // without `partial` the same view is refused, naming the option
+        let e = detect_checkerboard(&img, &SPEC, &CheckerboardOptions::default()).unwrap_err();
+        assert!(e.to_string().contains("partial"), "{e}");
     }
 }

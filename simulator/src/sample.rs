@@ -28,6 +28,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "calibration-target-wedge",
         include_str!("../samples/calibration-target-wedge.toml"),
     ),
+    (
+        "calibration-target-large",
+        include_str!("../samples/calibration-target-large.toml"),
+    ),
     ("colour-target", include_str!("../samples/colour-target.toml")),
     ("mirror", include_str!("../samples/mirror.toml")),
     ("coded-target", include_str!("../samples/coded-target.toml")),

@@ -57,6 +57,50 @@ fn corner_truth(
         .expect("four rotations")
 }
 
+/// [`corner_truth`] for partial views (`detection.partial`), whose corners are indexed
+/// from the piece seen: each detected corner is matched to the nearest exact projection of
+/// any of the board's corners (they are a square apart, tens of pixels; the detector is
+/// within a fraction of one).
+fn lattice_truth(
+    rig: &Rig,
+    q: &[f64],
+    board: &gonio_calibration::board::Board,
+    image: &[[f64; 2]],
+) -> (f64, Vec<[f64; 2]>) {
+    let k = rig.spec.camera.intrinsics();
+    let cam = CameraModel {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        distortion: sim_distortion(rig),
+    };
+    let pose = rig.kinematics.camera_pose(q);
+    let exact: Vec<[f64; 2]> = board
+        .all_corners()
+        .iter()
+        .filter_map(|o| {
+            let c = pose.to_camera(gonio_devices::Vec3::new(o[0], o[1], 0.0));
+            (c.z > 0.0).then(|| {
+                let (u, v) = cam.project_point([c.x, c.y, c.z]);
+                [u, v]
+            })
+        })
+        .collect();
+    let d2 = |a: &[f64; 2], b: &[f64; 2]| (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
+    let proj: Vec<[f64; 2]> = image
+        .iter()
+        .map(|p| {
+            *exact
+                .iter()
+                .min_by(|a, b| d2(a, p).total_cmp(&d2(b, p)))
+                .unwrap_or(&[f64::NAN; 2])
+        })
+        .collect();
+    let sum: f64 = proj.iter().zip(image).map(|(a, b)| d2(a, b)).sum();
+    ((sum / image.len().max(1) as f64).sqrt(), proj)
+}
+
 /// The object points of a board on a wedge: the detector's flat board points in true
 /// in-plane coordinates ([`WedgeSpec::in_plane`]). The wedge is not symmetric under the
 /// board's quarter turns, so which of the detector's four equivalent grids is the printed
@@ -151,7 +195,12 @@ pub(super) async fn run_intrinsics(recipe: &Recipe, rig: &Rig) -> Result<RunOutp
         let det = detect_board(recipe, &board, &raw, index, pose.view)?;
         tracing::debug!(index, candidates = det.candidates, "board found");
         if rig.clock.is_some() {
-            let (rms, proj, _) = corner_truth(rig, &q, recipe.wedge.as_ref(), &det.object, &det.image);
+            let (rms, proj) = if recipe.detection.partial {
+                lattice_truth(rig, &q, &board, &det.image)
+            } else {
+                let (rms, proj, _) = corner_truth(rig, &q, recipe.wedge.as_ref(), &det.object, &det.image);
+                (rms, proj)
+            };
             corner_rms.push(rms);
             truth_image.push(proj);
         }

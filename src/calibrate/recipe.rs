@@ -313,6 +313,17 @@ impl Recipe {
             }
             w.validate().map_err(|m| bad("wedge", m))?;
         }
+        // A partial plain-board view is indexed from the piece seen, not the board: only a
+        // fit with a free board pose per view (intrinsics on a flat board) can use it.
+        if self.detection.partial && (self.kind != RecipeKind::Intrinsics || self.wedge.is_some()) {
+            return Err(bad(
+                "detection.partial",
+                "partial plain-board views name their corners only up to the board's lattice, which \
+                 only an intrinsics fit on a flat board (a free pose per view) can use; remove it, or use \
+                 the coded board (coded_board = { ... }), whose views name every corner"
+                    .into(),
+            ));
+        }
         Ok(())
     }
 }
