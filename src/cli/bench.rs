@@ -31,6 +31,8 @@ pub enum BenchCommand {
     Acquire(Box<super::bench_acquire::AcquireBenchArgs>),
     /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
     Hdr(super::bench_hdr::HdrBenchArgs),
+    /// BRDF fitting: starts × iterations against residual and time, on data of known models.
+    Fit(super::bench_fit::FitBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -402,6 +404,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
         BenchCommand::Hdr(a) => super::bench_hdr::run(a),
+        BenchCommand::Fit(a) => super::bench_fit::run(a),
     }
 }
 

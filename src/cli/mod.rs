@@ -8,6 +8,7 @@ mod batch;
 mod bench;
 mod bench_acquire;
 mod bench_compress;
+mod bench_fit;
 mod bench_hdr;
 mod bench_serial;
 mod bench_synthesize;
@@ -18,6 +19,7 @@ mod compress;
 mod dataset;
 mod devices;
 mod export;
+mod fit;
 mod generate;
 mod import;
 mod merge;
@@ -74,6 +76,9 @@ pub enum Command {
     /// Compress a dataset (PCA, PVMF, local PCA, median cut, homomorphic: .gbtf; DFMF: UBO2014 .btf)
     /// and report its size and error.
     Compress(compress::CompressArgs),
+    /// Fit an analytic BRDF model (lafortune, ward, cook-torrance, rough-conductor) to a
+    /// homogeneous sample's averaged BRDF or per texel; parameters, residual, where it fails.
+    Fit(Box<fit::FitArgs>),
     /// Find hardware: list serial ports and video devices, probe a port for a controller.
     #[command(subcommand)]
     Devices(devices::DevicesCommand),
@@ -128,6 +133,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),
         Command::Compress(a) => compress::run(a),
+        Command::Fit(a) => fit::run(*a),
         Command::Devices(c) => devices::run(c),
         Command::Reconstruct(a) => compress::reconstruct(a),
         Command::Generate(a) => generate::run(a),
