@@ -10,6 +10,7 @@ pub mod cli;
 pub mod compress;
 pub mod develop;
 pub mod engine;
+pub mod fit;
 pub mod merge;
 pub mod plan;
 pub mod rig;

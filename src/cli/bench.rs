@@ -33,6 +33,8 @@ pub enum BenchCommand {
     Hdr(super::bench_hdr::HdrBenchArgs),
     /// Decode time of one image of a compressed BTF, on its own (median of rounds; EXR reads of the same images as the baseline).
     Decode(super::bench_decode::DecodeBenchArgs),
+    /// BRDF fitting: starts × iterations against residual and time, on data of known models.
+    Fit(super::bench_fit::FitBenchArgs),
 }
 
 #[derive(clap::Args, Debug)]
@@ -405,6 +407,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
         BenchCommand::Hdr(a) => super::bench_hdr::run(a),
         BenchCommand::Decode(a) => super::bench_decode::run(a),
+        BenchCommand::Fit(a) => super::bench_fit::run(a),
     }
 }
 

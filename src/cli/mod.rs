@@ -9,6 +9,7 @@ mod bench;
 mod bench_acquire;
 mod bench_compress;
 mod bench_decode;
+mod bench_fit;
 mod bench_hdr;
 mod bench_serial;
 mod bench_synthesize;
@@ -19,6 +20,7 @@ mod compress;
 mod dataset;
 mod devices;
 mod export;
+mod fit;
 mod generate;
 mod import;
 mod merge;
@@ -75,6 +77,9 @@ pub enum Command {
     /// Compress a dataset (PCA, PVMF, local PCA, median cut, homomorphic: .gbtf; DFMF: UBO2014 .btf)
     /// and report its size and error.
     Compress(compress::CompressArgs),
+    /// Fit an analytic BRDF model (lafortune, ward, cook-torrance, rough-conductor) to a
+    /// homogeneous sample's averaged BRDF or per texel; parameters, residual, where it fails.
+    Fit(Box<fit::FitArgs>),
     /// Find hardware: list serial ports and video devices, probe a port for a controller.
     #[command(subcommand)]
     Devices(devices::DevicesCommand),
@@ -129,6 +134,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),
         Command::Compress(a) => compress::run(a),
+        Command::Fit(a) => fit::run(*a),
         Command::Devices(c) => devices::run(c),
         Command::Reconstruct(a) => compress::reconstruct(a),
         Command::Generate(a) => generate::run(a),

@@ -20,6 +20,7 @@ mod campaign_camera_faults;
 mod campaign_faults;
 mod campaign_kill9;
 mod determinism;
+mod fit;
 mod fuzz_import;
 mod fuzz_inputs;
 mod fuzz_protocols;

@@ -1,0 +1,205 @@
+//! The per-texel fit (`gonio fit --per-texel`): McAllister et al. 2002's SBRDF, a scaled
+//! Lafortune model per texel (diffuse RGB, and per lobe the direction angle γ of
+//! `C = √2 (cos γ, cos γ, sin γ)`, the exponent and RGB `ks`).
+//!
+//! As in McAllister's fitting, the average BRDF is fitted first (several starts); every
+//! texel then starts from that solution, so a homogeneous region converges in a few
+//! iterations and neighbouring texels land in the same basin. Texels are independent
+//! (parallel, each into its own slot: the output does not depend on the thread count).
+//!
+//! The result is an SVBRDF: `texels × params` f32 plus one gain per pair and channel (the
+//! white standard's mean value over ρ/π, which turns a BRDF value back into the
+//! dataset's units; 1 for BRDF data). [`SvbrdfFit`] decodes any grid pair from it, so
+//! `compress::evaluate` measures its error in the same terms as every compression method.
+
+use super::data::Loaded;
+use super::lm::{LmOptions, Stop};
+use super::{check_observations, drop_saturated, fit_from, Family, FitError, FitReport, ModelKind, Scales, Space};
+use crate::compress::interp::BtfModel;
+use crate::compress::CompressError;
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// Per-texel parameters of one family.
+#[derive(Clone, Debug)]
+pub struct SvbrdfFit {
+    pub family: Family,
+    pub width: usize,
+    pub height: usize,
+    pub lights_deg: Vec<[f64; 2]>,
+    pub views_deg: Vec<[f64; 2]>,
+    /// Row-major `texels × n_params`, parameter values in their own units.
+    pub params: Vec<f32>,
+    /// Per grid pair (`view · lights + light`) the gain plane `[a, b, c]` per channel
+    /// (`a + b·u + c·w`, u and w the texel centre in [−½, ½]); `None` = not fitted (below
+    /// the horizon or not measured): decoded as 0.
+    pub gain: Vec<Option<[[f32; 3]; 3]>>,
+    /// Each texel's own directions (as the fit used them), if the dataset gives them.
+    pub geometry: Option<super::data::Geometry>,
+}
+
+/// Summary of a per-texel fit.
+#[derive(Clone, Debug, Serialize)]
+pub struct TexelSummary {
+    pub texels: usize,
+    pub params_per_texel: usize,
+    /// How the texels' fits ended (reason → count), in a fixed order.
+    pub stops: BTreeMap<String, usize>,
+    /// Texels with nothing to fit (all zero or no calibrated pair): stored as the average.
+    pub texels_without_data: usize,
+    /// Mean over texels of the cosine-weighted relative RMS.
+    pub mean_rel_rms: f64,
+    /// Worst texel's relative RMS, and which.
+    pub max_rel_rms: f64,
+    pub worst_texel: usize,
+    /// Bytes of the SVBRDF as f32 (parameters + per-pair gains).
+    pub bytes: usize,
+}
+
+/// Fit every texel of `loaded`, starting from `average` (the fit of the averaged BRDF with
+/// the same family). `iterations` caps each texel's LM.
+pub fn fit_texels(
+    loaded: &Loaded,
+    average: &FitReport,
+    space: Space,
+    iterations: usize,
+) -> Result<(SvbrdfFit, TexelSummary), FitError> {
+    if average.model != ModelKind::Lafortune {
+        return Err(FitError::Options {
+            what: format!("--per-texel with --model {}", average.model.name()),
+            reason: "the per-texel fit is McAllister's scaled Lafortune SBRDF: use --model lafortune".into(),
+        });
+    }
+    let family = Family::new(average.model, average.lobes);
+    let x0: Vec<f64> = family
+        .params
+        .iter()
+        .zip(&average.params)
+        .map(|(s, (_, v))| s.to_x(*v))
+        .collect();
+    let opts = LmOptions {
+        max_iterations: iterations.max(1),
+        ..Default::default()
+    };
+    let np = family.n_params();
+    let results: Vec<(Vec<f64>, Option<Stop>, f64)> = (0..loaded.texels())
+        .into_par_iter()
+        .map(|t| {
+            let obs = loaded.texel(t);
+            if check_observations(&obs, "texel").is_err() {
+                return (x0.clone(), None, 0.0);
+            }
+            let (kept, _) = drop_saturated(&obs);
+            if kept.len() < 3 {
+                return (x0.clone(), None, 0.0);
+            }
+            let scales = Scales::of(&kept);
+            let r = fit_from(&family, &kept, space, &scales, &x0, &opts);
+            let model = family.model(&family.values(&r.params));
+            let d = super::diagnose(&model, &kept, &scales);
+            (r.params, Some(r.stop), d.rel_rms)
+        })
+        .collect();
+    let mut params = Vec::with_capacity(loaded.texels() * np);
+    let mut stops = BTreeMap::new();
+    let (mut empty, mut sum, mut worst, mut worst_t) = (0, 0.0, 0.0f64, 0);
+    for (t, (x, stop, rel)) in results.iter().enumerate() {
+        params.extend(family.values(x).iter().map(|v| *v as f32));
+        match stop {
+            None => empty += 1,
+            Some(s) => *stops.entry(s.reason().to_string()).or_insert(0) += 1,
+        }
+        sum += rel;
+        if *rel > worst {
+            worst = *rel;
+            worst_t = t;
+        }
+    }
+    let nl = loaded.lights_deg.len();
+    let mut gain = vec![None; nl * loaded.views_deg.len()];
+    for (p, g) in loaded.pairs.iter().zip(loaded.gain_planes()) {
+        gain[p.view * nl + p.light] = Some(g);
+    }
+    let fit = SvbrdfFit {
+        family,
+        width: loaded.width,
+        height: loaded.height,
+        lights_deg: loaded.lights_deg.clone(),
+        views_deg: loaded.views_deg.clone(),
+        params,
+        gain,
+        geometry: loaded.geometry,
+    };
+    let summary = TexelSummary {
+        texels: loaded.texels(),
+        params_per_texel: np,
+        stops,
+        texels_without_data: empty,
+        mean_rel_rms: sum / (loaded.texels() - empty).max(1) as f64,
+        max_rel_rms: worst,
+        worst_texel: worst_t,
+        bytes: fit.bytes(),
+    };
+    Ok((fit, summary))
+}
+
+impl SvbrdfFit {
+    /// Size as stored: f32 parameters per texel, a f32 gain plane per pair and channel,
+    /// and the geometry (3 f32).
+    pub fn bytes(&self) -> usize {
+        4 * self.params.len() + 4 * 9 * self.gain.len() + 12
+    }
+
+    /// Parameter values of texel `t`.
+    pub fn texel_params(&self, t: usize) -> Vec<f64> {
+        let np = self.family.n_params();
+        self.params[t * np..(t + 1) * np].iter().map(|v| *v as f64).collect()
+    }
+}
+
+impl BtfModel for SvbrdfFit {
+    fn width(&self) -> usize {
+        self.width
+    }
+    fn height(&self) -> usize {
+        self.height
+    }
+    fn lights_deg(&self) -> &[[f64; 2]] {
+        &self.lights_deg
+    }
+    fn views_deg(&self) -> &[[f64; 2]] {
+        &self.views_deg
+    }
+    fn reconstruct(&self, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        let n = self.width * self.height;
+        let Some(g) = self
+            .gain
+            .get(view * self.lights_deg.len() + light)
+            .copied()
+            .ok_or_else(|| CompressError::Invalid(format!("pair (light {light}, view {view}) outside the grid")))?
+        else {
+            return Ok(vec![0.0; 3 * n]);
+        };
+        let d = |x: [f64; 2]| gonio_devices::Direction::from_degrees(x[0], x[1]).vector();
+        let (l, v) = (d(self.lights_deg[light]), d(self.views_deg[view]));
+        let (w, h) = (self.width, self.height);
+        let out: Vec<f32> = (0..n)
+            .into_par_iter()
+            .flat_map_iter(|t| {
+                let (lt, vt) = match &self.geometry {
+                    Some(g) => g.texel_dirs(l, v, t, w, h),
+                    None => (l, v),
+                };
+                let f = self.family.model(&self.texel_params(t)).eval(lt, vt);
+                let u = ((t % w) as f64 + 0.5) / w as f64 - 0.5;
+                let y = ((t / w) as f64 + 0.5) / h as f64 - 0.5;
+                (0..3).map(move |c| {
+                    let gain = g[c][0] as f64 + g[c][1] as f64 * u + g[c][2] as f64 * y;
+                    (f[c] * gain) as f32
+                })
+            })
+            .collect();
+        Ok(out)
+    }
+}
