@@ -278,6 +278,9 @@ fn prepare_output(out: &Path, opts: &ZarrOptions, group_json: &[u8]) -> Result<(
                 "holds a different Zarr export (its zarr.json differs: another dataset, \
                  dataset path or gonio version)",
             )),
+            // Not renamed into place yet by a part running now: fine if everything there
+            // is a name this export writes (or a part's temporary file).
+            Err(_) if only_export_names(out)? => Ok(()),
             Err(_) => Err(exists("is not empty and holds no zarr.json")),
         };
     }
@@ -290,6 +293,27 @@ fn prepare_output(out: &Path, opts: &ZarrOptions, group_json: &[u8]) -> Result<(
         ));
     }
     std::fs::remove_dir_all(out).ctx("removing", out, None)
+}
+
+/// Whether every entry of `out` is one a Zarr export writes (or a temporary file).
+fn only_export_names(out: &Path) -> Result<bool, StoreError> {
+    const NAMES: [&str; 7] = [
+        "zarr.json",
+        BTF_ARRAY,
+        STATUS_ARRAY,
+        "view_theta",
+        "view_phi",
+        "light_theta",
+        "light_phi",
+    ];
+    for e in std::fs::read_dir(out).ctx("reading", out, None)? {
+        let name = e.ctx("reading", out, None)?.file_name();
+        let name = name.to_string_lossy();
+        if !NAMES.contains(&name.as_ref()) && !name.starts_with(crate::store::atomic::TMP_PREFIX) {
+            return Ok(false);
+        }
+    }
+    Ok(true)
 }
 
 /// Move every key of `mem` to `out` (atomic writes), emptying `mem`.
