@@ -28,8 +28,9 @@ fi
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
-# 1. A simulated BTF (36 images of 24²): single process, then 3 concurrent shards into one store.
-"$gonio" sim btf --sweep fibonacci:6 --size 24 --out "$work/btf" --json > /dev/null
+# 1. A simulated BTF (64 images of 64²: big enough that zarrs encodes a shard's images on
+#    several threads, which once made shards differ): single process, then 3 concurrent shards into one store.
+"$gonio" sim btf --sweep fibonacci:8 --size 64 --out "$work/btf" --json > /dev/null
 "$gonio" export "$work/btf" --format zarr "$work/btf.zarr" --mean-image "$work/btf-mean.npy" --json > /dev/null
 # The three parts run at the same time (no lock): each writes its views' shards and the
 # same metadata bytes, renamed into place.

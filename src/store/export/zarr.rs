@@ -389,7 +389,11 @@ pub fn export_zarr(dir: &Path, out: &Path, opts: &ZarrOptions) -> Result<(ZarrRe
         data_type::float16(),
         f16::NAN,
     );
+    // Inner chunks in C order inside a shard: zarrs' default (`Unordered`) places them in
+    // the order its threads finish, so the same shard would differ from run to run.
+    let ordered = codec::ShardingCodecOptions::default().with_subchunk_write_order(codec::SubchunkWriteOrder::C);
     b.subchunk_shape(vec![1, 1, u(h), u(w), 3])
+        .codec_specific_options(zarrs::array::CodecSpecificOptions::default().with_option(ordered))
         .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(ZSTD_LEVEL, false))])
         .dimension_names(Some(DIMENSIONS))
         .attributes(attrs(serde_json::json!({
