@@ -22,7 +22,8 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("develop", &[]),
     // data
     ("plan", &["sweep"]),
-    ("store", &["sweep"]),
+    // the Zarr export writes a shard's views (`store/export/zarr.rs`, `--shard I/N`)
+    ("store", &["sweep", "shard"]),
     // synthetic BTFs and families of them, written as datasets
     ("synth", &["sweep", "shard", "store"]),
     // drivers and processors: siblings that never import each other

@@ -11,6 +11,9 @@ pub enum ExportFormat {
     Ubo2003,
     /// NumPy float32 array [N, H, W, 3] of the 8-bit sRGB values, plus OUT.json index.
     Npy,
+    /// Zarr v3 store: float16 [view, light, y, x, channel], one view per shard, one image
+    /// per inner chunk, NaN where a pair is missing (needs the cargo feature `zarr`).
+    Zarr,
 }
 
 #[derive(clap::Args, Debug)]
@@ -19,8 +22,19 @@ pub struct ExportArgs {
     pub dir: PathBuf,
     #[arg(long, value_enum)]
     pub format: ExportFormat,
-    /// Output file.
+    /// Output file (a directory for --format zarr).
     pub out: PathBuf,
+    /// Zarr only: write the shards of views of part I of N (1-based) into OUT; N such
+    /// processes fill one store, equal byte for byte to a single-process export.
+    #[arg(long)]
+    pub shard: Option<crate::shard::Shard>,
+    /// Zarr only: replace an existing Zarr store at OUT.
+    #[arg(long)]
+    pub force: bool,
+    /// Zarr only: also write the mean image over all exported pairs (NaN-mean of the
+    /// stored float16 values, in float64) as a NumPy float64 array [H, W, 3].
+    #[arg(long, value_name = "NPY")]
+    pub mean_image: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -33,9 +47,16 @@ pub struct VerifyArgs {
 }
 
 pub fn run(args: ExportArgs) -> Result<ExitCode> {
+    if let ExportFormat::Zarr = args.format {
+        return run_zarr(args);
+    }
+    if args.shard.is_some() || args.force || args.mean_image.is_some() {
+        anyhow::bail!("--shard, --force and --mean-image apply to --format zarr only");
+    }
     let report = match args.format {
         ExportFormat::Ubo2003 => store::export_ubo2003(&args.dir, &args.out),
         ExportFormat::Npy => store::export_npy(&args.dir, &args.out),
+        ExportFormat::Zarr => unreachable!("handled above"),
     }
     .with_context(|| format!("exporting {} to {}", args.dir.display(), args.out.display()))?;
     if args.json {
@@ -44,6 +65,56 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
         println!("{report:?}");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(feature = "zarr")]
+fn run_zarr(args: ExportArgs) -> Result<ExitCode> {
+    use store::export::zarr::{export_zarr, write_mean_npy, ZarrOptions};
+    let opts = ZarrOptions {
+        shard: args.shard,
+        force: args.force,
+        mean: args.mean_image.is_some(),
+    };
+    let (report, mean) = export_zarr(&args.dir, &args.out, &opts)
+        .with_context(|| format!("exporting {} to Zarr {}", args.dir.display(), args.out.display()))?;
+    let mut mean_json = serde_json::Value::Null;
+    if let (Some(path), Some(mean)) = (&args.mean_image, &mean) {
+        write_mean_npy(mean, path).with_context(|| format!("writing the mean image {}", path.display()))?;
+        mean_json = serde_json::json!({ "path": path, "images": mean.images, "shape": [mean.height, mean.width, 3] });
+    }
+    if args.json {
+        let mut v = serde_json::to_value(&report)?;
+        v["mean_image"] = mean_json;
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{}: [view, light, y, x, channel] = {:?} f16; views {}..{} written ({} images, {} files, {} bytes); \
+             whole store: {} measured, {} substituted, {} isotropic, {} missing (NaN)",
+            report.path.display(),
+            report.shape,
+            report.views_written[0],
+            report.views_written[1],
+            report.images_written,
+            report.files_written,
+            report.bytes_written,
+            report.measured,
+            report.substituted,
+            report.isotropic,
+            report.missing
+        );
+        if let Some(p) = &args.mean_image {
+            println!("mean image: {}", p.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(not(feature = "zarr"))]
+fn run_zarr(_args: ExportArgs) -> Result<ExitCode> {
+    anyhow::bail!(
+        "this gonio was built without Zarr support (cargo feature `zarr`, on by default): \
+         rebuild with `cargo build --release --features zarr` (or without --no-default-features)"
+    )
 }
 
 pub fn verify(args: VerifyArgs) -> Result<ExitCode> {

@@ -177,6 +177,18 @@ pub enum StoreError {
         source: zip::result::ZipError,
     },
 
+    /// A Zarr export cannot be written (zarrs refused the array or a chunk).
+    #[error("Zarr export to {}: {reason}", path.display())]
+    Zarr { path: PathBuf, reason: String },
+
+    /// The Zarr output path holds something other than this dataset's export.
+    #[error(
+        "{} already exists and {reason}: choose another output path, or pass --force to \
+         replace it (a sharded export (--shard) never replaces: remove it first)",
+        path.display()
+    )]
+    ZarrOutputExists { path: PathBuf, reason: String },
+
     /// JSON (de)serialisation failed.
     #[error("JSON error for {}: {source}", path.display())]
     Json {

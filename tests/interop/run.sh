@@ -39,6 +39,9 @@ PY
 # Textured, noisy 64² images are the hardest case for JPEG q95: measured 2.6–2.8/255 mean
 # abs error per image (clean gradients: 0.45/255), hence the 4/255 mean tolerance here.
 "$GONIO_PYTHON" tests/interop/check_ubo2003.py "$work/out.zip" "$work/ref.npy" --mean-tol 4
+# Zarr v3 export (issue 19): zarr-python 3, xarray and dask.array read it bit for bit;
+# shards fill one store byte-identical to one process (tests/interop/zarr.sh).
+tests/interop/zarr.sh "$gonio"
 # Mitsuba 3 (scalar_rgb) as an oracle for the microfacet BRDFs: rough conductors and
 # rough plastics over seeded random direction pairs; tolerances in the script.
 "$GONIO_PYTHON" tests/interop/mitsuba_bsdf.py "$gonio"

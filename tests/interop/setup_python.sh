@@ -2,7 +2,7 @@
 # Create (or re-use) a Python virtual environment with the public btf-extractor 1.7.0
 # reader used by tests/interop/check_ubo2003.py and the Mitsuba 3 renderer (PyPI `mitsuba`
 # 3.9.1 with `drjit` 1.5.0, binary wheels) used as an oracle by tests/interop/mitsuba_*.py,
-# with every package pinned.
+# zarr-python, xarray and dask (tests/interop/check_zarr.py), with every package pinned.
 #
 # Usage: tests/interop/setup_python.sh VENV_DIR
 # Then:  GONIO_PYTHON=VENV_DIR/bin/python cargo test -p gonio --lib store
@@ -61,6 +61,27 @@ runtime_pins=(
     "pyqtgraph==0.14.0"
     "qtpy==2.4.3"
     "colorama==0.4.6"
+    # Zarr v3 readers for `gonio export --format zarr` (tests/interop/check_zarr.py):
+    # zarr-python 3.1.5 (the newest 3.x resolved with numpy 1.26 on Python 3.11),
+    # xarray, dask.array, and OpenEXR's bindings to read the reference EXRs; with their
+    # dependencies (google-crc32c: the crc32c codec of the shard index).
+    "zarr==3.1.5"
+    "numcodecs==0.16.6"
+    "google-crc32c==1.9.0"
+    "donfig==0.8.1.post1"
+    "PyYAML==6.0.4"
+    "xarray==2026.9.0"
+    "dask==2026.8.0"
+    "click==8.5.1"
+    "cloudpickle==3.1.3"
+    "fsspec==2026.9.0"
+    "importlib_metadata==10.2.0"
+    "lazy-importer==0.1.0"
+    "zipp==4.1.2"
+    "partd==1.4.2"
+    "locket==1.0.0"
+    "toolz==1.2.0"
+    "OpenEXR==3.5.3"
     # Playwright's Python client drives Debian's /usr/bin/chromium in tests/browser/
     # (executable_path; its own browser download is never used).
     "playwright==1.65.2"
@@ -79,6 +100,7 @@ import zaber_motion.ascii  # noqa: F401
 import pymeasure.instruments.newport  # noqa: F401
 import pyvisa_py  # noqa: F401
 import playwright.sync_api  # noqa: F401
+import zarr, xarray, dask.array, OpenEXR  # noqa: F401,E401
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
 sys.exit(1 if bad else 0)
@@ -86,7 +108,7 @@ PY
 }
 
 if [ -x "$venv/bin/python" ] && check "${build_pins[@]}" "${runtime_pins[@]}"; then
-    echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1 ready"
+    echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1, zarr 3.1.5 ready"
     exit 0
 fi
 
@@ -94,4 +116,4 @@ fi
 "$venv/bin/python" -m pip install --quiet "${build_pins[@]}"
 "$venv/bin/python" -m pip install --quiet --no-build-isolation "${runtime_pins[@]}"
 check "${build_pins[@]}" "${runtime_pins[@]}"
-echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1 ready"
+echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1, zarr 3.1.5 ready"

@@ -30,3 +30,5 @@ mod serial_drivers;
 mod shard_merge;
 mod synthesize_cli;
 mod view_server;
+#[cfg(feature = "zarr")]
+mod zarr_export;

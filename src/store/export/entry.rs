@@ -223,6 +223,12 @@ pub fn to_srgb8(img: &RgbImage) -> Vec<u8> {
 
 /// Read, hash-check and decode an exported entry's image and return its 8-bit sRGB.
 pub(crate) fn load_srgb8(dir: &Path, header: &ManifestHeader, e: &ExportEntry) -> Result<Vec<u8>, StoreError> {
+    Ok(to_srgb8(&load_linear(dir, header, e)?))
+}
+
+/// Read, hash-check and decode an exported entry's image (an isotropic equivalent
+/// transformed from its representative's): the linear values every export starts from.
+pub(crate) fn load_linear(dir: &Path, header: &ManifestHeader, e: &ExportEntry) -> Result<RgbImage, StoreError> {
     let path = dir.join(&e.image);
     let bytes = match std::fs::read(&path) {
         Ok(b) => b,
@@ -255,11 +261,10 @@ pub(crate) fn load_srgb8(dir: &Path, header: &ManifestHeader, e: &ExportEntry) -
             ),
         });
     }
-    let img = match &e.transform {
+    Ok(match &e.transform {
         Some(t) => t.apply(&img),
         None => img,
-    };
-    Ok(to_srgb8(&img))
+    })
 }
 
 /// Run `f` over `entries` in parallel batches, handing results to `sink` in order.

@@ -24,13 +24,18 @@ pub fn npy_sidecar_path(out: &Path) -> PathBuf {
 
 /// The `.npy` (format 1.0) header for a little-endian float32 C-order array.
 pub fn npy_header(shape: &[usize]) -> Vec<u8> {
+    npy_header_typed("<f4", shape)
+}
+
+/// The `.npy` (format 1.0) header for a C-order array of NumPy type `descr` (e.g. `<f8`).
+pub fn npy_header_typed(descr: &str, shape: &[usize]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let shape_str = if dims.len() == 1 {
         format!("({},)", dims[0])
     } else {
         format!("({})", dims.join(", "))
     };
-    let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
+    let mut dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_str}, }}");
     // magic (6) + version (2) + header length (2) + dict + '\n' must be a multiple of 64.
     let unpadded = 10 + dict.len() + 1;
     dict.push_str(&" ".repeat((64 - unpadded % 64) % 64));
