@@ -212,7 +212,7 @@ pub fn direction_uncertainty(
     const H_DEG: f64 = 1e-3;
     let n = parameters.len();
     let cov = DMatrix::from_fn(n, n, |i, j| {
-        let c = correlation.get(i).and_then(|r| r.get(j)).copied().unwrap_or(0.0);
+        let c = correlation.get(i).and_then(|r| r.get(j).copied()).unwrap_or(0.0);
         let c = if c.is_finite() { c } else { 0.0 };
         parameters[i].sigma_deg * parameters[j].sigma_deg * c
     });
