@@ -19,7 +19,8 @@
 //! and the error against the number of poses.
 
 use super::offset_fit::{
-    camera_model, corrected, direction_errors, nominal_rig, DirectionErrors, EffortFigures, ParameterError,
+    camera_model, corrected, direction_errors, direction_uncertainty, nominal_rig, DirectionErrors,
+    DirectionUncertainty, EffortFigures, ParameterError,
 };
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::develop::frame_to_linear;
@@ -97,6 +98,10 @@ pub struct LightGeometryCalibration {
     /// offsets applied.
     pub directions_before: Option<DirectionErrors>,
     pub directions_after: Option<DirectionErrors>,
+    /// The light and view directions' one-sigma uncertainty over the Bonn pairs from the
+    /// fit's covariance, with the true error in sigmas on the simulator.
+    #[serde(default)]
+    pub direction_uncertainty: DirectionUncertainty,
     pub effort: Vec<LightEffortRow>,
 }
 
@@ -238,6 +243,12 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
     let directions_after = truth_spec
         .as_ref()
         .map(|t| direction_errors(&corrected(&nominal, |r| fit.apply(r)), t));
+    let direction_uncertainty = direction_uncertainty(
+        &corrected(&nominal, |r| fit.apply(r)),
+        &fit.parameters,
+        &fit.correlation,
+        truth_spec.as_ref(),
+    );
     // Error against effort: the same fit on the first k poses.
     let mut effort = Vec::new();
     for k in opts.min_poses.max(1)..=poses.len() {
@@ -278,6 +289,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
             localisation,
             directions_before,
             directions_after,
+            direction_uncertainty,
             effort,
         }),
         rig_time_s: rig.time() - t0,

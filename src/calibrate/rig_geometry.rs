@@ -15,7 +15,9 @@
 //! applying the estimate, and the error against the number of views.
 
 use super::offset_fit::{camera_model, corrected, nominal_rig, EffortFigures};
-pub use super::offset_fit::{direction_errors, DirectionErrors, ParameterError};
+pub use super::offset_fit::{
+    direction_errors, direction_uncertainty, DirectionErrors, DirectionUncertainty, ParameterError,
+};
 use super::{CalibrateError, CalibrationResult, Recipe, RunOutput};
 use crate::develop::frame_to_linear;
 use crate::rig::Rig;
@@ -56,6 +58,10 @@ pub struct RigGeometryCalibration {
     /// applied.
     pub directions_before: Option<DirectionErrors>,
     pub directions_after: Option<DirectionErrors>,
+    /// The view and light directions' one-sigma uncertainty over the Bonn pairs from the
+    /// fit's covariance, with the true error in sigmas on the simulator.
+    #[serde(default)]
+    pub direction_uncertainty: DirectionUncertainty,
     pub effort: Vec<RigEffortRow>,
 }
 
@@ -131,6 +137,12 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
     let directions_after = truth_spec
         .as_ref()
         .map(|t| direction_errors(&corrected(&nominal, |r| fit.apply(r)), t));
+    let direction_uncertainty = direction_uncertainty(
+        &corrected(&nominal, |r| fit.apply(r)),
+        &fit.parameters,
+        &fit.correlation,
+        truth_spec.as_ref(),
+    );
     // Error against effort: the same fit on the first k views.
     let mut effort = Vec::new();
     for k in opts.min_views.max(1)..=views.len() {
@@ -171,6 +183,7 @@ pub(super) async fn run_rig_geometry(recipe: &Recipe, rig: &Rig) -> Result<RunOu
             errors,
             directions_before,
             directions_after,
+            direction_uncertainty,
             effort,
         }),
         rig_time_s: rig.time() - t0,

@@ -103,6 +103,19 @@ fn lamp_offsets_are_recovered_and_applying_them_corrects_the_light_directions() 
     );
     assert!(before.light_max_deg > 0.3, "{before:?}");
     assert!(after.light_max_deg < TOL_DEG, "{after:?}");
+    let u = &r.direction_uncertainty;
+    println!(
+        "light-geometry: over {} Bonn pairs, light sigma max {:.6}° mean {:.6}°, true error max {:.5}°, \
+         worst error / sigma {:?}, beyond 3 sigma {:?}",
+        u.pairs,
+        u.light_sigma_max_deg,
+        u.light_sigma_mean_deg,
+        after.light_max_deg,
+        u.light_max_error_over_sigma,
+        u.light_beyond_3_sigma_fraction
+    );
+    assert_eq!(u.pairs, after.pairs);
+    assert!(u.light_sigma_max_deg > 0.0 && u.light_sigma_max_deg < TOL_DEG, "{u:?}");
     assert!(
         before.light_max_deg / after.light_max_deg > 50.0,
         "{before:?} {after:?}"

@@ -63,6 +63,23 @@ fn misalignment_is_recovered_and_applying_it_corrects_the_directions() {
     );
     assert!(before.view_max_deg > 0.25 && before.light_max_deg > 0.3, "{before:?}");
     assert!(after.view_max_deg < 0.02 && after.light_max_deg < 0.02, "{after:?}");
+    // the direction uncertainty from the fit's covariance, next to the true error
+    let u = &r.direction_uncertainty;
+    println!(
+        "rig-geometry: over {} Bonn pairs, view sigma max {:.5}° mean {:.5}°, true error max {:.5}°, \
+         worst error / sigma {:?}, beyond 3 sigma {:?}; light sigma max {:.5}°, error / sigma {:?}",
+        u.pairs,
+        u.view_sigma_max_deg,
+        u.view_sigma_mean_deg,
+        after.view_max_deg,
+        u.view_max_error_over_sigma,
+        u.view_beyond_3_sigma_fraction,
+        u.light_sigma_max_deg,
+        u.light_max_error_over_sigma
+    );
+    assert_eq!(u.pairs, after.pairs);
+    assert!(u.view_sigma_max_deg > 0.0 && u.view_sigma_max_deg < 0.02, "{u:?}");
+    assert!(u.view_max_error_over_sigma.unwrap() < 3.0, "{u:?}");
     // the same through the public `apply`
     let mut corrected = spec.clone();
     corrected.sim_misalignment = None;
