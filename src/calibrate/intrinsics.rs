@@ -6,6 +6,18 @@
 use super::*;
 use crate::rig::capture::saturated_fraction;
 
+/// The simulated camera's exact model: its intrinsics and the simulator's lens distortion.
+fn true_camera(rig: &Rig) -> CameraModel {
+    let k = rig.spec.camera.intrinsics();
+    CameraModel {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        distortion: sim_distortion(rig),
+    }
+}
+
 /// Lens distortion of the simulated camera (the ground truth's; zero on hardware, where
 /// the corner truth is not used and the wedge's nominal geometry needs no lens).
 fn sim_distortion(rig: &Rig) -> [f64; 5] {
@@ -25,14 +37,7 @@ fn corner_truth(
     object: &[[f64; 2]],
     image: &[[f64; 2]],
 ) -> (f64, Vec<[f64; 2]>, u8) {
-    let k = rig.spec.camera.intrinsics();
-    let cam = CameraModel {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        distortion: sim_distortion(rig),
-    };
+    let cam = true_camera(rig);
     let pose = rig.kinematics.camera_pose(q);
     (0..4u8)
         .map(|r| {
@@ -67,14 +72,7 @@ fn lattice_truth(
     board: &gonio_calibration::board::Board,
     image: &[[f64; 2]],
 ) -> (f64, Vec<[f64; 2]>) {
-    let k = rig.spec.camera.intrinsics();
-    let cam = CameraModel {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        distortion: sim_distortion(rig),
-    };
+    let cam = true_camera(rig);
     let pose = rig.kinematics.camera_pose(q);
     let exact: Vec<[f64; 2]> = board
         .all_corners()

@@ -3,7 +3,7 @@
 //! mismatch plus what the solver has not converged yet, never noise).
 
 use crate::fit::lm::LmOptions;
-use crate::fit::{fit, FitOptions, ModelKind, Observations, Space};
+use crate::fit::{fit, FitOptions, Observations, Space};
 use crate::sweep::Sweep;
 use anyhow::{anyhow, Context, Result};
 use gonio_simulator::brdf::{
@@ -107,13 +107,7 @@ pub fn run(a: FitBenchArgs) -> Result<ExitCode> {
             a.truth
         )
     })?;
-    let kind = ModelKind::parse(&a.model).ok_or_else(|| {
-        anyhow!(
-            "--model {}: unknown model; use one of {}",
-            a.model,
-            ModelKind::ALL.map(|k| k.name()).join(", ")
-        )
-    })?;
+    let kind = super::fit::parse_model("--model", &a.model)?;
     let sweep = Sweep::resolve(&a.sweep).with_context(|| format!("--sweep {}", a.sweep))?;
     let mut pairs = Vec::new();
     for v in &sweep.views {

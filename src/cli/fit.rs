@@ -85,14 +85,18 @@ struct Output {
     per_texel: Option<TexelResult>,
 }
 
-pub fn run(a: FitArgs) -> Result<ExitCode> {
-    let kind = ModelKind::parse(&a.model).ok_or_else(|| {
+/// `flag`'s value as a model, or an error naming the flag and the models there are.
+pub(super) fn parse_model(flag: &str, s: &str) -> Result<ModelKind> {
+    ModelKind::parse(s).ok_or_else(|| {
         anyhow!(
-            "--model {}: unknown model; use one of {}",
-            a.model,
+            "{flag} {s}: unknown model; use one of {}",
             ModelKind::ALL.map(|k| k.name()).join(", ")
         )
-    })?;
+    })
+}
+
+pub fn run(a: FitArgs) -> Result<ExitCode> {
+    let kind = parse_model("--model", &a.model)?;
     let space = Space::parse(&a.space).ok_or_else(|| anyhow!("--space {}: use `log` or `cosine`", a.space))?;
     let opts = FitOptions {
         kind,
