@@ -121,6 +121,12 @@ pub struct Highlight {
     pub region_px: usize,
     /// Intensity-weighted RMS radius of the region (px): the lobe's size in the image.
     pub radius_px: f64,
+    /// Where the *other* locator puts the same highlight, minus [`Highlight::pixel`] (px);
+    /// `None` when the log-quadratic has no maximum. Both locators are unbiased for a
+    /// symmetric lobe, so their disagreement measures the lobe's asymmetry: the one
+    /// localisation error that no residual shows (it is nearly the same at every pose and
+    /// the fit absorbs it). [`estimate_light_geometry`] turns it into a systematic term.
+    pub locator_shift_px: Option<[f64; 2]>,
 }
 
 #[derive(Clone, Debug, PartialEq, Error)]
@@ -280,10 +286,13 @@ pub fn locate_highlight(img: &RgbImage, opts: &HighlightOptions) -> Result<Highl
         .sum::<f64>()
         / sw)
         .sqrt();
-    let pixel = match opts.locator {
-        Locator::Centroid => [cu, cv],
-        Locator::LogQuadratic => log_quadratic_vertex(&region, &lum, w, background, [pu, pv])
-            .ok_or(HighlightError::NotPeaked { u: pu, v: pv })?,
+    let vertex = log_quadratic_vertex(&region, &lum, w, background, [pu, pv]);
+    let (pixel, other) = match opts.locator {
+        Locator::Centroid => ([cu, cv], vertex),
+        Locator::LogQuadratic => (
+            vertex.ok_or(HighlightError::NotPeaked { u: pu, v: pv })?,
+            Some([cu, cv]),
+        ),
     };
     Ok(Highlight {
         pixel,
@@ -291,6 +300,7 @@ pub fn locate_highlight(img: &RgbImage, opts: &HighlightOptions) -> Result<Highl
         background,
         region_px: region.len(),
         radius_px,
+        locator_shift_px: other.map(|o| [o[0] - pixel[0], o[1] - pixel[1]]),
     })
 }
 
@@ -339,6 +349,10 @@ pub struct LampPose {
     pub q: Vec<f64>,
     /// The located highlight (px, gonio's convention).
     pub pixel: [f64; 2],
+    /// The other locator's position minus `pixel` ([`Highlight::locator_shift_px`]);
+    /// absent in results written before it existed.
+    #[serde(default)]
+    pub locator_shift_px: Option<[f64; 2]>,
 }
 
 /// When to stop and when to refuse (`[light_geometry]` in a recipe).
@@ -433,9 +447,45 @@ pub struct LightGeometryFit {
     pub residuals_px: Vec<[f64; 2]>,
     pub iterations: usize,
     pub poses: usize,
+    /// How far the estimate moves (degrees, parameter order) when every highlight is
+    /// located by the other locator instead ([`Highlight::locator_shift_px`]), to first
+    /// order `(JᵀJ)⁻¹ Jᵀ s`: the systematic part of the uncertainty, which the residuals
+    /// cannot show because the localisation bias is nearly the same at every pose. `None`
+    /// when some pose has no second position (results written before it existed, or a
+    /// log-quadratic without a maximum).
+    #[serde(default)]
+    pub systematic_deg: Option<Vec<f64>>,
 }
 
 impl LightGeometryFit {
+    /// The parameters with σ from the covariance `Σ_stat + s sᵀ` (statistical plus the
+    /// systematic shift [`LightGeometryFit::systematic_deg`] as a 1σ, fully correlated
+    /// term), and its correlation matrix: what a direction uncertainty should propagate.
+    /// Without a systematic term this is the statistical table unchanged.
+    pub fn with_systematic(&self) -> (Vec<ParameterEstimate>, Vec<Vec<f64>>) {
+        let Some(s) = self
+            .systematic_deg
+            .as_ref()
+            .filter(|s| s.len() == self.parameters.len())
+        else {
+            return (self.parameters.clone(), self.correlation.clone());
+        };
+        let n = self.parameters.len();
+        let cov = DMatrix::from_fn(n, n, |a, b| {
+            let c = self.correlation.get(a).and_then(|r| r.get(b)).copied().unwrap_or(0.0);
+            let c = if c.is_finite() { c } else { 0.0 };
+            self.parameters[a].sigma_deg * self.parameters[b].sigma_deg * c + s[a] * s[b]
+        });
+        let (sig, correlation) = sigmas_and_correlation(&cov);
+        let parameters = self
+            .parameters
+            .iter()
+            .zip(sig)
+            .map(|(p, sigma_deg)| ParameterEstimate { sigma_deg, ..p.clone() })
+            .collect();
+        (parameters, correlation)
+    }
+
     /// Feed the lamp offsets into a rig description (`rig.alignment`); every other entry
     /// (the camera axes' offsets and mounting rotation of a rig-geometry calibration) is
     /// kept, so both calibrations combine in either order.
@@ -801,6 +851,19 @@ pub fn estimate_light_geometry(
         .unwrap_or_else(|| DMatrix::from_element(2, 2, f64::NAN))
         * s2;
     let (sig, correlation) = sigmas_and_correlation(&cov);
+    // The other locator's answer, to first order: at the optimum Jᵀr = 0, so moving every
+    // located highlight by s moves the estimate by (JᵀJ)⁻¹ Jᵀ s.
+    let systematic_deg = poses
+        .iter()
+        .map(|p| p.locator_shift_px)
+        .collect::<Option<Vec<[f64; 2]>>>()
+        .and_then(|s| {
+            let s = DVector::from_iterator(m, s.iter().flat_map(|x| [x[0], x[1]]));
+            let dp = (j.transpose() * &j).try_inverse()? * (j.transpose() * s);
+            dp.iter()
+                .all(|x| x.is_finite())
+                .then(|| dp.iter().map(|x| x.to_degrees()).collect())
+        });
     let mut alignment = AlignmentSpec::default();
     for (k, &i) in axes.iter().enumerate() {
         alignment
@@ -817,6 +880,7 @@ pub fn estimate_light_geometry(
         residuals_px: r.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
         iterations,
         poses: poses.len(),
+        systematic_deg,
     })
 }
 
@@ -891,6 +955,7 @@ mod tests {
             .map(|(n, q)| LampPose {
                 label: format!("p{n}"),
                 pixel: predict_highlight(&t, &cam, &q).unwrap().1,
+                locator_shift_px: None,
                 q,
             })
             .collect()
@@ -1014,6 +1079,7 @@ mod tests {
                 label: label.clone(),
                 q: q.clone(),
                 pixel: predict_highlight(&r, &camera(), q).unwrap().1,
+                locator_shift_px: None,
             })
             .collect();
         let e = estimate_light_geometry(&r, &camera(), &lp, &Default::default()).unwrap_err();
@@ -1119,6 +1185,55 @@ mod tests {
             let bias = h.pixel[0] - 60.0;
             assert!(bias > 0.0 && bias < 0.6, "{locator:?}: bias {bias}");
         }
+        // the two locators agree on a symmetric lobe and disagree on an asymmetric one,
+        // along its long axis: the disagreement is what the fit's systematic term uses
+        let opts = HighlightOptions::default();
+        let sym = locate_highlight(&blob(60.3, 47.8, 2.0, 0.6, 0.0), &opts).unwrap();
+        let [du, dv] = sym.locator_shift_px.unwrap();
+        assert!(du.hypot(dv) < 0.02, "symmetric: {du} {dv}");
+        let skew = locate_highlight(&blob(60.0, 50.0, 2.0, 0.6, 0.2), &opts).unwrap();
+        let [du, dv] = skew.locator_shift_px.unwrap();
+        assert!(du.abs() > 5.0 * dv.abs() && du.abs() > 0.02, "asymmetric: {du} {dv}");
+    }
+
+    #[test]
+    fn the_systematic_term_is_the_refit_with_the_other_locator() {
+        // every highlight shifted by the same 0.05 px in v (a lobe asymmetry the residuals
+        // cannot show): the first-order term equals refitting on the shifted highlights
+        let shift = [0.01, 0.05];
+        let mut poses = exact_poses(&VIEWS);
+        for p in &mut poses {
+            p.locator_shift_px = Some(shift);
+        }
+        let fit = estimate_light_geometry(&believed(), &camera(), &poses, &Default::default()).unwrap();
+        let s = fit.systematic_deg.clone().expect("every pose has a shift");
+        let moved: Vec<LampPose> = poses
+            .iter()
+            .map(|p| LampPose {
+                pixel: [p.pixel[0] + shift[0], p.pixel[1] + shift[1]],
+                ..p.clone()
+            })
+            .collect();
+        let refit = estimate_light_geometry(&believed(), &camera(), &moved, &Default::default()).unwrap();
+        for (k, name) in ["light_base", "light_arc"].iter().enumerate() {
+            let d = refit.alignment.axis_zero_offset_deg[*name] - fit.alignment.axis_zero_offset_deg[*name];
+            assert!(d.abs() > 1e-5, "{name}: the shift must move the estimate ({d})");
+            assert!(
+                (s[k] - d).abs() < 0.02 * d.abs(),
+                "{name}: first order {} vs refit {d}",
+                s[k]
+            );
+        }
+        // the exact fit has (almost) no statistical σ: the total σ is the systematic term
+        let (total, _) = fit.with_systematic();
+        for (p, sk) in total.iter().zip(&s) {
+            assert!((p.sigma_deg - sk.abs()).abs() < 1e-3 * sk.abs() + 1e-9, "{p:?} vs {sk}");
+        }
+        // a pose without a second position: no systematic term, σ unchanged
+        poses[0].locator_shift_px = None;
+        let fit = estimate_light_geometry(&believed(), &camera(), &poses, &Default::default()).unwrap();
+        assert!(fit.systematic_deg.is_none());
+        assert_eq!(fit.with_systematic().0, fit.parameters);
     }
 
     #[test]

@@ -47,6 +47,10 @@ pub struct HighlightRecord {
     pub peak: f64,
     pub radius_px: f64,
     pub region_px: usize,
+    /// The other locator's position minus `pixel` (the lobe's asymmetry, see
+    /// `gonio_calibration::light_geometry::Highlight::locator_shift_px`).
+    #[serde(default)]
+    pub locator_shift_px: Option<[f64; 2]>,
     /// Simulator only: the exact reflection point's pixel on the true mechanism, and the
     /// located − exact difference (the localisation bias of the lobe's shape and sampling).
     pub truth_pixel: Option<[f64; 2]>,
@@ -207,6 +211,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
             peak: h.peak,
             radius_px: h.radius_px,
             region_px: h.region_px,
+            locator_shift_px: h.locator_shift_px,
             truth_pixel,
             error_px,
         });
@@ -214,6 +219,7 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
             label: label.clone(),
             q: q.clone(),
             pixel: h.pixel,
+            locator_shift_px: h.locator_shift_px,
         });
         capture_times.push(rig.time() - t0);
         prev = Some(q);
@@ -243,10 +249,13 @@ pub(super) async fn run_light_geometry(recipe: &Recipe, rig: &Rig) -> Result<Run
     let directions_after = truth_spec
         .as_ref()
         .map(|t| direction_errors(&corrected(&nominal, |r| fit.apply(r)), t));
+    // The highlights' localisation bias is systematic (the same sign at every pose): the
+    // direction σ carries it next to the residuals' scatter (`fit.systematic_deg`).
+    let (with_bias, with_bias_correlation) = fit.with_systematic();
     let direction_uncertainty = direction_uncertainty(
         &corrected(&nominal, |r| fit.apply(r)),
-        &fit.parameters,
-        &fit.correlation,
+        &with_bias,
+        &with_bias_correlation,
         truth_spec.as_ref(),
     );
     // Error against effort: the same fit on the first k poses.

@@ -21,7 +21,10 @@ Checks (stated, asserted):
   than mrcal's anywhere by more than a factor 2 (gonio holds the ray fixed in the camera
   frame and so includes the principal point's full uncertainty; mrcal's is the smaller).
 
-Usage: mrcal_intrinsics.py DIR   (needs Debian's python3-mrcal and mrcal)
+- with `--max-truth-error PX` (a recipe that covers the imager): gonio's whole-image error
+  against the truth is below PX, and its result carries no uncertainty warning.
+
+Usage: mrcal_intrinsics.py DIR [--max-truth-error PX]   (needs Debian's python3-mrcal and mrcal)
 """
 import json
 import os
@@ -60,6 +63,12 @@ def opencv_unproject(cam, u, v):
 
 def main() -> int:
     d = sys.argv[1]
+    max_truth_error = None
+    if len(sys.argv) == 4 and sys.argv[2] == "--max-truth-error":
+        max_truth_error = float(sys.argv[3])
+    elif len(sys.argv) != 2:
+        print("usage: mrcal_intrinsics.py DIR [--max-truth-error PX]", file=sys.stderr)
+        return 2
     corners = json.load(open(f"{d}/corners.json"))
     result = json.load(open(f"{d}/calibration.json"))
     g = result["intrinsics"]["camera"]
@@ -170,6 +179,14 @@ def main() -> int:
         print(f"whole-image error against the truth (where both define a ray): gonio max {eg:.4f} px, mrcal max {em:.4f} px")
         if not eg <= em * 1.02 + 0.01:
             print("FAIL: gonio's whole-image error is worse than mrcal's", file=sys.stderr)
+            ok = False
+    if max_truth_error is not None:
+        pt = result.get("projection_truth") or {}
+        worst = pt.get("max_error_px")
+        warning = (result.get("projection_uncertainty") or {}).get("warning")
+        print(f"covering recipe: whole-image error {worst} px (bound {max_truth_error}), warning {warning!r}")
+        if worst is None or not worst < max_truth_error or warning is not None:
+            print("FAIL: the covering recipe does not hold over the whole image", file=sys.stderr)
             ok = False
     print("mrcal interop: " + ("OK" if ok else "FAILED"))
     return 0 if ok else 1

@@ -142,16 +142,18 @@ done
 "$GONIO_PYTHON" tests/interop/opencv_intrinsics.py "$work/cal-wedge"
 
 # --- mrcal as a peer (issue 21) ----------------------------------------------------------
-# The wide-lens run above and the same recipe with OpenCV's 5-parameter model: mrcal's own
+# The wide-lens run above, and the covering recipe (intrinsics-full-field.toml: partial views
+# into the image corners) with OpenCV's 5-parameter model, which must also project within
+# 0.5 px of the truth over the whole image with no warning (issue 21's target): mrcal's own
 # `mrcal-calibrate-cameras` on gonio's detected corners (same lens model, plain least
 # squares); intrinsics, projection-uncertainty maps and the whole-image error against the
 # truth compared (tolerances in tests/interop/mrcal_intrinsics.py). mrcal is Debian's
 # (`mrcal python3-mrcal`, installed by .ci/run) in the system python3, not in the venv.
 if /usr/bin/python3 -c 'import mrcal' 2>/dev/null && command -v mrcal-calibrate-cameras >/dev/null; then
   /usr/bin/python3 tests/interop/mrcal_intrinsics.py "$work/cal"
-  sed 's/^distortion = .*/distortion = "opencv5"/' calibration/recipes/intrinsics.toml > "$work/intrinsics-opencv5.toml"
+  sed 's/^distortion = .*/distortion = "opencv5"/' calibration/recipes/intrinsics-full-field.toml > "$work/intrinsics-opencv5.toml"
   "$gonio" calibrate "$work/intrinsics-opencv5.toml" --rig devices/rigs/wide-lens.toml --out "$work/cal5" --json > "$work/cal5.json"
-  /usr/bin/python3 tests/interop/mrcal_intrinsics.py "$work/cal5"
+  /usr/bin/python3 tests/interop/mrcal_intrinsics.py "$work/cal5" --max-truth-error 0.5
 elif [ -n "${CI:-}" ]; then
   echo "interop: mrcal is not installed under CI: .ci/run installs mrcal python3-mrcal" >&2
   exit 1

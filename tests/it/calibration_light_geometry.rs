@@ -84,6 +84,15 @@ fn lamp_offsets_are_recovered_and_applying_them_corrects_the_light_directions() 
         loc.mean_px[0], loc.mean_px[1], loc.rms_px, loc.max_px
     );
     assert!(loc.rms_px < 0.05 && loc.max_px < 0.1, "{loc:?}");
+    for h in &r.highlights {
+        println!(
+            "light-geometry: {:<40} error {:+.4?} px, other locator − this {:+.4?} px",
+            h.label,
+            h.error_px.unwrap(),
+            h.locator_shift_px
+        );
+    }
+    println!("light-geometry: systematic (other locator) {:?}°", fit.systematic_deg);
     assert!(
         r.highlights.iter().all(|h| h.peak > 0.1 && h.peak < 0.9),
         "exposure: highlights neither faint nor saturated"
@@ -116,6 +125,17 @@ fn lamp_offsets_are_recovered_and_applying_them_corrects_the_light_directions() 
     );
     assert_eq!(u.pairs, after.pairs);
     assert!(u.light_sigma_max_deg > 0.0 && u.light_sigma_max_deg < TOL_DEG, "{u:?}");
+    // With the systematic term (the other locator's answer) the σ bounds the true error:
+    // without it the error was 10σ on every pair (the centroid bias no residual shows).
+    let s = fit
+        .systematic_deg
+        .as_ref()
+        .expect("both locators located every highlight");
+    assert!(s.iter().any(|x| x.abs() > 1e-4), "the lobe is asymmetric: {s:?}");
+    assert!(
+        u.light_max_error_over_sigma.unwrap() < 3.0 && u.light_beyond_3_sigma_fraction == Some(0.0),
+        "{u:?}"
+    );
     assert!(
         before.light_max_deg / after.light_max_deg > 50.0,
         "{before:?} {after:?}"
