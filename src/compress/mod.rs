@@ -1,4 +1,4 @@
-//! BTF compression: six methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
+//! BTF compression: eight methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
 //! reconstruction at any direction pair.
 //!
 //! | method | file | stored as | what is stored |

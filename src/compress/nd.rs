@@ -150,7 +150,7 @@ mod tests {
     #[test]
     fn f32_versus_f64() {
         let (nl, nv) = (81, 81);
-        for range in [1e2f64, 1e6, 1e12, 1e20] {
+        for range in [1e2f64, 1e6, 1e12, 1e22] {
             let m = faer::Mat::from_fn(nl, nv, |l, v| {
                 let base = 0.01 + 0.02 * hash(l, v) as f64;
                 if l == v {
