@@ -443,7 +443,9 @@ mod tests {
             assert!(format!("{e:#}").contains("-c"), "{needs}: {e:#}");
         }
         // SVD-J refuses J above the 3 × 3 ABRDF matrices' rank, naming the range.
-        let e = run("--method svd-j -c 4").err().expect("svd-j -c 4 on a 3 × 3 grid");
+        let Err(e) = run("--method svd-j -c 4") else {
+            panic!("svd-j -c 4 ran on a 3 × 3 grid");
+        };
         assert!(format!("{e:#}").contains("1..=3"), "{e:#}");
         let r = run("--method pvmf -c 2").unwrap();
         assert_eq!(r.components, 2);
