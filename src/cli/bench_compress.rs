@@ -67,6 +67,11 @@ pub fn sweep() -> Vec<(&'static str, Vec<String>)> {
         v.push(("median-cut", a(&format!("--method median-cut --boxes {b}"))));
     }
     v.push(("homomorphic", a("--method homomorphic")));
+    // The per-ABRDF factorizations: storage grows with J per texel, so small J only.
+    v.push(("nd", a("--method nd")));
+    for j in [1, 2, 4] {
+        v.push(("svd-j", a(&format!("--method svd-j -c {j}"))));
+    }
     v
 }
 
@@ -105,6 +110,10 @@ pub fn frontier_sweep() -> Vec<(&'static str, Vec<String>)> {
             "local-pca",
             a(&format!("--method local-pca --clusters 8 -c {c} --quantize 8")),
         ));
+    }
+    v.push(("nd", a("--method nd --quantize 8")));
+    for j in [1, 2, 4] {
+        v.push(("svd-j", a(&format!("--method svd-j -c {j} --quantize 8"))));
     }
     v
 }
@@ -415,14 +424,29 @@ mod tests {
             argv.extend(extra.split_whitespace().map(String::from));
             compress_report(&OneRun::try_parse_from(&argv).unwrap().args)
         };
-        for ok in ["--method median-cut --boxes 2", "--method homomorphic --half-bins 2"] {
+        for ok in [
+            "--method median-cut --boxes 2",
+            "--method homomorphic --half-bins 2",
+            "--method nd",
+        ] {
             let r = run(ok).unwrap_or_else(|e| panic!("{ok}: {e:#}"));
             assert!(r.rmse_8bit.is_some_and(f64::is_finite), "{ok}");
         }
-        for needs in ["--method pvmf", "--method pca", "--method local-pca", "--method dfmf"] {
+        for needs in [
+            "--method pvmf",
+            "--method pca",
+            "--method local-pca",
+            "--method dfmf",
+            "--method svd-j",
+        ] {
             let e = run(needs).err().unwrap_or_else(|| panic!("{needs} ran without -c"));
             assert!(format!("{e:#}").contains("-c"), "{needs}: {e:#}");
         }
+        // SVD-J refuses J above the 3 × 3 ABRDF matrices' rank, naming the range.
+        let Err(e) = run("--method svd-j -c 4") else {
+            panic!("svd-j -c 4 ran on a 3 × 3 grid");
+        };
+        assert!(format!("{e:#}").contains("1..=3"), "{e:#}");
         let r = run("--method pvmf -c 2").unwrap();
         assert_eq!(r.components, 2);
         assert!(r.encode_stages.iter().any(|s| s.name == "factorize"));

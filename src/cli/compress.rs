@@ -28,6 +28,11 @@ pub enum MethodArg {
     MedianCut,
     /// Homomorphic factorization per ABRDF (light × view × half-vector factors, log domain).
     Homomorphic,
+    /// Normalized decomposition per ABRDF (Wynn): light row norms × view column means of
+    /// each texel's lights × views matrix, per channel.
+    Nd,
+    /// SVD with J = -c terms per ABRDF: rank-J SVD of each texel's lights × views matrix.
+    SvdJ,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -277,11 +282,16 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     if format == FormatArg::Btf && args.quantize.is_some() {
         anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
     }
-    let needs_c = !matches!(method_arg, MethodArg::MedianCut | MethodArg::Homomorphic);
+    let needs_c = !matches!(
+        method_arg,
+        MethodArg::MedianCut | MethodArg::Homomorphic | MethodArg::Nd
+    );
     let components = match (args.components, needs_c) {
         (Some(c), _) => c,
         (None, false) => 1,
-        (None, true) => anyhow::bail!("this --method needs -c (components); only median-cut and homomorphic do not"),
+        (None, true) => {
+            anyhow::bail!("this --method needs -c (components); only median-cut, homomorphic and nd do not")
+        }
     };
     let params = Params {
         method: match method_arg {
@@ -306,6 +316,8 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
                 half_bins: args.half_bins,
                 sweeps: args.sweeps,
             },
+            MethodArg::Nd => Method::Nd,
+            MethodArg::SvdJ => Method::SvdJ,
         },
         components,
         seed: args.seed,
@@ -430,6 +442,8 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
             1,
         )]],
         Some(MethodArg::Dfmf) => vec![lab],
+        Some(MethodArg::Nd) => vec![vec![p(Method::Nd, 1)]],
+        Some(MethodArg::SvdJ) => vec![[1, 2, 4, 8].map(|c| p(Method::SvdJ, c)).to_vec()],
     }
 }
 

@@ -261,3 +261,53 @@ pub fn encode_gbtf(
     };
     (Gbtf { header, blocks }, info)
 }
+
+/// One colour channel of an ABRDF row (column `(view · nl + light) · 3 + ch`) as the
+/// `nl × nv` matrix `M[light, view]` in f64: what the per-ABRDF matrix factorizations
+/// (ND, SVD-J) factorize.
+pub fn channel_matrix(row: &[f32], nl: usize, nv: usize, ch: usize) -> faer::Mat<f64> {
+    faer::Mat::from_fn(nl, nv, |l, v| row[(v * nl + l) * 3 + ch] as f64)
+}
+
+/// Shapes of a per-texel product file (ND, SVD-J): blocks `light` (texels × nl·J·3) and
+/// `view` (texels × nv·J·3), column `(direction · J + j) · 3 + channel`. Returns J.
+pub fn product_terms(h: &super::container::GbtfHeader) -> Result<usize, CompressError> {
+    let t = h.width * h.height;
+    let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
+    let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
+    let j = match got.first() {
+        Some(&(_, c)) if nl > 0 && c % (nl * 3) == 0 => c / (nl * 3),
+        _ => 0,
+    };
+    if j == 0 || got != [(t, nl * j * 3), (t, nv * j * 3)] {
+        return Err(CompressError::Invalid(format!(
+            ".gbtf {}: block shapes {got:?} do not match the header's grid ({t} texels, \
+             {nl} lights, {nv} views, J terms)",
+            h.method
+        )));
+    }
+    Ok(j)
+}
+
+/// Image (`light`, `view`) of a per-texel product file whose shapes passed
+/// [`product_terms`] (J terms): per texel and channel `Σ_j P[light, j] · Q[view, j]`, the
+/// sum in order of `j`. Interleaved linear RGB.
+pub fn reconstruct_products(g: &Gbtf, j: usize, light: usize, view: usize) -> Vec<f32> {
+    let h = &g.header;
+    let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
+    let t = h.width * h.height;
+    let (pb, qb) = (&g.blocks[0], &g.blocks[1]);
+    let mut out = vec![0f32; t * 3];
+    out.par_chunks_mut(3).enumerate().for_each(|(i, px)| {
+        let p = &pb[(i * nl + light) * j * 3..][..j * 3];
+        let q = &qb[(i * nv + view) * j * 3..][..j * 3];
+        for (ch, o) in px.iter_mut().enumerate() {
+            let mut s = 0f32;
+            for k in 0..j {
+                s += p[k * 3 + ch] * q[k * 3 + ch];
+            }
+            *o = s;
+        }
+    });
+    out
+}

@@ -7,7 +7,7 @@ use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::params::{EncodeInfo, Method, Params};
-use super::{abrdf, dfmf, homomorphic, local_pca, median_cut, pca, pvmf};
+use super::{abrdf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svd_j};
 
 /// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
 /// views only, exactly as [`compress`] computes them (each view is factorized on its own),
@@ -45,6 +45,8 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         Method::MedianCut { .. } => median_cut::compress(ds, params),
         Method::Homomorphic { .. } => homomorphic::compress(ds, params),
         Method::Dfmf { .. } => dfmf::compress_gbtf(ds, params),
+        Method::Nd => nd::compress(ds, params),
+        Method::SvdJ => svd_j::compress(ds, params),
     }
 }
 
@@ -132,6 +134,20 @@ impl CompressedBtf {
                     dfmf: None,
                 });
             }
+            "nd" | "svd-j" => {
+                let j = abrdf::product_terms(h)?;
+                let method = if h.method == "nd" { Method::Nd } else { Method::SvdJ };
+                if method == Method::Nd && j != 1 {
+                    return Err(bad(format!("{j} terms per ABRDF, ND stores one")));
+                }
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method,
+                    c: j,
+                    homomorphic: None,
+                    dfmf: None,
+                });
+            }
             "dfmf" => {
                 let d = dfmf::from_gbtf(&gbtf)?;
                 let params: Params = serde_json::from_value(gbtf.header.params.clone())
@@ -195,6 +211,9 @@ impl CompressedBtf {
         }
         if let Some(tables) = &self.homomorphic {
             return Ok(tables.reconstruct(&self.gbtf.header, light, view));
+        }
+        if let Method::Nd | Method::SvdJ = self.method {
+            return Ok(abrdf::reconstruct_products(&self.gbtf, c, light, view));
         }
         if let Method::MedianCut { .. } = self.method {
             return Ok(median_cut::reconstruct(&self.gbtf, light, view));

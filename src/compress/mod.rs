@@ -1,4 +1,4 @@
-//! BTF compression: six methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
+//! BTF compression: eight methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
 //! reconstruction at any direction pair.
 //!
 //! | method | file | stored as | what is stored |
@@ -8,6 +8,8 @@
 //! | local PCA (PCMF) | [`local_pca`] | `.gbtf` | per texel a cluster index and coefficients; per cluster a mean and eigen-ABRDFs |
 //! | median cut | [`median_cut`] | `.gbtf` | index image + BRDF block |
 //! | homomorphic | [`homomorphic`] | `.gbtf` | per texel light × view × half-vector factor tables |
+//! | ND | [`nd`] | `.gbtf` | per texel and channel, light row norms and view column means (one product) |
+//! | SVD-J | [`svd_j`] | `.gbtf` | per texel and channel, a rank-J SVD of the lights × views matrix |
 //! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) or `.gbtf` | per colour channel of a decorrelated model (RGB, log-YUV, CIELab: `.gbtf` only), one full-matrix factorization |
 //!
 //! **Floors.** The method files share a ground floor and never import each other:
@@ -89,9 +91,11 @@ pub mod linalg;
 pub mod local_pca;
 pub mod median_cut;
 pub mod metrics;
+pub mod nd;
 pub mod params;
 pub mod pca;
 pub mod pvmf;
+pub mod svd_j;
 pub mod target;
 
 #[cfg(test)]

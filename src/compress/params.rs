@@ -40,6 +40,13 @@ pub enum Method {
         color_model: ColorModel,
         chroma_components: usize,
     },
+    /// Normalized decomposition per ABRDF (`nd`, Wynn): row norms × column means of the
+    /// row-normalized `lights × views` matrix, per texel and channel.
+    Nd,
+    /// SVD with J terms per ABRDF (`svd_j`): the rank-J truncated SVD of every texel's
+    /// `lights × views` matrix per channel; J is [`Params::components`].
+    #[serde(rename = "svd-j")]
+    SvdJ,
 }
 
 impl Method {
@@ -51,6 +58,8 @@ impl Method {
             Method::MedianCut { .. } => "median-cut",
             Method::Homomorphic { .. } => "homomorphic",
             Method::Dfmf { .. } => "dfmf",
+            Method::Nd => "nd",
+            Method::SvdJ => "svd-j",
         }
     }
 }

@@ -645,6 +645,8 @@ fn method_files_import_only_the_ground_floor() {
         ("median_cut", include_str!("median_cut.rs"), GROUND),
         ("homomorphic", include_str!("homomorphic.rs"), GROUND),
         ("dfmf", include_str!("dfmf.rs"), GROUND),
+        ("nd", include_str!("nd.rs"), GROUND),
+        ("svd_j", include_str!("svd_j.rs"), GROUND),
         ("params", include_str!("params.rs"), &["data", "container"]),
         ("linalg", include_str!("linalg.rs"), &["error"]),
         (
@@ -741,6 +743,8 @@ fn quantized_files_decode_for_every_method() {
             },
             1,
         ),
+        Params::new(Method::Nd, 1),
+        Params::new(Method::SvdJ, 2),
     ];
     for p in &methods {
         let name = p.method.name();
@@ -819,6 +823,24 @@ fn quantizing_constant_and_rank_deficient_inputs_stays_finite() {
             // Constant inputs are exact up to f32; rank 3 within 8-bit steps.
             let tol = if i < 2 { 1e-6 } else { 0.02 };
             assert!(e <= tol, "dataset {i} {method:?}: max error {e}");
+        }
+        // The per-ABRDF factorizations: ND (a constant ABRDF is a product, exact) and
+        // SVD-J at J = 4 = the full rank of the 5 × 4 ABRDF matrices (exact on all three;
+        // on the zero and constant inputs most terms are zero columns).
+        for p in [Params::new(Method::Nd, 1), Params::new(Method::SvdJ, 4)] {
+            let (g, _) = compress(&ds, &p).unwrap();
+            let exact = CompressedBtf::new(g.clone()).unwrap();
+            let q = quantized_round_trip(&g, 8, &tmp.path().join(format!("q{i}.gbtf")));
+            assert!(q.gbtf.blocks.iter().flatten().all(|v| v.is_finite()));
+            let e = max_err(&ds, &q);
+            let name = p.method.name();
+            if i < 2 {
+                assert!(e <= 1e-6, "dataset {i} {name}: max error {e}");
+            } else {
+                // Rank 3: within 8-bit steps of the f32 file (SVD-J: of the input).
+                let d = max_err(&ds, &exact);
+                assert!(e <= d + 0.03, "dataset {i} {name}: {e} against the f32 file's {d}");
+            }
         }
     }
 }
