@@ -72,6 +72,12 @@ pub fn sweep() -> Vec<(&'static str, Vec<String>)> {
     for j in [1, 2, 4] {
         v.push(("svd-j", a(&format!("--method svd-j -c {j}"))));
     }
+    for b in [4, 8] {
+        v.push(("gshd", a(&format!("--method gshd --half-bins {b}"))));
+    }
+    for k in [1, 2] {
+        v.push(("cmf", a(&format!("--method cmf --half-bins 4 -c {k}"))));
+    }
     v
 }
 
@@ -114,6 +120,10 @@ pub fn frontier_sweep() -> Vec<(&'static str, Vec<String>)> {
     v.push(("nd", a("--method nd --quantize 8")));
     for j in [1, 2, 4] {
         v.push(("svd-j", a(&format!("--method svd-j -c {j} --quantize 8"))));
+    }
+    v.push(("gshd", a("--method gshd --half-bins 4 --quantize 8")));
+    for k in [1, 2] {
+        v.push(("cmf", a(&format!("--method cmf --half-bins 4 -c {k} --quantize 8"))));
     }
     v
 }

@@ -33,6 +33,12 @@ pub enum MethodArg {
     Nd,
     /// SVD with J = -c terms per ABRDF: rank-J SVD of each texel's lights × views matrix.
     SvdJ,
+    /// GSHD per ABRDF: half-vector × difference-vector factors (--half-bins θ bins, twice as
+    /// many φ bins; --sweeps of alternating least squares).
+    Gshd,
+    /// Chained matrix factorization per ABRDF: the GSHD product times a rank -c SVD of the
+    /// residual (ABRDF / GSHD) in light × view form.
+    Cmf,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -117,11 +123,13 @@ pub struct CompressArgs {
     #[arg(long)]
     pub min_error_cut: bool,
     /// Homomorphic: bins of the half vector's polar angle (0: light × view factors only).
+    /// GSHD and CMF: θ bins of the half and difference vectors (1–64; twice as many φ bins).
     #[arg(long, default_value_t = 16)]
     pub half_bins: usize,
-    /// Homomorphic: backfitting sweeps of the least-squares fit.
-    #[arg(long, default_value_t = 20)]
-    pub sweeps: usize,
+    /// Homomorphic: backfitting sweeps of the least-squares fit (default 20). GSHD, CMF: at
+    /// most this many alternating least-squares sweeps, fewer once converged (default 200).
+    #[arg(long)]
+    pub sweeps: Option<usize>,
     /// Output container: gonio's `.gbtf`, or Bonn's UBO2014 `.btf` (DFMF only). Default:
     /// `btf` for dfmf, `gbtf` otherwise.
     #[arg(long, value_enum)]
@@ -284,13 +292,13 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     }
     let needs_c = !matches!(
         method_arg,
-        MethodArg::MedianCut | MethodArg::Homomorphic | MethodArg::Nd
+        MethodArg::MedianCut | MethodArg::Homomorphic | MethodArg::Nd | MethodArg::Gshd
     );
     let components = match (args.components, needs_c) {
         (Some(c), _) => c,
         (None, false) => 1,
         (None, true) => {
-            anyhow::bail!("this --method needs -c (components); only median-cut, homomorphic and nd do not")
+            anyhow::bail!("this --method needs -c (components); only median-cut, homomorphic, nd and gshd do not")
         }
     };
     let params = Params {
@@ -314,10 +322,18 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
             },
             MethodArg::Homomorphic => Method::Homomorphic {
                 half_bins: args.half_bins,
-                sweeps: args.sweeps,
+                sweeps: args.sweeps.unwrap_or(20),
             },
             MethodArg::Nd => Method::Nd,
             MethodArg::SvdJ => Method::SvdJ,
+            MethodArg::Gshd => Method::Gshd {
+                theta_bins: args.half_bins,
+                sweeps: args.sweeps.unwrap_or(200),
+            },
+            MethodArg::Cmf => Method::Cmf {
+                theta_bins: args.half_bins,
+                sweeps: args.sweeps.unwrap_or(200),
+            },
         },
         components,
         seed: args.seed,
@@ -437,13 +453,35 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
         Some(MethodArg::Homomorphic) => vec![vec![p(
             Method::Homomorphic {
                 half_bins: args.half_bins,
-                sweeps: args.sweeps,
+                sweeps: args.sweeps.unwrap_or(20),
             },
             1,
         )]],
         Some(MethodArg::Dfmf) => vec![lab],
         Some(MethodArg::Nd) => vec![vec![p(Method::Nd, 1)]],
         Some(MethodArg::SvdJ) => vec![[1, 2, 4, 8].map(|c| p(Method::SvdJ, c)).to_vec()],
+        Some(MethodArg::Gshd) => vec![[4, 8, 16]
+            .map(|b| {
+                p(
+                    Method::Gshd {
+                        theta_bins: b,
+                        sweeps: args.sweeps.unwrap_or(200),
+                    },
+                    1,
+                )
+            })
+            .to_vec()],
+        Some(MethodArg::Cmf) => vec![[1, 2, 4]
+            .map(|c| {
+                p(
+                    Method::Cmf {
+                        theta_bins: args.half_bins.min(8),
+                        sweeps: args.sweeps.unwrap_or(200),
+                    },
+                    c,
+                )
+            })
+            .to_vec()],
     }
 }
 

@@ -206,7 +206,12 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
     let write_seconds = t2.elapsed().as_secs_f64();
     let compact = !matches!(
         model.method(),
-        crate::compress::Method::Pvmf | crate::compress::Method::Homomorphic { .. }
+        crate::compress::Method::Pvmf
+            | crate::compress::Method::Homomorphic { .. }
+            | crate::compress::Method::Nd
+            | crate::compress::Method::SvdJ
+            | crate::compress::Method::Gshd { .. }
+            | crate::compress::Method::Cmf { .. }
     );
     if a.json {
         let r = serde_json::json!({

@@ -293,10 +293,21 @@ pub fn product_terms(h: &super::container::GbtfHeader) -> Result<usize, Compress
 /// [`product_terms`] (J terms): per texel and channel `Σ_j P[light, j] · Q[view, j]`, the
 /// sum in order of `j`. Interleaved linear RGB.
 pub fn reconstruct_products(g: &Gbtf, j: usize, light: usize, view: usize) -> Vec<f32> {
-    let h = &g.header;
+    products_image(&g.header, &g.blocks[0], &g.blocks[1], j, light, view)
+}
+
+/// [`reconstruct_products`] from the `light` block `pb` and `view` block `qb` wherever
+/// they sit in the file (CMF keeps them after its half/difference blocks).
+pub fn products_image(
+    h: &super::container::GbtfHeader,
+    pb: &[f32],
+    qb: &[f32],
+    j: usize,
+    light: usize,
+    view: usize,
+) -> Vec<f32> {
     let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
     let t = h.width * h.height;
-    let (pb, qb) = (&g.blocks[0], &g.blocks[1]);
     let mut out = vec![0f32; t * 3];
     out.par_chunks_mut(3).enumerate().for_each(|(i, px)| {
         let p = &pb[(i * nl + light) * j * 3..][..j * 3];

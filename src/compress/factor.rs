@@ -7,7 +7,7 @@ use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::params::{EncodeInfo, Method, Params};
-use super::{abrdf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svd_j};
+use super::{abrdf, cmf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svd_j};
 
 /// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
 /// views only, exactly as [`compress`] computes them (each view is factorized on its own),
@@ -47,6 +47,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         Method::Dfmf { .. } => dfmf::compress_gbtf(ds, params),
         Method::Nd => nd::compress(ds, params),
         Method::SvdJ => svd_j::compress(ds, params),
+        Method::Gshd { .. } | Method::Cmf { .. } => cmf::compress(ds, params),
     }
 }
 
@@ -134,6 +135,21 @@ impl CompressedBtf {
                     dfmf: None,
                 });
             }
+            "gshd" | "cmf" => {
+                let (theta_bins, k) = cmf::validate(h)?;
+                let method = if h.method == "gshd" {
+                    Method::Gshd { theta_bins, sweeps: 0 }
+                } else {
+                    Method::Cmf { theta_bins, sweeps: 0 }
+                };
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method,
+                    c: k,
+                    homomorphic: None,
+                    dfmf: None,
+                });
+            }
             "nd" | "svd-j" => {
                 let j = abrdf::product_terms(h)?;
                 let method = if h.method == "nd" { Method::Nd } else { Method::SvdJ };
@@ -211,6 +227,9 @@ impl CompressedBtf {
         }
         if let Some(tables) = &self.homomorphic {
             return Ok(tables.reconstruct(&self.gbtf.header, light, view));
+        }
+        if let Method::Gshd { theta_bins, .. } | Method::Cmf { theta_bins, .. } = self.method {
+            return Ok(cmf::reconstruct(&self.gbtf, theta_bins, c, light, view));
         }
         if let Method::Nd | Method::SvdJ = self.method {
             return Ok(abrdf::reconstruct_products(&self.gbtf, c, light, view));

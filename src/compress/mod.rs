@@ -1,4 +1,4 @@
-//! BTF compression: eight methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
+//! BTF compression: ten methods, gonio's `.gbtf` container, Bonn's UBO2014 `.btf`, and
 //! reconstruction at any direction pair.
 //!
 //! | method | file | stored as | what is stored |
@@ -10,6 +10,7 @@
 //! | homomorphic | [`homomorphic`] | `.gbtf` | per texel light × view × half-vector factor tables |
 //! | ND | [`nd`] | `.gbtf` | per texel and channel, light row norms and view column means (one product) |
 //! | SVD-J | [`svd_j`] | `.gbtf` | per texel and channel, a rank-J SVD of the lights × views matrix |
+//! | GSHD, CMF | [`cmf`] | `.gbtf` | per texel and channel, half-vector × difference-vector factors (GSHD), times a rank-K SVD of the residual (CMF) |
 //! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) or `.gbtf` | per colour channel of a decorrelated model (RGB, log-YUV, CIELab: `.gbtf` only), one full-matrix factorization |
 //!
 //! **Floors.** The method files share a ground floor and never import each other:
@@ -79,6 +80,7 @@
 
 pub mod abrdf;
 pub mod btf_ubo2014;
+pub mod cmf;
 pub mod codec;
 pub mod container;
 pub mod data;

@@ -47,6 +47,13 @@ pub enum Method {
     /// `lights × views` matrix per channel; J is [`Params::components`].
     #[serde(rename = "svd-j")]
     SvdJ,
+    /// GSHD per ABRDF (`cmf`): one product of a half-vector and a difference-vector factor
+    /// (`theta_bins` θ bins × twice as many φ bins each), fitted by `sweeps` sweeps of
+    /// alternating least squares.
+    Gshd { theta_bins: usize, sweeps: usize },
+    /// Chained matrix factorization per ABRDF (`cmf`): the GSHD product times a rank-K SVD
+    /// (K = [`Params::components`]) of the residual `M / GSHD` in light × view form.
+    Cmf { theta_bins: usize, sweeps: usize },
 }
 
 impl Method {
@@ -60,6 +67,8 @@ impl Method {
             Method::Dfmf { .. } => "dfmf",
             Method::Nd => "nd",
             Method::SvdJ => "svd-j",
+            Method::Gshd { .. } => "gshd",
+            Method::Cmf { .. } => "cmf",
         }
     }
 }

@@ -647,6 +647,7 @@ fn method_files_import_only_the_ground_floor() {
         ("dfmf", include_str!("dfmf.rs"), GROUND),
         ("nd", include_str!("nd.rs"), GROUND),
         ("svd_j", include_str!("svd_j.rs"), GROUND),
+        ("cmf", include_str!("cmf.rs"), GROUND),
         ("params", include_str!("params.rs"), &["data", "container"]),
         ("linalg", include_str!("linalg.rs"), &["error"]),
         (
@@ -745,6 +746,20 @@ fn quantized_files_decode_for_every_method() {
         ),
         Params::new(Method::Nd, 1),
         Params::new(Method::SvdJ, 2),
+        Params::new(
+            Method::Gshd {
+                theta_bins: 4,
+                sweeps: 5,
+            },
+            1,
+        ),
+        Params::new(
+            Method::Cmf {
+                theta_bins: 4,
+                sweeps: 5,
+            },
+            2,
+        ),
     ];
     for p in &methods {
         let name = p.method.name();
@@ -827,7 +842,21 @@ fn quantizing_constant_and_rank_deficient_inputs_stays_finite() {
         // The per-ABRDF factorizations: ND (a constant ABRDF is a product, exact) and
         // SVD-J at J = 4 = the full rank of the 5 × 4 ABRDF matrices (exact on all three;
         // on the zero and constant inputs most terms are zero columns).
-        for p in [Params::new(Method::Nd, 1), Params::new(Method::SvdJ, 4)] {
+        // GSHD: a constant is one product (exact); CMF at K = 4 adds the full-rank residual.
+        let gshd = Method::Gshd {
+            theta_bins: 4,
+            sweeps: 5,
+        };
+        let cmf = Method::Cmf {
+            theta_bins: 4,
+            sweeps: 5,
+        };
+        for p in [
+            Params::new(Method::Nd, 1),
+            Params::new(Method::SvdJ, 4),
+            Params::new(gshd, 1),
+            Params::new(cmf, 4),
+        ] {
             let (g, _) = compress(&ds, &p).unwrap();
             let exact = CompressedBtf::new(g.clone()).unwrap();
             let q = quantized_round_trip(&g, 8, &tmp.path().join(format!("q{i}.gbtf")));

@@ -34,7 +34,9 @@ pub fn texel_blocks(model: &CompressedBtf) -> Result<Vec<bool>, SynthError> {
         Method::Pvmf => (0..nb).map(|i| i % 2 == 0).collect(),
         Method::LocalPca { .. } => vec![true, true, false, false],
         Method::MedianCut { .. } => vec![true, false],
-        Method::Homomorphic { .. } | Method::Nd | Method::SvdJ => vec![true; nb],
+        Method::Homomorphic { .. } | Method::Nd | Method::SvdJ | Method::Gshd { .. } | Method::Cmf { .. } => {
+            vec![true; nb]
+        }
         // Per channel `u{ch}` (measurements) then `sxv{ch}` (texels).
         Method::Dfmf { .. } => (0..nb).map(|i| i % 2 == 1).collect(),
     })
