@@ -296,6 +296,21 @@ pub fn reconstruct_products(g: &Gbtf, j: usize, light: usize, view: usize) -> Ve
     products_image(&g.header, &g.blocks[0], &g.blocks[1], j, light, view)
 }
 
+/// Write one channel's rank-`k` factors (`us`: lights × k, `vv`: views × k) into a texel's
+/// `light` row `p` and `view` row `q`, column `(direction · k + j) · 3 + ch`: the layout
+/// [`products_image`] reads (SVD-J, CMF's residual).
+pub fn put_terms(p: &mut [f32], q: &mut [f32], us: faer::MatRef<'_, f64>, vv: faer::MatRef<'_, f64>, ch: usize) {
+    let k = us.ncols();
+    for j in 0..k {
+        for l in 0..us.nrows() {
+            p[(l * k + j) * 3 + ch] = us[(l, j)] as f32;
+        }
+        for v in 0..vv.nrows() {
+            q[(v * k + j) * 3 + ch] = vv[(v, j)] as f32;
+        }
+    }
+}
+
 /// [`reconstruct_products`] from the `light` block `pb` and `view` block `qb` wherever
 /// they sit in the file (CMF keeps them after its half/difference blocks).
 pub fn products_image(

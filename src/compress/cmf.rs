@@ -25,7 +25,7 @@
 //! views·K·3), column `(bin · K + k) · 3 + channel` as SVD-J's
 //! ([`super::abrdf::products_image`]).
 
-use super::abrdf::{channel_matrix, encode_gbtf, product_terms, products_image, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{channel_matrix, encode_gbtf, product_terms, products_image, put_terms, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
@@ -216,14 +216,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
                         }
                     }
                     let (us, vv) = truncated_svd(m.as_ref(), k)?;
-                    for j in 0..k {
-                        for l in 0..nl {
-                            p[(l * k + j) * 3 + ch] = us[(l, j)] as f32;
-                        }
-                        for v in 0..nv {
-                            q[(v * k + j) * 3 + ch] = vv[(v, j)] as f32;
-                        }
-                    }
+                    put_terms(&mut p, &mut q, us.as_ref(), vv.as_ref(), ch);
                 }
                 Ok((hg, he, p, q))
             },

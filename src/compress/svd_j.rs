@@ -14,7 +14,7 @@
 //! `U·S`) and `view` (texels × views·J·3, `V`), column `(direction · J + j) · 3 + channel`
 //! ([`reconstruct_products`] decodes them).
 
-use super::abrdf::{channel_matrix, encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{channel_matrix, encode_gbtf, put_terms, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
@@ -56,14 +56,7 @@ pub fn fit(a: &Abrdfs, nl: usize, nv: usize, j: usize) -> Result<Products, Compr
                 for ch in 0..3 {
                     let m = channel_matrix(row, nl, nv, ch);
                     let (us, vv) = truncated_svd(m.as_ref(), j)?;
-                    for k in 0..j {
-                        for l in 0..nl {
-                            p[(l * j + k) * 3 + ch] = us[(l, k)] as f32;
-                        }
-                        for v in 0..nv {
-                            q[(v * j + k) * 3 + ch] = vv[(v, k)] as f32;
-                        }
-                    }
+                    put_terms(&mut p, &mut q, us.as_ref(), vv.as_ref(), ch);
                 }
                 Ok((p, q))
             },
