@@ -438,6 +438,7 @@ mod tests {
             "--method median-cut --boxes 2",
             "--method homomorphic --half-bins 2",
             "--method nd",
+            "--method gshd --half-bins 2",
         ] {
             let r = run(ok).unwrap_or_else(|e| panic!("{ok}: {e:#}"));
             assert!(r.rmse_8bit.is_some_and(f64::is_finite), "{ok}");
@@ -448,6 +449,7 @@ mod tests {
             "--method local-pca",
             "--method dfmf",
             "--method svd-j",
+            "--method cmf",
         ] {
             let e = run(needs).err().unwrap_or_else(|| panic!("{needs} ran without -c"));
             assert!(format!("{e:#}").contains("-c"), "{needs}: {e:#}");
