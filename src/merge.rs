@@ -15,6 +15,7 @@
 //! Every part must be a complete part of the same job: missing, duplicate, overlapping,
 //! incomplete or mismatched parts are refused, naming the part and the field.
 
+use crate::compress::rsvd_shard::{self, PartHeader};
 use crate::compress::{Gbtf, GbtfHeader};
 use crate::shard::{self, first_difference, ShardError, ShardInfo};
 use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
@@ -59,8 +60,12 @@ pub struct MergeReport {
     pub parts: usize,
     pub shards: usize,
     pub views: usize,
-    /// Records (dataset) or factor blocks (gbtf) written.
+    /// Records (dataset), factor blocks (gbtf) or parts (a randomized-SVD pass) written.
     pub items: usize,
+    /// A randomized-SVD pass (`.gpart` parts): which pass of how many; `kind` is `state`
+    /// before the last pass (the next round's `--state`), `gbtf` or `btf` after it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pass: Option<[usize; 2]>,
     pub out: PathBuf,
 }
 
@@ -86,6 +91,8 @@ pub fn merge(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, 
     }
     if first.is_dir() {
         merge_datasets(parts, out, force)
+    } else if rsvd_shard::is_part_file(first) {
+        merge_rsvd(parts, out, force)
     } else {
         merge_gbtf(parts, out, force)
     }
@@ -271,6 +278,7 @@ fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeRep
         shards: read[0].shard.count,
         views: read[0].shard.views_total,
         items,
+        pass: None,
         out: out.to_path_buf(),
     })
 }
@@ -371,6 +379,62 @@ fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
         shards: read[0].1.count,
         views: read[0].1.views_total,
         items,
+        pass: None,
+        out: out.to_path_buf(),
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// .gpart (one pass of a sharded PCA or DFMF)
+// ---------------------------------------------------------------------------------------
+
+fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let mut read: Vec<(PathBuf, PartHeader, Vec<u8>)> = Vec::with_capacity(parts.len());
+    let mut norms = Vec::with_capacity(parts.len());
+    for p in parts {
+        if p.is_dir() || !rsvd_shard::is_part_file(p) {
+            return Err(not_a_part(
+                p,
+                "the first part is a .gpart of `gonio compress --shard` (pca/dfmf), this is not",
+            ));
+        }
+        let (h, payload) = rsvd_shard::read_part(p)?;
+        // What must be equal across the parts of one pass: job, pass and state.
+        let norm = serde_json::json!({"job": h.job, "pass": h.pass, "passes": h.passes, "state": h.state});
+        norms.push(norm);
+        read.push((p.clone(), h, payload));
+    }
+    let infos: Vec<(PathBuf, ShardInfo)> = read.iter().map(|(p, h, _)| (p.clone(), h.shard)).collect();
+    let order = shard::check_complete(&infos)?;
+    check_same(parts, &norms)?;
+    for (p, h, _) in &read {
+        if let Some(f) = h
+            .filled
+            .iter()
+            .find(|f| !(h.shard.first_view..h.shard.end_view).contains(&f[1]))
+        {
+            return Err(part_err(p, format!("filled pair {f:?} lies outside its views")));
+        }
+    }
+    if out.exists() && !force {
+        return Err(MergeError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    let (shards, views) = (read[0].1.shard.count, read[0].1.shard.views_total);
+    let mut ordered = Vec::with_capacity(read.len());
+    let mut slots: Vec<Option<(PathBuf, PartHeader, Vec<u8>)>> = read.into_iter().map(Some).collect();
+    for &k in &order {
+        ordered.push(slots[k].take().expect("each part once"));
+    }
+    let merged = rsvd_shard::merge_parts(&ordered, out)?;
+    Ok(MergeReport {
+        kind: merged.kind,
+        parts: parts.len(),
+        shards,
+        views,
+        items: parts.len(),
+        pass: Some([merged.pass, merged.passes]),
         out: out.to_path_buf(),
     })
 }

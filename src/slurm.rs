@@ -21,6 +21,10 @@ pub enum ShardedKind {
     SimBtf,
     /// `gonio compress … --method pvmf`: parts are `.gbtf` files.
     CompressPvmf,
+    /// `gonio compress … --method pca|dfmf`: a chain of `passes` rounds (one per pass of
+    /// the randomized SVD), each an array of `.gpart` parts and a merge into the state
+    /// the next round starts from (`--state`); the last merge writes the file.
+    CompressRsvd { passes: usize },
     /// `gonio dataset generate SPEC …`: every shard writes its own members into the one
     /// family directory (disjoint, no lock); the "merge" job checks that all are complete.
     DatasetGenerate,
@@ -34,16 +38,39 @@ impl ShardedKind {
             [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
             [a, b, ..] if a == "dataset" && b == "generate" => ShardedKind::DatasetGenerate,
             [a, ..] if a == "compress" => {
-                let pvmf = args.windows(2).any(|w| w[0] == "--method" && w[1] == "pvmf")
-                    || args.iter().any(|a| a == "--method=pvmf");
-                if !pvmf {
-                    return Err("`compress` is sharded for --method pvmf only (its blocks are per view)".into());
+                let method = |m: &str| {
+                    args.windows(2).any(|w| w[0] == "--method" && w[1] == m)
+                        || args.iter().any(|a| *a == format!("--method={m}"))
+                };
+                if method("pvmf") {
+                    ShardedKind::CompressPvmf
+                } else if method("pca") || method("dfmf") {
+                    // 2 + power iterations passes (the default is compress's own, 2).
+                    let value = args
+                        .windows(2)
+                        .find(|w| w[0] == "--power-iters")
+                        .map(|w| w[1].clone())
+                        .or_else(|| args.iter().find_map(|a| a.strip_prefix("--power-iters=").map(String::from)));
+                    let iters = match value {
+                        None => crate::compress::Params::new(crate::compress::Method::Pca, 1).power_iters,
+                        Some(v) => v
+                            .parse::<usize>()
+                            .map_err(|_| format!("--power-iters `{v}` is not a whole number"))?,
+                    };
+                    if args.iter().any(|a| a.split('=').next() == Some("--state")) {
+                        return Err("`--state` is set by the batch for every round after the first".into());
+                    }
+                    ShardedKind::CompressRsvd { passes: iters + 2 }
+                } else {
+                    return Err(
+                        "`compress` is sharded for --method pvmf (by views), pca and dfmf (by passes of the                          randomized SVD)"
+                            .into(),
+                    );
                 }
-                ShardedKind::CompressPvmf
             }
             _ => {
                 return Err(format!(
-                    "`{}` cannot be sharded; give `sim btf …`, `compress DATASET --method pvmf …` or `dataset generate SPEC` after --",
+                    "`{}` cannot be sharded; give `sim btf …`, `compress DATASET --method pvmf|pca|dfmf …` or `dataset generate SPEC` after --",
                     args.join(" ")
                 ))
             }
@@ -63,6 +90,15 @@ impl ShardedKind {
         match self {
             ShardedKind::SimBtf | ShardedKind::DatasetGenerate => "",
             ShardedKind::CompressPvmf => ".gbtf",
+            ShardedKind::CompressRsvd { .. } => ".gpart",
+        }
+    }
+
+    /// Rounds of arrays and merges: one, or one per randomized-SVD pass.
+    pub fn rounds(self) -> usize {
+        match self {
+            ShardedKind::CompressRsvd { passes } => passes,
+            _ => 1,
         }
     }
 }
@@ -115,22 +151,54 @@ fn q(p: &Path) -> String {
 }
 
 impl SlurmJob {
-    /// Output of shard `i` (1-based); a family's shards all write into `out`.
-    pub fn part(&self, i: usize) -> PathBuf {
+    /// The parts directory of round `r` (0-based): `parts/`, or `parts/pass-R/` when
+    /// the job has several rounds.
+    fn parts_dir(&self, r: usize) -> PathBuf {
+        if self.kind.rounds() == 1 {
+            self.work.join("parts")
+        } else {
+            self.work.join("parts").join(format!("pass-{r}"))
+        }
+    }
+
+    /// Output of shard `i` (1-based) in round `r`; a family's shards all write into `out`.
+    pub fn part(&self, r: usize, i: usize) -> PathBuf {
         if self.kind == ShardedKind::DatasetGenerate {
             return self.out.clone();
         }
-        self.work
-            .join("parts")
-            .join(format!("part-{i}{}", self.kind.part_suffix()))
+        self.parts_dir(r).join(format!("part-{i}{}", self.kind.part_suffix()))
     }
 
-    pub fn array_script_path(&self) -> PathBuf {
-        self.work.join("shards.sbatch")
+    /// What the merge of round `r` writes: the state of the next round, or `out`.
+    pub fn merged(&self, r: usize) -> PathBuf {
+        if r + 1 == self.kind.rounds() {
+            self.out.clone()
+        } else {
+            self.work.join(format!("state-{r}.gstate"))
+        }
     }
 
-    pub fn merge_script_path(&self) -> PathBuf {
-        self.work.join("merge.sbatch")
+    fn suffix(&self, r: usize) -> String {
+        if self.kind.rounds() == 1 {
+            String::new()
+        } else {
+            format!("-{r}")
+        }
+    }
+
+    pub fn array_script_path(&self, r: usize) -> PathBuf {
+        self.work.join(format!("shards{}.sbatch", self.suffix(r)))
+    }
+
+    pub fn merge_script_path(&self, r: usize) -> PathBuf {
+        self.work.join(format!("merge{}.sbatch", self.suffix(r)))
+    }
+
+    /// Directories the scripts need before they run.
+    pub fn dirs(&self) -> Vec<PathBuf> {
+        let mut d = vec![self.work.join("logs")];
+        d.extend((0..self.kind.rounds()).map(|r| self.parts_dir(r)));
+        d
     }
 
     fn header(&self, name: &str, log: &str) -> String {
@@ -145,14 +213,21 @@ impl SlurmJob {
         s
     }
 
-    /// The job array: task `I` runs the command with `--shard I/N --out parts/part-I`.
-    pub fn array_script(&self) -> String {
+    /// The job array of round `r`: task `I` runs the command with `--shard I/N --out
+    /// parts/part-I` (and, after the first round of a chain, `--state` of the last merge).
+    pub fn array_script(&self, r: usize) -> String {
         let n = self.shards;
-        let mut s = self.header("shards", "shard-%a.log");
+        let sfx = self.suffix(r);
+        let mut s = self.header(&format!("shards{sfx}"), &format!("shard{sfx}-%a.log"));
         s.push_str(&format!(
-            "#SBATCH --array=1-{n}\n#SBATCH --requeue\n#SBATCH --cpus-per-task={}\nset -u\n",
+            "#SBATCH --array=1-{n}\n#SBATCH --requeue\n#SBATCH --cpus-per-task={}\n",
             self.cpus_per_task
         ));
+        if r > 0 {
+            // A failed earlier merge leaves this round's dependency unsatisfiable: end it.
+            s.push_str("#SBATCH --kill-on-invalid-dep=yes\n");
+        }
+        s.push_str("set -u\n");
         s.push_str("I=${SLURM_ARRAY_TASK_ID:?submit this script with sbatch (it is a job array)}\n");
         s.push_str(&format!(
             "export RAYON_NUM_THREADS=${{SLURM_CPUS_PER_TASK:-{}}}\n",
@@ -162,6 +237,10 @@ impl SlurmJob {
         cmd.extend(self.args.iter().map(|a| shell_quote(a)));
         cmd.push("--shard".into());
         cmd.push(format!("\"$I/{n}\""));
+        if r > 0 {
+            cmd.push("--state".into());
+            cmd.push(q(&self.merged(r - 1)));
+        }
         cmd.push("--out".into());
         if self.kind == ShardedKind::DatasetGenerate {
             cmd.push(q(&self.out));
@@ -170,7 +249,7 @@ impl SlurmJob {
             // escaping there).
             cmd.push(format!(
                 "\"{}/part-$I{}\"",
-                self.work.join("parts").display(),
+                self.parts_dir(r).display(),
                 self.kind.part_suffix()
             ));
         }
@@ -203,17 +282,19 @@ impl SlurmJob {
         s
     }
 
-    /// The merge job: every part, in shard order, into `out`.
-    pub fn merge_script(&self) -> String {
-        let mut s = self.header("merge", "merge.log");
+    /// The merge job of round `r`: every part, in shard order, into the round's
+    /// [`SlurmJob::merged`] output.
+    pub fn merge_script(&self, r: usize) -> String {
+        let sfx = self.suffix(r);
+        let mut s = self.header(&format!("merge{sfx}"), &format!("merge{sfx}.log"));
         s.push_str("set -u\n");
         let mut cmd: Vec<String> = vec!["exec".into(), q(&self.gonio)];
         if self.kind == ShardedKind::DatasetGenerate {
             cmd.extend(["dataset".into(), "check".into(), q(&self.out), "--json".into()]);
         } else {
             cmd.push("merge".into());
-            cmd.extend((1..=self.shards).map(|i| q(&self.part(i))));
-            cmd.extend(["--out".into(), q(&self.out), "--force".into(), "--json".into()]);
+            cmd.extend((1..=self.shards).map(|i| q(&self.part(r, i))));
+            cmd.extend(["--out".into(), q(&self.merged(r)), "--force".into(), "--json".into()]);
         }
         s.push_str(&cmd.join(" "));
         s.push('\n');
@@ -244,7 +325,16 @@ mod tests {
             ShardedKind::of(&args("compress ds --method pvmf -c 4")),
             Ok(ShardedKind::CompressPvmf)
         );
-        assert!(ShardedKind::of(&args("compress ds --method pca -c 4")).is_err());
+        assert_eq!(
+            ShardedKind::of(&args("compress ds --method pca -c 4")),
+            Ok(ShardedKind::CompressRsvd { passes: 4 })
+        );
+        assert_eq!(
+            ShardedKind::of(&args("compress ds --method dfmf -c 4 --power-iters 0")),
+            Ok(ShardedKind::CompressRsvd { passes: 2 })
+        );
+        assert!(ShardedKind::of(&args("compress ds --method pca -c 4 --state s")).is_err());
+        assert!(ShardedKind::of(&args("compress ds --method median-cut")).is_err());
         assert!(ShardedKind::of(&args("acquire --size 32")).is_err());
         assert!(ShardedKind::of(&args("sim btf --out x")).unwrap_err().contains("--out"));
         assert!(ShardedKind::of(&args("sim btf --shard=1/2")).is_err());
@@ -264,13 +354,13 @@ mod tests {
             cpus_per_task: 2,
             sbatch_options: vec!["--time=10".into()],
         };
-        let a = job.array_script();
+        let a = job.array_script(0);
         assert!(a.contains("#SBATCH --array=1-3\n"), "{a}");
         assert!(a.contains("#SBATCH --time=10\n"), "{a}");
         assert!(a.contains(r"'it'\''s' --shard "), "{a}");
         assert!(a.contains(r#"--out "/w d/parts/part-$I" --force"#), "{a}");
         assert!(a.contains("seq 1 2"), "{a}");
-        let m = job.merge_script();
+        let m = job.merge_script(0);
         assert!(
             m.contains("merge '/w d/parts/part-1' '/w d/parts/part-2' '/w d/parts/part-3' --out /o"),
             "{m}"
@@ -280,7 +370,7 @@ mod tests {
             retry_mode: RetryMode::Requeue,
             ..job
         };
-        let a = r.array_script();
+        let a = r.array_script(0);
         assert!(
             a.contains(r#"--out "/w d/parts/part-$I.gbtf""#) && !a.contains("--force"),
             "{a}"
@@ -297,12 +387,33 @@ mod tests {
             args: args("dataset generate /s.toml"),
             ..r
         };
-        let a = f.array_script();
+        let a = f.array_script(0);
         assert!(a.contains(r#"/s.toml --shard "$I/3" --out /o"#), "{a}");
-        let m = f.merge_script();
+        let m = f.merge_script(0);
         assert!(
             m.contains("dataset check /o --json") && !m.contains("gonio merge "),
             "{m}"
         );
+
+        // A randomized SVD: a chain of rounds, each starting from the previous merge.
+        let c = SlurmJob {
+            kind: ShardedKind::CompressRsvd { passes: 3 },
+            args: args("compress /ds --method pca -c 4"),
+            ..f
+        };
+        assert_eq!(c.array_script_path(0), PathBuf::from("/w d/shards-0.sbatch"));
+        let a0 = c.array_script(0);
+        assert!(
+            a0.contains(r#"--shard "$I/3" --out "/w d/parts/pass-0/part-$I.gpart""#) && !a0.contains("--state"),
+            "{a0}"
+        );
+        let a2 = c.array_script(2);
+        assert!(
+            a2.contains(r#"--state '/w d/state-1.gstate' --out "/w d/parts/pass-2/part-$I.gpart""#)
+                && a2.contains("--kill-on-invalid-dep=yes"),
+            "{a2}"
+        );
+        assert!(c.merge_script(1).contains("--out '/w d/state-1.gstate'"));
+        assert!(c.merge_script(2).contains("--out /o --force"));
     }
 }

@@ -55,13 +55,27 @@ pub struct SlurmArgs {
 #[derive(Serialize)]
 struct Report {
     shards: usize,
+    /// The last round's scripts (the only round, except for pca/dfmf).
     array_script: PathBuf,
     merge_script: PathBuf,
+    /// The last round's parts.
     parts: Vec<PathBuf>,
     out: PathBuf,
     retries: u32,
     retry_mode: RetryMode,
-    /// Slurm job ids (with --submit).
+    /// Slurm job ids (with --submit) of the last round: its merge writes `out`.
+    array_job: Option<String>,
+    merge_job: Option<String>,
+    /// Every round (pca/dfmf: one per pass of the randomized SVD, each array depending on
+    /// the previous merge with afterok).
+    rounds: Vec<Round>,
+}
+
+#[derive(Serialize)]
+struct Round {
+    array_script: PathBuf,
+    merge_script: PathBuf,
+    merged: PathBuf,
     array_job: Option<String>,
     merge_job: Option<String>,
 }
@@ -108,7 +122,7 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     // The input argument (a dataset, a family spec) must be absolute too: the jobs may
     // start elsewhere.
     let input = match kind {
-        ShardedKind::CompressPvmf => Some((1, "dataset")),
+        ShardedKind::CompressPvmf | ShardedKind::CompressRsvd { .. } => Some((1, "dataset")),
         ShardedKind::DatasetGenerate => Some((2, "family spec")),
         ShardedKind::SimBtf => None,
     };
@@ -130,26 +144,37 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
         cpus_per_task: a.cpus_per_task,
         sbatch_options: a.sbatch_options.clone(),
     };
-    for d in ["parts", "logs"] {
-        let p = work.join(d);
+    for p in job.dirs() {
         std::fs::create_dir_all(&p).with_context(|| format!("creating {}", p.display()))?;
     }
-    for (path, text) in [
-        (job.array_script_path(), job.array_script()),
-        (job.merge_script_path(), job.merge_script()),
-    ] {
-        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+    let last = kind.rounds() - 1;
+    let mut rounds = Vec::with_capacity(kind.rounds());
+    for r in 0..=last {
+        for (path, text) in [
+            (job.array_script_path(r), job.array_script(r)),
+            (job.merge_script_path(r), job.merge_script(r)),
+        ] {
+            std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        }
+        rounds.push(Round {
+            array_script: job.array_script_path(r),
+            merge_script: job.merge_script_path(r),
+            merged: job.merged(r),
+            array_job: None,
+            merge_job: None,
+        });
     }
     let mut report = Report {
         shards: a.shards,
-        array_script: job.array_script_path(),
-        merge_script: job.merge_script_path(),
-        parts: (1..=a.shards).map(|i| job.part(i)).collect(),
+        array_script: job.array_script_path(last),
+        merge_script: job.merge_script_path(last),
+        parts: (1..=a.shards).map(|i| job.part(last, i)).collect(),
         out: job.out.clone(),
         retries: a.retries,
         retry_mode: a.retry_mode,
         array_job: None,
         merge_job: None,
+        rounds,
     };
     if a.submit {
         let sbatch = slurm::which("sbatch").context(
@@ -182,28 +207,53 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
             }
             Ok(id)
         };
-        let array = submit(&["--parsable".into(), job.array_script_path().display().to_string()])?;
-        let merge = submit(&[
-            "--parsable".into(),
-            format!("--dependency=afterany:{array}"),
-            job.merge_script_path().display().to_string(),
-        ])?;
-        report.array_job = Some(array);
-        report.merge_job = Some(merge);
+        // Round r's array waits for round r − 1's merge (afterok: its state must exist);
+        // each merge runs after its array whatever happened (afterany), so a failed shard
+        // is named in the merge's log.
+        let mut previous: Option<String> = None;
+        for round in &mut report.rounds {
+            let mut args = vec!["--parsable".to_string()];
+            if let Some(m) = &previous {
+                args.push(format!("--dependency=afterok:{m}"));
+            }
+            args.push(round.array_script.display().to_string());
+            let array = submit(&args)?;
+            let merge = submit(&[
+                "--parsable".into(),
+                format!("--dependency=afterany:{array}"),
+                round.merge_script.display().to_string(),
+            ])?;
+            previous = Some(merge.clone());
+            round.array_job = Some(array);
+            round.merge_job = Some(merge);
+        }
+        let last = report.rounds.last().expect("at least one round");
+        report.array_job = last.array_job.clone();
+        report.merge_job = last.merge_job.clone();
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
+        if report.rounds.len() > 1 {
+            println!(
+                "rounds         {} (one per randomized-SVD pass; each array starts from the previous merge's state)",
+                report.rounds.len()
+            );
+        }
         println!("array script   {}", report.array_script.display());
         println!("merge script   {}", report.merge_script.display());
         println!(
-            "parts          {}/part-1 … part-{}",
-            work.join("parts").display(),
-            a.shards
+            "parts          {} … {}",
+            report.parts[0].display(),
+            report.parts[a.shards - 1].display()
         );
         println!("merged result  {}", report.out.display());
         match (&report.array_job, &report.merge_job) {
             (Some(j), Some(m)) => println!("submitted      array job {j}, merge job {m} (afterany:{j})"),
+            _ if report.rounds.len() > 1 => println!(
+                "submit with    --submit (the {} rounds chain with afterok on each merge)",
+                report.rounds.len()
+            ),
             _ => println!(
                 "submit with    J=$(sbatch --parsable {}) && sbatch --dependency=afterany:$J {}",
                 report.array_script.display(),

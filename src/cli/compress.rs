@@ -151,11 +151,18 @@ pub struct CompressArgs {
     /// Skip the error evaluation (a second pass reading every image).
     #[arg(long)]
     pub no_eval: bool,
-    /// PVMF only: factorize only shard I of N (1-based; a contiguous range of views) and
-    /// write that part to --out; `gonio merge` joins the parts into the file one process
-    /// would have written. A part is not evaluated (evaluate the merged file).
+    /// Compute only shard I of N (1-based; a contiguous range of views) and write that
+    /// part to --out; `gonio merge` joins the parts into the file one process would have
+    /// written, byte for byte. PVMF: one round (a `.gbtf` part). PCA and DFMF: one pass
+    /// of the randomized SVD per round (a `.gpart`; `2 + --power-iters` rounds, each
+    /// merged into the `--state` of the next; docs/scale.md). A part is not evaluated
+    /// (evaluate the merged file).
     #[arg(long)]
     pub shard: Option<crate::shard::Shard>,
+    /// PCA/DFMF with --shard: the merged state of the previous pass (`gonio merge` of
+    /// its `.gpart` parts); without it the shard runs the first pass.
+    #[arg(long, requires = "shard", value_name = "STATE.gstate")]
+    pub state: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
 }
@@ -251,6 +258,9 @@ pub(crate) struct TruthReport {
 }
 
 pub fn run(args: CompressArgs) -> Result<ExitCode> {
+    if let (Some(shard), Some(MethodArg::Pca | MethodArg::Dfmf)) = (args.shard, args.method) {
+        return shard_pass(&args, shard);
+    }
     let r = compress_report(&args)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
@@ -260,6 +270,101 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// One shard's pass of a sharded PCA or DFMF (`--shard I/N [--state S]`): writes a
+/// `.gpart` and says what to run next.
+fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCode> {
+    use compress::rsvd_shard::{run_shard, Output};
+    if args.target_psnr.is_some() || args.target_ratio.is_some() {
+        anyhow::bail!(
+            "--shard runs one given method; --target-psnr/--target-ratio search in one process (leave out --shard)"
+        );
+    }
+    let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
+    let c = args.components.context("--method pca|dfmf needs -c (components)")?;
+    let method = args.method.context("--method is required with --shard")?;
+    // The same default format as one process (compress_report).
+    let format = args.format.unwrap_or(match (method, args.color_model) {
+        (MethodArg::Dfmf, ColorModelArg::Rgb | ColorModelArg::LogYuv) => FormatArg::Btf,
+        _ => FormatArg::Gbtf,
+    });
+    let output = match (method, format) {
+        (MethodArg::Dfmf, FormatArg::Btf) => {
+            if args.quantize.is_some() {
+                anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
+            }
+            let (dfmf, precision, xml) = btf_job(args, &ds, c);
+            Output::Btf { dfmf, precision, xml }
+        }
+        (_, FormatArg::Btf) => anyhow::bail!("--format btf (UBO2014 DFMF) is written by --method dfmf only"),
+        (m, FormatArg::Gbtf) => Output::Gbtf {
+            params: Params {
+                method: match m {
+                    MethodArg::Pca => Method::Pca,
+                    _ => Method::Dfmf {
+                        color_model: color_model(args.color_model),
+                        chroma_components: args.chroma_components.unwrap_or(c),
+                    },
+                },
+                components: c,
+                seed: args.seed,
+                oversample: args.oversample,
+                power_iters: args.power_iters,
+            },
+            quantize: args.quantize,
+        },
+    };
+    let t0 = Instant::now();
+    let r = run_shard(&ds, output, shard, args.state.as_deref(), &args.out)
+        .with_context(|| format!("shard {shard} of {}", args.dataset.display()))?;
+    let seconds = t0.elapsed().as_secs_f64();
+    if args.json {
+        let mut v = serde_json::to_value(&r)?;
+        v["seconds"] = serde_json::json!(seconds);
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "pass {}/{} of shard {shard} (views {}..{}) → {} ({} bytes) in {seconds:.2} s; next: `gonio merge` of all {} parts of this pass{}",
+            r.pass + 1,
+            r.passes,
+            r.shard.first_view,
+            r.shard.end_view,
+            r.out.display(),
+            r.bytes,
+            r.shard.count,
+            if r.last_pass { " gives the compressed file" } else { " gives the --state of the next pass" }
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The DFMF parameters, precision and XML block of a `--format btf` compression: one
+/// home for the single-process and the sharded run, so both write the same bytes.
+fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> (DfmfParams, Precision, String) {
+    let color_model = color_model(args.color_model);
+    let precision = match args.precision {
+        PrecisionArg::F16 => Precision::F16,
+        PrecisionArg::F32 => Precision::F32,
+    };
+    let cc = args.chroma_components.unwrap_or(c);
+    let params = DfmfParams {
+        color_model,
+        components: match color_model {
+            ColorModel::Rgb => [c, c, c],
+            _ => [c, cc, cc],
+        },
+        seed: args.seed,
+        oversample: args.oversample,
+        power_iters: args.power_iters,
+    };
+    let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
+    let xml = format!(
+        "<gonio><source>{}</source><params>{}</params></gonio>",
+        ds.dir.display(),
+        pjson
+    );
+    (params, precision, xml)
+}
+
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
@@ -267,8 +372,8 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some() || args.target_ratio.is_some())
     {
         anyhow::bail!(
-            "--shard splits --method pvmf by views; other methods are compressed in one process \
-             (leave out --shard)"
+            "--shard splits --method pvmf by views, and pca and dfmf by passes of the randomized SVD; \
+             other methods are compressed in one process (leave out --shard)"
         );
     }
     let t0 = Instant::now();
@@ -614,30 +719,10 @@ fn color_model(a: ColorModelArg) -> ColorModel {
 }
 
 fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Report> {
-    let color_model = color_model(args.color_model);
-    let precision = match args.precision {
-        PrecisionArg::F16 => Precision::F16,
-        PrecisionArg::F32 => Precision::F32,
-    };
     let c = args.components.context("--method dfmf needs -c (components)")?;
-    let cc = args.chroma_components.unwrap_or(c);
-    let params = DfmfParams {
-        color_model,
-        components: match color_model {
-            ColorModel::Rgb => [c, c, c],
-            _ => [c, cc, cc],
-        },
-        seed: args.seed,
-        oversample: args.oversample,
-        power_iters: args.power_iters,
-    };
+    let (params, precision, xml) = btf_job(args, ds, c);
     let (model, info) = dfmf::encode(ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
     let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
-    let xml = format!(
-        "<gonio><source>{}</source><params>{}</params></gonio>",
-        ds.dir.display(),
-        pjson
-    );
     let stored = btf_ubo2014::write(&args.out, &model, precision, &xml)
         .with_context(|| format!("writing {}", args.out.display()))?;
     let encode_seconds = t0.elapsed().as_secs_f64();

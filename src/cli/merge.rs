@@ -7,11 +7,13 @@ use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct MergeArgs {
-    /// The parts: dataset directories of `gonio sim btf --shard`, or `.gbtf` files of
-    /// `gonio compress --method pvmf --shard`; every shard 1..=N exactly once, any order.
+    /// The parts: dataset directories of `gonio sim btf --shard`, `.gbtf` files of
+    /// `gonio compress --method pvmf --shard`, or the `.gpart` files of one pass of
+    /// `gonio compress --method pca|dfmf --shard`; every shard 1..=N exactly once, any order.
     #[arg(required = true)]
     pub parts: Vec<PathBuf>,
-    /// The merged dataset directory or `.gbtf` file.
+    /// The merged dataset directory or `.gbtf` file; for `.gpart` parts the pass's state
+    /// (`.gstate`, the next round's `--state`) or, after the last pass, the `.gbtf`/`.btf`.
     #[arg(long)]
     pub out: PathBuf,
     /// Replace an existing output.
@@ -30,6 +32,21 @@ pub fn run(a: MergeArgs) -> Result<ExitCode> {
         let mut v = serde_json::to_value(&report)?;
         v["seconds"] = serde_json::json!(seconds);
         println!("{}", serde_json::to_string_pretty(&v)?);
+    } else if let Some([pass, passes]) = report.pass {
+        println!(
+            "merged {} part(s) of pass {}/{passes} ({} shards, {} views) into {} {} in {seconds:.2} s{}",
+            report.parts,
+            pass + 1,
+            report.shards,
+            report.views,
+            report.kind,
+            report.out.display(),
+            if pass + 1 < passes {
+                format!("; next: the shards with --state {}", report.out.display())
+            } else {
+                String::new()
+            }
+        );
     } else {
         println!(
             "merged {} {} part(s) ({} shards, {} views, {} {}) into {} in {seconds:.2} s",

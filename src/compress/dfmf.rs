@@ -26,11 +26,12 @@
 //! the same clamping), so a file decodes to the same images in gonio and in
 //! `btf-extractor` (checked by `tests/interop/check_ubo2014.py`).
 
-use super::container::{BlockInfo, Gbtf};
+use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
 use super::params::{header_for, EncodeInfo, Method, Params};
+use super::rsvd::{Channel, Rsvd, ViewSource};
 use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
@@ -395,38 +396,53 @@ fn channel_matrices(
 pub const DFMF_CACHE_BYTES: usize = 1 << 30;
 
 /// Streams the per-view channel matrices, keeping them when they fit the budget.
-struct Stream<'a> {
+pub(crate) struct Stream<'a> {
     ds: &'a DatasetViews,
     model: ColorModel,
     m_inv: [[f64; 3]; 3],
     cached: Vec<Option<[Mat<f64>; 3]>>,
     keep: bool,
-    /// `[light, view]` of every filled pair.
-    filled: Vec<[usize; 2]>,
-    passes: usize,
+    /// Whether view `v` has been read (its filled pairs are then listed).
+    seen: Vec<bool>,
+    /// `[light, view]` of every filled pair, in the order the views were first read.
+    pub(crate) filled: Vec<[usize; 2]>,
 }
 
-impl Stream<'_> {
-    fn pass(&mut self, mut f: impl FnMut(usize, [MatRef<'_, f64>; 3])) -> Result<(), CompressError> {
-        let first = self.passes == 0;
-        let mut read = false;
-        for v in 0..self.ds.n_views() {
-            if let Some(m) = &self.cached[v] {
-                f(v, [m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
-                continue;
-            }
-            read = true;
-            let (m, filled) = channel_matrices(self.ds, v, self.model, &self.m_inv)?;
-            if first {
-                self.filled.extend(filled.iter().map(|&(l, _)| [l, v]));
-            }
-            f(v, [m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
-            if self.keep {
-                self.cached[v] = Some(m);
-            }
+impl<'a> Stream<'a> {
+    pub(crate) fn new(ds: &'a DatasetViews, model: ColorModel) -> Self {
+        let (t, n) = (ds.texels(), ds.n_lights() * ds.n_views());
+        Stream {
+            ds,
+            model,
+            m_inv: rgb_to_yuv(),
+            cached: vec![None; ds.n_views()],
+            keep: t * n * 3 * 8 <= DFMF_CACHE_BYTES,
+            seen: vec![false; ds.n_views()],
+            filled: Vec::new(),
         }
-        if read || first {
-            self.passes += 1;
+    }
+
+    /// Never keep a view: for a process that reads each view once (one shard's pass).
+    pub(crate) fn without_cache(mut self) -> Self {
+        self.keep = false;
+        self
+    }
+}
+
+impl ViewSource for Stream<'_> {
+    fn with_view(&mut self, v: usize, f: &mut dyn FnMut(&[MatRef<'_, f64>])) -> Result<(), CompressError> {
+        if let Some(m) = &self.cached[v] {
+            f(&[m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
+            return Ok(());
+        }
+        let (m, filled) = channel_matrices(self.ds, v, self.model, &self.m_inv)?;
+        if !self.seen[v] {
+            self.seen[v] = true;
+            self.filled.extend(filled.iter().map(|&(l, _)| [l, v]));
+        }
+        f(&[m[0].as_ref(), m[1].as_ref(), m[2].as_ref()]);
+        if self.keep {
+            self.cached[v] = Some(m);
         }
         Ok(())
     }
@@ -437,11 +453,9 @@ pub fn encode(ds: &DatasetViews, params: &DfmfParams) -> Result<(Dfmf, EncodeInf
     encode_listing_filled(ds, params).map(|(d, i, _)| (d, i))
 }
 
-/// [`encode`], also returning the `[light, view]` list of filled pairs.
-fn encode_listing_filled(
-    ds: &DatasetViews,
-    params: &DfmfParams,
-) -> Result<(Dfmf, EncodeInfo, Vec<[usize; 2]>), CompressError> {
+/// The randomized SVD of DFMF for `ds` (three channels of the colour model, each
+/// `texels × lights` per view; channel `ch` sketched with seed `seed + ch`).
+pub(crate) fn problem(ds: &DatasetViews, params: &DfmfParams) -> Result<Rsvd, CompressError> {
     if params.components.contains(&0) {
         return Err(CompressError::Invalid(format!(
             "DFMF components {:?}: every channel needs at least 1",
@@ -450,49 +464,26 @@ fn encode_listing_filled(
     }
     let (t, nl, nv) = (ds.texels(), ds.n_lights(), ds.n_views());
     let n = nl * nv;
-    let ks: Vec<usize> = params
-        .components
-        .iter()
-        .map(|&c| (c + params.oversample).min(t).min(n))
-        .collect();
-    let mut s = Stream {
-        ds,
-        model: params.color_model,
-        m_inv: rgb_to_yuv(),
-        cached: vec![None; nv],
-        keep: t * n * 3 * 8 <= DFMF_CACHE_BYTES,
-        filled: Vec::new(),
-        passes: 0,
-    };
-    // Y = A Ω per channel (A = texels × measurements), Ω Gaussian, generated per view.
-    let mut y: Vec<Mat<f64>> = ks.iter().map(|&k| Mat::zeros(t, k)).collect();
-    s.pass(|v, a| {
-        for ch in 0..3 {
-            let sketch = GaussianSketch::new(params.seed.wrapping_add(ch as u64), SketchKeying::Hashed);
-            let omega = sketch.block(v * nl, nl, ks[ch]);
-            y[ch] += a[ch] * &omega;
-        }
-    })?;
-    for _ in 0..params.power_iters {
-        let q: Vec<Mat<f64>> = y.iter().map(|y| y.qr().compute_thin_Q()).collect();
-        let mut ny: Vec<Mat<f64>> = ks.iter().map(|&k| Mat::zeros(t, k)).collect();
-        s.pass(|_, a| {
-            for ch in 0..3 {
-                let z = a[ch].transpose() * &q[ch];
-                ny[ch] += a[ch] * &z;
-            }
-        })?;
-        y = ny;
-    }
-    let q: Vec<Mat<f64>> = y.iter().map(|y| y.qr().compute_thin_Q()).collect();
-    drop(y);
-    let mut b: Vec<Mat<f64>> = q.iter().map(|q| Mat::zeros(q.ncols(), n)).collect();
-    s.pass(|v, a| {
-        for ch in 0..3 {
-            let bv = q[ch].transpose() * a[ch];
-            b[ch].as_mut().subcols_mut(v * nl, nl).copy_from(&bv);
-        }
-    })?;
+    Ok(Rsvd {
+        channels: (0..3)
+            .map(|ch| Channel {
+                k: (params.components[ch] + params.oversample).min(t).min(n),
+                sketch: GaussianSketch::new(params.seed.wrapping_add(ch as u64), SketchKeying::Hashed),
+            })
+            .collect(),
+        rows: t,
+        width: nl,
+        views: nv,
+        power_iters: params.power_iters,
+    })
+}
+
+/// The factors of every channel from the last pass's `Q` and `B = Qᵀ A`.
+pub(crate) fn channel_factors(
+    params: &DfmfParams,
+    q: &[Mat<f64>],
+    b: &[Mat<f64>],
+) -> Result<Vec<ChannelFactors>, CompressError> {
     let mut channels = Vec::with_capacity(3);
     for ch in 0..3 {
         let c = params.components[ch];
@@ -507,19 +498,31 @@ fn encode_listing_filled(
             sxv: row_major_f32(sxv.as_ref()),
         });
     }
+    Ok(channels)
+}
+
+/// [`encode`], also returning the `[light, view]` list of filled pairs.
+fn encode_listing_filled(
+    ds: &DatasetViews,
+    params: &DfmfParams,
+) -> Result<(Dfmf, EncodeInfo, Vec<[usize; 2]>), CompressError> {
+    let rsvd = problem(ds, params)?;
+    let mut s = Stream::new(ds, params.color_model);
+    let (q, b) = rsvd.run_all(&mut s)?;
     let dfmf = Dfmf {
         color_model: params.color_model,
         width: ds.width,
         height: ds.height,
         lights_deg: ds.lights_deg.clone(),
         views_deg: ds.views_deg.clone(),
-        channels,
+        channels: channel_factors(params, &q, &b)?,
     };
+    let passes = if s.keep { 1 } else { rsvd.passes() };
     Ok((
         dfmf,
         EncodeInfo {
             filled: s.filled.len(),
-            passes: s.passes,
+            passes,
             ..Default::default()
         },
         s.filled,
@@ -547,25 +550,37 @@ pub fn channel_components(params: &Params) -> Result<(ColorModel, [usize; 3]), C
 /// CIELab model and of quantized DFMF factors. Blocks, per channel `ch` of the model:
 /// `u{ch}` (views·lights × c_ch, row `view · L + light`) and `sxv{ch}` (texels × c_ch).
 pub fn compress_gbtf(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    let dp = gbtf_params(params)?;
+    let (d, info, filled) = encode_listing_filled(ds, &dp)?;
+    Ok((to_gbtf(header_for(ds, params, filled, Vec::new()), d), info))
+}
+
+/// The [`DfmfParams`] of a `.gbtf` DFMF compression with `params`.
+pub(crate) fn gbtf_params(params: &Params) -> Result<DfmfParams, CompressError> {
     let (color_model, components) = channel_components(params)?;
-    let dp = DfmfParams {
+    Ok(DfmfParams {
         color_model,
         components,
         seed: params.seed,
         oversample: params.oversample,
         power_iters: params.power_iters,
-    };
-    let (d, info, filled) = encode_listing_filled(ds, &dp)?;
-    let mut infos = Vec::with_capacity(6);
+    })
+}
+
+/// `d` as the blocks of a `.gbtf` (see [`compress_gbtf`]) under `header` (its grid,
+/// parameters and filled pairs; the block list is set here).
+pub(crate) fn to_gbtf(mut header: GbtfHeader, d: Dfmf) -> Gbtf {
+    let rows = d.n_lights() * d.n_views();
+    let t = d.texels();
     let mut blocks = Vec::with_capacity(6);
+    header.blocks.clear();
     for (ch, f) in d.channels.into_iter().enumerate() {
-        infos.push(BlockInfo::new(format!("u{ch}"), ds.n_lights() * ds.n_views(), f.c));
+        header.blocks.push(BlockInfo::new(format!("u{ch}"), rows, f.c));
         blocks.push(f.u);
-        infos.push(BlockInfo::new(format!("sxv{ch}"), ds.texels(), f.c));
+        header.blocks.push(BlockInfo::new(format!("sxv{ch}"), t, f.c));
         blocks.push(f.sxv);
     }
-    let header = header_for(ds, params, filled, infos);
-    Ok((Gbtf { header, blocks }, info))
+    Gbtf { header, blocks }
 }
 
 /// The [`Dfmf`] of a `.gbtf` written by [`compress_gbtf`] (blocks checked against the grid).

@@ -1,7 +1,7 @@
 //! Dispatch of every `.gbtf` method ([`compress`]) and decoding of their files
 //! ([`CompressedBtf`]): PCA, PVMF, local PCA, median cut and homomorphic factorization.
-//! DFMF writes Bonn's `.btf` instead (`super::dfmf`). This file and `interp.rs` are the
-//! only ones that name method files.
+//! DFMF writes Bonn's `.btf` instead (`super::dfmf`). This file, `interp.rs` and `rsvd_shard.rs`
+//! (sharded PCA and DFMF) are the only ones that name method files.
 
 use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;

@@ -86,6 +86,7 @@ pub mod container;
 pub mod data;
 pub mod dfmf;
 pub mod error;
+pub mod exact;
 pub mod factor;
 pub mod homomorphic;
 pub mod interp;
@@ -97,6 +98,8 @@ pub mod nd;
 pub mod params;
 pub mod pca;
 pub mod pvmf;
+pub mod rsvd;
+pub mod rsvd_shard;
 pub mod svd_j;
 pub mod target;
 

@@ -6,8 +6,9 @@
 use super::container::{BlockInfo, Gbtf};
 use super::data::{DatasetViews, ViewMatrix};
 use super::error::CompressError;
-use super::linalg::{orthonormalize, row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
+use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
 use super::params::{header_for, EncodeInfo, Params};
+use super::rsvd::{Channel, Rsvd, ViewSource};
 use faer::{Mat, MatRef};
 
 fn to_faer(v: &ViewMatrix) -> Mat<f64> {
@@ -15,49 +16,55 @@ fn to_faer(v: &ViewMatrix) -> Mat<f64> {
 }
 
 /// Streams view matrices, keeping them in memory when they fit `budget` bytes in total.
-struct ViewCache<'a> {
+pub(crate) struct ViewCache<'a> {
     ds: &'a DatasetViews,
     cached: Vec<Option<Mat<f64>>>,
     keep: bool,
-    filled: Vec<[usize; 2]>,
-    passes: usize,
+    /// Whether view `v` has been read (its filled pairs are then listed).
+    seen: Vec<bool>,
+    /// `[light, view]` of every filled pair, in the order the views were first read.
+    pub(crate) filled: Vec<[usize; 2]>,
 }
 
 impl<'a> ViewCache<'a> {
-    fn new(ds: &'a DatasetViews, budget: usize) -> Self {
+    pub(crate) fn new(ds: &'a DatasetViews, budget: usize) -> Self {
         let total = ds.texels() * ds.n_lights() * 3 * ds.n_views() * 8;
         ViewCache {
             ds,
             cached: vec![None; ds.n_views()],
             keep: total <= budget,
+            seen: vec![false; ds.n_views()],
             filled: Vec::new(),
-            passes: 0,
         }
     }
 
-    /// Call `f(view, matrix)` for every view, in order.
-    fn pass(&mut self, mut f: impl FnMut(usize, MatRef<'_, f64>)) -> Result<(), CompressError> {
-        let first = self.passes == 0;
-        let mut read = false;
-        for v in 0..self.ds.n_views() {
-            if let Some(m) = &self.cached[v] {
-                f(v, m.as_ref());
-                continue;
-            }
-            read = true;
-            let vm = self.ds.view_matrix(v)?;
-            if first {
-                self.filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
-            }
-            let m = to_faer(&vm);
-            drop(vm);
-            f(v, m.as_ref());
-            if self.keep {
-                self.cached[v] = Some(m);
-            }
+    /// Passes that read images when all `passes` run in this process: one when every
+    /// view stays in memory, else every pass.
+    pub(crate) fn reads(&self, passes: usize) -> usize {
+        if self.keep {
+            1
+        } else {
+            passes
         }
-        if read || first {
-            self.passes += 1;
+    }
+}
+
+impl ViewSource for ViewCache<'_> {
+    fn with_view(&mut self, v: usize, f: &mut dyn FnMut(&[MatRef<'_, f64>])) -> Result<(), CompressError> {
+        if let Some(m) = &self.cached[v] {
+            f(&[m.as_ref()]);
+            return Ok(());
+        }
+        let vm = self.ds.view_matrix(v)?;
+        if !self.seen[v] {
+            self.seen[v] = true;
+            self.filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
+        }
+        let m = to_faer(&vm);
+        drop(vm);
+        f(&[m.as_ref()]);
+        if self.keep {
+            self.cached[v] = Some(m);
         }
         Ok(())
     }
@@ -66,46 +73,46 @@ impl<'a> ViewCache<'a> {
 /// Budget for keeping all view matrices (f64) in memory during PCA's passes.
 pub const PCA_CACHE_BYTES: usize = 1 << 30;
 
-pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+/// The randomized SVD of PCA for `ds` with `params` (one channel: the view matrix).
+pub(crate) fn problem(ds: &DatasetViews, params: &Params) -> Rsvd {
     let c = params.components;
     let (t, lc) = (ds.texels(), ds.n_lights() * 3);
     let n = lc * ds.n_views();
-    let k = (c + params.oversample).min(t).min(n);
-    let mut cache = ViewCache::new(ds, PCA_CACHE_BYTES);
-    let sketch = GaussianSketch::new(params.seed, SketchKeying::Hashed);
-
-    // Y = A Ω, Ω Gaussian (n × k), generated per view block.
-    let mut y = Mat::<f64>::zeros(t, k);
-    cache.pass(|v, a| {
-        let omega = sketch.block(v * lc, lc, k);
-        y += a * &omega;
-    })?;
-    // Power iterations: Y ← A Aᵀ Q, Q = orth(Y).
-    for _ in 0..params.power_iters {
-        let q = orthonormalize(&y);
-        let mut ny = Mat::<f64>::zeros(t, k);
-        cache.pass(|_, a| {
-            let z = a.transpose() * &q;
-            ny += a * &z;
-        })?;
-        y = ny;
+    Rsvd {
+        channels: vec![Channel {
+            k: (c + params.oversample).min(t).min(n),
+            sketch: GaussianSketch::new(params.seed, SketchKeying::Hashed),
+        }],
+        rows: t,
+        width: lc,
+        views: ds.n_views(),
+        power_iters: params.power_iters,
     }
-    let q = orthonormalize(&y);
-    // B = Qᵀ A (k × n), one view block of columns at a time.
-    let mut b = Mat::<f64>::zeros(q.ncols(), n);
-    cache.pass(|v, a| {
-        let bv = q.transpose() * a;
-        b.as_mut().subcols_mut(v * lc, lc).copy_from(&bv);
-    })?;
+}
+
+/// The stored blocks from the last pass's `Q` and `B = Qᵀ A`: `us = Q · U_B S` and `v`.
+pub(crate) fn factors(
+    params: &Params,
+    q: &Mat<f64>,
+    b: &Mat<f64>,
+) -> Result<(Vec<BlockInfo>, Vec<Vec<f32>>), CompressError> {
+    let c = params.components;
     let (ub, vv) = truncated_svd(b.as_ref(), c)?;
-    let us = &q * &ub;
-    let infos = vec![BlockInfo::new("us", t, c), BlockInfo::new("v", n, c)];
-    let blocks = vec![row_major_f32(us.as_ref()), row_major_f32(vv.as_ref())];
+    let us = q * &ub;
+    let infos = vec![BlockInfo::new("us", q.nrows(), c), BlockInfo::new("v", b.ncols(), c)];
+    Ok((infos, vec![row_major_f32(us.as_ref()), row_major_f32(vv.as_ref())]))
+}
+
+pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+    let rsvd = problem(ds, params);
+    let mut cache = ViewCache::new(ds, PCA_CACHE_BYTES);
+    let (q, b) = rsvd.run_all(&mut cache)?;
     let info = EncodeInfo {
         filled: cache.filled.len(),
-        passes: cache.passes,
+        passes: cache.reads(rsvd.passes()),
         ..Default::default()
     };
+    let (infos, blocks) = factors(params, &q[0], &b[0])?;
     let header = header_for(ds, params, std::mem::take(&mut cache.filled), infos);
     Ok((Gbtf { header, blocks }, info))
 }

@@ -157,6 +157,168 @@ fn sharded_sim_btf_and_pvmf_merge_to_the_single_process_bytes() {
     assert!(!t.join("m").exists() && !t.join("m.gbtf").exists());
 }
 
+/// Run every pass of a sharded randomized SVD in `t`: `shards` parts per pass, each pass
+/// merged into the next pass's state, the last into `out`. Returns the passes run.
+fn sharded_rsvd(t: &Path, args: &[&str], tag: &str, shards: usize, out: &str) -> usize {
+    let mut state: Option<String> = None;
+    for pass in 0.. {
+        let parts: Vec<String> = (1..=shards).map(|i| format!("{tag}-p{pass}-{i}.gpart")).collect();
+        // Shards in reverse order, on one thread (the single-process run uses the
+        // default pool): nothing may depend on which ran first or on the thread count.
+        for i in (1..=shards).rev() {
+            let shard = format!("{i}/{shards}");
+            let mut a: Vec<&str> = args.to_vec();
+            a.extend(["--shard", &shard, "--out", &parts[i - 1]]);
+            if let Some(s) = &state {
+                a.extend(["--state", s]);
+            }
+            let o = Command::new(bin())
+                .current_dir(t)
+                .env("RAYON_NUM_THREADS", "1")
+                .args(&a)
+                .output()
+                .unwrap();
+            assert!(
+                o.status.success(),
+                "gonio {}: {}",
+                a.join(" "),
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        let mut m: Vec<&str> = vec!["merge"];
+        m.extend(parts.iter().rev().map(String::as_str));
+        let merged = format!("{tag}-s{pass}.gstate");
+        let o = gonio(t, &[&m[..], &["--out", &merged, "--json"]].concat());
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        if report["kind"] != "state" {
+            std::fs::rename(t.join(&merged), t.join(out)).unwrap();
+            return pass + 1;
+        }
+        state = Some(merged);
+    }
+    unreachable!()
+}
+
+#[test]
+fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    ok(t, &[&BTF[..], &["--out", "full"]].concat());
+    let cases: [(&str, &[&str]); 3] = [
+        ("pca", &["compress", "full", "--method", "pca", "-c", "4", "--no-eval"]),
+        (
+            "lab",
+            &[
+                "compress",
+                "full",
+                "--method",
+                "dfmf",
+                "--color-model",
+                "lab",
+                "-c",
+                "3",
+                "--quantize",
+                "10",
+                "--no-eval",
+            ],
+        ),
+        (
+            "btf",
+            &[
+                "compress",
+                "full",
+                "--method",
+                "dfmf",
+                "-c",
+                "3",
+                "--power-iters",
+                "1",
+                "--no-eval",
+            ],
+        ),
+    ];
+    for (tag, args) in cases {
+        let single = format!("{tag}-single");
+        let o = Command::new(bin())
+            .current_dir(t)
+            .env("RAYON_NUM_THREADS", "3")
+            .args([args, &["--out", &single]].concat())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        for shards in [2, 3] {
+            let merged = format!("{tag}-merged-{shards}");
+            let passes = sharded_rsvd(t, args, &format!("{tag}{shards}"), shards, &merged);
+            assert_eq!(passes, if tag == "btf" { 3 } else { 4 }, "{tag}");
+            assert!(
+                std::fs::read(t.join(&single)).unwrap() == std::fs::read(t.join(&merged)).unwrap(),
+                "{tag}: {shards} merged shards differ from the single-process file"
+            );
+        }
+    }
+
+    // Refusals, each naming what is wrong.
+    let pca = ["compress", "full", "--method", "pca", "-c", "4", "--no-eval"];
+    let e = fails(t, &["merge", "pca2-p0-1.gpart", "--out", "x.gstate"]);
+    assert!(e.contains("missing shard 2/2"), "{e}");
+    let e = fails(t, &["merge", "pca2-p0-1.gpart", "pca2-p1-2.gpart", "--out", "x.gstate"]);
+    assert!(e.contains("pca2-p1-2.gpart") && e.contains("differs"), "{e}");
+    // A state of another job (other components).
+    let e = fails(
+        t,
+        &[
+            &pca[..4],
+            &[
+                "-c",
+                "3",
+                "--no-eval",
+                "--shard",
+                "1/2",
+                "--state",
+                "pca2-s0.gstate",
+                "--out",
+                "y.gpart",
+            ],
+        ]
+        .concat(),
+    );
+    assert!(e.contains("pca2-s0.gstate") && e.contains("another job"), "{e}");
+    // A part where a state belongs.
+    let e = fails(
+        t,
+        &[
+            &pca[..],
+            &["--shard", "1/2", "--state", "pca2-p0-1.gpart", "--out", "y.gpart"],
+        ]
+        .concat(),
+    );
+    assert!(e.contains("is not a state"), "{e}");
+    // A damaged part.
+    let mut bytes = std::fs::read(t.join("pca2-p0-1.gpart")).unwrap();
+    let n = bytes.len();
+    bytes[n - 1] ^= 1;
+    std::fs::write(t.join("bad.gpart"), &bytes).unwrap();
+    let e = fails(t, &["merge", "bad.gpart", "pca2-p0-2.gpart", "--out", "x.gstate"]);
+    assert!(e.contains("bad.gpart") && e.contains("damaged"), "{e}");
+    // Methods that are not a randomized SVD are not split in passes.
+    let e = fails(
+        t,
+        &[
+            "compress",
+            "full",
+            "--method",
+            "median-cut",
+            "--shard",
+            "1/2",
+            "--out",
+            "m.gpart",
+        ],
+    );
+    assert!(e.contains("--shard"), "{e}");
+    assert!(!t.join("x.gstate").exists() && !t.join("y.gpart").exists());
+}
+
 #[test]
 fn bad_shard_specs_are_refused_with_the_valid_form() {
     let tmp = tempfile::tempdir().unwrap();
@@ -170,10 +332,27 @@ fn bad_shard_specs_are_refused_with_the_valid_form() {
     let e = fails(
         t,
         &[
-            "compress", ".", "--method", "pca", "-c", "2", "--shard", "1/2", "--out", "x.gbtf",
+            "compress",
+            ".",
+            "--method",
+            "local-pca",
+            "-c",
+            "2",
+            "--shard",
+            "1/2",
+            "--out",
+            "x.gbtf",
         ],
     );
     assert!(e.contains("--shard splits --method pvmf"), "{e}");
+    // --state belongs to a sharded pass.
+    let e = fails(
+        t,
+        &[
+            "compress", ".", "--method", "pca", "-c", "2", "--state", "s.gstate", "--out", "x",
+        ],
+    );
+    assert!(e.contains("--shard"), "{e}");
 }
 
 #[test]

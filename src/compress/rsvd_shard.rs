@@ -1,0 +1,563 @@
+//! Sharded PCA and DFMF: one pass of the randomized SVD ([`super::rsvd`]) over one shard's
+//! views per process, and the files that carry a pass between processes.
+//!
+//! A randomized SVD needs `2 + power_iters` passes over the data, and every pass after
+//! the first starts from the whole previous pass. So a sharded run is a chain of rounds,
+//! each a set of N independent processes and one merge:
+//!
+//! ```text
+//! gonio compress DS --method pca -c 8 --shard I/N --out parts/p0-I.gpart        # I = 1..N
+//! gonio merge parts/p0-*.gpart --out p0.gstate                                  # exact sums
+//! gonio compress DS --method pca -c 8 --shard I/N --state p0.gstate --out parts/p1-I.gpart
+//! gonio merge parts/p1-*.gpart --out p1.gstate
+//! …                                                                             # power_iters + 2 rounds
+//! gonio merge parts/p3-*.gpart --out pca.gbtf                                   # the last pass: the file
+//! ```
+//!
+//! (`gonio batch slurm` writes this chain as dependent jobs.)
+//!
+//! * A **part** (`.gpart`) holds one shard's share of one pass: the exact partial sums
+//!   of the sketch ([`super::exact::ExactMat`], 32 bytes per entry) for the sum passes,
+//!   or its views' columns of the projection `B = Qᵀ A` (f64) for the last pass; and the
+//!   job, the pass, the shard, and the path and SHA-256 of the state it started from.
+//! * A **state** (`.gstate`) is the merged sum of one pass, rounded once to f64: every
+//!   process of the next pass computes `Q = orth(Y)` from it, as one process would.
+//! * The merge of the last pass reads the parts' state (by its recorded path, checked by
+//!   hash), assembles B in view order and finishes exactly as [`super::pca::compress`] or
+//!   [`super::dfmf`] do, so the merged `.gbtf` (or `.btf`) equals the single-process file
+//!   byte for byte. `tests/it/shard_merge.rs` checks that.
+//!
+//! Missing, duplicate, overlapping parts, parts of another job, pass or state are refused
+//! by name (the checks of [`crate::shard`]).
+
+use super::container::{Gbtf, GbtfHeader};
+use super::data::DatasetViews;
+use super::dfmf::{self, DfmfParams, Stream};
+use super::error::CompressError;
+use super::exact::ExactMat;
+use super::linalg::orthonormalize;
+use super::params::{header_for, Method, Params};
+use super::pca::{self, ViewCache};
+use super::rsvd::{PassOutput, Rsvd, ViewSource};
+use crate::shard::{Shard, ShardInfo};
+use faer::Mat;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+
+/// First bytes of a part or state file.
+const MAGIC: &[u8; 8] = b"GNRSVD01";
+
+/// The file a sharded job ends in.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(tag = "output", rename_all = "kebab-case")]
+pub enum Output {
+    /// A `.gbtf` of `params` (method `pca` or `dfmf`), quantized to `quantize` bits if set
+    /// (as `gonio compress --quantize` does after encoding).
+    Gbtf { params: Params, quantize: Option<u32> },
+    /// A UBO2014 DFMF `.btf` with the given factor precision and XML block.
+    Btf {
+        dfmf: DfmfParams,
+        precision: super::btf_ubo2014::Precision,
+        xml: String,
+    },
+}
+
+/// Everything that makes two parts parts of the same job.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct Job {
+    pub output: Output,
+    /// The single-process `.gbtf` header without its filled pairs and blocks: the grid and
+    /// the dataset's provenance.
+    pub header: GbtfHeader,
+}
+
+/// One block of a part or state file.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+struct BlockSpec {
+    name: String,
+    rows: usize,
+    cols: usize,
+    /// `exact256` ([`ExactMat::to_bytes`]) or `f64le`.
+    dtype: String,
+}
+
+/// The state a part started from.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct StateRef {
+    pub path: PathBuf,
+    pub sha256: String,
+}
+
+/// The header of a `.gpart`.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct PartHeader {
+    /// `gonio-rsvd-part`.
+    pub kind: String,
+    pub job: Job,
+    pub pass: usize,
+    pub passes: usize,
+    pub shard: ShardInfo,
+    pub state: Option<StateRef>,
+    /// `[light, view]` filled pairs of the part's views.
+    pub filled: Vec<[usize; 2]>,
+    blocks: Vec<BlockSpec>,
+    payload_sha256: String,
+}
+
+/// The header of a `.gstate`.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct StateHeader {
+    /// `gonio-rsvd-state`.
+    pub kind: String,
+    pub job: Job,
+    /// The pass whose sums this is.
+    pub pass: usize,
+    pub passes: usize,
+    pub shards: usize,
+    blocks: Vec<BlockSpec>,
+    payload_sha256: String,
+}
+
+const PART_KIND: &str = "gonio-rsvd-part";
+const STATE_KIND: &str = "gonio-rsvd-state";
+
+fn invalid(path: &Path, msg: impl std::fmt::Display) -> CompressError {
+    CompressError::Invalid(format!("{}: {msg}", path.display()))
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn write_file<H: Serialize>(path: &Path, header: &H, payload: &[u8]) -> Result<String, CompressError> {
+    let h = serde_json::to_vec(header).map_err(|e| invalid(path, e))?;
+    let mut bytes = Vec::with_capacity(16 + h.len() + payload.len());
+    bytes.extend_from_slice(MAGIC);
+    bytes.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&h);
+    bytes.extend_from_slice(payload);
+    crate::store::atomic::write_atomic(path, &bytes, None)?;
+    Ok(sha256_hex(&bytes))
+}
+
+/// Header JSON and payload of a part or state file, and the file's SHA-256.
+fn read_file(path: &Path) -> Result<(serde_json::Value, Vec<u8>, String), CompressError> {
+    let bytes = std::fs::read(path).map_err(|source| CompressError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    if bytes.len() < 16 || &bytes[..8] != MAGIC {
+        return Err(invalid(
+            path,
+            "not a gonio randomized-SVD part or state (.gpart/.gstate from `gonio compress --shard`)",
+        ));
+    }
+    let n = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
+    if bytes.len() < 16 + n {
+        return Err(invalid(
+            path,
+            "truncated header (the file is incomplete; run its shard again)",
+        ));
+    }
+    let header: serde_json::Value =
+        serde_json::from_slice(&bytes[16..16 + n]).map_err(|e| invalid(path, format!("header: {e}")))?;
+    let sha = sha256_hex(&bytes);
+    Ok((header, bytes[16 + n..].to_vec(), sha))
+}
+
+fn check_payload(path: &Path, blocks: &[BlockSpec], payload: &[u8], sha: &str) -> Result<(), CompressError> {
+    let want: usize = blocks
+        .iter()
+        .map(|b| b.rows * b.cols * if b.dtype == "exact256" { 32 } else { 8 })
+        .sum();
+    if payload.len() != want || sha256_hex(payload) != sha {
+        return Err(invalid(
+            path,
+            format!(
+                "payload of {} bytes does not match its header ({want} bytes and a SHA-256); the file is damaged, run its shard again",
+                payload.len()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn f64s_to_bytes(m: &Mat<f64>, out: &mut Vec<u8>) {
+    for i in 0..m.nrows() {
+        for j in 0..m.ncols() {
+            out.extend_from_slice(&m[(i, j)].to_le_bytes());
+        }
+    }
+}
+
+fn f64s_from_bytes(rows: usize, cols: usize, b: &[u8]) -> Mat<f64> {
+    Mat::from_fn(rows, cols, |i, j| {
+        let o = (i * cols + j) * 8;
+        f64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"))
+    })
+}
+
+/// Split `payload` by `blocks`.
+fn blocks_of<'a>(blocks: &[BlockSpec], payload: &'a [u8]) -> Vec<&'a [u8]> {
+    let mut out = Vec::with_capacity(blocks.len());
+    let mut o = 0;
+    for b in blocks {
+        let n = b.rows * b.cols * if b.dtype == "exact256" { 32 } else { 8 };
+        out.push(&payload[o..o + n]);
+        o += n;
+    }
+    out
+}
+
+impl Job {
+    /// The job of compressing `ds` to `output`; refuses methods that are not a
+    /// randomized SVD.
+    pub fn new(ds: &DatasetViews, output: Output) -> Result<Job, CompressError> {
+        let params = match &output {
+            Output::Gbtf { params, .. } => {
+                if !matches!(params.method, Method::Pca | Method::Dfmf { .. }) {
+                    return Err(CompressError::Invalid(format!(
+                        "method {} is not a randomized SVD; --shard with --state splits pca and dfmf (pvmf splits \
+                         without --state)",
+                        params.method.name()
+                    )));
+                }
+                params.clone()
+            }
+            // The .btf's provenance header is only the grid here.
+            Output::Btf { .. } => Params::new(Method::Pca, 1),
+        };
+        let mut header = header_for(ds, &params, Vec::new(), Vec::new());
+        if matches!(output, Output::Btf { .. }) {
+            header.method = "dfmf".into();
+            header.params = serde_json::Value::Null;
+        }
+        Ok(Job { output, header })
+    }
+
+    fn dfmf_params(&self) -> Result<Option<DfmfParams>, CompressError> {
+        match &self.output {
+            Output::Gbtf { params, .. } if params.method == Method::Pca => Ok(None),
+            Output::Gbtf { params, .. } => dfmf::gbtf_params(params).map(Some),
+            Output::Btf { dfmf, .. } => Ok(Some(dfmf.clone())),
+        }
+    }
+
+    /// The randomized SVD of this job.
+    pub fn problem(&self, ds: &DatasetViews) -> Result<Rsvd, CompressError> {
+        match (&self.output, self.dfmf_params()?) {
+            (Output::Gbtf { params, .. }, None) => Ok(pca::problem(ds, params)),
+            (_, Some(d)) => dfmf::problem(ds, &d),
+            (Output::Btf { .. }, None) => unreachable!("a .btf is DFMF"),
+        }
+    }
+
+    pub fn method(&self) -> &'static str {
+        match &self.output {
+            Output::Gbtf { params, .. } => params.method.name(),
+            Output::Btf { .. } => "dfmf",
+        }
+    }
+}
+
+/// What [`run_shard`] wrote.
+#[derive(Serialize, Clone, Debug)]
+pub struct PartReport {
+    pub pass: usize,
+    pub passes: usize,
+    /// Whether this was the last pass (its merge writes the compressed file).
+    pub last_pass: bool,
+    pub shard: ShardInfo,
+    pub bytes: u64,
+    pub out: PathBuf,
+}
+
+/// One shard's share of one pass: pass 0 without `state`, else the pass after the
+/// state's. Writes the part to `out`.
+pub fn run_shard(
+    ds: &DatasetViews,
+    output: Output,
+    shard: Shard,
+    state: Option<&Path>,
+    out: &Path,
+) -> Result<PartReport, CompressError> {
+    let job = Job::new(ds, output)?;
+    let rsvd = job.problem(ds)?;
+    shard.check_views(ds.n_views()).map_err(CompressError::Invalid)?;
+    let info = shard.info(ds.n_views());
+    let (pass, q, state_ref) = match state {
+        None => (0, None, None),
+        Some(p) => {
+            let (h, y, sha) = read_state(p)?;
+            if h.job != job {
+                let a = serde_json::to_value(&h.job).unwrap_or_default();
+                let b = serde_json::to_value(&job).unwrap_or_default();
+                let (field, detail) = crate::shard::first_difference(&a, &b).unwrap_or_default();
+                return Err(invalid(
+                    p,
+                    format!("is a state of another job: {field} differs ({detail}); give the same dataset and options as its parts"),
+                ));
+            }
+            if h.pass + 1 >= h.passes {
+                return Err(invalid(p, "is the state of the last pass; nothing is left to run"));
+            }
+            let abs = p.canonicalize().map_err(|source| CompressError::Io {
+                path: p.to_path_buf(),
+                source,
+            })?;
+            let q: Vec<Mat<f64>> = y.iter().map(orthonormalize).collect();
+            (h.pass + 1, Some(q), Some(StateRef { path: abs, sha256: sha }))
+        }
+    };
+    let passes = rsvd.passes();
+    let (output, filled) = {
+        let views = info.first_view..info.end_view;
+        match job.dfmf_params()? {
+            None => {
+                let mut src = ViewCache::new(ds, 0);
+                let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
+                (o, src.filled)
+            }
+            Some(d) => {
+                let mut src = Stream::new(ds, d.color_model).without_cache();
+                let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
+                (o, src.filled)
+            }
+        }
+    };
+    let mut blocks = Vec::new();
+    let mut payload = Vec::new();
+    match &output {
+        PassOutput::Sums(s) => {
+            for (ch, m) in s.iter().enumerate() {
+                blocks.push(BlockSpec {
+                    name: format!("y{ch}"),
+                    rows: m.nrows(),
+                    cols: m.ncols(),
+                    dtype: "exact256".into(),
+                });
+                payload.extend_from_slice(&m.to_bytes());
+            }
+        }
+        PassOutput::Projection(b) => {
+            for (ch, m) in b.iter().enumerate() {
+                blocks.push(BlockSpec {
+                    name: format!("b{ch}"),
+                    rows: m.nrows(),
+                    cols: m.ncols(),
+                    dtype: "f64le".into(),
+                });
+                f64s_to_bytes(m, &mut payload);
+            }
+        }
+    }
+    let header = PartHeader {
+        kind: PART_KIND.into(),
+        job,
+        pass,
+        passes,
+        shard: info,
+        state: state_ref,
+        filled,
+        blocks,
+        payload_sha256: sha256_hex(&payload),
+    };
+    write_file(out, &header, &payload)?;
+    Ok(PartReport {
+        pass,
+        passes,
+        last_pass: pass + 1 == passes,
+        shard: info,
+        bytes: (16 + payload.len()) as u64,
+        out: out.to_path_buf(),
+    })
+}
+
+/// A state file's header and sums (f64), and the file's SHA-256.
+pub fn read_state(path: &Path) -> Result<(StateHeader, Vec<Mat<f64>>, String), CompressError> {
+    let (h, payload, sha) = read_file(path)?;
+    if h.get("kind").and_then(|k| k.as_str()) != Some(STATE_KIND) {
+        return Err(invalid(
+            path,
+            "is not a state (.gstate): `--state` takes what `gonio merge` wrote from the previous pass's parts",
+        ));
+    }
+    let h: StateHeader = serde_json::from_value(h).map_err(|e| invalid(path, format!("header: {e}")))?;
+    check_payload(path, &h.blocks, &payload, &h.payload_sha256)?;
+    let ys = h
+        .blocks
+        .iter()
+        .zip(blocks_of(&h.blocks, &payload))
+        .map(|(b, bytes)| f64s_from_bytes(b.rows, b.cols, bytes))
+        .collect();
+    Ok((h, ys, sha))
+}
+
+/// A part file's header, checked against its payload, and the payload.
+pub fn read_part(path: &Path) -> Result<(PartHeader, Vec<u8>), CompressError> {
+    let (h, payload, _) = read_file(path)?;
+    if h.get("kind").and_then(|k| k.as_str()) != Some(PART_KIND) {
+        return Err(invalid(path, "is not a part (.gpart) of `gonio compress --shard`"));
+    }
+    let h: PartHeader = serde_json::from_value(h).map_err(|e| invalid(path, format!("header: {e}")))?;
+    check_payload(path, &h.blocks, &payload, &h.payload_sha256)?;
+    Ok((h, payload))
+}
+
+/// Whether `path` starts like a part or state file.
+pub fn is_part_file(path: &Path) -> bool {
+    use std::io::Read;
+    let mut m = [0u8; 8];
+    std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut m)).is_ok() && &m == MAGIC
+}
+
+/// What [`merge_parts`] wrote.
+#[derive(Serialize, Clone, Debug)]
+pub struct MergedPass {
+    /// `state` (a sum pass: the input of the next round) or `gbtf` / `btf` (the last pass).
+    pub kind: &'static str,
+    pub pass: usize,
+    pub passes: usize,
+    pub bytes: u64,
+}
+
+/// Merge the parts of one pass (already checked complete, in shard order, and equal in
+/// job, pass and state) into `out`.
+pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Result<MergedPass, CompressError> {
+    let (first_path, first, _) = &parts[0];
+    let (pass, passes) = (first.pass, first.passes);
+    if pass + 1 < passes {
+        // A sum pass: the exact sum of every part, rounded once.
+        let mut sums: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
+        for (p, h, payload) in parts {
+            if h.blocks.len() != sums.len() || h.blocks.iter().any(|b| b.dtype != "exact256") {
+                return Err(invalid(p, "its blocks are not the sums of the pass"));
+            }
+            for ((s, b), bytes) in sums.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
+                let m = ExactMat::from_bytes(b.rows, b.cols, bytes).map_err(|e| invalid(p, e))?;
+                s.add_exact(&m, &p.display().to_string())?;
+            }
+        }
+        let mut blocks = Vec::new();
+        let mut payload = Vec::new();
+        for (ch, s) in sums.iter().enumerate() {
+            let m = s.to_mat();
+            blocks.push(BlockSpec {
+                name: format!("y{ch}"),
+                rows: m.nrows(),
+                cols: m.ncols(),
+                dtype: "f64le".into(),
+            });
+            f64s_to_bytes(&m, &mut payload);
+        }
+        let header = StateHeader {
+            kind: STATE_KIND.into(),
+            job: first.job.clone(),
+            pass,
+            passes,
+            shards: first.shard.count,
+            blocks,
+            payload_sha256: sha256_hex(&payload),
+        };
+        write_file(out, &header, &payload)?;
+        return Ok(MergedPass {
+            kind: "state",
+            pass,
+            passes,
+            bytes: (16 + payload.len()) as u64,
+        });
+    }
+    // The last pass: Q from the state, B from the parts in view order.
+    let sref = first
+        .state
+        .as_ref()
+        .ok_or_else(|| invalid(first_path, "a last-pass part without its state"))?;
+    let (sh, y, sha) = read_state(&sref.path).map_err(|e| {
+        CompressError::Invalid(format!(
+            "{}: reading the state it started from, {} ({e}); the state must stay where its pass was run",
+            first_path.display(),
+            sref.path.display()
+        ))
+    })?;
+    if sha != sref.sha256 || sh.job != first.job {
+        return Err(invalid(
+            &sref.path,
+            format!(
+                "is not the state {} started from (its SHA-256 differs)",
+                first_path.display()
+            ),
+        ));
+    }
+    let q: Vec<Mat<f64>> = y.iter().map(orthonormalize).collect();
+    let nch = q.len();
+    let total_cols: usize = parts
+        .iter()
+        .map(|(_, h, _)| h.blocks.first().map_or(0, |b| b.cols))
+        .sum();
+    let mut b: Vec<Mat<f64>> = q.iter().map(|q| Mat::zeros(q.ncols(), total_cols)).collect();
+    let mut off = 0;
+    let mut filled = Vec::new();
+    for (p, h, payload) in parts {
+        if h.blocks.len() != nch || h.blocks.iter().any(|bl| bl.dtype != "f64le") {
+            return Err(invalid(p, "its blocks are not the projection of the last pass"));
+        }
+        let w = h.blocks[0].cols;
+        for ((ch, bl), bytes) in h.blocks.iter().enumerate().zip(blocks_of(&h.blocks, payload)) {
+            if bl.rows != q[ch].ncols() || bl.cols != w {
+                return Err(invalid(p, format!("block {} is {} × {}", bl.name, bl.rows, bl.cols)));
+            }
+            b[ch]
+                .as_mut()
+                .subcols_mut(off, w)
+                .copy_from(&f64s_from_bytes(bl.rows, bl.cols, bytes));
+        }
+        off += w;
+        filled.extend_from_slice(&h.filled);
+    }
+    let job = &first.job;
+    let (kind, bytes) = match &job.output {
+        Output::Gbtf { params, quantize } => {
+            let mut header = job.header.clone();
+            header.filled = filled;
+            let mut g = if params.method == Method::Pca {
+                let (infos, blocks) = pca::factors(params, &q[0], &b[0])?;
+                header.blocks = infos;
+                Gbtf { header, blocks }
+            } else {
+                let d = dfmf::gbtf_params(params)?;
+                dfmf::to_gbtf(header, dfmf_of(job, &d, &q, &b)?)
+            };
+            if let Some(bits) = quantize {
+                g.quantize(*bits)?;
+            }
+            ("gbtf", g.write(out)?)
+        }
+        Output::Btf {
+            dfmf: d,
+            precision,
+            xml,
+        } => (
+            "btf",
+            super::btf_ubo2014::write(out, &dfmf_of(job, d, &q, &b)?, *precision, xml)?,
+        ),
+    };
+    Ok(MergedPass {
+        kind,
+        pass,
+        passes,
+        bytes,
+    })
+}
+
+fn dfmf_of(job: &Job, d: &DfmfParams, q: &[Mat<f64>], b: &[Mat<f64>]) -> Result<dfmf::Dfmf, CompressError> {
+    let h = &job.header;
+    Ok(dfmf::Dfmf {
+        color_model: d.color_model,
+        width: h.width,
+        height: h.height,
+        lights_deg: h.lights_deg.clone(),
+        views_deg: h.views_deg.clone(),
+        channels: dfmf::channel_factors(d, q, b)?,
+    })
+}
