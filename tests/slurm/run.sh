@@ -181,6 +181,20 @@ grep -q "missing part(s) $S/w-broken/parts/part-3.gbtf" "$S/w-broken/logs/merge.
 [ ! -e "$S/broken.gbtf" ] || die "a merge with a missing part wrote an output"
 log "PVMF, shard 3 failing for good: retried once, merge failed naming part-3.gbtf"
 
+# --- 3b. sharded PCA: one array + merge per randomized-SVD pass, chained ---------------
+PCA_ARGS=(--method pca -c 4 --no-eval --json)
+"$GONIO" compress "$S/btf" "${PCA_ARGS[@]}" --out "$S/ref-pca.gbtf" >/dev/null
+"$GONIO" batch slurm --shards 3 --work "$S/w-pca" --out "$S/pca.gbtf" --submit --json \
+  -- compress "$S/btf" "${PCA_ARGS[@]}" >"$S/w-pca.json"
+m=$(json_field "$S/w-pca.json" merge_job)
+wait_job "$m" 600
+[ "$(job_state "$m")" = COMPLETED ] || die "PCA final merge job $m: $(job_state "$m"); $(cat "$S/w-pca/logs/"merge*.log)"
+for r in 0 1 2; do
+  [ -f "$S/w-pca/state-$r.gstate" ] || die "PCA round $r left no state"
+done
+cmp "$S/ref-pca.gbtf" "$S/pca.gbtf" || die "merged sharded PCA differs from the single-process file"
+log "PCA, 3 shards × 4 passes (8 chained jobs): merged .gbtf = single-process, byte for byte"
+
 # --- 4. a dataset family: 3 shards render into one directory, the last job checks it -----
 cat >"$S/family.toml" <<EOF
 name = "tiny"
