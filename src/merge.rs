@@ -142,10 +142,22 @@ struct DatasetPart {
     header: ManifestHeader,
     records: Vec<MeasurementRecord>,
     shard: ShardInfo,
+    /// `gonio acquire --shard` parts: the whole plan (the same bytes in every part).
+    plan: Option<Vec<u8>>,
+    /// The part's own summary (an acquisition's differs per part: its own counts, times).
+    summary: serde_json::Value,
 }
 
-/// Files a dataset part may hold besides what the store writes per record.
-const STORE_FILES: [&str; 3] = [store::MANIFEST_FILE, store::JOURNAL_FILE, store::IMAGES_DIR];
+/// Files a dataset part may hold besides what the store writes per record: a
+/// `gonio sim btf` part has the first three, a `gonio acquire` part may have all.
+const STORE_FILES: [&str; 6] = [
+    store::MANIFEST_FILE,
+    store::JOURNAL_FILE,
+    store::IMAGES_DIR,
+    store::PLAN_FILE,
+    store::TRUTH_DIR,
+    store::CALIBRATION_DIR,
+];
 
 fn read_dataset_part(dir: &Path) -> Result<(DatasetPart, serde_json::Value), MergeError> {
     let mpath = dir.join(store::MANIFEST_FILE);
@@ -168,23 +180,44 @@ fn read_dataset_part(dir: &Path) -> Result<(DatasetPart, serde_json::Value), Mer
         if !STORE_FILES.contains(&name.as_str()) && !name.starts_with('.') {
             return Err(part_err(
                 dir,
-                format!("holds `{name}`, which merge does not know how to combine (only sharded `gonio sim btf` datasets merge)"),
+                format!(
+                    "holds `{name}`, which merge does not know how to combine (sharded `gonio sim btf` and \
+                     `gonio acquire` datasets merge)"
+                ),
             ));
         }
     }
     let (header, mut records) = store::load(dir)?;
     records.sort_by_key(|r| (r.order, r.index));
+    let plan = match std::fs::read(dir.join(store::PLAN_FILE)) {
+        Ok(b) => Some(b),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => return Err(part_err(dir, format!("reading {}: {e}", store::PLAN_FILE))),
+    };
+    let summary = manifest.get("summary").cloned().unwrap_or(serde_json::Value::Null);
     // What must be equal across parts: everything but the records, the creation time and
-    // the part's own shard.
+    // the part's own shard (and an acquisition's own summary: its counts and times).
     let mut norm = manifest;
     if let Some(o) = norm.as_object_mut() {
         o.remove("records");
         o.remove("created_unix");
+        if plan.is_some() {
+            o.remove("summary");
+        }
     }
     if let Some(extra) = norm.get_mut("extra").and_then(|e| e.as_object_mut()) {
         extra.remove("shard");
     }
-    Ok((DatasetPart { header, records, shard }, norm))
+    Ok((
+        DatasetPart {
+            header,
+            records,
+            shard,
+            plan,
+            summary,
+        },
+        norm,
+    ))
 }
 
 fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
@@ -244,32 +277,85 @@ fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeRep
             path: out.to_path_buf(),
         });
     }
+    // Acquisition parts all planned the whole sweep: the same plan.json, byte for byte.
+    for (p, part) in parts.iter().zip(&read).skip(1) {
+        if part.plan != read[0].plan {
+            return Err(part_err(
+                p,
+                format!(
+                    "its {} differs from {}'s: the parts were not planned alike (same rig, sweep, sample and \
+                     planning options, and the default kick budget rather than a --plan-time cap)",
+                    store::PLAN_FILE,
+                    parts[0].display()
+                ),
+            ));
+        }
+    }
+    let acquisition = read[0].plan.is_some();
     let mut header = read[0].header.clone();
     header.created_unix = read.iter().map(|r| r.header.created_unix).fold(f64::INFINITY, f64::min);
     if let Some(extra) = header.extra.as_object_mut() {
         extra.remove("shard");
     }
-    let summary = norms[0].get("summary").cloned().unwrap_or(serde_json::Value::Null);
+    let summary = if acquisition {
+        acquisition_summary(out, &read.iter().map(|r| r.summary.clone()).collect::<Vec<_>>())
+    } else {
+        norms[0].get("summary").cloned().unwrap_or(serde_json::Value::Null)
+    };
+    // The single-process journal order: skipped pairs first (recorded before the run, by
+    // index), then the measurements in plan order (`order`, the step's place in the whole
+    // plan). For `sim btf` parts (order = index) this is the shards one after the other.
+    let mut all: Vec<(usize, &MeasurementRecord)> = order
+        .iter()
+        .flat_map(|&k| read[k].records.iter().map(move |r| (k, r)))
+        .collect();
+    all.sort_by_key(|(_, r)| (r.order != usize::MAX, r.order, r.index));
     let mut ds = Dataset::create(out, &header, force)?;
-    let mut items = 0;
-    for &k in &order {
-        let dir = &parts[k];
-        for rec in &read[k].records {
-            let image = match &rec.image {
-                Some(rel) => Some(store::read_exr(&dir.join(rel))?),
-                None => None,
-            };
-            let stored = ds.store(rec.clone(), image.as_ref(), None)?;
-            if stored.image_sha256 != rec.image_sha256 {
-                return Err(MergeError::HashMismatch {
-                    path: dir.clone(),
-                    index: rec.index,
-                    stored: stored.image_sha256.unwrap_or_default(),
-                    recorded: rec.image_sha256.clone().unwrap_or_default(),
-                });
+    if let Some(plan) = &read[0].plan {
+        ds.write_plan(plan)?;
+    }
+    // Calibration copies are the same in every part (one calibration for the job).
+    let cal = parts[0].join(store::CALIBRATION_DIR);
+    if cal.is_dir() {
+        for e in std::fs::read_dir(&cal).map_err(|e| part_err(&parts[0], format!("listing calibration/: {e}")))? {
+            let e = e.map_err(|e| part_err(&parts[0], format!("listing calibration/: {e}")))?;
+            let name = e.file_name().to_string_lossy().into_owned();
+            if let Some(kind) = name.strip_suffix(".json") {
+                let bytes =
+                    std::fs::read(e.path()).map_err(|err| part_err(&parts[0], format!("reading {name}: {err}")))?;
+                ds.store_calibration_copy(kind, &bytes)?;
             }
-            items += 1;
         }
+    }
+    let mut items = 0;
+    for (k, rec) in all {
+        let dir = &parts[k];
+        let image = match &rec.image {
+            Some(rel) => Some(store::read_exr(&dir.join(rel))?),
+            None => None,
+        };
+        let truth = dir.join(store::truth_rel_path(rec.index));
+        if truth.is_file() {
+            let bytes =
+                std::fs::read(&truth).map_err(|e| part_err(dir, format!("reading {}: {e}", truth.display())))?;
+            let rel = ds.store_truth(rec.index, &store::read_exr(&truth)?)?;
+            if std::fs::read(out.join(&rel)).ok().as_deref() != Some(&bytes[..]) {
+                return Err(part_err(
+                    dir,
+                    format!("{}: the stored copy would not be byte-identical", truth.display()),
+                ));
+            }
+        }
+        let stored = ds.store(rec.clone(), image.as_ref(), None)?;
+        if stored.image_sha256 != rec.image_sha256 {
+            return Err(MergeError::HashMismatch {
+                path: dir.clone(),
+                index: rec.index,
+                stored: stored.image_sha256.unwrap_or_default(),
+                recorded: rec.image_sha256.clone().unwrap_or_default(),
+            });
+        }
+        items += 1;
     }
     ds.finish(&summary)?;
     Ok(MergeReport {
@@ -281,6 +367,71 @@ fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeRep
         pass: None,
         out: out.to_path_buf(),
     })
+}
+
+/// The summary of a merged acquisition: the parts' counts and times added up, and every
+/// part's own summary under `parts` (their truth-error figures cannot be combined without
+/// the per-measurement values, which are in the journal's records).
+fn acquisition_summary(out: &Path, parts: &[serde_json::Value]) -> serde_json::Value {
+    let mut s = parts[0].clone();
+    let Some(o) = s.as_object_mut() else {
+        return serde_json::Value::Null;
+    };
+    let num = |key: &str| {
+        parts
+            .iter()
+            .map(|p| p.get(key).and_then(|v| v.as_f64()).unwrap_or(0.0))
+            .sum::<f64>()
+    };
+    for key in [
+        "planned_measurements",
+        "measured",
+        "substituted",
+        "skipped",
+        "stored_this_run",
+        "already_done",
+        "remaining",
+        "homography_from_markers",
+        "homography_from_pose",
+    ] {
+        o.insert(key.into(), serde_json::json!(num(key) as u64));
+    }
+    for key in ["sweep_duration_s", "wall_time_s"] {
+        o.insert(key.into(), serde_json::json!(num(key)));
+    }
+    let stored = num("stored_this_run");
+    o.insert(
+        "images_per_s".into(),
+        serde_json::json!(stored / num("wall_time_s").max(1e-9)),
+    );
+    let mut reasons = serde_json::Map::new();
+    for p in parts {
+        for (k, v) in p
+            .get("skipped_reasons")
+            .and_then(|r| r.as_object())
+            .into_iter()
+            .flatten()
+        {
+            let n = reasons.get(k).and_then(|x| x.as_u64()).unwrap_or(0) + v.as_u64().unwrap_or(0);
+            reasons.insert(k.clone(), serde_json::json!(n));
+        }
+    }
+    o.insert("skipped_reasons".into(), serde_json::Value::Object(reasons));
+    let all = |key: &str| parts.iter().all(|p| p.get(key) == Some(&serde_json::Value::Bool(true)));
+    o.insert("complete".into(), serde_json::json!(all("complete")));
+    o.insert("paused".into(), serde_json::json!(false));
+    o.insert("dataset".into(), serde_json::json!(out.display().to_string()));
+    o.insert("truth_error".into(), serde_json::Value::Null);
+    o.insert("stage_seconds".into(), serde_json::Value::Null);
+    o.insert(
+        "peak_rss_mib".into(),
+        serde_json::json!(parts
+            .iter()
+            .filter_map(|p| p.get("peak_rss_mib").and_then(|v| v.as_f64()))
+            .fold(0.0, f64::max)),
+    );
+    o.insert("parts".into(), serde_json::Value::Array(parts.to_vec()));
+    s
 }
 
 // ---------------------------------------------------------------------------------------

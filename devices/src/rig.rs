@@ -322,6 +322,11 @@ impl RigSpec {
         r
     }
 
+    /// Whether every device of the rig is simulated (axes, camera and light all `sim`).
+    pub fn is_simulated(&self) -> bool {
+        self.camera.backend == "sim" && self.light.backend == "sim" && self.axes.iter().all(|a| a.backend == "sim")
+    }
+
     /// The HDR mode this rig runs with (`Off` without an `[hdr]` section).
     pub fn hdr_mode(&self) -> crate::hdr::HdrMode {
         self.hdr.as_ref().map_or(crate::hdr::HdrMode::Off, |h| h.mode())

@@ -99,11 +99,21 @@ impl SimAxis {
         }
     }
 
-    /// Position now (interpolated along the profile while moving).
+    /// Position now (interpolated along the profile while moving). A finished move is at
+    /// its target exactly: `start + (target − start)` can miss it in the last bit, and
+    /// then where an axis ends would depend on where it came from, so the same pose
+    /// reached from two directions (a resumed run, a shard) would read back, and render,
+    /// differently.
     pub fn position_now(&self) -> f64 {
         let s = self.state.lock().expect("axis state poisoned");
         let t = self.clock.now() - s.t_start;
-        s.start + self.motion.position_at(s.target - s.start, t)
+        let d = s.target - s.start;
+        let p = self.motion.position_at(d, t);
+        if p == d {
+            s.target
+        } else {
+            s.start + p
+        }
     }
 }
 

@@ -66,6 +66,12 @@ pub struct AcquireArgs {
     /// the run it keeps serving until Ctrl-C. Read-only: nothing on the page moves the rig.
     #[arg(long)]
     pub view: bool,
+    /// Measure only shard I of N (1-based; the contiguous views `[(I−1)·V/N, I·V/N)`):
+    /// the whole sweep is planned as one process would plan it, and only the steps of the
+    /// shard's views are run, so `gonio merge` of the N parts gives the single-process
+    /// images byte for byte (docs/scale.md). Simulated rigs; not with --isotropic.
+    #[arg(long, conflicts_with = "resume")]
+    pub shard: Option<crate::shard::Shard>,
     /// Port of --view (0 picks a free one).
     #[arg(long, default_value_t = 0, requires = "view")]
     pub view_port: u16,
@@ -228,6 +234,7 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
             store_truth: args.store_truth,
         },
         calibration: args.calibration.clone(),
+        shard: args.shard,
     })
 }
 

@@ -159,6 +159,7 @@ fn bench(
             store_truth: a.store_truth,
         },
         calibration: None,
+        shard: None,
     })
     .with_context(|| format!("creating the benchmark dataset {}", out.display()))?;
     let steps: Vec<crate::plan::Step> = session

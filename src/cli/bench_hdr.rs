@@ -122,6 +122,7 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
                 store_truth: true,
             },
             calibration: None,
+            shard: None,
         };
         let session = Session::create(&new)?;
         let req = RunRequest {

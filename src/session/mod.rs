@@ -22,6 +22,7 @@ use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
+use crate::shard::ShardInfo;
 use crate::store::{self, Dataset, ManifestHeader, StoreError};
 use crate::sweep::Sweep;
 use gonio_devices::rig::RigSpec;
@@ -113,6 +114,9 @@ pub struct NewSession {
     pub settings: RunSettings,
     /// Directory of calibration results to apply.
     pub calibration: Option<PathBuf>,
+    /// Measure only this shard's views (the whole sweep is planned; `gonio merge` joins
+    /// the parts). Recorded as `extra.shard` in the manifest.
+    pub shard: Option<crate::shard::Shard>,
 }
 
 /// How one run of a session goes.
@@ -132,6 +136,8 @@ pub struct Session {
     settings: RunSettings,
     dataset: Dataset,
     done: HashSet<usize>,
+    /// The views this session measures (all without a shard).
+    shard: Option<ShardInfo>,
 }
 
 impl Session {
@@ -156,6 +162,30 @@ impl Session {
         }
         .map_err(SessionError::Plan)?;
         let out = new.out.display().to_string();
+        let shard = match new.shard {
+            None => None,
+            Some(s) => {
+                let invalid = |message: String| SessionError::Invalid {
+                    dir: out.clone(),
+                    message,
+                };
+                if plan.isotropic.is_some() {
+                    return Err(invalid(format!(
+                        "--shard {s} with an isotropic plan: its measured pairs stand for pairs of other views, \
+                         so views cannot be split; acquire it in one process"
+                    )));
+                }
+                if !rig.is_simulated() {
+                    return Err(invalid(format!(
+                        "--shard {s} on rig `{}`, which drives real hardware: shards are for simulated rigs \
+                         (one physical rig measures one process's plan)",
+                        rig.name
+                    )));
+                }
+                s.check_views(new.sweep.views.len()).map_err(invalid)?;
+                Some(s.info(new.sweep.views.len()))
+            }
+        };
         let json = |what: &str, e: serde_json::Error| SessionError::Json {
             dir: out.clone(),
             what: what.into(),
@@ -173,6 +203,9 @@ impl Session {
         header.seed = settings.seed.unwrap_or(1);
         header.raw_frames = settings.raw;
         header.extra = serde_json::json!({ "run_settings": settings });
+        if let Some(info) = shard {
+            header.extra["shard"] = serde_json::json!(info);
+        }
         if let Some(results) = &calibration {
             describe_calibration(results, &rig, &mut header)?;
         }
@@ -201,6 +234,7 @@ impl Session {
             settings,
             dataset,
             done: HashSet::new(),
+            shard,
         })
     }
 
@@ -267,6 +301,10 @@ impl Session {
         let settings: RunSettings = serde_json::from_value(header.extra["run_settings"].clone())
             .map_err(|e| json("reading run settings from the manifest", e))?;
         let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
+        let shard: Option<ShardInfo> = match header.extra.get("shard") {
+            None => None,
+            Some(v) => Some(serde_json::from_value(v.clone()).map_err(|e| json("reading extra.shard", e))?),
+        };
         if done.len() > plan.pairs {
             return Err(SessionError::Invalid {
                 dir: name,
@@ -280,6 +318,7 @@ impl Session {
             settings,
             dataset,
             done,
+            shard,
         })
     }
 
@@ -313,6 +352,7 @@ impl Session {
             settings,
             mut dataset,
             done,
+            shard,
         } = self;
         let dir = dataset.dir().to_path_buf();
         let name = dir.display().to_string();
@@ -324,8 +364,19 @@ impl Session {
         };
         let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).map_err(SessionError::Rig)?);
         let calibration = dataset_calibration(dataset.header(), &dir, &rig_spec)?;
+        // A shard runs the steps of its views only. The others count as done for the
+        // engine, so every step keeps its position in the whole plan (`order`) and the
+        // single-process journal order is what `gonio merge` restores.
+        let in_shard = |index: usize| {
+            shard.is_none_or(|sh| (sh.first_view..sh.end_view).contains(&(index / plan.light_count.max(1))))
+        };
+        let mut plan_shard = plan.clone();
+        plan_shard.steps.retain(|s| in_shard(s.index));
+        plan_shard.skipped.retain(|s| in_shard(s.index));
+        let others: HashSet<usize> = plan.steps.iter().map(|s| s.index).filter(|&i| !in_shard(i)).collect();
+        let done_run: HashSet<usize> = done.union(&others).copied().collect();
         // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
-        for s in &plan.skipped {
+        for s in &plan_shard.skipped {
             if !done.contains(&s.index) {
                 let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
                 dataset.store(rec, None, None).map_err(|source| SessionError::Store {
@@ -339,7 +390,7 @@ impl Session {
         if let Some(limit) = req.limit {
             let mut left = limit;
             plan_run.steps.retain(|s| {
-                if done.contains(&s.index) {
+                if done_run.contains(&s.index) {
                     return true;
                 }
                 if left == 0 {
@@ -377,7 +428,7 @@ impl Session {
             rig.clone(),
             Arc::new(plan_run),
             dataset,
-            done.clone(),
+            done_run,
             opts,
             pause,
             observer,
@@ -387,7 +438,17 @@ impl Session {
             dir: name.clone(),
             source: Box::new(source),
         })?;
-        let summary = Summary::new(&name, &rig_spec, &sample, &plan, &done, &report, calibration.as_deref());
+        let mut report = report;
+        report.already_done -= others.len().min(report.already_done);
+        let summary = Summary::new(
+            &name,
+            &rig_spec,
+            &sample,
+            &plan_shard,
+            &done,
+            &report,
+            calibration.as_deref(),
+        );
         if summary.complete {
             let value = serde_json::to_value(&summary).map_err(|e| SessionError::Json {
                 dir: name.clone(),

@@ -71,6 +71,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
             store_truth: true,
         },
         calibration: None,
+        shard: None,
     };
     let session = Session::create(&new).unwrap();
     assert_eq!(session.plan().steps.len(), 12);

@@ -319,6 +319,104 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
     assert!(!t.join("x.gstate").exists() && !t.join("y.gpart").exists());
 }
 
+/// The records of a dataset's journal, in journal order.
+fn journal(dir: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(dir.join("journal.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["rec"].clone())
+        .collect()
+}
+
+#[test]
+fn sharded_acquisition_merges_to_the_single_process_images() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let acq = [
+        "acquire",
+        "--sweep",
+        "fibonacci:6",
+        "--size",
+        "24x24",
+        "--seed",
+        "7",
+        "--store-truth",
+        "--json",
+    ];
+    ok(t, &[&acq[..], &["--out", "single"]].concat());
+    // Shards in reverse order: a shard's images must not depend on what ran before it.
+    for i in (1..=3).rev() {
+        let (shard, out) = (format!("{i}/3"), format!("acq-{i}"));
+        ok(t, &[&acq[..], &["--shard", &shard, "--out", &out]].concat());
+    }
+    ok(t, &["merge", "acq-2", "acq-3", "acq-1", "--out", "merged", "--json"]);
+    // Every image, truth image and the plan: the same bytes.
+    let (single, merged) = (files(&t.join("single")), files(&t.join("merged")));
+    assert_eq!(
+        single.iter().map(|f| &f.0).collect::<Vec<_>>(),
+        merged.iter().map(|f| &f.0).collect::<Vec<_>>()
+    );
+    let mut images = 0;
+    for (a, b) in single.iter().zip(&merged) {
+        let name = a.0.display().to_string();
+        if name == "journal.jsonl" || name == "manifest.json" {
+            continue;
+        }
+        images += name.ends_with(".exr") as usize;
+        assert!(
+            a.1 == b.1,
+            "{name} differs between the single-process and the merged acquisition"
+        );
+    }
+    assert!(images >= 2 * 30, "{images} images and truth images");
+    // The journal: the same records in the same order, but for the fields that measure
+    // the run itself (the rig's clock and frame counter started anew in every shard).
+    let (ja, jb) = (journal(&t.join("single")), journal(&t.join("merged")));
+    assert_eq!(ja.len(), jb.len());
+    for (mut x, mut y) in ja.into_iter().zip(jb) {
+        for r in [&mut x, &mut y] {
+            let o = r.as_object_mut().unwrap();
+            for k in ["wall_time_unix", "rig_time_s", "frame_sequence"] {
+                o.remove(k);
+            }
+        }
+        assert_eq!(x, y);
+    }
+    // The summary adds up the parts' counts.
+    let m = |d: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(t.join(d).join("manifest.json")).unwrap()).unwrap()
+    };
+    let (ms, mm) = (m("single"), m("merged"));
+    for k in [
+        "planned_measurements",
+        "measured",
+        "skipped",
+        "substituted",
+        "stored_this_run",
+        "remaining",
+    ] {
+        assert_eq!(ms["summary"][k], mm["summary"][k], "summary.{k}");
+    }
+    assert_eq!(mm["summary"]["complete"], true);
+    assert_eq!(mm["summary"]["parts"].as_array().map(Vec::len), Some(3));
+    assert!(mm["extra"].get("shard").is_none());
+
+    // A part planned differently (another kick budget) is refused, naming plan.json.
+    ok(
+        t,
+        &[&acq[..], &["--plan-kicks", "3", "--shard", "2/3", "--out", "other-2"]].concat(),
+    );
+    let e = fails(t, &["merge", "acq-1", "other-2", "acq-3", "--out", "m"]);
+    assert!(e.contains("other-2") && e.contains("plan.json"), "{e}");
+    // No shards of an isotropic plan: its pairs stand for other views' pairs.
+    let e = fails(
+        t,
+        &[&acq[..], &["--isotropic", "--shard", "1/3", "--out", "iso"]].concat(),
+    );
+    assert!(e.contains("isotropic"), "{e}");
+    assert!(!t.join("m").exists());
+}
+
 #[test]
 fn bad_shard_specs_are_refused_with_the_valid_form() {
     let tmp = tempfile::tempdir().unwrap();
