@@ -19,6 +19,8 @@ use std::path::{Path, PathBuf};
 pub enum ShardedKind {
     /// `gonio sim btf …`: parts are dataset directories.
     SimBtf,
+    /// `gonio acquire …` on a simulated rig: parts are dataset directories.
+    Acquire,
     /// `gonio compress … --method pvmf`: parts are `.gbtf` files.
     CompressPvmf,
     /// `gonio compress … --method pca|dfmf`: a chain of `passes` rounds (one per pass of
@@ -36,6 +38,12 @@ impl ShardedKind {
     pub fn of(args: &[String]) -> Result<ShardedKind, String> {
         let kind = match args {
             [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
+            [a, ..] if a == "acquire" => {
+                if args.iter().any(|a| a.split('=').next() == Some("--resume")) {
+                    return Err("`acquire --resume` continues one dataset; give the acquisition's own options".into());
+                }
+                ShardedKind::Acquire
+            }
             [a, b, ..] if a == "dataset" && b == "generate" => ShardedKind::DatasetGenerate,
             [a, ..] if a == "compress" => {
                 let method = |m: &str| {
@@ -70,7 +78,7 @@ impl ShardedKind {
             }
             _ => {
                 return Err(format!(
-                    "`{}` cannot be sharded; give `sim btf …`, `compress DATASET --method pvmf|pca|dfmf …` or `dataset generate SPEC` after --",
+                    "`{}` cannot be sharded; give `sim btf …`, `acquire …`, `compress DATASET --method pvmf|pca|dfmf …` or `dataset generate SPEC` after --",
                     args.join(" ")
                 ))
             }
@@ -88,7 +96,7 @@ impl ShardedKind {
 
     fn part_suffix(self) -> &'static str {
         match self {
-            ShardedKind::SimBtf | ShardedKind::DatasetGenerate => "",
+            ShardedKind::SimBtf | ShardedKind::Acquire | ShardedKind::DatasetGenerate => "",
             ShardedKind::CompressPvmf => ".gbtf",
             ShardedKind::CompressRsvd { .. } => ".gpart",
         }
@@ -253,7 +261,7 @@ impl SlurmJob {
                 self.kind.part_suffix()
             ));
         }
-        if self.kind == ShardedKind::SimBtf {
+        if matches!(self.kind, ShardedKind::SimBtf | ShardedKind::Acquire) {
             cmd.push("--force".into());
         }
         s.push_str(&format!("run() {{ {}; }}\n", cmd.join(" ")));
@@ -335,7 +343,9 @@ mod tests {
         );
         assert!(ShardedKind::of(&args("compress ds --method pca -c 4 --state s")).is_err());
         assert!(ShardedKind::of(&args("compress ds --method median-cut")).is_err());
-        assert!(ShardedKind::of(&args("acquire --size 32")).is_err());
+        assert_eq!(ShardedKind::of(&args("acquire --size 32")), Ok(ShardedKind::Acquire));
+        assert!(ShardedKind::of(&args("acquire --resume d")).is_err());
+        assert!(ShardedKind::of(&args("plan --size 32")).is_err());
         assert!(ShardedKind::of(&args("sim btf --out x")).unwrap_err().contains("--out"));
         assert!(ShardedKind::of(&args("sim btf --shard=1/2")).is_err());
     }

@@ -124,7 +124,7 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     let input = match kind {
         ShardedKind::CompressPvmf | ShardedKind::CompressRsvd { .. } => Some((1, "dataset")),
         ShardedKind::DatasetGenerate => Some((2, "family spec")),
-        ShardedKind::SimBtf => None,
+        ShardedKind::SimBtf | ShardedKind::Acquire => None,
     };
     if let Some((at, what)) = input {
         if let Some(arg) = command.get(at).filter(|d| !d.starts_with('-')) {

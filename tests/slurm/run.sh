@@ -195,6 +195,17 @@ done
 cmp "$S/ref-pca.gbtf" "$S/pca.gbtf" || die "merged sharded PCA differs from the single-process file"
 log "PCA, 3 shards × 4 passes (8 chained jobs): merged .gbtf = single-process, byte for byte"
 
+# --- 3c. a sharded simulated acquisition ------------------------------------------------
+ACQ_ARGS=(acquire --sweep fibonacci:6 --size 24x24 --seed 7 --json)
+"$GONIO" "${ACQ_ARGS[@]}" --out "$S/ref-acq" >/dev/null
+"$GONIO" batch slurm --shards 3 --work "$S/w-acq" --out "$S/acq" --submit --json -- "${ACQ_ARGS[@]}" >"$S/w-acq.json"
+m=$(json_field "$S/w-acq.json" merge_job)
+wait_job "$m" 300
+[ "$(job_state "$m")" = COMPLETED ] || die "acquisition merge job $m: $(cat "$S/w-acq/logs/merge.log")"
+diff <(cd "$S/ref-acq" && sha256sum plan.json images/*) <(cd "$S/acq" && sha256sum plan.json images/*) >&2 ||
+  die "merged sharded acquisition: images or plan differ from the single-process run"
+log "acquisition, 3 shards: merged images and plan = single-process, byte for byte"
+
 # --- 4. a dataset family: 3 shards render into one directory, the last job checks it -----
 cat >"$S/family.toml" <<EOF
 name = "tiny"
