@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""The scale model of docs/scale.md, fitted to and checked against bench/scale.sh's output.
+
+Per task, a shard's time is t = a + b·v (v views of the shard: a start-up, b per view).
+a and b are fitted by least squares on the 2- and 4-shard runs only; the model then
+predicts the 1-shard run (the whole job in one process, v = V) and the prediction is
+compared with the measurement. Per-view costs scale with lights × texels (every view
+renders, reads or multiplies lights images of texels pixels), which is how the model is
+carried to a UBO2014-size job (151 × 151 directions, 400² texels).
+
+Usage: bench/scale_model.py SCALE.jsonl   (prints a JSON report)
+"""
+import json
+import sys
+
+rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+runs = [r for r in rows if "task" in r]
+V = runs[0]["views"]
+L = runs[0]["lights"]
+T = runs[0]["texels"]
+
+
+def fit(task, p=None):
+    pts = [
+        (V / r["shards"], r["seconds"])
+        for r in runs
+        if r["task"] == task and r["shards"] in (2, 4) and (p is None or r["pass"] == p)
+    ]
+    n = len(pts)
+    mx = sum(x for x, _ in pts) / n
+    my = sum(y for _, y in pts) / n
+    sxx = sum((x - mx) ** 2 for x, _ in pts)
+    b = sum((x - mx) * (y - my) for x, y in pts) / sxx
+    return my - b * mx, b
+
+
+def measured(task, shards, p=None):
+    return sum(r["seconds"] for r in runs if r["task"] == task and r["shards"] == shards and r["shard"] > 0
+               and (p is None or r["pass"] == p))
+
+
+report = {"inputs": {"views": V, "lights": L, "texels": T}, "tasks": {}}
+passes = sorted({r["pass"] for r in runs if r["task"] == "pca_pass"})
+models = {"sim_btf": fit("sim_btf"), "pvmf": fit("pvmf")}
+for p in passes:
+    models[f"pca_pass{p}"] = fit("pca_pass", p)
+for name, (a, b) in models.items():
+    task, p = ("pca_pass", int(name[8:])) if name.startswith("pca_pass") else (name, None)
+    pred = a + b * V
+    meas = measured(task, 1, p)
+    report["tasks"][name] = {
+        "startup_s": round(a, 3),
+        "per_view_s": round(b, 4),
+        "per_image_ms": round(1000 * b / L, 3),
+        "predicted_1_shard_s": round(pred, 3),
+        "measured_1_shard_s": round(meas, 3),
+        "predicted_over_measured": round(pred / meas, 3) if meas else None,
+    }
+merges = {r["task"] + f"_{r['shards']}" + (f"_p{r['pass']}" if r["task"] == "merge_pass" else ""): r["seconds"]
+          for r in runs if r["task"].startswith("merge")}
+report["merges_s"] = {k: round(v, 3) for k, v in merges.items()}
+single = {r["task"]: r["seconds"] for r in runs if r["shards"] == 1 and r["shard"] == 1 and r["task"] in ("sim_btf", "pvmf", "pca")
+          and r["pass"] == 0}
+report["single_process_s"] = {k: round(v, 3) for k, v in single.items()}
+bytes_row = next((r["bytes"] for r in rows if "bytes" in r), {})
+report["bytes"] = bytes_row
+
+# --- carried to UBO2014 size: 151 views × 151 lights × 400² texels ------------------------
+UV, UL, UT = 151, 151, 400 * 400
+scale = (UL * UT) / (L * T)  # per-view cost ratio
+k = 18  # PCA c = 8 + 10 oversampling: sketch columns
+sum_part_bytes = UT * k * 32  # an exact-sum part
+# The merge of a sum pass reads N parts and adds them: its measured cost per byte here.
+mp = [(r["shards"], r["seconds"]) for r in runs if r["task"] == "merge_pass" and r["pass"] == 0]
+part_bytes_here = bytes_row.get("pca_sum_part", T * k * 32)
+merge_s_per_byte = max(s / (n * part_bytes_here) for n, s in mp) if mp else 0.0
+
+
+def per_view(name):
+    return models[name][1] * scale
+
+
+pca_view = sum(per_view(f"pca_pass{p}") for p in passes)
+render_view = per_view("sim_btf")
+a_pca = sum(models[f"pca_pass{p}"][0] for p in passes)
+pred = {"per_view_render_s": round(render_view, 2), "per_view_pca_all_passes_s": round(pca_view, 2)}
+for nodes in (1, 8, 64):
+    views_per_node = -(-UV // nodes)
+    pca_wall = a_pca + views_per_node * pca_view + len(passes) * nodes * sum_part_bytes * merge_s_per_byte
+    pred[f"global_pca_{nodes}_nodes_h"] = round(pca_wall / 3600, 3)
+    gen = 1000 * (models["sim_btf"][0] + UV * render_view) / nodes
+    pred[f"generate_1000_materials_{nodes}_nodes_h"] = round(gen / 3600, 1)
+pred["sum_part_MiB"] = round(sum_part_bytes / 2**20, 1)
+pred["note"] = ("per node as this machine (2 cores); Slurm's own start latency per dependent job and the "
+                "shared filesystem's bandwidth (22 GB read per PCA pass, split over the nodes) come on top")
+report["ubo2014_prediction"] = pred
+print(json.dumps(report, indent=1))
