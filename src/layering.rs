@@ -39,10 +39,19 @@ const ALLOWED: &[(&str, &[&str])] = &[
     // shards of the heavy jobs, their merge, and the scheduler that runs them
     ("merge", &["shard", "compress", "store", "sweep"]),
     ("slurm", &["shard"]),
-    // the acquisition session, then the command line on top
+    // the acquisition session (a shard of it runs some views), then the command line on top
     (
         "session",
-        &["engine", "calibrate", "plan", "rig", "develop", "store", "sweep"],
+        &[
+            "engine",
+            "calibrate",
+            "plan",
+            "rig",
+            "develop",
+            "store",
+            "sweep",
+            "shard",
+        ],
     ),
     (
         "cli",

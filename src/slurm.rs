@@ -35,7 +35,9 @@ pub enum ShardedKind {
 impl ShardedKind {
     /// Recognise the command from its arguments (without the program name); refuse
     /// commands that cannot be sharded and arguments the batch sets itself.
-    pub fn of(args: &[String]) -> Result<ShardedKind, String> {
+    /// `default_power_iters`: `gonio compress`'s default, for a PCA/DFMF command that does
+    /// not set `--power-iters` (the number of rounds depends on it).
+    pub fn of(args: &[String], default_power_iters: usize) -> Result<ShardedKind, String> {
         let kind = match args {
             [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
             [a, ..] if a == "acquire" => {
@@ -60,7 +62,7 @@ impl ShardedKind {
                         .map(|w| w[1].clone())
                         .or_else(|| args.iter().find_map(|a| a.strip_prefix("--power-iters=").map(String::from)));
                     let iters = match value {
-                        None => crate::compress::Params::new(crate::compress::Method::Pca, 1).power_iters,
+                        None => default_power_iters,
                         Some(v) => v
                             .parse::<usize>()
                             .map_err(|_| format!("--power-iters `{v}` is not a whole number"))?,
@@ -322,32 +324,40 @@ pub fn which(program: &str) -> Option<PathBuf> {
 mod tests {
     use super::*;
 
+    impl ShardedKind {
+        fn of2(args: &[String]) -> Result<ShardedKind, String> {
+            ShardedKind::of(args, 2)
+        }
+    }
+
     fn args(s: &str) -> Vec<String> {
         s.split_whitespace().map(String::from).collect()
     }
 
     #[test]
     fn only_shardable_commands_without_their_own_shard_or_out() {
-        assert_eq!(ShardedKind::of(&args("sim btf --size 32")), Ok(ShardedKind::SimBtf));
+        assert_eq!(ShardedKind::of2(&args("sim btf --size 32")), Ok(ShardedKind::SimBtf));
         assert_eq!(
-            ShardedKind::of(&args("compress ds --method pvmf -c 4")),
+            ShardedKind::of2(&args("compress ds --method pvmf -c 4")),
             Ok(ShardedKind::CompressPvmf)
         );
         assert_eq!(
-            ShardedKind::of(&args("compress ds --method pca -c 4")),
+            ShardedKind::of2(&args("compress ds --method pca -c 4")),
             Ok(ShardedKind::CompressRsvd { passes: 4 })
         );
         assert_eq!(
-            ShardedKind::of(&args("compress ds --method dfmf -c 4 --power-iters 0")),
+            ShardedKind::of2(&args("compress ds --method dfmf -c 4 --power-iters 0")),
             Ok(ShardedKind::CompressRsvd { passes: 2 })
         );
-        assert!(ShardedKind::of(&args("compress ds --method pca -c 4 --state s")).is_err());
-        assert!(ShardedKind::of(&args("compress ds --method median-cut")).is_err());
-        assert_eq!(ShardedKind::of(&args("acquire --size 32")), Ok(ShardedKind::Acquire));
-        assert!(ShardedKind::of(&args("acquire --resume d")).is_err());
-        assert!(ShardedKind::of(&args("plan --size 32")).is_err());
-        assert!(ShardedKind::of(&args("sim btf --out x")).unwrap_err().contains("--out"));
-        assert!(ShardedKind::of(&args("sim btf --shard=1/2")).is_err());
+        assert!(ShardedKind::of2(&args("compress ds --method pca -c 4 --state s")).is_err());
+        assert!(ShardedKind::of2(&args("compress ds --method median-cut")).is_err());
+        assert_eq!(ShardedKind::of2(&args("acquire --size 32")), Ok(ShardedKind::Acquire));
+        assert!(ShardedKind::of2(&args("acquire --resume d")).is_err());
+        assert!(ShardedKind::of2(&args("plan --size 32")).is_err());
+        assert!(ShardedKind::of2(&args("sim btf --out x"))
+            .unwrap_err()
+            .contains("--out"));
+        assert!(ShardedKind::of2(&args("sim btf --shard=1/2")).is_err());
     }
 
     #[test]
@@ -389,7 +399,7 @@ mod tests {
 
         // A family: every shard writes into the family directory; the last job checks it.
         assert_eq!(
-            ShardedKind::of(&args("dataset generate /s.toml")),
+            ShardedKind::of2(&args("dataset generate /s.toml")),
             Ok(ShardedKind::DatasetGenerate)
         );
         let f = SlurmJob {

@@ -91,7 +91,8 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     if command.first().map(String::as_str) == Some("--") {
         command.remove(0);
     }
-    let kind = ShardedKind::of(&command).map_err(anyhow::Error::msg)?;
+    let default_iters = crate::compress::Params::new(crate::compress::Method::Pca, 1).power_iters;
+    let kind = ShardedKind::of(&command, default_iters).map_err(anyhow::Error::msg)?;
     if !(1..=crate::shard::MAX_SHARDS).contains(&a.shards) {
         bail!(
             "--shards {}: valid range is 1 ..= {}",
