@@ -490,10 +490,30 @@ fn batch_slurm_writes_scripts_and_names_what_to_install_without_sbatch() {
     let e = fails(
         t,
         &[
-            "batch", "slurm", "--shards", "2", "--work", "w3", "--out", "o", "--", "acquire",
+            "batch", "slurm", "--shards", "2", "--work", "w3", "--out", "o", "--", "plan",
         ],
     );
     assert!(e.contains("cannot be sharded"), "{e}");
+    let e = fails(
+        t,
+        &[
+            "batch", "slurm", "--shards", "2", "--work", "w3", "--out", "o", "--", "acquire", "--resume", "d",
+        ],
+    );
+    assert!(e.contains("--resume"), "{e}");
+    // PCA: one array and one merge per pass, each round after the previous merge.
+    ok(
+        t,
+        &[
+            "batch", "slurm", "--shards", "2", "--work", "w4", "--out", "p.gbtf", "--", "compress", "ds", "--method",
+            "pca", "-c", "4",
+        ],
+    );
+    for r in 0..4 {
+        assert!(t.join(format!("w4/shards-{r}.sbatch")).is_file() && t.join(format!("w4/merge-{r}.sbatch")).is_file());
+    }
+    let last = std::fs::read_to_string(t.join("w4/shards-3.sbatch")).unwrap();
+    assert!(last.contains("--state") && last.contains("state-2.gstate"), "{last}");
     let e = fails(
         t,
         &[
