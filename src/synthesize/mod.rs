@@ -26,6 +26,7 @@
 //! count.
 
 pub mod efros_leung;
+pub mod exemplar;
 pub mod features;
 mod fft;
 pub mod output;
