@@ -28,7 +28,7 @@ pub struct SynthArgs {
     /// Quilting block edge in texels (default: exemplar side / 4, 4 ..= 64).
     #[arg(long)]
     pub block: Option<usize>,
-    /// Quilting overlap in texels (default: block / 6).
+    /// Quilting overlap in texels (default: block / 4).
     #[arg(long)]
     pub overlap: Option<usize>,
     /// Quilting: accept blocks within (1 + tolerance) of the best overlap error.
@@ -138,7 +138,7 @@ impl SynthArgs {
         p.seed = self.seed;
         if let Some(b) = self.block {
             p.block = b;
-            p.overlap = (b / 6).max(1);
+            p.overlap = SynthParams::default_overlap(b);
         }
         if let Some(o) = self.overlap {
             p.overlap = o;
