@@ -251,9 +251,9 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
 /// `m_ch(r, t) = U_ch[r]·SxV_ch[t]` over the measurement rows `r`. With the Gram matrix
 /// `G_ch = U_chᵀ·U_ch = Q·Λ·Qᵀ` (`c_ch × c_ch`), `z_t,ch = Λ^{1/2}·Qᵀ·SxV_ch[t]` gives
 /// `‖z_s,ch − z_t,ch‖² = Σ_r (m_ch(r, s) − m_ch(r, t))²` exactly: the texel coefficients
-/// weighted by the component scales (for an orthonormal `U`, as DFMF writes it, `G = I`
-/// and `z` is the `S·V` row itself, which already carries the singular values; a file
-/// whose `U` carries the scales is handled the same way). The three channels are
+/// weighted by the component scales (for an orthonormal `U`, as a truncated SVD gives,
+/// `G = I` and `z` is the `S·V` row up to a rotation, which already carries the singular
+/// values; a file whose `U` carries the scales is handled the same way). The three channels are
 /// concatenated, so the distance is the L2 distance of the whole ABRDFs in the file's
 /// colour space: for colour model RGB that is the decoded-ABRDF distance (kind `"exact"`);
 /// for log-YUV (kind `"log-yuv"`) it is the distance in (ln Y, U/Y, V/Y), i.e. to first
