@@ -201,6 +201,8 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             });
             (r, data, "exact")
         }
+        // DFMF stored as `.gbtf` (e.g. CIELab): the same factor embedding as a `.btf`.
+        Method::Dfmf { .. } => return embed_dfmf(&crate::compress::dfmf::from_gbtf(&model.gbtf)?),
         Method::MedianCut { boxes, .. } => {
             let d = h.lights_deg.len() * h.views_deg.len() * 3;
             let (m, r) = isometry(&gram_rows(&blocks[1], boxes, d), boxes)?;
@@ -562,5 +564,24 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A DFMF `.gbtf` (here CIELab, gonio's own model) is embedded from its factors like a
+    /// `.btf`, not by sampling pairs.
+    #[test]
+    fn a_dfmf_gbtf_uses_the_factor_embedding() {
+        use crate::compress::dfmf::ColorModel;
+        let dir = tempfile::tempdir().unwrap();
+        let ds = testutil::write_dataset(dir.path(), 8, 6, testutil::textured);
+        let method = Method::Dfmf {
+            color_model: ColorModel::Lab,
+            chroma_components: 2,
+        };
+        let m = CompressedBtf::new(compress(&ds, &Params::new(method, 3)).unwrap().0).unwrap();
+        let e = embed(&m).unwrap();
+        assert_eq!(e.kind, "lab");
+        let direct = embed_dfmf(&crate::compress::dfmf::from_gbtf(&m.gbtf).unwrap()).unwrap();
+        assert_eq!(e.image, direct.image);
+        assert_eq!(e.image.dims, 3 + 2 + 2);
     }
 }
