@@ -2,10 +2,12 @@
 # Reproduces the measurements of docs/synthesis.md (release build, 2 cores).
 #   bash bench/synthesize.sh            # everything
 #   STEPS="quality" bash bench/synthesize.sh
+#   STEPS="quality" METHODS=tile,quilting,wei-levoy bash bench/synthesize.sh   # without the slow one
 set -euo pipefail
 G=${GONIO:-target/release/gonio}
 W=${WORK:-/tmp/gonio-synth-bench}
 STEPS=${STEPS:-"data quality speed memory"}
+METHODS=${METHODS:-tile,quilting,wei-levoy,efros-leung}
 mkdir -p "$W" docs/img
 SWEEP=fibonacci:12
 
@@ -23,10 +25,11 @@ if has data; then
   $G compress "$W/ex256" --method median-cut --boxes 64 --out "$W/ex256-mc64.gbtf" --json > "$W/compress-mc.json"
   $G compress "$W/ex256" --method local-pca --clusters 8 -c 4 --out "$W/ex256-lpca.gbtf" --json > "$W/compress-lpca.json"
   $G compress "$W/ex256" --method pvmf -c 4 --out "$W/ex256-pvmf4.gbtf" --json > "$W/compress-pvmf.json"
+  $G compress "$W/ex256" --method dfmf -c 4 --format btf --out "$W/ex256-dfmf4.btf" --json > "$W/compress-dfmf.json"
 fi
 
 if has quality; then
-  $G bench synthesize --exemplar "$W/ex-pca8.gbtf" --reference "$W/ref" \
+  $G bench synthesize --exemplar "$W/ex-pca8.gbtf" --reference "$W/ref" --methods "$METHODS" \
     --md "$W/quality.md" --plot docs/img/synthesis-error-time.svg --picture docs/img/synthesis.png
 fi
 
@@ -39,6 +42,14 @@ if has speed; then
         "$W/speed-$model-$m.json" $model $m
       rm -f "$W/out-$model-$m.gbtf"
     done
+  done
+  # A UBO2014 DFMF .btf exemplar gives a .btf of the same model.
+  for m in quilting wei-levoy; do
+    $G synthesize "$W/ex256-dfmf4.btf" --method $m --size 1024x1024 --out "$W/out-dfmf4-$m.btf" --json \
+      > "$W/speed-dfmf4-$m.json"
+    python3 -c "import json,sys; r=json.load(open(sys.argv[1])); print('dfmf4.btf', sys.argv[2], 'k', r['k'], 'features', round(r['feature_seconds'],2), 'synthesis', round(r['synthesis_seconds'],2), 's write', round(r['write_seconds'],2), 's bytes', r['out']['bytes'], 'peak MiB', (r['peak_memory_bytes'] or 0)>>20)" \
+      "$W/speed-dfmf4-$m.json" $m
+    rm -f "$W/out-dfmf4-$m.btf"
   done
   # Efros–Leung is exhaustive per texel: its time is in the quality table (256² from 128²).
 fi

@@ -9,7 +9,6 @@
 
 use super::svg_plot;
 use super::synthesize::{open_exemplar, parse_size, SynthArgs};
-use crate::compress::interp::BtfModel;
 use crate::compress::DatasetViews;
 use crate::synthesize::quality::{self, ImageStats};
 use crate::synthesize::{self, features, FeatureImage, SynthMethod, TexelMap};
@@ -22,7 +21,7 @@ use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct SynthesizeBenchArgs {
-    /// The exemplar: a compressed BTF.
+    /// The exemplar: a compressed BTF (`.gbtf` or UBO2014 DFMF `.btf`).
     #[arg(long)]
     pub exemplar: PathBuf,
     /// Reference dataset: the same material over a larger area at the same texel pitch and
@@ -209,13 +208,13 @@ fn srgb8(v: f32) -> u8 {
 
 pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     let model = open_exemplar(&a.exemplar)?;
-    let (ew, eh) = (model.header().width, model.header().height);
+    let (ew, eh) = (model.width(), model.height());
     let (ow, oh) = match &a.size {
         Some(s) => parse_size(s)?,
         None => (2 * ew, 2 * eh),
     };
     let reference = DatasetViews::open(&a.reference).with_context(|| format!("opening {}", a.reference.display()))?;
-    let (lights, views) = (model.header().lights_deg.clone(), model.header().views_deg.clone());
+    let (lights, views) = (model.model().lights_deg().to_vec(), model.model().views_deg().to_vec());
     let same = |x: &[[f64; 2]], y: &[[f64; 2]]| {
         x.len() == y.len()
             && x.iter()
@@ -249,7 +248,7 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     let ex_images: Vec<Vec<f32>> = pairs
         .list
         .iter()
-        .map(|&(l, v)| BtfModel::reconstruct(&model, l, v))
+        .map(|&(l, v)| model.model().reconstruct(l, v))
         .collect::<Result<_, _>>()?;
     let scorer = Scorer {
         pairs: &pairs,
@@ -260,7 +259,7 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     };
 
     let t0 = Instant::now();
-    let emb = features::embed(&model)?;
+    let emb = model.embed()?;
     let embed_seconds = t0.elapsed().as_secs_f64();
     let methods: Vec<SynthMethod> = a
         .methods
@@ -352,7 +351,7 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
         "Exemplar `{}` ({ew}×{eh}, {}), reference `{}` ({}×{}), output {ow}×{oh}; {} sampled pairs ({} normal, {} \
          grazing); ABRDF embedding: {} of {} dims ({embed_seconds:.2} s); default k = {} ({:.1} % of the variance).\n",
         a.exemplar.display(),
-        model.method().name(),
+        model.model_name(),
         a.reference.display(),
         ref_size.0,
         ref_size.1,

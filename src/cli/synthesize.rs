@@ -4,7 +4,8 @@
 
 use crate::compress::interp::AnyModel;
 use crate::compress::CompressedBtf;
-use crate::synthesize::{self, features, output, SynthMethod, SynthParams};
+use crate::synthesize::exemplar::Exemplar;
+use crate::synthesize::{self, features, SynthMethod, SynthParams};
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -27,7 +28,7 @@ pub struct SynthArgs {
     /// Quilting block edge in texels (default: exemplar side / 4, 4 ..= 64).
     #[arg(long)]
     pub block: Option<usize>,
-    /// Quilting overlap in texels (default: block / 6).
+    /// Quilting overlap in texels (default: block / 4).
     #[arg(long)]
     pub overlap: Option<usize>,
     /// Quilting: accept blocks within (1 + tolerance) of the best overlap error.
@@ -60,8 +61,9 @@ pub struct SynthArgs {
 
 #[derive(clap::Args, Debug)]
 pub struct SynthesizeArgs {
-    /// A compressed BTF (`.gbtf` of PCA, PVMF, local PCA, median cut or homomorphic), or a
-    /// dataset directory (compressed in memory with PCA, `--components`, first).
+    /// A compressed BTF (`.gbtf` of PCA, PVMF, local PCA, median cut or homomorphic; a
+    /// UBO2014 DFMF `.btf`), or a dataset directory (compressed in memory with PCA,
+    /// `--components`, first).
     pub input: PathBuf,
     /// Dataset input only: PCA components of the in-memory model the synthesis gathers
     /// from (the output is that PCA model of the grown sample).
@@ -70,7 +72,8 @@ pub struct SynthesizeArgs {
     /// Output size, `WxH` texels (at least the exemplar's).
     #[arg(long)]
     pub size: String,
-    /// Output `.gbtf`; the texel map goes beside it as `<stem>.texelmap.png`.
+    /// Output file of the input's kind (`.gbtf`; `.btf` for a `.btf` input); the texel map
+    /// goes beside it as `<stem>.texelmap.png`.
     #[arg(long)]
     pub out: PathBuf,
     #[command(flatten)]
@@ -90,8 +93,9 @@ pub fn parse_size(s: &str) -> Result<(usize, usize)> {
     }
 }
 
-/// Open a compressed BTF that synthesis can gather rows from, or say why not.
-pub fn open_exemplar(path: &Path) -> Result<CompressedBtf> {
+/// Open a compressed BTF that synthesis can gather rows from (a `.gbtf`, or a UBO2014
+/// DFMF `.btf`), or say why not.
+pub fn open_exemplar(path: &Path) -> Result<Exemplar> {
     if path.is_dir() {
         bail!(
             "{} is a dataset directory: synthesis matches ABRDFs through a compressed model; compress it \
@@ -100,14 +104,31 @@ pub fn open_exemplar(path: &Path) -> Result<CompressedBtf> {
             path.display()
         );
     }
-    match AnyModel::open(path).with_context(|| format!("reading {}", path.display()))? {
-        AnyModel::Gbtf(m) => Ok(m),
-        AnyModel::Dfmf(_) => bail!(
-            "{}: synthesizing from a UBO2014 DFMF .btf is not implemented (its texel factors are \
-             per channel in a log colour space); compress the dataset to a .gbtf instead",
-            path.display()
-        ),
+    Ok(
+        match AnyModel::open(path).with_context(|| format!("reading {}", path.display()))? {
+            AnyModel::Gbtf(m) => Exemplar::Gbtf(m),
+            AnyModel::Dfmf(d) => Exemplar::Dfmf(d),
+        },
+    )
+}
+
+/// The output is a file of the exemplar's own kind: refuse an `--out` whose extension
+/// names the other kind (a `.btf` exemplar writes a UBO2014 `.btf`, anything else a `.gbtf`).
+fn check_out_extension(ex: &Exemplar, input: &Path, out: &Path) -> Result<()> {
+    let ext = out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    let want = ex.extension();
+    let other = if want == "btf" { "gbtf" } else { "btf" };
+    if ext.as_deref() == Some(other) {
+        bail!(
+            "--out {}: the exemplar {} is a {} ({}), so the output is a .{want} of the same model; \
+             name the output *.{want}",
+            out.display(),
+            input.display(),
+            if want == "btf" { "UBO2014 DFMF .btf" } else { ".gbtf" },
+            ex.model_name()
+        );
     }
+    Ok(())
 }
 
 impl SynthArgs {
@@ -117,7 +138,7 @@ impl SynthArgs {
         p.seed = self.seed;
         if let Some(b) = self.block {
             p.block = b;
-            p.overlap = (b / 6).max(1);
+            p.overlap = SynthParams::default_overlap(b);
         }
         if let Some(o) = self.overlap {
             p.overlap = o;
@@ -176,14 +197,18 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
     let (w, h) = parse_size(&a.size)?;
     let (model, from_dataset) = if a.input.is_dir() {
         let (m, note) = dataset_exemplar(&a.input, a.components)?;
-        (m, Some(note))
+        (Exemplar::Gbtf(m), Some(note))
     } else {
         (open_exemplar(&a.input)?, None)
     };
-    let (ew, eh) = (model.header().width, model.header().height);
+    let (ew, eh) = (model.width(), model.height());
+    check_out_extension(&model, &a.input, &a.out)?;
     let p = a.synth.params(w, h, ew, eh)?;
+    model.check_output(w, h, &a.input)?;
     let t0 = Instant::now();
-    let emb = features::embed(&model).with_context(|| format!("embedding the ABRDFs of {}", a.input.display()))?;
+    let emb = model
+        .embed()
+        .with_context(|| format!("embedding the ABRDFs of {}", a.input.display()))?;
     let feats = features::principal(&emb.image, a.synth.k_choice())?;
     let feature_seconds = t0.elapsed().as_secs_f64();
     let k = feats.image.dims;
@@ -201,22 +226,15 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
         "from_dataset": &from_dataset,
     });
     let t2 = Instant::now();
-    let written =
-        output::write(&model, &map, &a.out, provenance).with_context(|| format!("writing {}", a.out.display()))?;
+    let written = model
+        .write(&map, &a.out, provenance)
+        .with_context(|| format!("writing {}", a.out.display()))?;
     let write_seconds = t2.elapsed().as_secs_f64();
-    let compact = !matches!(
-        model.method(),
-        crate::compress::Method::Pvmf
-            | crate::compress::Method::Homomorphic { .. }
-            | crate::compress::Method::Nd
-            | crate::compress::Method::SvdJ
-            | crate::compress::Method::Gshd { .. }
-            | crate::compress::Method::Cmf { .. }
-    );
+    let compact = model.compact();
     if a.json {
         let r = serde_json::json!({
             "input": a.input.display().to_string(),
-            "model": model.method().name(),
+            "model": model.model_name(),
             "method": p.method.name(),
             "width": w,
             "height": h,
@@ -247,7 +265,7 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
             "{} {w}×{h} from {} ({ew}×{eh}, {}): k = {k} features ({:.1} % of the ABRDF variance, {} embedding of {} dims)",
             p.method.name(),
             a.input.display(),
-            model.method().name(),
+            model.model_name(),
             100.0 * explained,
             emb.kind,
             emb.image.dims

@@ -21,6 +21,7 @@
 //! explains `energy` of the variance (default 0.95), or fixed by the caller.
 
 use super::{FeatureImage, SynthError};
+use crate::compress::dfmf::{ColorModel, Dfmf};
 use crate::compress::interp::BtfModel;
 use crate::compress::{CompressedBtf, Method};
 use faer::dyn_stack::{MemBuffer, MemStack};
@@ -200,6 +201,8 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             });
             (r, data, "exact")
         }
+        // DFMF stored as `.gbtf` (e.g. CIELab): the same factor embedding as a `.btf`.
+        Method::Dfmf { .. } => return embed_dfmf(&crate::compress::dfmf::from_gbtf(&model.gbtf)?),
         Method::MedianCut { boxes, .. } => {
             let d = h.lights_deg.len() * h.views_deg.len() * 3;
             let (m, r) = isometry(&gram_rows(&blocks[1], boxes, d), boxes)?;
@@ -241,6 +244,58 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             data,
         },
         kind,
+    })
+}
+
+/// Embed every texel of a UBO2014 DFMF model (`.btf`) from its texel factors alone.
+///
+/// Channel `ch` of the file's colour space (R, G, B, or ln Y, U/Y, V/Y) is
+/// `m_ch(r, t) = U_ch[r]·SxV_ch[t]` over the measurement rows `r`. With the Gram matrix
+/// `G_ch = U_chᵀ·U_ch = Q·Λ·Qᵀ` (`c_ch × c_ch`), `z_t,ch = Λ^{1/2}·Qᵀ·SxV_ch[t]` gives
+/// `‖z_s,ch − z_t,ch‖² = Σ_r (m_ch(r, s) − m_ch(r, t))²` exactly: the texel coefficients
+/// weighted by the component scales (for an orthonormal `U`, as a truncated SVD gives,
+/// `G = I` and `z` is the `S·V` row up to a rotation, which already carries the singular
+/// values; a file whose `U` carries the scales is handled the same way). The three channels are
+/// concatenated, so the distance is the L2 distance of the whole ABRDFs in the file's
+/// colour space: for colour model RGB that is the decoded-ABRDF distance (kind `"exact"`);
+/// for log-YUV (kind `"log-yuv"`) it is the distance in (ln Y, U/Y, V/Y), i.e. to first
+/// order the decoded distance with each measurement weighted by 1/Y: relative luminance
+/// differences plus chromaticity differences. That is the metric the factorization itself
+/// was fitted in, it keeps specular peaks from dominating the matching, and it ignores the
+/// reader's clamping of decoded RGB to [0, 1].
+pub fn embed_dfmf(d: &Dfmf) -> Result<Embedding, SynthError> {
+    d.validate()?;
+    let t = d.texels();
+    let rows = d.n_lights() * d.n_views();
+    let isos = d
+        .channels
+        .iter()
+        .map(|ch| {
+            debug_assert_eq!(ch.u.len(), rows * ch.c);
+            isometry(&gram_cols(&ch.u, ch.c), ch.c)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let dims: usize = isos.iter().map(|x| x.1).sum();
+    let mut data = vec![0f32; t * dims];
+    data.par_chunks_mut(dims).enumerate().for_each(|(i, z)| {
+        let mut off = 0;
+        for (ch, (m, r)) in d.channels.iter().zip(&isos) {
+            apply(m, *r, ch.c, &ch.sxv[i * ch.c..(i + 1) * ch.c], &mut z[off..off + r]);
+            off += r;
+        }
+    });
+    Ok(Embedding {
+        image: FeatureImage {
+            width: d.width,
+            height: d.height,
+            dims,
+            data,
+        },
+        kind: match d.color_model {
+            ColorModel::Rgb => "exact",
+            ColorModel::LogYuv => "log-yuv",
+            ColorModel::Lab => "lab",
+        },
     })
 }
 
@@ -443,5 +498,90 @@ mod tests {
         let f = principal(&e.image, KChoice::Fixed(2)).unwrap().image;
         let mean0: f64 = f.data.iter().step_by(2).map(|&v| v as f64).sum::<f64>() / (f.width * f.height) as f64;
         assert!(mean0.abs() < 1e-4);
+    }
+
+    /// DFMF: distances of the embedded texels are the L2 distances of the texels' whole
+    /// ABRDFs in the file's colour space (computed here from the factors, row by row), and
+    /// for the RGB model the distances of the decoded ABRDFs.
+    #[test]
+    fn the_dfmf_embedding_is_an_isometry_in_the_files_colour_space() {
+        use crate::compress::dfmf::{self, ColorModel, DfmfParams};
+        let dir = tempfile::tempdir().unwrap();
+        let ds = testutil::write_dataset(dir.path(), 8, 6, testutil::textured);
+        for model in [ColorModel::LogYuv, ColorModel::Rgb] {
+            let mut d = dfmf::encode(&ds, &DfmfParams::new(model, 3)).unwrap().0;
+            // A U that carries the scales (not orthonormal) must give the same distances.
+            for ch in &mut d.channels {
+                for (i, u) in ch.u.iter_mut().enumerate() {
+                    *u *= 1.0 + (i % ch.c) as f32;
+                }
+            }
+            let e = embed_dfmf(&d).unwrap();
+            assert_eq!(e.kind, if model == ColorModel::Rgb { "exact" } else { "log-yuv" });
+            let rows = d.n_lights() * d.n_views();
+            let space = |t: usize| -> Vec<f64> {
+                let mut v = Vec::new();
+                for ch in &d.channels {
+                    for r in 0..rows {
+                        let s: f64 = (0..ch.c)
+                            .map(|k| ch.u[r * ch.c + k] as f64 * ch.sxv[t * ch.c + k] as f64)
+                            .sum();
+                        v.push(s);
+                    }
+                }
+                v
+            };
+            let decoded: Vec<Vec<f64>> = (0..48)
+                .map(|t| {
+                    let mut v = Vec::new();
+                    for vi in 0..d.n_views() {
+                        for l in 0..d.n_lights() {
+                            let img = d.reconstruct(l, vi).unwrap();
+                            v.extend(img[t * 3..t * 3 + 3].iter().map(|&x| x as f64));
+                        }
+                    }
+                    v
+                })
+                .collect();
+            let l2 = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt();
+            for (a, b) in [(0, 1), (3, 17), (40, 2), (10, 47)] {
+                let d_emb: f64 = l2(
+                    &e.image.texel(a).iter().map(|&x| x as f64).collect::<Vec<_>>(),
+                    &e.image.texel(b).iter().map(|&x| x as f64).collect::<Vec<_>>(),
+                );
+                let d_space = l2(&space(a), &space(b));
+                assert!(
+                    (d_space - d_emb).abs() <= 1e-4 * (1.0 + d_space),
+                    "{}: texels {a},{b}: {d_space} vs {d_emb}",
+                    model.name()
+                );
+                if model == ColorModel::Rgb {
+                    let d_dec = l2(&decoded[a], &decoded[b]);
+                    assert!(
+                        (d_dec - d_emb).abs() <= 1e-4 * (1.0 + d_dec),
+                        "rgb decoded: {d_dec} vs {d_emb}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// A DFMF `.gbtf` (here CIELab, gonio's own model) is embedded from its factors like a
+    /// `.btf`, not by sampling pairs.
+    #[test]
+    fn a_dfmf_gbtf_uses_the_factor_embedding() {
+        use crate::compress::dfmf::ColorModel;
+        let dir = tempfile::tempdir().unwrap();
+        let ds = testutil::write_dataset(dir.path(), 8, 6, testutil::textured);
+        let method = Method::Dfmf {
+            color_model: ColorModel::Lab,
+            chroma_components: 2,
+        };
+        let m = CompressedBtf::new(compress(&ds, &Params::new(method, 3)).unwrap().0).unwrap();
+        let e = embed(&m).unwrap();
+        assert_eq!(e.kind, "lab");
+        let direct = embed_dfmf(&crate::compress::dfmf::from_gbtf(&m.gbtf).unwrap()).unwrap();
+        assert_eq!(e.image, direct.image);
+        assert_eq!(e.image.dims, 3 + 2 + 2);
     }
 }

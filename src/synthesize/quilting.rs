@@ -399,4 +399,31 @@ mod tests {
         p.overlap = 8;
         assert!(run(&ex, &p).unwrap_err().to_string().contains("--overlap"));
     }
+
+    /// The default overlap (block / 4) gives lower seams (`quality::seams`, mean over three
+    /// seeds) than Efros & Freeman's sixth on a high-contrast blob texture: measured 1.20
+    /// against 1.36. (The issue's ≤ 1.2 target is measured on the leather bench, see
+    /// docs/synthesis.md; this synthetic texture sits at the limit, hence 1.25 here.)
+    #[test]
+    fn the_default_overlap_lowers_the_seams() {
+        let ex = testutil::blobs(64, 64, 11);
+        let mean_ratio = |overlap: Option<usize>| -> f64 {
+            let mut sum = 0.0;
+            for seed in 1..=3 {
+                let mut p = SynthParams::new(SynthMethod::Quilting, 128, 128, 64, 64);
+                p.seed = seed;
+                if let Some(o) = overlap {
+                    p.overlap = o;
+                }
+                sum += super::super::quality::seams(&run(&ex, &p).unwrap(), &ex).ratio;
+            }
+            sum / 3.0
+        };
+        let p = SynthParams::new(SynthMethod::Quilting, 128, 128, 64, 64);
+        assert_eq!((p.block, p.overlap), (16, 4));
+        let (default, sixth) = (mean_ratio(None), mean_ratio(Some(16 / 6)));
+        eprintln!("seam ratio: overlap 4 {default:.3}, overlap 2 {sixth:.3}");
+        assert!(default <= 1.25, "{default}");
+        assert!(default < 0.95 * sixth, "{default} vs {sixth}");
+    }
 }

@@ -38,7 +38,8 @@ def main():
     sweep = sweep.get("header", sweep)["sweep"]
     lights, views = sweep["lights_deg"], sweep["views_deg"]
     btf = Ubo2014(a.btf)
-    h, w, _ = btf.img_shape
+    # The reader lists img_shape as (Width, Height, 3); its images are H × W × 3.
+    w, h, _ = btf.img_shape
     nl, nv = len(lights), len(views)
 
     # The reader's directions (its dict maps angles -> (light, view) index).

@@ -93,6 +93,10 @@ mkdir -p "$work/ubo2014"
 "$GONIO_PYTHON" tests/interop/check_ubo2014.py "$gonio" "$work/ubo2014/logyuv.btf" "$work/ds" "$work/ubo2014"
 "$gonio" compress "$work/ds" --method dfmf --color-model rgb --precision f32 -c 3 --out "$work/ubo2014/rgb.btf" --no-eval > /dev/null
 "$GONIO_PYTHON" tests/interop/check_ubo2014.py "$gonio" "$work/ubo2014/rgb.btf" "$work/ds" "$work/ubo2014"
+# A synthesized .btf (issue 18: `gonio synthesize` of a .btf writes a .btf of the same model,
+# texel factors gathered through the texel map), grown to a non-square size, also reads.
+"$gonio" synthesize "$work/ubo2014/logyuv.btf" --method quilting --size 150x100 --out "$work/ubo2014/synth.btf" > /dev/null
+"$GONIO_PYTHON" tests/interop/check_ubo2014.py "$gonio" "$work/ubo2014/synth.btf" "$work/ds" "$work/ubo2014"
 
 # ---- Isotropic reduction vs. a full acquisition (issue 4) --------------------------------
 # The same flat glossy (isotropic) sample acquired twice on a 21-direction sweep: every
