@@ -1,7 +1,7 @@
 //! The per-texel scaled Lafortune SVBRDF (McAllister et al. 2002) as a `.gbtf`: what
 //! `gonio fit --per-texel --out F.gbtf` writes. Decoded here, so `gonio reconstruct`,
-//! `gonio render`, `gonio view` and `compress::evaluate` read it like any other method: an
-//! SVBRDF is itself a compression method.
+//! `gonio render`, `gonio view` (CPU path) and `compress::evaluate` read it like any other
+//! method: an SVBRDF is itself a compression method.
 //!
 //! **Blocks.** `params` (texels × (3 + 5 · lobes)): `kd` RGB, then per lobe the angle γ
 //! (radians) of `C = √2 (cos γ, cos γ, sin γ)`, the exponent `n` and `ks` RGB (the layout
