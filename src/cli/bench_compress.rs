@@ -284,6 +284,10 @@ const COLORS: [&str; 8] = [
 ];
 
 /// Two log-x panels: RMSE (/255) against encode seconds and against compression ratio.
+/// Filled markers and solid lines: error against the dataset's images. On a dataset with
+/// `truth/` images (an acquisition with `--store-truth`), open markers and dashed lines
+/// add the error against the truth, and a grey dashed line the measured images' own error
+/// against the truth (the noise floor).
 fn svg(rows: &[Row]) -> String {
     let mut methods: Vec<&str> = Vec::new();
     for r in rows {
@@ -291,33 +295,56 @@ fn svg(rows: &[Row]) -> String {
             methods.push(&r.method);
         }
     }
-    let points = |f: &dyn Fn(&Report) -> f64| -> Vec<(usize, f64, f64)> {
+    let points_of = |f: &dyn Fn(&Report) -> f64, truth: bool| -> Vec<(usize, f64, f64)> {
         rows.iter()
             .filter_map(|r| {
                 let p = r.report.as_ref()?;
                 let m = methods.iter().position(|m| *m == r.method)?;
-                let (x, y) = (f(p), p.rmse_8bit?);
+                let y = if truth {
+                    p.truth.as_ref()?.rmse_8bit
+                } else {
+                    p.rmse_8bit?
+                };
+                let x = f(p);
                 (x.is_finite() && x > 0.0 && y.is_finite()).then_some((m, x, y))
             })
             .collect()
     };
+    let points = |f: &dyn Fn(&Report) -> f64| points_of(f, false);
+    let truth_points = |f: &dyn Fn(&Report) -> f64| points_of(f, true);
+    // The measured images against the truth: the same for every run of one dataset.
+    let floor = rows
+        .iter()
+        .find_map(|r| r.report.as_ref()?.truth.as_ref().map(|t| t.measured_rmse_8bit))
+        .filter(|f| f.is_finite());
     let (w, h) = (1000.0, 460.0);
     let mut s = format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n\
          <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n"
     );
-    type Panel<'a> = (&'a str, Vec<(usize, f64, f64)>, f64);
+    type Panel<'a> = (&'a str, Vec<(usize, f64, f64)>, Vec<(usize, f64, f64)>, f64);
     let panels: [Panel; 2] = [
-        ("encode time (s, log)", points(&|p| p.encode_seconds), 60.0),
-        ("compression ratio (log)", points(&|p| p.compression_ratio), 540.0),
+        (
+            "encode time (s, log)",
+            points(&|p| p.encode_seconds),
+            truth_points(&|p| p.encode_seconds),
+            60.0,
+        ),
+        (
+            "compression ratio (log)",
+            points(&|p| p.compression_ratio),
+            truth_points(&|p| p.compression_ratio),
+            540.0,
+        ),
     ];
     let ymax = panels
         .iter()
-        .flat_map(|p| p.1.iter().map(|q| q.2))
+        .flat_map(|p| p.1.iter().chain(&p.2).map(|q| q.2))
+        .chain(floor)
         .fold(0.0f64, f64::max)
         .max(1e-6)
         * 1.05;
-    for (title, pts, x0) in &panels {
+    for (title, pts, tpts, x0) in &panels {
         let (pw, ph, y0) = (400.0, 340.0, 40.0);
         let _ = writeln!(
             s,
@@ -390,6 +417,39 @@ fn svg(rows: &[Row]) -> String {
                 );
             }
         }
+        for (m, _) in methods.iter().enumerate() {
+            let mut mp: Vec<(f64, f64)> = tpts.iter().filter(|p| p.0 == m).map(|p| (p.1, p.2)).collect();
+            mp.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let color = COLORS[m % COLORS.len()];
+            if mp.len() > 1 {
+                let path: Vec<String> = mp.iter().map(|&(x, y)| format!("{:.1},{:.1}", px(x), py(y))).collect();
+                let _ = writeln!(
+                    s,
+                    "<polyline points=\"{}\" fill=\"none\" stroke=\"{color}\" stroke-width=\"1.2\" stroke-dasharray=\"4 3\"/>",
+                    path.join(" ")
+                );
+            }
+            for &(x, y) in &mp {
+                let _ = writeln!(
+                    s,
+                    "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3.5\" fill=\"white\" stroke=\"{color}\" stroke-width=\"1.5\"/>",
+                    px(x),
+                    py(y)
+                );
+            }
+        }
+        if let Some(f) = floor {
+            let _ = writeln!(
+                s,
+                "<line x1=\"{x0}\" y1=\"{:.1}\" x2=\"{}\" y2=\"{:.1}\" stroke=\"#888\" stroke-dasharray=\"6 4\"/>\
+                 <text x=\"{}\" y=\"{:.1}\" text-anchor=\"end\" fill=\"#666\">measured vs truth</text>",
+                py(f),
+                x0 + pw,
+                py(f),
+                x0 + pw - 4.0,
+                py(f) - 4.0
+            );
+        }
     }
     for (m, name) in methods.iter().enumerate() {
         let x = 60.0 + 120.0 * m as f64;
@@ -398,6 +458,14 @@ fn svg(rows: &[Row]) -> String {
             "<circle cx=\"{x}\" cy=\"18\" r=\"5\" fill=\"{}\"/><text x=\"{}\" y=\"22\">{name}</text>",
             COLORS[m % COLORS.len()],
             x + 9.0
+        );
+    }
+    if panels.iter().any(|p| !p.2.is_empty()) {
+        let _ = writeln!(
+            s,
+            "<text x=\"{}\" y=\"{}\" fill=\"#444\">filled: vs the dataset's images; open, dashed: vs truth/</text>",
+            60.0,
+            h - 12.0
         );
     }
     s.push_str("</svg>\n");
@@ -511,6 +579,27 @@ mod tests {
             2,
             "one line per panel for method a only"
         );
+        assert!(!s.contains("measured vs truth") && !s.contains("fill=\"white\" stroke"));
+        // With truth/: one open marker per run and panel, a dashed line per method with two
+        // runs, and the measured-vs-truth floor in each panel.
+        let with_truth = |m: &str, ratio: f64, rmse: f64, truth: f64| {
+            let mut r = ok(m, ratio, rmse);
+            r.report.as_mut().unwrap().truth = Some(super::super::compress::TruthReport {
+                images: 1,
+                rmse_8bit: truth,
+                mean_abs_8bit: 0.0,
+                max_8bit: 0.0,
+                psnr_8bit_db: 0.0,
+                rmse_linear: 0.0,
+                measured_rmse_8bit: 0.04,
+                measured_rmse_linear: 0.0,
+            });
+            r
+        };
+        let s = svg(&[with_truth("a", 10.0, 0.05, 0.02), with_truth("a", 100.0, 0.06, 0.03)]);
+        assert_eq!(s.matches("fill=\"white\" stroke").count(), 2 * 2);
+        assert_eq!(s.matches("stroke-dasharray=\"4 3\"").count(), 2);
+        assert_eq!(s.matches("measured vs truth").count(), 2);
     }
 }
 

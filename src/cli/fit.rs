@@ -3,7 +3,7 @@
 //! and report the parameters, the residual and where the model fails (see `crate::fit`,
 //! docs/fitting.md).
 
-use crate::compress::DatasetViews;
+use crate::compress::{CompressedBtf, DatasetViews};
 use crate::fit::data::{load_csv, load_dataset, WhiteRef};
 use crate::fit::lm::LmOptions;
 use crate::fit::texel::{fit_texels, TexelSummary};
@@ -48,7 +48,9 @@ pub struct FitArgs {
     /// Iteration cap per texel with --per-texel (each starts from the average's fit).
     #[arg(long, default_value_t = 30)]
     pub texel_iterations: usize,
-    /// Write the full result as JSON (with --per-texel: every texel's parameters).
+    /// Write the result: `F.gbtf` (with --per-texel) the SVBRDF as a `.gbtf` that `gonio
+    /// reconstruct`, `gonio render` and `gonio view` decode; any other name the full result
+    /// as JSON (with --per-texel: every texel's parameters).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[arg(long)]
@@ -62,14 +64,23 @@ struct TexelResult {
     summary: TexelSummary,
     /// Raw 8-bit size of the dataset's grid (`lights · views · W · H · 3` bytes).
     raw_bytes: usize,
+    /// Size of the SVBRDF's `.gbtf` (method `svbrdf`, as `--out F.gbtf` writes it).
+    stored_bytes: usize,
+    /// `raw_bytes / stored_bytes`.
     ratio: f64,
-    /// Against the dataset's images, 8-bit sRGB scale (as `gonio compress`).
+    /// The `.gbtf`'s decoder against the dataset's images, 8-bit sRGB scale /255 (as
+    /// `gonio compress`).
     psnr_8bit_db: f64,
     rmse_8bit: f64,
+    mean_abs_8bit: f64,
+    max_8bit: f64,
     rmse_linear: f64,
     /// Against `truth/` images where the dataset has them (acquisitions with
     /// `--store-truth`; a `gonio sim btf` dataset is the truth itself).
     psnr_truth_8bit_db: Option<f64>,
+    rmse_truth_8bit: Option<f64>,
+    /// The measured images against `truth/`: the noise floor.
+    psnr_measured_vs_truth_8bit_db: Option<f64>,
     decode_ms_per_image: f64,
     fit_seconds: f64,
 }
@@ -115,6 +126,17 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
             kind.name()
         ));
     }
+    let out_gbtf = a
+        .out
+        .as_ref()
+        .is_some_and(|p| p.extension().and_then(|e| e.to_str()) == Some("gbtf"));
+    if out_gbtf && !a.per_texel {
+        return Err(anyhow!(
+            "--out {}: a .gbtf holds the per-texel SVBRDF; add --per-texel, or give a .json name for the \
+             averaged fit",
+            a.out.as_ref().map(|p| p.display().to_string()).unwrap_or_default()
+        ));
+    }
     if a.per_texel && a.texel_iterations == 0 {
         return Err(anyhow!("--texel-iterations 0: at least one iteration is needed"));
     }
@@ -152,20 +174,35 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
             let (svbrdf, summary) = fit_texels(loaded, &report, space, a.texel_iterations)?;
             let secs = t1.elapsed().as_secs_f64();
             let ds = DatasetViews::open(&a.input).with_context(|| format!("re-opening {input}"))?;
+            let gbtf = svbrdf
+                .to_gbtf(&ds)
+                .with_context(|| format!("storing the SVBRDF of {input}"))?;
+            let stored = gbtf.to_bytes().context("encoding the SVBRDF's .gbtf")?.len();
+            let decoder = CompressedBtf::new(gbtf.clone()).context("decoding the SVBRDF's .gbtf")?;
             let ev =
-                crate::compress::evaluate(&ds, &svbrdf).with_context(|| format!("decoding the SVBRDF of {input}"))?;
+                crate::compress::evaluate(&ds, &decoder).with_context(|| format!("decoding the SVBRDF of {input}"))?;
             let raw = svbrdf.lights_deg.len() * svbrdf.views_deg.len() * svbrdf.width * svbrdf.height * 3;
             let r = TexelResult {
                 raw_bytes: raw,
-                ratio: raw as f64 / summary.bytes as f64,
+                stored_bytes: stored,
+                ratio: raw as f64 / stored as f64,
                 psnr_8bit_db: ev.stats.psnr_8bit(),
                 rmse_8bit: ev.stats.rmse_8bit(),
+                mean_abs_8bit: ev.stats.mean_abs_8bit(),
+                max_8bit: ev.stats.max_8bit,
                 rmse_linear: ev.stats.rmse_linear(),
                 psnr_truth_8bit_db: ev.truth.as_ref().map(|t| t.reconstruction.psnr_8bit()),
+                rmse_truth_8bit: ev.truth.as_ref().map(|t| t.reconstruction.rmse_8bit()),
+                psnr_measured_vs_truth_8bit_db: ev.truth.as_ref().map(|t| t.measurement.psnr_8bit()),
                 decode_ms_per_image: 1e3 * ev.decode_seconds_per_image,
                 fit_seconds: secs,
                 summary,
             };
+            if out_gbtf {
+                let path = a.out.as_ref().expect("checked above");
+                gbtf.write(path)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
             texel_fit = Some(svbrdf);
             Some(r)
         }
@@ -181,7 +218,7 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
         fit_seconds,
         per_texel,
     };
-    if let Some(path) = &a.out {
+    if let Some(path) = a.out.as_ref().filter(|_| !out_gbtf) {
         let mut v = serde_json::to_value(&out)?;
         if let Some(s) = &texel_fit {
             v["per_texel"]["parameter_names"] =
@@ -268,7 +305,7 @@ fn print_text(o: &Output) {
              mean relative RMS {:.4} (worst {:.4} at texel {}), {:.2} s fit, {:.3} ms/image decode",
             t.summary.texels,
             t.summary.params_per_texel,
-            t.summary.bytes,
+            t.stored_bytes,
             t.ratio,
             t.psnr_8bit_db,
             t.psnr_truth_8bit_db

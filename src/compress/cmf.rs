@@ -25,7 +25,7 @@
 //! views·K·3), column `(bin · K + k) · 3 + channel` as SVD-J's
 //! ([`super::abrdf::products_image`]).
 
-use super::abrdf::{channel_matrix, encode_gbtf, product_terms, products_image, put_terms, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{encode_gbtf, product_terms, products_image, put_terms, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
@@ -91,60 +91,136 @@ pub fn pair_bins(light: [f64; 2], view: [f64; 2], theta_bins: usize) -> (u32, u3
 }
 
 /// Bins of every grid pair, index `view · lights + light`.
-fn grid_bins(lights: &[[f64; 2]], views: &[[f64; 2]], theta_bins: usize) -> Vec<(u32, u32)> {
+pub(crate) fn grid_bins(lights: &[[f64; 2]], views: &[[f64; 2]], theta_bins: usize) -> Vec<(u32, u32)> {
     views
         .iter()
         .flat_map(|&v| lights.iter().map(move |&l| pair_bins(l, v, theta_bins)))
         .collect()
 }
 
+/// The float type the link is computed in: f64 in [`compress`], f32 only in the test
+/// that measures what single precision would lose (`compress::tests::f32_versus_f64_gshd_and_cmf`).
+pub(crate) trait Real:
+    Copy
+    + PartialOrd
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Div<Output = Self>
+    + std::ops::AddAssign
+    + std::ops::MulAssign
+    + std::ops::DivAssign
+{
+    const ZERO: Self;
+    const ONE: Self;
+    fn of(x: f64) -> Self;
+    fn sqrt(self) -> Self;
+    fn is_finite(self) -> bool;
+}
+
+macro_rules! real {
+    ($t:ty) => {
+        impl Real for $t {
+            const ZERO: Self = 0.0;
+            const ONE: Self = 1.0;
+            fn of(x: f64) -> Self {
+                x as $t
+            }
+            fn sqrt(self) -> Self {
+                <$t>::sqrt(self)
+            }
+            fn is_finite(self) -> bool {
+                <$t>::is_finite(self)
+            }
+        }
+    };
+}
+real!(f64);
+real!(f32);
+
 /// Rank-1 fit `f[p] ≈ g[hb[p]] · e[db[p]]` by alternating least squares, `f` over the
 /// pairs. Deterministic (fixed order); empty bins and zero data give zeros, never NaN.
-fn fit_link(f: &[f64], pb: &[(u32, u32)], nb: usize, sweeps: usize) -> (Vec<f64>, Vec<f64>) {
-    let (mut g, mut e) = (vec![0f64; nb], vec![1f64; nb]);
-    let (mut num, mut den) = (vec![0f64; nb], vec![0f64; nb]);
-    let mut prev = f64::INFINITY;
+pub(crate) fn fit_link<T: Real>(f: &[T], pb: &[(u32, u32)], nb: usize, sweeps: usize) -> (Vec<T>, Vec<T>) {
+    let (mut g, mut e) = (vec![T::ZERO; nb], vec![T::ONE; nb]);
+    let (mut num, mut den) = (vec![T::ZERO; nb], vec![T::ZERO; nb]);
+    let mut prev: Option<T> = None;
     for _ in 0..sweeps.max(1) {
-        num.fill(0.0);
-        den.fill(0.0);
+        num.fill(T::ZERO);
+        den.fill(T::ZERO);
         for (&x, &(h, d)) in f.iter().zip(pb) {
             num[h as usize] += x * e[d as usize];
             den[h as usize] += e[d as usize] * e[d as usize];
         }
         for (gi, (n, d)) in g.iter_mut().zip(num.iter().zip(&den)) {
-            *gi = if *d > 0.0 { n / d } else { 0.0 };
+            *gi = if *d > T::ZERO { *n / *d } else { T::ZERO };
         }
-        num.fill(0.0);
-        den.fill(0.0);
+        num.fill(T::ZERO);
+        den.fill(T::ZERO);
         for (&x, &(h, d)) in f.iter().zip(pb) {
             num[d as usize] += x * g[h as usize];
             den[d as usize] += g[h as usize] * g[h as usize];
         }
         for (ei, (n, d)) in e.iter_mut().zip(num.iter().zip(&den)) {
-            *ei = if *d > 0.0 { n / d } else { 0.0 };
+            *ei = if *d > T::ZERO { *n / *d } else { T::ZERO };
         }
         // Fix the scale between the factors (RMS of E over its used bins = 1).
-        let (ss, n) = pb.iter().fold((0.0, 0usize), |(s, n), &(_, d)| {
+        let (ss, n) = pb.iter().fold((T::ZERO, 0usize), |(s, n), &(_, d)| {
             let x = e[d as usize];
             (s + x * x, n + 1)
         });
-        let rms = (ss / n.max(1) as f64).sqrt();
-        if rms > 0.0 && rms.is_finite() {
+        let rms = (ss / T::of(n.max(1) as f64)).sqrt();
+        if rms > T::ZERO && rms.is_finite() {
             e.iter_mut().for_each(|x| *x /= rms);
             g.iter_mut().for_each(|x| *x *= rms);
         }
         // Converged: another sweep would not change the fit (ALS never increases the cost).
-        let cost: f64 = f
-            .iter()
-            .zip(pb)
-            .map(|(&x, &(h, d))| (x - g[h as usize] * e[d as usize]).powi(2))
-            .sum();
-        if prev.is_finite() && prev - cost <= 1e-12 * prev {
-            break;
+        let cost = f.iter().zip(pb).fold(T::ZERO, |s, (&x, &(h, d))| {
+            let r = x - g[h as usize] * e[d as usize];
+            s + r * r
+        });
+        if let Some(p) = prev {
+            if p.is_finite() && p - cost <= T::of(1e-12) * p {
+                break;
+            }
         }
-        prev = cost;
+        prev = Some(cost);
     }
     (g, e)
+}
+
+/// A channel's fit: the link's `G` and `E` as stored, and the residual's `(U·S, V)` (CMF).
+pub(crate) type ChannelFit = (Vec<f32>, Vec<f32>, Option<(faer::Mat<f64>, faer::Mat<f64>)>);
+
+/// One channel `f` (pairs in grid order `view · lights + light`) of one texel: the link's
+/// factors as stored (f32), and for `k > 0` the rank-`k` SVD `(U·S, V)` of the residual
+/// `M / F` computed from the stored link, as the decoder sees it.
+pub(crate) fn fit_channel(
+    f: &[f64],
+    pb: &[(u32, u32)],
+    nb: usize,
+    sweeps: usize,
+    (nl, nv, k): (usize, usize, usize),
+) -> Result<ChannelFit, CompressError> {
+    let (g, e) = fit_link(f, pb, nb, sweeps);
+    let (g, e): (Vec<f32>, Vec<f32>) = (
+        g.iter().map(|x| *x as f32).collect(),
+        e.iter().map(|x| *x as f32).collect(),
+    );
+    if k == 0 {
+        return Ok((g, e, None));
+    }
+    let floor = RESIDUAL_FLOOR * f.iter().map(|x| x.abs()).sum::<f64>() / f.len().max(1) as f64;
+    let m = faer::Mat::<f64>::from_fn(nl, nv, |l, v| {
+        let (h, d) = pb[v * nl + l];
+        let fl = g[h as usize] as f64 * e[d as usize] as f64;
+        if fl.abs() > floor && floor > 0.0 {
+            f[v * nl + l] / fl
+        } else {
+            1.0
+        }
+    });
+    let (us, vv) = truncated_svd(m.as_ref(), k)?;
+    Ok((g, e, Some((us, vv))))
 }
 
 /// The knobs of a GSHD or CMF method: (θ bins, sweeps, residual terms K).
@@ -193,30 +269,14 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
                 let (mut p, mut q) = (vec![0f32; nl * k * 3], vec![0f32; nv * k * 3]);
                 for ch in 0..3 {
                     let f: Vec<f64> = (0..nl * nv).map(|i| row[i * 3 + ch] as f64).collect();
-                    let (g, e) = fit_link(&f, &pb, nb, sweeps);
+                    let (g, e, residual) = fit_channel(&f, &pb, nb, sweeps, (nl, nv, k))?;
                     for b in 0..nb {
-                        hg[b * 3 + ch] = g[b] as f32;
-                        he[b * 3 + ch] = e[b] as f32;
+                        hg[b * 3 + ch] = g[b];
+                        he[b * 3 + ch] = e[b];
                     }
-                    if k == 0 {
-                        continue;
+                    if let Some((us, vv)) = residual {
+                        put_terms(&mut p, &mut q, us.as_ref(), vv.as_ref(), ch);
                     }
-                    // The residual of the link as the decoder will see it (f32 factors).
-                    let floor = RESIDUAL_FLOOR * f.iter().map(|x| x.abs()).sum::<f64>() / f.len().max(1) as f64;
-                    let mut m = channel_matrix(row, nl, nv, ch);
-                    for v in 0..nv {
-                        for l in 0..nl {
-                            let (h, d) = pb[v * nl + l];
-                            let fl = hg[h as usize * 3 + ch] as f64 * he[d as usize * 3 + ch] as f64;
-                            m[(l, v)] = if fl.abs() > floor && floor > 0.0 {
-                                m[(l, v)] / fl
-                            } else {
-                                1.0
-                            };
-                        }
-                    }
-                    let (us, vv) = truncated_svd(m.as_ref(), k)?;
-                    put_terms(&mut p, &mut q, us.as_ref(), vv.as_ref(), ch);
                 }
                 Ok((hg, he, p, q))
             },

@@ -7,7 +7,7 @@ use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::params::{EncodeInfo, Method, Params};
-use super::{abrdf, cmf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svd_j};
+use super::{abrdf, cmf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svbrdf, svd_j};
 
 /// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
 /// views only, exactly as [`compress`] computes them (each view is factorized on its own),
@@ -48,6 +48,11 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         Method::Nd => nd::compress(ds, params),
         Method::SvdJ => svd_j::compress(ds, params),
         Method::Gshd { .. } | Method::Cmf { .. } => cmf::compress(ds, params),
+        Method::Svbrdf { .. } => Err(CompressError::Invalid(
+            "svbrdf: the per-texel Lafortune SVBRDF is fitted by `gonio fit DATASET --model lafortune \
+             --per-texel --out F.gbtf`, not by gonio compress"
+                .into(),
+        )),
     }
 }
 
@@ -164,6 +169,16 @@ impl CompressedBtf {
                     dfmf: None,
                 });
             }
+            "svbrdf" => {
+                let (lobes, _) = svbrdf::validate(&gbtf)?;
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method: Method::Svbrdf { lobes },
+                    c: svbrdf::params_per_texel(lobes),
+                    homomorphic: None,
+                    dfmf: None,
+                });
+            }
             "dfmf" => {
                 let d = dfmf::from_gbtf(&gbtf)?;
                 let params: Params = serde_json::from_value(gbtf.header.params.clone())
@@ -230,6 +245,10 @@ impl CompressedBtf {
         }
         if let Method::Gshd { theta_bins, .. } | Method::Cmf { theta_bins, .. } = self.method {
             return Ok(cmf::reconstruct(&self.gbtf, theta_bins, c, light, view));
+        }
+        if let Method::Svbrdf { lobes } = self.method {
+            let (_, geometry) = svbrdf::validate(&self.gbtf)?;
+            return Ok(svbrdf::reconstruct(&self.gbtf, lobes, geometry, light, view));
         }
         if let Method::Nd | Method::SvdJ = self.method {
             return Ok(abrdf::reconstruct_products(&self.gbtf, c, light, view));

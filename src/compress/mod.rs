@@ -11,6 +11,7 @@
 //! | ND | [`nd`] | `.gbtf` | per texel and channel, light row norms and view column means (one product) |
 //! | SVD-J | [`svd_j`] | `.gbtf` | per texel and channel, a rank-J SVD of the lights × views matrix |
 //! | GSHD, CMF | [`cmf`] | `.gbtf` | per texel and channel, half-vector × difference-vector factors (GSHD), times a rank-K SVD of the residual (CMF) |
+//! | SVBRDF | [`svbrdf`] | `.gbtf` | per texel a scaled Lafortune model's parameters, per pair a gain plane (written by `gonio fit --per-texel`) |
 //! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) or `.gbtf` | per colour channel of a decorrelated model (RGB, log-YUV, CIELab: `.gbtf` only), one full-matrix factorization |
 //!
 //! **Floors.** The method files share a ground floor and never import each other:
@@ -100,6 +101,7 @@ pub mod pca;
 pub mod pvmf;
 pub mod rsvd;
 pub mod rsvd_shard;
+pub mod svbrdf;
 pub mod svd_j;
 pub mod target;
 

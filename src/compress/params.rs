@@ -54,6 +54,9 @@ pub enum Method {
     /// Chained matrix factorization per ABRDF (`cmf`): the GSHD product times a rank-K SVD
     /// (K = [`Params::components`]) of the residual `M / GSHD` in light × view form.
     Cmf { theta_bins: usize, sweeps: usize },
+    /// Per-texel scaled Lafortune SVBRDF (`svbrdf`): written by `gonio fit --per-texel
+    /// --out F.gbtf` (the fit lives in `fit/`), decoded like every other method.
+    Svbrdf { lobes: usize },
 }
 
 impl Method {
@@ -69,6 +72,7 @@ impl Method {
             Method::SvdJ => "svd-j",
             Method::Gshd { .. } => "gshd",
             Method::Cmf { .. } => "cmf",
+            Method::Svbrdf { .. } => "svbrdf",
         }
     }
 }

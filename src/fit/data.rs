@@ -63,13 +63,9 @@ pub struct Loaded {
     pub geometry: Option<Geometry>,
 }
 
-/// The rig's distances and the sample's size (mm): each texel's own directions.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-pub struct Geometry {
-    pub camera_distance_mm: f64,
-    pub light_distance_mm: f64,
-    pub size_mm: f64,
-}
+/// The rig's distances and the sample's size (mm): each texel's own directions (the
+/// decoder of the SVBRDF file uses the same type).
+pub use crate::compress::svbrdf::Geometry;
 
 impl Geometry {
     fn from_manifest(rig: &serde_json::Value, sample: &serde_json::Value) -> Option<Geometry> {
@@ -81,19 +77,6 @@ impl Geometry {
         let ok = |x: f64| x.is_finite() && x > 0.0;
         (ok(g.camera_distance_mm) && ok(g.light_distance_mm) && ok(g.size_mm) && g.size_mm < g.camera_distance_mm)
             .then_some(g)
-    }
-
-    /// Texel `t`'s light and view directions for the nominal `l`, `v` (texel centres as
-    /// `gonio sim btf` renders them: row 0 at +y).
-    pub fn texel_dirs(&self, l: Vec3, v: Vec3, t: usize, width: usize, height: usize) -> (Vec3, Vec3) {
-        let s = self.size_mm;
-        let x = ((t % width) as f64 + 0.5) / width as f64 * s - s / 2.0;
-        let y = s / 2.0 - ((t / width) as f64 + 0.5) / height as f64 * s;
-        let p = Vec3::new(x, y, 0.0);
-        (
-            (l * self.light_distance_mm - p).normalized(),
-            (v * self.camera_distance_mm - p).normalized(),
-        )
     }
 }
 

@@ -9,8 +9,10 @@
 //!
 //! The result is an SVBRDF: `texels × params` f32 plus one gain per pair and channel (the
 //! white standard's mean value over ρ/π, which turns a BRDF value back into the
-//! dataset's units; 1 for BRDF data). [`SvbrdfFit`] decodes any grid pair from it, so
-//! `compress::evaluate` measures its error in the same terms as every compression method.
+//! dataset's units; 1 for BRDF data). [`SvbrdfFit`] decodes any grid pair from it with
+//! the material library's models; [`SvbrdfFit::to_gbtf`] stores it as a `.gbtf` whose
+//! decoder (`compress::svbrdf`) is what `gonio reconstruct`, `gonio render` and the error
+//! report use, checked against this one by `fit::tests::svbrdf_file_decodes_to_the_fitted_models`.
 
 use super::data::Loaded;
 use super::lm::{LmOptions, Stop};
@@ -149,6 +151,26 @@ impl SvbrdfFit {
     /// and the geometry (3 f32).
     pub fn bytes(&self) -> usize {
         4 * self.params.len() + 4 * 9 * self.gain.len() + 12
+    }
+
+    /// The fit as a `.gbtf` (`compress::svbrdf`, method `svbrdf`): what `gonio fit
+    /// --per-texel --out F.gbtf` writes and `gonio reconstruct`/`render`/`view` decode. Pairs
+    /// without a fit get an all-zero gain plane, which decodes to 0 as here.
+    pub fn to_gbtf(&self, ds: &crate::compress::DatasetViews) -> Result<crate::compress::Gbtf, CompressError> {
+        if (ds.width, ds.height, ds.n_lights(), ds.n_views())
+            != (self.width, self.height, self.lights_deg.len(), self.views_deg.len())
+        {
+            return Err(CompressError::Invalid(format!(
+                "{}: its grid or image size is not the fitted one",
+                ds.dir.display()
+            )));
+        }
+        let gain: Vec<f32> = self
+            .gain
+            .iter()
+            .flat_map(|g| g.unwrap_or([[0.0; 3]; 3]).into_iter().flatten())
+            .collect();
+        crate::compress::svbrdf::encode(ds, self.family.lobes, self.params.clone(), gain, self.geometry)
     }
 
     /// Parameter values of texel `t`.

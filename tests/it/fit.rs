@@ -151,11 +151,19 @@ fn rough_conductor_sample_is_fitted_best_by_its_family() {
 }
 
 /// Per texel: each texel of the checker gets its own material's exponent (within 5 %), and
-/// the SVBRDF is reported as a compression method with a ratio and a PSNR.
+/// the SVBRDF is reported as a compression method with a ratio and a PSNR. Its `.gbtf`
+/// (`--out F.gbtf`) decodes, through `compress::svbrdf`, to what the fitted models of the
+/// material library evaluate (`fit::texel::SvbrdfFit`), and `gonio reconstruct` and
+/// `gonio render` read it.
 #[test]
-fn per_texel_fit_finds_both_materials() {
+fn per_texel_fit_finds_both_materials_and_its_file_decodes() {
+    use gonio::compress::interp::BtfModel;
+    use gonio::compress::svbrdf::Geometry;
+    use gonio::compress::{CompressedBtf, Gbtf};
+    use gonio::fit::texel::SvbrdfFit;
+    use gonio::fit::{Family, ModelKind};
     let (dir, _) = renders();
-    let out = dir.path().join("checker-fit.json");
+    let out = dir.path().join("checker-fit.gbtf");
     let v = fit(
         "lafortune-checker",
         "lafortune",
@@ -165,26 +173,27 @@ fn per_texel_fit_finds_both_materials() {
     assert_eq!(t["texels"], 64);
     let ratio = t["ratio"].as_f64().unwrap();
     let psnr = t["psnr_8bit_db"].as_f64().unwrap();
-    // 144 pairs × 64 texels × 3 bytes raw against 64 × 8 f32 + 144 × 9 f32 gain planes
-    // + 3 f32 geometry
-    assert!(
-        (ratio - 27648.0 / (64.0 * 8.0 * 4.0 + 144.0 * 9.0 * 4.0 + 12.0)).abs() < 1e-9,
-        "{ratio}"
+    let stored = t["stored_bytes"].as_u64().unwrap();
+    assert_eq!(
+        stored,
+        std::fs::metadata(&out).unwrap().len(),
+        "stored_bytes is the file"
     );
+    // 144 pairs × 64 texels × 3 bytes raw against the file.
+    assert!((ratio - 27648.0 / stored as f64).abs() < 1e-9, "{ratio}");
     assert!(psnr > 40.0, "PSNR {psnr} dB");
-    let full: Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
-    let names: Vec<&str> = full["per_texel"]["parameter_names"]
-        .as_array()
-        .unwrap()
+    let g = Gbtf::read(&out).unwrap();
+    assert_eq!(g.header.method, "svbrdf");
+    let family = Family::new(ModelKind::Lafortune, 1);
+    let np = family.n_params();
+    let ie = family
+        .params
         .iter()
-        .map(|n| n.as_str().unwrap())
-        .collect();
-    let np = names.len();
-    let ie = names.iter().position(|n| *n == "lobes[0].exponent").unwrap();
-    let params = full["per_texel"]["parameters"].as_array().unwrap();
+        .position(|p| p.name == "lobes[0].exponent")
+        .unwrap();
     let mut found = [false; 2];
     for t in 0..64 {
-        let n = params[t * np + ie].as_f64().unwrap();
+        let n = g.blocks[0][t * np + ie] as f64;
         if (n - 40.0).abs() <= 0.05 * 40.0 {
             found[0] = true;
         } else if (n - 12.0).abs() <= 0.05 * 12.0 {
@@ -194,6 +203,84 @@ fn per_texel_fit_finds_both_materials() {
         }
     }
     assert_eq!(found, [true, true]);
+    // The file's decoder against the fitted models, every pair and texel.
+    let h = g.header.clone();
+    let geometry: Option<Geometry> = serde_json::from_value(h.params["geometry"].clone()).unwrap();
+    assert!(
+        geometry.is_some(),
+        "a sim btf dataset gives each texel its own directions"
+    );
+    let reference = SvbrdfFit {
+        family,
+        width: h.width,
+        height: h.height,
+        lights_deg: h.lights_deg.clone(),
+        views_deg: h.views_deg.clone(),
+        params: g.blocks[0].clone(),
+        gain: g.blocks[1]
+            .chunks_exact(9)
+            .map(|c| {
+                (!c.iter().all(|x| *x == 0.0)).then(|| [[c[0], c[1], c[2]], [c[3], c[4], c[5]], [c[6], c[7], c[8]]])
+            })
+            .collect(),
+        geometry,
+    };
+    let decoder = CompressedBtf::new(g).unwrap();
+    let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
+    let mut worst = 0f64;
+    for view in 0..nv {
+        for light in 0..nl {
+            let (a, b) = (
+                decoder.reconstruct(light, view).unwrap(),
+                BtfModel::reconstruct(&reference, light, view).unwrap(),
+            );
+            let scale = b.iter().fold(1e-6f32, |m, x| m.max(x.abs()));
+            for (x, y) in a.iter().zip(&b) {
+                worst = worst.max(((x - y).abs() / scale) as f64);
+            }
+        }
+    }
+    assert!(
+        worst < 1e-5,
+        "file decoder vs fitted models: relative difference {worst:e}"
+    );
+    // gonio reconstruct and gonio render read the file.
+    let (light, view) = (7, 5);
+    let (ld, vd) = (h.lights_deg[light], h.views_deg[view]);
+    let npy = dir.path().join("checker-fit.npy");
+    ok(&[
+        "reconstruct",
+        out.to_str().unwrap(),
+        "--light",
+        &format!("{},{}", ld[0], ld[1]),
+        "--view",
+        &format!("{},{}", vd[0], vd[1]),
+        "--out",
+        npy.to_str().unwrap(),
+    ]);
+    let bytes = std::fs::read(&npy).unwrap();
+    let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let got: Vec<f32> = bytes[10 + hlen..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    assert_eq!(got, decoder.reconstruct(light, view).unwrap(), "gonio reconstruct");
+    let png = dir.path().join("checker-fit-sphere.png");
+    ok(&[
+        "render",
+        out.to_str().unwrap(),
+        "--light",
+        "30,0",
+        "--view",
+        "0,0",
+        "--shape",
+        "sphere",
+        "--size",
+        "32x32",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(std::fs::metadata(&png).unwrap().len() > 0);
 }
 
 #[test]
@@ -225,5 +312,9 @@ fn bad_inputs_are_refused_naming_the_input() {
     refused(
         &["fit", ds, "--model", "ward", "--per-texel", "--white", white],
         &["--per-texel", "lafortune"],
+    );
+    refused(
+        &["fit", ds, "--model", "lafortune", "--white", white, "--out", "avg.gbtf"],
+        &["--out avg.gbtf", "--per-texel"],
     );
 }
