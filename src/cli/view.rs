@@ -17,6 +17,11 @@ pub struct ViewArgs {
     /// Address to listen on. Anything but loopback needs --allow-remote.
     #[arg(long, default_value = "127.0.0.1")]
     pub bind: IpAddr,
+    /// A compressed file (.gbtf or UBO2014 .btf) of the dataset PATH: the inspect page shows
+    /// its reconstruction next to the measurement and the truth, with error maps and PSNR.
+    /// Refused if its texture size or directions differ from the dataset's.
+    #[arg(long, value_name = "FILE")]
+    pub model: Option<PathBuf>,
     /// Allow a non-loopback --bind (anyone who can reach it and has the URL sees the data).
     #[arg(long)]
     pub allow_remote: bool,
@@ -36,7 +41,7 @@ pub fn run(a: ViewArgs) -> Result<ExitCode> {
             allow_remote: a.allow_remote,
             token: None,
         };
-        let bound = server::bind(&opts)
+        let bound = server::bind_with_model(&opts, a.model.as_deref())
             .await
             .with_context(|| format!("serving {}", a.path.display()))?;
         // The URL first, alone on its line: scripts read it.

@@ -6,8 +6,10 @@
 //! * [`params`]: parsing of the scene parameters, one parser for the CLI and the HTTP API.
 //! * [`source`]: what is shown (a dataset, a `.gbtf`, a UBO2014 `.btf`).
 //! * [`server`]: the HTTP server (axum) with its token, path and parameter checks.
+//! * [`gpu`]: the factor blocks of the DFMF, median-cut and homomorphic GPU decoders.
 //! * [`monitor`]: progress of a dataset being written, read from its journal.
 
+pub mod gpu;
 pub mod monitor;
 pub mod params;
 pub mod render;

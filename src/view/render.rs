@@ -200,9 +200,8 @@ struct PixelLookup {
     pairs: Vec<(usize, usize, f32)>,
 }
 
-/// Render `scene` with `model`. Errors only for an invalid scene or a model that fails to
-/// decode; directions without measurements nearby render black.
-pub fn render(model: &dyn BtfModel, scene: &Scene) -> Result<Rendered, CompressError> {
+/// Every pixel's texel and interpolation weights (no decoding).
+fn lookups(model: &dyn BtfModel, scene: &Scene) -> Result<(RenderStats, Vec<PixelLookup>), CompressError> {
     let (w, h) = (scene.width, scene.height);
     if w == 0 || h == 0 || w > super::params::MAX_SIDE || h > super::params::MAX_SIDE {
         return Err(CompressError::Invalid(format!("render size {w}×{h} out of range")));
@@ -250,6 +249,30 @@ pub fn render(model: &dyn BtfModel, scene: &Scene) -> Result<Rendered, CompressE
             });
         }
     }
+    Ok((stats, lookups))
+}
+
+/// The grid pairs a picture of `scene` uses, `(light, view, Σ weight over its pixels)`,
+/// most used first (ties: lower view, then lower light). The relight page streams a raw
+/// dataset's images in this order, so the current picture is complete first.
+pub fn needed_pairs(model: &dyn BtfModel, scene: &Scene) -> Result<Vec<(usize, usize, f64)>, CompressError> {
+    let (_, lookups) = lookups(model, scene)?;
+    let mut by_pair: BTreeMap<(usize, usize), f64> = BTreeMap::new();
+    for lk in &lookups {
+        for &(l, v, w) in &lk.pairs {
+            *by_pair.entry((v, l)).or_default() += w as f64;
+        }
+    }
+    let mut out: Vec<(usize, usize, f64)> = by_pair.into_iter().map(|((v, l), w)| (l, v, w)).collect();
+    out.sort_by(|a, b| b.2.total_cmp(&a.2).then((a.1, a.0).cmp(&(b.1, b.0))));
+    Ok(out)
+}
+
+/// Render `scene` with `model`. Errors only for an invalid scene or a model that fails to
+/// decode; directions without measurements nearby render black.
+pub fn render(model: &dyn BtfModel, scene: &Scene) -> Result<Rendered, CompressError> {
+    let (w, h) = (scene.width, scene.height);
+    let (mut stats, lookups) = lookups(model, scene)?;
     // Group by grid pair (BTreeMap: a fixed summation order for every pixel).
     let mut by_pair: BTreeMap<(usize, usize), Vec<Use>> = BTreeMap::new();
     for lk in &lookups {
@@ -427,6 +450,71 @@ mod tests {
                 assert!((x - y).abs() < 1e-5, "{shape:?}: {x} vs {y}");
             }
         }
+    }
+
+    /// The streaming order lists exactly the pairs the picture uses, most used first, and
+    /// their weights add up to one per drawn pixel.
+    #[test]
+    fn needed_pairs_are_the_pairs_the_picture_uses() {
+        let (_d, m) = model();
+        for shape in [Shape::Plane, Shape::Sphere, Shape::Cylinder] {
+            let scene = Scene {
+                light_deg: [35.0, 60.0],
+                view_deg: [25.0, 200.0],
+                shape,
+                width: 24,
+                height: 20,
+                exposure: 1.0,
+            };
+            let pic = render(&m, &scene).unwrap();
+            let need = needed_pairs(&m, &scene).unwrap();
+            assert_eq!(need.len(), pic.stats.grid_pairs, "{shape:?}");
+            assert!(
+                need.windows(2).all(|w| w[0].2 >= w[1].2),
+                "{shape:?}: not most used first"
+            );
+            let drawn = pic.stats.shape_pixels - pic.stats.shadowed_pixels - pic.stats.unmeasured_pixels;
+            let total: f64 = need.iter().map(|p| p.2).sum();
+            assert!(
+                (total - drawn as f64).abs() < 1e-3 * drawn as f64,
+                "{shape:?}: {total} vs {drawn}"
+            );
+        }
+        // The plane from above under a measured light uses that one pair.
+        let scene = Scene {
+            light_deg: [30.0, 60.0],
+            view_deg: [0.0, 0.0],
+            shape: Shape::Plane,
+            width: 6,
+            height: 6,
+            exposure: 1.0,
+        };
+        let need = needed_pairs(&m, &scene).unwrap();
+        assert_eq!(need.len(), 1);
+        assert_eq!((need[0].0, need[0].1), (2, 0));
+    }
+
+    /// The whole sphere is drawn, not a dome: seen from near the horizon with the light
+    /// there too, points below the equator (lower half of the picture) are lit.
+    #[test]
+    fn the_sphere_is_drawn_below_its_equator() {
+        let (_d, m) = model();
+        let scene = Scene {
+            light_deg: [80.0, 0.0],
+            view_deg: [80.0, 0.0],
+            shape: Shape::Sphere,
+            width: 32,
+            height: 32,
+            exposure: 1.0,
+        };
+        let below = (22..32)
+            .flat_map(|py| (0..32).map(move |px| (px, py)))
+            .filter(|&(px, py)| hit(&scene, px, py).is_some_and(|h| h.uv[1] > 0.5))
+            .count();
+        assert!(below > 20, "{below} hits below the equator");
+        let pic = render(&m, &scene).unwrap();
+        let lit = (22 * 32..32 * 32).filter(|&p| pic.linear[p * 3] > 0.0).count();
+        assert!(lit > 20, "{lit} lit pixels in the lower third");
     }
 
     /// Geometry: the sphere's centre faces the camera; the shadowed side is black; the

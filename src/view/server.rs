@@ -31,6 +31,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use serde_json::Value;
 use std::collections::BTreeMap;
 use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
@@ -69,6 +70,8 @@ pub enum ViewError {
         #[source]
         source: std::io::Error,
     },
+    #[error("--model {path}: {why}")]
+    Model { path: PathBuf, why: String },
     #[error("{path}: {source}")]
     Io {
         path: PathBuf,
@@ -128,6 +131,8 @@ struct AppState {
     kind: SourceKind,
     token: String,
     loaded: Mutex<Loaded>,
+    /// `--model FILE`: a compressed file of the served dataset, shown next to it.
+    model: Option<Arc<AnyModel>>,
     permits: tokio::sync::Semaphore,
     streams: AtomicUsize,
 }
@@ -183,10 +188,83 @@ fn random_token() -> Result<String, ViewError> {
 
 /// Open the source and bind the socket.
 pub async fn bind(opts: &ViewOptions) -> Result<Bound, ViewError> {
+    bind_with_model(opts, None).await
+}
+
+/// Why `model` cannot be compared with dataset `ds`, naming what differs.
+pub fn model_mismatch(ds: &dyn BtfModel, model: &dyn BtfModel) -> Option<String> {
+    if (ds.width(), ds.height()) != (model.width(), model.height()) {
+        return Some(format!(
+            "its texture is {}×{} texels, the dataset's {}×{}",
+            model.width(),
+            model.height(),
+            ds.width(),
+            ds.height()
+        ));
+    }
+    for (which, a, b) in [
+        ("light", ds.lights_deg(), model.lights_deg()),
+        ("view", ds.views_deg(), model.views_deg()),
+    ] {
+        if a.len() != b.len() {
+            return Some(format!(
+                "it has {} {which} directions, the dataset {}",
+                b.len(),
+                a.len()
+            ));
+        }
+        let u = |d: [f64; 2]| crate::compress::interp::unit(d);
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            let c = crate::compress::interp::dot(u(*x), u(*y)).clamp(-1.0, 1.0);
+            if c.acos().to_degrees() > crate::compress::interp::SAME_DEG {
+                return Some(format!(
+                    "{which} {i} is ({:.2}, {:.2})° in it and ({:.2}, {:.2})° in the dataset",
+                    y[0], y[1], x[0], x[1]
+                ));
+            }
+        }
+    }
+    None
+}
+
+/// [`bind`], with a compressed file (`gonio view DATASET --model FILE`) whose
+/// reconstructions the inspect page shows next to the dataset's measurements and truth.
+/// The file must be a `.gbtf` or `.btf` of the same texture size and directions.
+pub async fn bind_with_model(opts: &ViewOptions, model: Option<&Path>) -> Result<Bound, ViewError> {
     if !opts.bind.is_loopback() && !opts.allow_remote {
         return Err(ViewError::RemoteRefused { addr: opts.bind });
     }
     let source = Source::open(&opts.path)?;
+    let model = match model {
+        None => None,
+        Some(p) => {
+            let err = |why: String| ViewError::Model {
+                path: p.to_path_buf(),
+                why,
+            };
+            if source.kind() != SourceKind::Dataset {
+                return Err(err(format!(
+                    "{} is not a dataset directory; --model compares a compressed file with its source dataset",
+                    opts.path.display()
+                )));
+            }
+            let m = match Source::open(p).map_err(|e| err(e.to_string()))? {
+                Source::Model { model, .. } => model,
+                Source::Dataset(_) => {
+                    return Err(err(
+                        "a dataset directory; expected a .gbtf or a UBO2014 .btf file".into()
+                    ))
+                }
+            };
+            if let Some(why) = model_mismatch(source.model(), m.model()) {
+                return Err(err(format!(
+                    "does not match the dataset {}: {why}",
+                    opts.path.display()
+                )));
+            }
+            Some(Arc::new(m))
+        }
+    };
     let root = opts.path.canonicalize().map_err(|source| ViewError::Io {
         path: opts.path.clone(),
         source,
@@ -202,6 +280,7 @@ pub async fn bind(opts: &ViewOptions) -> Result<Bound, ViewError> {
             source: Arc::new(source),
         }),
         root,
+        model,
         token: token.clone(),
         permits: tokio::sync::Semaphore::new(MAX_CONCURRENT),
         streams: AtomicUsize::new(0),
@@ -259,6 +338,8 @@ fn router(state: Arc<AppState>) -> Router {
         .route("/api/info", get(info))
         .route("/api/factors", get(factors))
         .route("/api/raw", get(raw_view))
+        .route("/api/raw_pairs", get(raw_pairs))
+        .route("/api/needed", get(needed))
         .route("/api/render", get(render_png))
         .route("/api/image", get(image_png))
         .route("/api/pair", get(pair_png))
@@ -404,9 +485,9 @@ fn gpu_kind(src: &Source) -> Option<&'static str> {
             Method::Pvmf => Some("pvmf"),
             Method::Pca => Some("pca"),
             Method::LocalPca { .. } => Some("local-pca"),
-            _ => None,
+            _ => super::gpu::kind(src).map(super::gpu::Kind::name),
         },
-        Source::Model { .. } => None,
+        Source::Model { .. } => super::gpu::kind(src).map(super::gpu::Kind::name),
     }
 }
 
@@ -436,7 +517,7 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
             .collect(),
         _ => Vec::new(),
     };
-    json_response(&serde_json::json!({
+    let mut v = serde_json::json!({
         "kind": st.kind,
         "method": method,
         "gpu": gpu_kind(&src),
@@ -456,9 +537,19 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         "lights_deg": m.lights_deg(),
         "views_deg": m.views_deg(),
         "truth": truth,
+        "model": st.model.as_ref().map(|m| match &**m {
+            AnyModel::Gbtf(g) => g.method().name(),
+            AnyModel::Dfmf(_) => "dfmf",
+        }),
         "measured_pairs": measured,
         "max_api_pixels": MAX_API_PIXELS,
-    }))
+    });
+    if let Some(k) = super::gpu::kind(&src) {
+        if let (Some(o), Value::Object(extra)) = (v.as_object_mut(), super::gpu::describe(&src, k)) {
+            o.extend(extra);
+        }
+    }
+    json_response(&v)
 }
 
 /// f16 little-endian values of a matrix with `cols` columns padded to a multiple of 4.
@@ -491,6 +582,10 @@ fn f32_padded(data: &[f32], cols: usize) -> Vec<u8> {
 /// as f16, weight rows (odd blocks) as f32, columns padded to a multiple of 4.
 async fn factors(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     let src = st.source()?;
+    if let Some(k) = super::gpu::kind(&src) {
+        let i = params::index("block", get_param(&q, "block")?, super::gpu::block_count(&src, k))?;
+        return blocking(move || Ok(bytes_response(super::gpu::block(&src, k, i)))).await;
+    }
     let Source::Model {
         model: AnyModel::Gbtf(m),
         ..
@@ -600,6 +695,74 @@ async fn raw_view(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     .await
 }
 
+/// Grid pairs one `/api/raw_pairs` request may ask for.
+pub const MAX_PAIRS_PER_REQUEST: usize = 16;
+/// Largest `/api/raw_pairs` response.
+pub const MAX_RAW_RESPONSE: usize = 64 << 20;
+
+/// `/api/raw_pairs?pairs=L.V,L.V,…`: the images of up to [`MAX_PAIRS_PER_REQUEST`] grid
+/// pairs of a dataset (at most [`MAX_RAW_RESPONSE`] bytes), f16 RGB, in the order asked,
+/// unmeasured pairs filled as [`RawModel`] does. The relight page streams a large raw
+/// dataset with it, the images of the current picture first.
+async fn raw_pairs(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
+    let src = st.source()?;
+    let Source::Dataset(d) = &*src else {
+        return Err(bad("raw images exist only for a dataset directory"));
+    };
+    let (nl, nv) = (d.views.n_lights(), d.views.n_views());
+    let list = get_param(&q, "pairs")?;
+    let mut pairs = Vec::new();
+    for item in list.split(',') {
+        let (l, v) = item
+            .split_once('.')
+            .ok_or_else(|| bad(format!("parameter `pairs`: {item:?} is not LIGHT.VIEW")))?;
+        pairs.push((
+            params::index("pairs (light)", l, nl)?,
+            params::index("pairs (view)", v, nv)?,
+        ));
+    }
+    if pairs.len() > MAX_PAIRS_PER_REQUEST {
+        return Err(bad(format!(
+            "parameter `pairs`: {} pairs, at most {MAX_PAIRS_PER_REQUEST} per request",
+            pairs.len()
+        )));
+    }
+    let bytes = pairs.len() * d.views.texels() * 6;
+    if bytes > MAX_RAW_RESPONSE {
+        return Err(bad(format!(
+            "parameter `pairs`: {} images of {}×{} are {bytes} bytes, at most {MAX_RAW_RESPONSE} per request",
+            pairs.len(),
+            d.views.width,
+            d.views.height
+        )));
+    }
+    let src2 = src.clone();
+    blocking(move || {
+        let Source::Dataset(d) = &*src2 else { unreachable!() };
+        let mut out = Vec::with_capacity(bytes);
+        for (l, v) in pairs {
+            for x in d.reconstruct(l, v).map_err(internal)? {
+                out.extend_from_slice(&half::f16::from_f32(x).to_le_bytes());
+            }
+        }
+        Ok(bytes_response(out))
+    })
+    .await
+}
+
+/// `/api/needed?light&view&shape&size`: the grid pairs the picture of that state uses,
+/// `[light, view, weight]`, most used first (see [`render::needed_pairs`]).
+async fn needed(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
+    let scene = scene_from_query(&q)?;
+    let src = st.source()?;
+    blocking(move || {
+        let pairs = render::needed_pairs(src.model(), &scene).map_err(|e| bad(e.to_string()))?;
+        let list: Vec<(usize, usize, f64)> = pairs;
+        json_response(&serde_json::json!({ "pairs": list }))
+    })
+    .await
+}
+
 /// The scene of a query (the page's URL state).
 pub fn scene_from_query(q: &BTreeMap<String, String>) -> Result<Scene, ApiError> {
     let light_deg = params::direction("light", opt_param(q, "light", "30,0"))?;
@@ -656,18 +819,22 @@ async fn image_png(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     .await
 }
 
-/// The images of grid pair (l, v) that exist: `model` (a compressed file's decoding),
-/// `measured` (a dataset's stored image), `truth` (a simulated dataset's stored truth).
-fn pair_sources(src: &Source, l: usize, v: usize) -> Vec<&'static str> {
+/// The images of grid pair (l, v) that exist: `model` (a compressed file's decoding, or
+/// the `--model` file's next to a dataset), `measured` (a dataset's stored image), `truth`
+/// (a simulated dataset's stored truth).
+fn pair_sources(src: &Source, model: Option<&AnyModel>, l: usize, v: usize) -> Vec<&'static str> {
     match src {
         Source::Model { .. } => vec!["model"],
         Source::Dataset(d) => {
             let mut s = Vec::new();
             if d.views.is_measured(l, v) {
                 s.push("measured");
-                if truth_path(d, l, v).is_some() {
-                    s.push("truth");
-                }
+            }
+            if model.is_some() {
+                s.push("model");
+            }
+            if d.views.is_measured(l, v) && truth_path(d, l, v).is_some() {
+                s.push("truth");
             }
             s
         }
@@ -679,11 +846,11 @@ fn truth_path(d: &RawModel, l: usize, v: usize) -> Option<PathBuf> {
     p.is_file().then_some(p)
 }
 
-fn pair_image(src: &Source, l: usize, v: usize, which: &str) -> Result<Vec<f32>, ApiError> {
-    if !pair_sources(src, l, v).contains(&which) {
+fn pair_image(src: &Source, model: Option<&AnyModel>, l: usize, v: usize, which: &str) -> Result<Vec<f32>, ApiError> {
+    let have = pair_sources(src, model, l, v);
+    if !have.contains(&which) {
         return Err(bad(format!(
-            "parameter `source` = {which:?}: not available for pair (light {l}, view {v}); available: {:?}",
-            pair_sources(src, l, v)
+            "parameter `source` = {which:?}: not available for pair (light {l}, view {v}); available: {have:?}"
         )));
     }
     match (src, which) {
@@ -691,6 +858,10 @@ fn pair_image(src: &Source, l: usize, v: usize, which: &str) -> Result<Vec<f32>,
             let p = truth_path(d, l, v).ok_or_else(|| bad("no truth image"))?;
             Ok(crate::store::read_exr(&p).map_err(internal)?.data)
         }
+        (Source::Dataset(_), "model") => match model {
+            Some(m) => m.model().reconstruct(l, v).map_err(internal),
+            None => Err(bad("no --model file")),
+        },
         _ => src.model().reconstruct(l, v).map_err(internal),
     }
 }
@@ -708,13 +879,19 @@ async fn pair_png(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     let (l, v) = grid_pair(&q, &src)?;
     let which = opt_param(&q, "source", "").to_string();
     let e = params::exposure("exposure", opt_param(&q, "exposure", "1"))?;
+    let model = st.model.clone();
     blocking(move || {
+        let model = model.as_deref();
         let which = if which.is_empty() {
-            pair_sources(&src, l, v).first().copied().unwrap_or("model").to_string()
+            pair_sources(&src, model, l, v)
+                .first()
+                .copied()
+                .unwrap_or("model")
+                .to_string()
         } else {
             which
         };
-        let img = pair_image(&src, l, v, &which)?;
+        let img = pair_image(&src, model, l, v, &which)?;
         let m = src.model();
         tone_png(&img, m.width(), m.height(), e)
     })
@@ -737,21 +914,27 @@ fn psnr(a: &[f32], reference: &[f32]) -> (f64, f64) {
     (p, mse.sqrt())
 }
 
-/// `/api/compare?l&v`: which images exist for a grid pair and the PSNR of each against
-/// the reference (truth if stored, else measured); linear values, peak = reference max.
+/// `/api/compare?l&v`: which images exist for a grid pair and the PSNR of the others
+/// against each reference: truth if stored (measured and model against it), and the
+/// measurement (the model against it); linear values, peak = the reference's maximum.
 async fn compare(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     let src = st.source()?;
     let (l, v) = grid_pair(&q, &src)?;
+    let model = st.model.clone();
     blocking(move || {
-        let sources = pair_sources(&src, l, v);
+        let model = model.as_deref();
+        let sources = pair_sources(&src, model, l, v);
         let mut rows = Vec::new();
-        if let Some(reference) = sources.last() {
-            let r = pair_image(&src, l, v, reference)?;
-            for s in &sources {
-                if s == reference {
+        for reference in ["truth", "measured"] {
+            if !sources.contains(&reference) {
+                continue;
+            }
+            let r = pair_image(&src, model, l, v, reference)?;
+            for s in ["measured", "model"] {
+                if s == reference || !sources.contains(&s) {
                     continue;
                 }
-                let (p, rmse) = psnr(&pair_image(&src, l, v, s)?, &r);
+                let (p, rmse) = psnr(&pair_image(&src, model, l, v, s)?, &r);
                 rows.push(serde_json::json!({"source": s, "reference": reference,
                     "psnr_db": if p.is_finite() { serde_json::json!(p) } else { serde_json::json!("inf") },
                     "rmse": rmse}));
@@ -773,8 +956,10 @@ async fn heat_png(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
     let (l, v) = grid_pair(&q, &src)?;
     let a = get_param(&q, "a")?.to_string();
     let b = get_param(&q, "b")?.to_string();
+    let model = st.model.clone();
     blocking(move || {
-        let (x, y) = (pair_image(&src, l, v, &a)?, pair_image(&src, l, v, &b)?);
+        let model = model.as_deref();
+        let (x, y) = (pair_image(&src, model, l, v, &a)?, pair_image(&src, model, l, v, &b)?);
         let err: Vec<f32> = x
             .chunks_exact(3)
             .zip(y.chunks_exact(3))
@@ -993,4 +1178,35 @@ async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
     Ok(Sse::new(stream)
         .keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
         .into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::compress::testdata::write_test_dataset;
+    use crate::compress::{compress, Params};
+
+    /// `--model` refuses a file of another texture size or other directions and names
+    /// what differs; the file compressed from the dataset fits.
+    #[test]
+    fn a_model_must_match_the_dataset() {
+        let grid = |n: usize| -> Vec<[f64; 2]> { (0..n).map(|k| [30.0, 360.0 * k as f64 / n as f64]).collect() };
+        let dir = tempfile::tempdir().unwrap();
+        let f = |l: usize, v: usize, t: usize, c: usize| 0.1 + 0.01 * ((l + 2 * v + t + c) % 7) as f32;
+        let ds = write_test_dataset(&dir.path().join("a"), (4, 4), &grid(5), &grid(4), &[], f);
+        let small = write_test_dataset(&dir.path().join("b"), (4, 3), &grid(5), &grid(4), &[], f);
+        let fewer = write_test_dataset(&dir.path().join("c"), (4, 4), &grid(6), &grid(4), &[], f);
+        let mut moved = grid(4);
+        moved[2][1] += 1.0;
+        let shifted = write_test_dataset(&dir.path().join("d"), (4, 4), &grid(5), &moved, &[], f);
+        let model = |d| CompressedBtf::new(compress(d, &Params::new(Method::Pca, 2)).unwrap().0).unwrap();
+        let raw = RawModel::open(&dir.path().join("a")).unwrap();
+        assert_eq!(model_mismatch(&raw, &model(&ds)), None);
+        let why = model_mismatch(&raw, &model(&small)).unwrap();
+        assert!(why.contains("4×3 texels") && why.contains("4×4"), "{why}");
+        let why = model_mismatch(&raw, &model(&fewer)).unwrap();
+        assert!(why.contains("6 light directions, the dataset 5"), "{why}");
+        let why = model_mismatch(&raw, &model(&shifted)).unwrap();
+        assert!(why.contains("view 2 is (30.00, 181.00)°"), "{why}");
+    }
 }

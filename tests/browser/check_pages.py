@@ -2,13 +2,14 @@
 driven by Playwright's Python package with executable_path: no browser download).
 
 Usage: check_pages.py GONIO DATASET GBTF SCRATCH SCREENSHOT_DIR [MORE_FILES…]
-(more .gbtf files get the same canvas checks as GBTF; a UBO2014 .btf, which has no GPU
-decoder, is checked for loading without error and showing the server's picture)
+(more .gbtf and UBO2014 .btf files get the same canvas checks as GBTF: every method served
+here has a GPU decoder, and the page must use it rather than the server's picture)
 
 * every page loads with no console error (relight, inspect, monitor);
 * the relight canvas matches `gonio render` for the same URL state (>= 99 % of pixel
   values within 2/255, mean <= 0.5/255) on plane, sphere, cylinder and grazing-light states,
-  for a PVMF .gbtf and for the raw dataset;
+  for a PVMF .gbtf, the raw dataset and every further file (PCA, local PCA, DFMF .btf and
+  CIELab .gbtf, median cut, homomorphic);
 * moving the light changes the picture, and the change matches the reference's;
 * the monitor's progress advances while a simulated acquisition writes a dataset;
 * a screenshot is written.
@@ -27,7 +28,6 @@ from playwright.sync_api import sync_playwright
 
 GONIO, DATASET, GBTF, SCRATCH, SHOTS = sys.argv[1:6]
 MORE = sys.argv[6:]
-BTF = next((f for f in MORE if f.endswith(".btf")), None)
 FLAGS = [
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -56,8 +56,8 @@ def check(cond, what):
 
 
 class Server:
-    def __init__(self, path):
-        self.p = subprocess.Popen([GONIO, "view", path, "--port", "0"], stdout=subprocess.PIPE,
+    def __init__(self, path, extra=()):
+        self.p = subprocess.Popen([GONIO, "view", path, "--port", "0", *extra], stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True)
         line = self.p.stdout.readline().strip()
         if not line.startswith("http://127.0.0.1:"):
@@ -90,7 +90,9 @@ def open_page(page, url, errors):
     page.goto(url)
     # Polled from Python: the page's CSP forbids the eval that wait_for_function needs.
     deadline = time.time() + 120
-    cond = "window.gonio && ((window.gonio.ready === true && window.gonio.frames > 0) || window.gonio.errors.length > 0)"
+    # A streamed raw dataset: wait until every image is on the GPU and drawn (idle).
+    cond = ("window.gonio && ((window.gonio.ready === true && window.gonio.frames > 0 && "
+            "(!window.gonio.streaming || window.gonio.idle === true)) || window.gonio.errors.length > 0)")
     while not page.evaluate(cond):
         if time.time() > deadline:
             raise SystemExit(f"{url}: the page did not finish loading in 120 s")
@@ -109,7 +111,7 @@ def main():
         page.on("pageerror", lambda e: errors.append(str(e)))
 
         sources = [(os.path.basename(GBTF), GBTF), ("raw dataset", DATASET)]
-        sources += [(os.path.basename(f), f) for f in MORE if f.endswith(".gbtf")]
+        sources += [(os.path.basename(f), f) for f in MORE if f.endswith(".gbtf") or f.endswith(".btf")]
         for label, path in sources:
             srv = Server(path)
             try:
@@ -117,6 +119,8 @@ def main():
                 errs = open_page(page, srv.url + "&" + STATES[0][1] + "&size=" + SIZE, errors)
                 check(not errs, f"{label}: relight page loads without console error {errs}")
                 check(page.evaluate("window.gonio.errors.length") == 0, f"{label}: no page error")
+                gpu = page.evaluate("document.getElementById('fallback').hidden && window.gonio.gpu")
+                check(bool(gpu), f"{label}: decoded on the GPU ({gpu}), not the server's picture")
                 pics = {}
                 for name, q in STATES:
                     errs = open_page(page, srv.base + "/?" + q + "&size=" + SIZE, errors)
@@ -152,19 +156,66 @@ def main():
             finally:
                 srv.close()
 
-        # A method without a GPU decoder (DFMF .btf): the page shows the server's CPU render.
-        if BTF:
-            srv = Server(BTF)
-            try:
-                q = "light=40,60&view=20,200&shape=sphere"
-                errs = open_page(page, srv.url + "&" + q + "&size=" + SIZE, errors)
-                check(not errs, f"DFMF .btf: relight page (server-rendered) loads without console error {errs}")
-                shown = page.evaluate("!document.getElementById('fallback').hidden")
-                check(shown, "DFMF .btf: the page shows the server's reference picture")
-                errs = open_page(page, srv.base + "/inspect", errors)
-                check(not errs, f"DFMF .btf: /inspect loads without console error {errs}")
-            finally:
-                srv.close()
+        # Streaming a raw dataset through a GPU pool smaller than the dataset (pool=12 of
+        # 144 images): the images of the current picture come first and evict others, so
+        # each state's picture is still exactly the reference's.
+        srv = Server(DATASET)
+        try:
+            for name, q in [("plane", "light=30,20&view=0,0&shape=plane"), ("light moved", "light=60,200&view=0,0&shape=plane"),
+                            ("oblique", "light=45,100&view=30,250&shape=plane")]:
+                errs = open_page(page, srv.url + "&" + q + "&size=" + SIZE + "&pool=12", errors)
+                got, want = canvas(page), reference(DATASET, q)
+                d = np.abs(got - want)
+                st = page.evaluate("window.gonio.streaming")
+                print(f"    pool of {st['slots']}: {name}: {st['needed']} images needed, {st['loaded']} on the GPU; "
+                      f"{(d <= 2).mean() * 100:.2f} % within 2/255, max {int(d.max())}")
+                check(not errs and st["slots"] == 12 and st["loaded"] <= 12 and (d <= 2).mean() >= 0.99 and d.mean() <= 0.5,
+                      f"raw streaming through 12 GPU slots: {name} matches gonio render")
+            # In place: move the light on the open page; the needed images replace others.
+            page.evaluate("window.gonio.setState({light: [75, 10]})")
+            deadline = time.time() + 60
+            while time.time() < deadline and not page.evaluate("window.gonio.idle === true && window.gonio.complete === true"):
+                time.sleep(0.1)
+            time.sleep(0.3)
+            page.evaluate("window.gonio.setState({})")
+            got = canvas(page)
+            want = reference(DATASET, "light=75,10&view=30,250&shape=plane")
+            d = np.abs(got - want)
+            print(f"    pool of 12, light moved in place: {(d <= 2).mean() * 100:.2f} % within 2/255, max {int(d.max())}")
+            check((d <= 2).mean() >= 0.99 and d.mean() <= 0.5, "raw streaming: moving the light in place streams the new images")
+        finally:
+            srv.close()
+
+        # Inspect with --model: the dataset's measurement and truth next to a compressed
+        # file's reconstruction, with error maps and PSNR.
+        srv = Server(DATASET, ["--model", GBTF])
+        try:
+            errs = open_page(page, srv.url.replace("/?", "/inspect?"), errors)
+            check(not errs, f"inspect --model loads without console error {errs}")
+            deadline = time.time() + 30
+            js = ("Array.from(document.querySelectorAll('#pairs img')).map(i => [i.alt, i.complete && i.naturalWidth > 0])")
+            imgs = page.evaluate(js)
+            while time.time() < deadline and not all(ok for _, ok in imgs):
+                time.sleep(0.2)
+                imgs = page.evaluate(js)
+            names = [a for a, _ in imgs]
+            print(f"    inspect --model shows: {names}")
+            want = ["measured", "model", "truth", "|measured − truth|", "|model − truth|", "|model − measured|"]
+            check(names == want and all(ok for _, ok in imgs), "inspect --model: measured, model and truth side by side with three heat maps")
+            text = page.evaluate("document.getElementById('errors').textContent")
+            print("    " + text.replace("\n", "\n    "))
+            import re
+            psnr = {m[0]: float(m[1]) for m in re.findall(r"(\w+ vs \w+): PSNR ([0-9.]+) dB", text)}
+            check(set(psnr) == {"measured vs truth", "model vs truth", "model vs measured"}
+                  and all(10 < v < 200 for v in psnr.values()), f"inspect --model: three finite PSNRs {psnr}")
+        finally:
+            srv.close()
+        for bad_model, why in [m.split("=", 1) for m in os.environ.get("GONIO_MISMATCHED_MODELS", "").split(",") if m]:
+            r = subprocess.run([GONIO, "view", DATASET, "--port", "0", "--model", bad_model], capture_output=True,
+                               text=True, timeout=60)
+            print(f"    --model {os.path.basename(bad_model)}: exit {r.returncode}: {r.stderr.strip().splitlines()[-1:]}")
+            check(r.returncode != 0 and why in r.stderr and not r.stdout.startswith("http"),
+                  f"a --model whose {why} differ is refused, naming it")
 
         # Monitor on a dataset being written.
         live = os.path.join(SCRATCH, "live")

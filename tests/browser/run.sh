@@ -25,6 +25,20 @@ trap 'rm -rf "$scratch"' EXIT
 "$gonio" -q compress "$scratch/ds" --method dfmf -c 8 --format btf --out "$scratch/dfmf.btf" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method local-pca --clusters 4 -c 4 --out "$scratch/lpca.gbtf" >/dev/null
 "$gonio" -q compress "$scratch/ds" --method pca -c 8 --out "$scratch/pca.gbtf" >/dev/null
+# The GPU decoders of src/view/gpu.rs: DFMF (log-YUV .btf above, f16 as Bonn stores it; RGB
+# .btf in f32; CIELab .gbtf), median cut and homomorphic (with half-vector bins).
+"$gonio" -q compress "$scratch/ds" --method dfmf -c 6 --color-model rgb --precision f32 --format btf --out "$scratch/dfmf-rgb.btf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method dfmf -c 8 --chroma-components 3 --color-model lab --out "$scratch/dfmf-lab.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method median-cut --boxes 16 --out "$scratch/mcut.gbtf" >/dev/null
+"$gonio" -q compress "$scratch/ds" --method homomorphic --half-bins 4 --out "$scratch/homo.gbtf" >/dev/null
+# Models that do not fit the dataset (`gonio view DS --model F` must refuse them): another
+# texture size, other directions.
+"$gonio" -q sim btf --size 16 --sweep fibonacci:12 --out "$scratch/small" >/dev/null
+"$gonio" -q compress "$scratch/small" --method pca -c 2 --out "$scratch/small.gbtf" >/dev/null
+"$gonio" -q sim btf --size 32 --sweep fibonacci:10 --out "$scratch/other" >/dev/null
+"$gonio" -q compress "$scratch/other" --method pca -c 2 --out "$scratch/other.gbtf" >/dev/null
+export GONIO_MISMATCHED_MODELS="$scratch/small.gbtf=texels,$scratch/other.gbtf=light directions"
 # Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/viewer.md shows them).
 "$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img \
-  "$scratch/dfmf.btf" "$scratch/lpca.gbtf" "$scratch/pca.gbtf"
+  "$scratch/dfmf.btf" "$scratch/lpca.gbtf" "$scratch/pca.gbtf" "$scratch/dfmf-rgb.btf" \
+  "$scratch/dfmf-lab.gbtf" "$scratch/mcut.gbtf" "$scratch/homo.gbtf"

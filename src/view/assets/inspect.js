@@ -50,7 +50,8 @@ async function showAbrdf(x, y) {
 
 async function main() {
   info = await api("/api/info", "json");
-  $("what").textContent = info.kind + " · " + info.method + " · " + info.width + "×" + info.height;
+  $("what").textContent = info.kind + " · " + info.method + " · " + info.width + "×" + info.height +
+    (info.model ? " · model: " + info.model + " (--model)" : "");
   const fill = (sel, dirs) => dirs.forEach((d, i) => {
     const o = document.createElement("option"); o.value = String(i); o.textContent = i + ": " + fmt(d); sel.appendChild(o);
   });

@@ -1,5 +1,6 @@
 // The relight page: the same scene as `gonio render` (src/view/render.rs), drawn by a
-// WebGL2 fragment shader that decodes the BTF from its factors (PVMF, PCA, local PCA) or from the
+// WebGL2 fragment shader that decodes the BTF from its factors (PVMF, PCA, local PCA, DFMF,
+// median cut, homomorphic; src/view/gpu.rs describes the last three) or from the
 // raw images of a dataset, interpolating light and view exactly as `gonio reconstruct`
 // does (src/compress/interp.rs: barycentric weights in the gnomonic projection of the 8
 // nearest measured directions).
@@ -16,8 +17,10 @@ precision highp float; precision highp int;
 precision highp sampler2D; precision highp sampler2DArray;
 uniform vec2 uSize; uniform vec3 uLight; uniform vec3 uView; uniform int uShape;
 uniform float uExposure; uniform ivec2 uTex; uniform int uKind; uniform int uC4;
-uniform int uNL; uniform int uNV; uniform int uTilesX; uniform int uClusterCol;
+uniform int uNL; uniform int uNV; uniform int uTilesX; uniform int uTilesY; uniform int uClusterCol;
 uniform sampler2D uDirs; uniform sampler2DArray uBasis; uniform sampler2D uRows;
+uniform sampler2D uAux; uniform ivec3 uC4s; uniform ivec3 uOff; uniform int uC4S; uniform int uColor;
+uniform vec3 uWhite; uniform vec3 uX0; uniform vec3 uX1; uniform vec3 uX2; uniform int uNH;
 out vec4 outColor;
 const float COS_MAX_GAP = 0.8660254037844387; // cos 30°: MAX_GAP_DEG
 const float SAME_CHORD = 1.7453292e-4;        // chord of 0.01°: SAME_DEG
@@ -87,10 +90,50 @@ bool dirWeights(int row, int n, vec3 q) {
   return true;
 }
 
+// dfmf.rs decode_color: the colour model's inverse with its clamping.
+float labFinv(float t) { const float D = 6.0 / 29.0; return t > D ? t * t * t : 3.0 * D * D * (t - 4.0 / 29.0); }
+vec3 decodeColor(vec3 c) {
+  if (uColor == 1) { // log-YUV (UBO2014 colour model 11)
+    float y = exp(c.x) - 1e-5;
+    vec3 yuv = vec3(y, c.y * y + 1e-5, c.z * y + 1e-5);
+    return clamp(vec3(yuv.x + 1.13983 * yuv.z, yuv.x - 0.39465 * yuv.y - 0.5806 * yuv.z, yuv.x + 2.03211 * yuv.y),
+                 0.0, 1.0);
+  }
+  if (uColor == 2) { // CIELab
+    float fy = (c.x + 16.0) / 116.0;
+    vec3 xyz = uWhite * vec3(labFinv(fy + c.y / 500.0), labFinv(fy), labFinv(fy - c.z / 200.0));
+    return max(vec3(dot(uX0, xyz), dot(uX1, xyz), dot(uX2, xyz)), 0.0);
+  }
+  return c;
+}
+
+// DFMF (dfmf.rs Dfmf::reconstruct of one grid pair): per channel Σ_k U[v·L + l, k] · SxV[t, k].
+float dfmfChannel(int ch, int c4, int l, int v, ivec2 t) {
+  float s = 0.0;
+  for (int k = 0; k < c4; k++)
+    s += dot(texelFetch(uBasis, ivec3(t.x * c4 + k, t.y, ch), 0), texelFetch(uRows, ivec2(v * uC4S + uOff[ch] + k, l), 0));
+  return s;
+}
+
 vec3 texelValue(int l, int v, ivec2 t) {
-  if (uKind == 2) {
-    ivec2 tile = ivec2(l % uTilesX, l / uTilesX);
-    return texelFetch(uBasis, ivec3(tile.x * uTex.x + t.x, tile.y * uTex.y + t.y, v), 0).rgb;
+  if (uKind == 4) { // median cut: the centroid of the texel's box
+    int box = int(texelFetch(uAux, t, 0).r + 0.5);
+    return texelFetch(uBasis, ivec3(l, box, v), 0).rgb;
+  }
+  if (uKind == 5) { // homomorphic: A · (exp(P + Q + R) − ε), 0 where A ≤ 0
+    vec3 a = texelFetch(uBasis, ivec3(t, 0), 0).rgb;
+    vec3 s = texelFetch(uBasis, ivec3(t, 1 + l), 0).rgb + texelFetch(uBasis, ivec3(t, 1 + uNL + v), 0).rgb;
+    if (uNH > 0) s += texelFetch(uBasis, ivec3(t, 1 + uNL + uNV + int(texelFetch(uAux, ivec2(l, v), 0).r + 0.5)), 0).rgb;
+    vec3 x = max(a * (exp(s) - 1e-5), 0.0);
+    return mix(vec3(0), x, greaterThan(a, vec3(0)));
+  }
+  if (uKind == 6)
+    return decodeColor(vec3(dfmfChannel(0, uC4s.x, l, v, t), dfmfChannel(1, uC4s.y, l, v, t), dfmfChannel(2, uC4s.z, l, v, t)));
+  if (uKind == 2) { // raw: the pair's slot in the streamed pool (uTilesX × uTilesY tiles per layer)
+    int s = int(texelFetch(uAux, ivec2(l, v), 0).r);
+    int per = uTilesX * uTilesY, k = s % per;
+    ivec2 tile = ivec2(k % uTilesX, k / uTilesX);
+    return texelFetch(uBasis, ivec3(tile.x * uTex.x + t.x, tile.y * uTex.y + t.y, s / per), 0).rgb;
   }
   int layer = uKind == 0 ? v : 0;
   int y = l * 3;
@@ -160,8 +203,13 @@ void main() {
   for (int k = 0; k < 3; k++) { li[k] = wi[k]; lw[k] = ww[k]; }
   if (!dirWeights(1, uNV, normalize(vl))) return;
   vec3 val = vec3(0);
-  for (int a = 0; a < wn; a++) for (int b = 0; b < ln; b++)
+  float have = 0.0; bool missing = false;
+  for (int a = 0; a < wn; a++) for (int b = 0; b < ln; b++) {
+    if (uKind == 2 && texelFetch(uAux, ivec2(li[b], wi[a]), 0).r < 0.0) { missing = true; continue; }
     val += (ww[a] * lw[b]) * texelValue(li[b], wi[a], t);
+    have += ww[a] * lw[b];
+  }
+  if (missing) { if (have <= 0.0) return; val /= have; } // a raw pair still streaming
   vec3 x = clamp(uExposure * val, 0.0, 1.0);
   vec3 s = mix(12.92 * x, 1.055 * pow(x, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), x));
   outColor = vec4(s, 1.0);
@@ -195,7 +243,8 @@ function compile() {
   if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error("link: " + gl.getProgramInfoLog(prog));
   gl.useProgram(prog);
   for (const n of ["uSize", "uLight", "uView", "uShape", "uExposure", "uTex", "uKind", "uC4", "uNL", "uNV",
-    "uTilesX", "uClusterCol", "uDirs", "uBasis", "uRows"]) U[n] = gl.getUniformLocation(prog, n);
+    "uTilesX", "uTilesY", "uClusterCol", "uDirs", "uBasis", "uRows",
+    "uAux", "uC4s", "uOff", "uC4S", "uColor", "uWhite", "uX0", "uX1", "uX2", "uNH"]) U[n] = gl.getUniformLocation(prog, n);
 }
 
 function tex(unit, target) {
@@ -257,28 +306,207 @@ async function loadFactors() {
   return c4;
 }
 
+// Raw datasets are streamed: the images go into a fixed pool of GPU slots (tiles of
+// RGB16F array layers, at most RAW_GPU_BYTES), a nl × nv table (texture unit 3) maps each
+// grid pair to its slot or −1. For every state the server lists the pairs its picture uses
+// (/api/needed, most used first); those are fetched first, then the rest of the dataset,
+// nearest light and view first, while free slots remain. When the pool is full, slots of
+// pairs the current picture does not use are reused (least recently needed first). A
+// picture is complete when every pair it uses is loaded; until then missing pairs are left
+// out and the weights of the others renormalized (the status line says so).
+const RAW_GPU_BYTES = 512 * 1048576;
+const RAW_BATCH = 8; // pairs per request (the server allows 16)
+const raw = { slots: 0, table: null, slotOf: null, pairOf: [], stamp: null, clock: 0, needed: [], neededKey: "",
+  inflight: new Set(), noSlot: new Set(), queued: false, free: [], loaded: 0, complete: false, asking: false, askedKey: "" };
+
+function rawKey() { return [fmt(state.light), fmt(state.view), state.shape, state.size.join("x")].join("|"); }
+
 async function loadRaw() {
   const W = info.width, H = info.height, nl = info.lights_deg.length, nv = info.views_deg.length;
-  const tx = Math.ceil(Math.sqrt(nl)), ty = Math.ceil(nl / tx);
-  const max = gl.getParameter(gl.MAX_TEXTURE_SIZE);
-  if (tx * W > max || ty * H > max || nv > gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS))
-    throw new Error("dataset too large to upload as raw images; compress it (gonio compress) and view the .gbtf");
-  if (tx * W * ty * H * nv * 8 > 1 << 30)
-    throw new Error("raw upload would exceed 1 GiB; compress it (gonio compress) and view the .gbtf");
+  const max = gl.getParameter(gl.MAX_TEXTURE_SIZE), maxLayers = gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS);
+  if (W > max || H > max) throw new Error("images larger than this GPU's textures; compress the dataset (gonio compress)");
+  // `pool=N` in the URL caps the slots (tests use it to exercise reuse on a small dataset).
+  const pool = Number(new URLSearchParams(location.search).get("pool")) || Infinity;
+  const cap = Math.max(1, Math.min(nl * nv, pool, Math.floor(RAW_GPU_BYTES / (W * H * 6))));
+  const mx = Math.floor(max / W), my = Math.floor(max / H);
+  const layers = Math.min(maxLayers, Math.ceil(cap / (mx * my))), per = Math.ceil(cap / layers);
+  const tx = Math.max(1, Math.min(mx, Math.ceil(Math.sqrt(per)))), ty = Math.max(1, Math.min(my, Math.ceil(per / tx)));
+  raw.slots = Math.min(cap, layers * tx * ty);
+  raw.tx = tx; raw.ty = ty;
   tex(1, gl.TEXTURE_2D_ARRAY);
-  gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA16F, tx * W, ty * H, nv);
+  gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGB16F, tx * W, ty * H, layers);
   tex(2, gl.TEXTURE_2D);
   gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
-  let done = 0;
-  await pool(nv, 4, async (v) => {
-    const a = new Uint16Array(await api("/api/raw?view=" + v));
-    gl.activeTexture(gl.TEXTURE1);
-    for (let l = 0; l < nl; l++)
-      gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, (l % tx) * W, Math.floor(l / tx) * H, v, W, H, 1,
-        gl.RGBA, gl.HALF_FLOAT, a, l * W * H * 4);
-    setStatus("views " + ++done + " / " + nv);
-  });
+  raw.table = new Float32Array(nl * nv).fill(-1);
+  raw.slotOf = new Int32Array(nl * nv).fill(-1);
+  raw.stamp = new Float64Array(nl * nv);
+  raw.pairOf = new Int32Array(raw.slots).fill(-1);
+  for (let i = raw.slots - 1; i >= 0; i--) raw.free.push(i);
+  tex(3, gl.TEXTURE_2D);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, nl, nv, 0, gl.RED, gl.FLOAT, raw.table);
+  G.streaming = { slots: raw.slots, pairs: nl * nv, loaded: 0, neededLoaded: 0, needed: 0 };
+  await askNeeded();
   return { tilesX: tx };
+}
+
+// The pairs the current state's picture uses, from the server (one question at a time).
+async function askNeeded() {
+  const key = rawKey();
+  if (raw.asking || key === raw.neededKey) return;
+  raw.asking = true;
+  try {
+    const q = new URLSearchParams({ light: fmt(state.light), view: fmt(state.view), shape: state.shape,
+      size: state.size[0] + "x" + state.size[1] });
+    const r = await api("/api/needed?" + q.toString(), "json");
+    const nl = info.lights_deg.length;
+    raw.needed = r.pairs.map((p) => p[1] * nl + p[0]);
+    raw.neededKey = key;
+    raw.noSlot = new Set();
+    raw.clock++;
+    for (const p of raw.needed) raw.stamp[p] = raw.clock;
+  } finally { raw.asking = false; }
+  if (rawKey() !== raw.neededKey) return askNeeded();
+  pump();
+}
+
+// The next pairs to fetch: needed ones first, then the nearest of the rest while slots are free.
+function nextBatch() {
+  const out = [];
+  let missing = false;
+  for (const p of raw.needed) {
+    if (raw.slotOf[p] >= 0 || raw.noSlot.has(p)) continue;
+    missing = true;
+    if (out.length < RAW_BATCH && !raw.inflight.has(p)) out.push(p);
+  }
+  // Nothing else while the current picture still misses images: they come first.
+  if (out.length || missing || raw.free.length <= raw.inflight.size) return out;
+  if (!raw.order || raw.orderKey !== raw.neededKey) {
+    const nl = info.lights_deg.length, nv = info.views_deg.length;
+    const L = unitDeg(state.light), V = unitDeg(state.view);
+    const cl = info.lights_deg.map((d) => { const u = unitDeg(d); return u[0] * L[0] + u[1] * L[1] + u[2] * L[2]; });
+    const cv = info.views_deg.map((d) => { const u = unitDeg(d); return u[0] * V[0] + u[1] * V[1] + u[2] * V[2]; });
+    raw.order = Array.from({ length: nl * nv }, (_, i) => i)
+      .sort((a, b) => (cl[b % nl] + cv[Math.floor(b / nl)]) - (cl[a % nl] + cv[Math.floor(a / nl)]) || a - b);
+    raw.orderKey = raw.neededKey; raw.orderPos = 0;
+  }
+  while (raw.orderPos < raw.order.length && out.length < RAW_BATCH && out.length + raw.inflight.size < raw.free.length) {
+    const p = raw.order[raw.orderPos++];
+    if (raw.slotOf[p] < 0 && !raw.inflight.has(p)) out.push(p);
+  }
+  return out;
+}
+
+function takeSlot() {
+  if (raw.free.length) return raw.free.pop();
+  // Reuse the least recently needed slot whose pair the current picture does not use.
+  let best = -1, bs = Infinity;
+  for (let s = 0; s < raw.slots; s++) {
+    const p = raw.pairOf[s];
+    if (p >= 0 && raw.stamp[p] < raw.clock && raw.stamp[p] < bs) { bs = raw.stamp[p]; best = s; }
+  }
+  if (best < 0) return -1;
+  const p = raw.pairOf[best];
+  raw.slotOf[p] = -1; raw.table[p] = -1; raw.pairOf[best] = -1; raw.loaded--;
+  return best;
+}
+
+let pumps = 0;
+function pump() {
+  while (pumps < 4) {
+    const batch = nextBatch();
+    if (!batch.length) break;
+    pumps++;
+    batch.forEach((p) => raw.inflight.add(p));
+    fetchBatch(batch).catch((e) => showError(e.message || e)).finally(() => {
+      pumps--; batch.forEach((p) => raw.inflight.delete(p)); pump(); draw();
+    });
+  }
+  draw();
+}
+
+async function fetchBatch(batch) {
+  const nl = info.lights_deg.length, W = info.width, H = info.height;
+  const buf = await api("/api/raw_pairs?pairs=" + batch.map((p) => (p % nl) + "." + Math.floor(p / nl)).join(","));
+  const a = new Uint16Array(buf);
+  gl.activeTexture(gl.TEXTURE1);
+  batch.forEach((p, k) => {
+    if (raw.slotOf[p] >= 0) return;
+    const s = takeSlot();
+    if (s < 0) { raw.noSlot.add(p); return; } // every slot holds a pair the current picture uses
+    const per = raw.tx * raw.ty, t = s % per;
+    gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, (t % raw.tx) * W, Math.floor(t / raw.tx) * H, Math.floor(s / per), W, H, 1,
+      gl.RGB, gl.HALF_FLOAT, a, k * W * H * 3);
+    raw.slotOf[p] = s; raw.pairOf[s] = p; raw.table[p] = s; raw.loaded++;
+  });
+  gl.activeTexture(gl.TEXTURE3);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, nl, info.views_deg.length, gl.RED, gl.FLOAT, raw.table);
+}
+
+// The decoders of src/view/gpu.rs (DFMF, median cut, homomorphic): blocks as the server
+// describes them in /api/info.
+async function loadGpuBlocks() {
+  const W = info.width, H = info.height, nl = info.lights_deg.length, nv = info.views_deg.length;
+  const max = gl.getParameter(gl.MAX_TEXTURE_SIZE), maxLayers = gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS);
+  const half = info.texel_format === "f16";
+  const ifmt = half ? gl.RGBA16F : gl.RGBA32F, type = half ? gl.HALF_FLOAT : gl.FLOAT;
+  const texel = (buf) => (half ? new Uint16Array(buf) : new Float32Array(buf));
+  const tooLarge = (what) => {
+    const e = new Error(what + " too large for this GPU's textures: showing the server's picture");
+    e.fallback = true;
+    throw e;
+  };
+  let layerW, layerH, layers;
+  if (info.gpu === "dfmf") {
+    const c4 = info.channel_components.map((c) => Math.ceil(c / 4));
+    const c4s = c4[0] + c4[1] + c4[2];
+    if (W * Math.max(...c4) > max || nv * c4s > max || nl > max) tooLarge("DFMF factors");
+    [layerW, layerH, layers] = [W * Math.max(...c4), H, 3];
+    tex(2, gl.TEXTURE_2D);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, nv * c4s, nl);
+    gl.uniform3i(U.uC4s, c4[0], c4[1], c4[2]);
+    gl.uniform3i(U.uOff, 0, c4[0], c4[0] + c4[1]);
+    gl.uniform1i(U.uC4S, c4s);
+    gl.uniform1i(U.uColor, info.color_model);
+    gl.uniform3fv(U.uWhite, info.lab_white);
+    const m = info.lab_xyz_to_rgb;
+    gl.uniform3fv(U.uX0, m[0]); gl.uniform3fv(U.uX1, m[1]); gl.uniform3fv(U.uX2, m[2]);
+  } else if (info.gpu === "median-cut") {
+    if (nl > max || info.boxes > max || nv > maxLayers || W > max || H > max) tooLarge("median-cut blocks");
+    [layerW, layerH, layers] = [nl, info.boxes, nv];
+  } else {
+    layers = 1 + nl + nv + info.half_bins;
+    if (W > max || H > max || layers > maxLayers) tooLarge("homomorphic tables");
+    [layerW, layerH] = [W, H];
+    gl.uniform1i(U.uNH, info.half_bins);
+  }
+  tex(1, gl.TEXTURE_2D_ARRAY);
+  gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, ifmt, layerW, layerH, layers);
+  if (info.gpu !== "dfmf") { tex(2, gl.TEXTURE_2D); gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4)); }
+  tex(3, gl.TEXTURE_2D);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, 1, 1, 0, gl.RED, gl.FLOAT, new Float32Array(1));
+  let done = 0;
+  await pool(info.gpu_blocks, 4, async (i) => {
+    const buf = await api("/api/factors?block=" + i);
+    if (info.gpu === "dfmf") {
+      if (i < 3) {
+        const c4 = Math.ceil(info.channel_components[i] / 4);
+        gl.activeTexture(gl.TEXTURE1);
+        gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, i, W * c4, H, 1, gl.RGBA, type, texel(buf));
+      } else {
+        gl.activeTexture(gl.TEXTURE2);
+        const c4s = info.channel_components.reduce((a, c) => a + Math.ceil(c / 4), 0);
+        gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, nv * c4s, nl, gl.RGBA, gl.FLOAT, new Float32Array(buf));
+      }
+    } else if (i === 0) { // median cut: index image; homomorphic: bin of every pair
+      gl.activeTexture(gl.TEXTURE3);
+      const [w, h] = info.gpu === "median-cut" ? [W, H] : [nl, nv];
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, w, h, 0, gl.RED, gl.FLOAT, new Float32Array(buf));
+    } else {
+      gl.activeTexture(gl.TEXTURE1);
+      gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, i - 1, layerW, layerH, 1, gl.RGBA, type, texel(buf));
+    }
+    setStatus("factors " + ++done + " / " + info.gpu_blocks);
+  });
 }
 
 let pending = false;
@@ -295,6 +523,20 @@ function drawNow() {
   document.getElementById("exposure-text").textContent = "× " + state.exposure.toPrecision(3);
   if (!info) return;
   if (!info.gpu) return drawServer();
+  if (!G.setup) return;
+  let complete = true;
+  if (info.gpu === "raw") {
+    if (rawKey() !== raw.neededKey) askNeeded().catch((e) => showError(e.message || e));
+    const have = raw.needed.filter((p) => raw.slotOf[p] >= 0).length;
+    complete = rawKey() === raw.neededKey && have === raw.needed.length;
+    Object.assign(G.streaming, { loaded: raw.loaded, needed: raw.needed.length, neededLoaded: have });
+    G.complete = complete;
+    G.idle = complete && pumps === 0;
+    setStatus("streaming: " + raw.loaded + " of " + info.lights_deg.length * info.views_deg.length + " images on the GPU (" +
+      raw.slots + " slots); this picture " + (complete ? "complete" : "uses " + have + " of " + raw.needed.length + " images (missing ones left out)") +
+      "; " + (G.bytes / 1048576).toFixed(1) + " MiB transferred");
+    if (complete && !G.ready) { G.ready = true; G.firstCompleteBytes = G.bytes; }
+  }
   const [W, H] = state.size;
   if (canvas.width !== W || canvas.height !== H) { canvas.width = W; canvas.height = H; }
   gl.viewport(0, 0, W, H);
@@ -307,7 +549,7 @@ function drawNow() {
   const px = new Uint8Array(4);
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px); // wait for the frame
   G.frames++;
-  if (G.firstPictureMs === undefined) G.firstPictureMs = performance.now();
+  if (G.firstPictureMs === undefined && complete) G.firstPictureMs = performance.now();
   document.body.dataset.frame = String(G.frames);
 }
 
@@ -340,30 +582,45 @@ async function main() {
   ex.value = String(Math.log2(state.exposure));
   ex.oninput = () => { state.exposure = Math.pow(2, Number(ex.value)); draw(); };
   info = await api("/api/info", "json");
+  G.gpu = info.gpu;
   lh.dirs = info.lights_deg; vh.dirs = info.views_deg;
   lh.set(state.light); vh.set(state.view);
   document.getElementById("what").textContent = info.kind + " · " + info.method + " · " + info.width + "×" +
     info.height + " · " + info.lights_deg.length + " lights × " + info.views_deg.length + " views" +
     (info.gpu ? " · decoded on the GPU" : " · rendered by the server (no GPU decoder for " + info.method + ")");
   if (info.gpu) {
+    try { await setupGpu(); } catch (e) {
+      if (!e.fallback) throw e;
+      setStatus(e.message); // beyond this GPU's limits: the server's picture
+      info.gpu = null; G.gpu = null;
+    }
+  }
+  G.setup = true;
+  if (info.gpu !== "raw") G.ready = true;
+  drawNow();
+}
+
+async function setupGpu() {
+  {
     gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true, premultipliedAlpha: false });
     if (!gl) throw new Error("this browser has no WebGL2");
     compile();
     uploadDirs();
+    tex(3, gl.TEXTURE_2D); // unit 3 (uAux) holds a texture for every decoder
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.R32F, 1, 1, 0, gl.RED, gl.FLOAT, new Float32Array(1));
     let c4 = 0, tilesX = 1;
-    if (info.gpu === "raw") tilesX = (await loadRaw()).tilesX;
+    if (info.gpu === "raw") tilesX = (await loadRaw()).tilesX, gl.uniform1i(U.uTilesY, raw.ty);
+    else if (["dfmf", "median-cut", "homomorphic"].includes(info.gpu)) await loadGpuBlocks();
     else c4 = await loadFactors();
-    gl.uniform1i(U.uDirs, 0); gl.uniform1i(U.uBasis, 1); gl.uniform1i(U.uRows, 2);
+    gl.uniform1i(U.uDirs, 0); gl.uniform1i(U.uBasis, 1); gl.uniform1i(U.uRows, 2); gl.uniform1i(U.uAux, 3);
     gl.uniform2i(U.uTex, info.width, info.height);
-    gl.uniform1i(U.uKind, { pvmf: 0, pca: 1, raw: 2, "local-pca": 3 }[info.gpu]);
+    gl.uniform1i(U.uKind, { pvmf: 0, pca: 1, raw: 2, "local-pca": 3, "median-cut": 4, homomorphic: 5, dfmf: 6 }[info.gpu]);
     gl.uniform1i(U.uClusterCol, info.gpu_cols - 1);
     gl.uniform1i(U.uC4, c4); gl.uniform1i(U.uTilesX, tilesX);
     gl.uniform1i(U.uNL, info.lights_deg.length); gl.uniform1i(U.uNV, info.views_deg.length);
     const err = gl.getError();
     if (err) throw new Error("WebGL error " + err);
-    setStatus("ready: " + (G.bytes / 1048576).toFixed(2) + " MiB transferred");
+    if (info.gpu !== "raw") setStatus("ready: " + (G.bytes / 1048576).toFixed(2) + " MiB transferred");
   }
-  G.ready = true;
-  drawNow();
 }
 main().catch((e) => showError(e.message || e));
