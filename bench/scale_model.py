@@ -70,10 +70,16 @@ UV, UL, UT = 151, 151, 400 * 400
 scale = (UL * UT) / (L * T)  # per-view cost ratio
 k = 18  # PCA c = 8 + 10 oversampling: sketch columns
 sum_part_bytes = UT * k * 32  # an exact-sum part
-# The merge of a sum pass reads N parts and adds them: its measured cost per byte here.
-mp = [(r["shards"], r["seconds"]) for r in runs if r["task"] == "merge_pass" and r["pass"] == 0]
+# The merge of a sum pass reads N parts and adds them: t = a + b · (N · part bytes),
+# fitted on the 1-, 2- and 4-part merges of the sum passes.
 part_bytes_here = bytes_row.get("pca_sum_part", T * k * 32)
-merge_s_per_byte = max(s / (n * part_bytes_here) for n, s in mp) if mp else 0.0
+mp = [(r["shards"] * part_bytes_here, r["seconds"]) for r in runs
+      if r["task"] == "merge_pass" and r["pass"] < max(r2["pass"] for r2 in runs if r2["task"] == "merge_pass")]
+mx = sum(x for x, _ in mp) / len(mp)
+my = sum(y for _, y in mp) / len(mp)
+merge_s_per_byte = sum((x - mx) * (y - my) for x, y in mp) / max(sum((x - mx) ** 2 for x, _ in mp), 1e-30)
+merge_start_s = my - merge_s_per_byte * mx
+report["merge_pass_model"] = {"startup_s": round(merge_start_s, 4), "MB_per_s": round(1e-6 / merge_s_per_byte, 1) if merge_s_per_byte > 0 else None}
 
 
 def per_view(name):
@@ -86,11 +92,18 @@ a_pca = sum(models[f"pca_pass{p}"][0] for p in passes)
 pred = {"per_view_render_s": round(render_view, 2), "per_view_pca_all_passes_s": round(pca_view, 2)}
 for nodes in (1, 8, 64):
     views_per_node = -(-UV // nodes)
-    pca_wall = a_pca + views_per_node * pca_view + len(passes) * nodes * sum_part_bytes * merge_s_per_byte
+    # Every pass: the slowest node's views, then the merge of the nodes' parts (the sum
+    # passes: N exact-sum parts; the projection's parts are small).
+    pca_wall = a_pca + views_per_node * pca_view + (len(passes) - 1) * (
+        merge_start_s + nodes * sum_part_bytes * max(merge_s_per_byte, 0.0))
     pred[f"global_pca_{nodes}_nodes_h"] = round(pca_wall / 3600, 3)
     gen = 1000 * (models["sim_btf"][0] + UV * render_view) / nodes
     pred[f"generate_1000_materials_{nodes}_nodes_h"] = round(gen / 3600, 1)
 pred["sum_part_MiB"] = round(sum_part_bytes / 2**20, 1)
+if bytes_row.get("dataset"):
+    per_texel_image = bytes_row["dataset"] / (V * L * T)
+    pred["dataset_GB_per_material"] = round(per_texel_image * UV * UL * UT / 1e9, 1)
+    pred["dataset_bytes_per_texel_image"] = round(per_texel_image, 2)
 pred["note"] = ("per node as this machine (2 cores); Slurm's own start latency per dependent job and the "
                 "shared filesystem's bandwidth (22 GB read per PCA pass, split over the nodes) come on top")
 report["ubo2014_prediction"] = pred
