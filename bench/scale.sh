@@ -37,9 +37,10 @@ PVMF=(--method pvmf -c 8 --no-eval --json)
 PCA=(--method pca -c 8 --no-eval --json)
 PASSES=4 # 2 + the default 2 power iterations
 
-timed sim_btf 1 1 0 "$G" "${BTF[@]}" --out "$W/full"
-timed pvmf 1 1 0 "$G" compress "$W/full" "${PVMF[@]}" --out "$W/full.gbtf"
-timed pca 1 1 0 "$G" compress "$W/full" "${PCA[@]}" --out "$W/pca.gbtf"
+# One process without --shard ("shards": 0): the single-process references.
+timed sim_btf 0 1 0 "$G" "${BTF[@]}" --out "$W/full"
+timed pvmf 0 1 0 "$G" compress "$W/full" "${PVMF[@]}" --out "$W/full.gbtf"
+timed pca 0 1 0 "$G" compress "$W/full" "${PCA[@]}" --out "$W/pca.gbtf"
 for n in 1 2 4; do
   parts=() gparts=()
   for i in $(seq 1 "$n"); do
