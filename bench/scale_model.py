@@ -11,12 +11,17 @@ compared with the measurement. Per-view costs scale with lights × texels (every
 renders, reads or multiplies lights images of texels pixels), which is how the model is
 carried to a UBO2014-size job (151 × 151 directions, 400² texels).
 
-Usage: bench/scale_model.py SCALE.jsonl   (prints a JSON report)
+With a second output at another texel count (bench/scale.sh V SIZE2), the per-image cost
+of every task is fitted as c0 + c1 · texels across the two sizes (rendering and storing an
+image has a part that does not grow with its texels), the UBO2014 figures use that fit,
+and the first size's proportional model is checked against the second size.
+
+Usage: bench/scale_model.py SCALE.jsonl [SCALE2.jsonl]   (prints a JSON report)
 """
 import json
 import sys
 
-rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+rows = [json.loads(l) for l in open(sys.argv[-1]) if l.strip()]
 runs = [r for r in rows if "task" in r]
 V = runs[0]["views"]
 L = runs[0]["lights"]
@@ -86,6 +91,45 @@ report["merge_pass_model"] = {"startup_s": round(merge_start_s, 4), "MB_per_s": 
 
 def per_view(name):
     return models[name][1] * scale
+
+
+def fit_file(path):
+    """Per-task (start-up, per-view) of another bench/scale.sh output, and its shape."""
+    global runs, V, L, T
+    saved = (runs, V, L, T)
+    rs = [json.loads(l) for l in open(path) if l.strip()]
+    runs = [r for r in rs if "task" in r]
+    V, L, T = runs[0]["views"], runs[0]["lights"], runs[0]["texels"]
+    out = {"sim_btf": fit("sim_btf"), "pvmf": fit("pvmf")}
+    for p in passes:
+        out[f"pca_pass{p}"] = fit("pca_pass", p)
+    shape = (L, T)
+    runs, V, L, T = saved
+    return out, shape
+
+
+if len(sys.argv) > 2:
+    # Two sizes: per-image cost c0 + c1 · texels, from the small (argv[1]) and the large
+    # (argv[2], the main file) run.
+    small, (Ls, Ts) = fit_file(sys.argv[1])
+    check = {}
+    per_image = {}
+    for name in models:
+        ps, pl = small[name][1] / Ls, models[name][1] / L
+        c1 = (pl - ps) / (T - Ts)
+        c0 = ps - c1 * Ts
+        per_image[name] = (c0, c1)
+        # The small size's proportional model carried to the large size, against the fit there.
+        check[name] = round(small[name][1] * (L * T) / (Ls * Ts) / models[name][1], 3)
+    pca_small = sum(small[f"pca_pass{p}"][1] for p in passes) * (L * T) / (Ls * Ts)
+    check["pca_all_passes"] = round(pca_small / sum(models[f"pca_pass{p}"][1] for p in passes), 3)
+    report["size_check_proportional_over_fitted"] = check
+    report["per_image_ms_model"] = {k: {"c0_ms": round(1000 * c0, 3), "c1_ms_per_texel": c1 * 1000}
+                                    for k, (c0, c1) in per_image.items()}
+
+    def per_view(name):  # noqa: F811 (the two-size model replaces the proportional one)
+        c0, c1 = per_image[name]
+        return UL * max(c0 + c1 * UT, 0.0)
 
 
 pca_view = sum(per_view(f"pca_pass{p}") for p in passes)
