@@ -130,7 +130,8 @@ fn sha256_hex(bytes: &[u8]) -> String {
     Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
-fn write_file<H: Serialize>(path: &Path, header: &H, payload: &[u8]) -> Result<String, CompressError> {
+/// Write magic, header and payload atomically; returns the file's size in bytes.
+fn write_file<H: Serialize>(path: &Path, header: &H, payload: &[u8]) -> Result<u64, CompressError> {
     let h = serde_json::to_vec(header).map_err(|e| invalid(path, e))?;
     let mut bytes = Vec::with_capacity(16 + h.len() + payload.len());
     bytes.extend_from_slice(MAGIC);
@@ -138,7 +139,7 @@ fn write_file<H: Serialize>(path: &Path, header: &H, payload: &[u8]) -> Result<S
     bytes.extend_from_slice(&h);
     bytes.extend_from_slice(payload);
     crate::store::atomic::write_atomic(path, &bytes, None)?;
-    Ok(sha256_hex(&bytes))
+    Ok(bytes.len() as u64)
 }
 
 /// Header JSON and payload of a part or state file, and the file's SHA-256.
@@ -363,13 +364,13 @@ pub fn run_shard(
         blocks,
         payload_sha256: sha256_hex(&payload),
     };
-    write_file(out, &header, &payload)?;
+    let bytes = write_file(out, &header, &payload)?;
     Ok(PartReport {
         pass,
         passes,
         last_pass: pass + 1 == passes,
         shard: info,
-        bytes: (16 + payload.len()) as u64,
+        bytes,
         out: out.to_path_buf(),
     })
 }
@@ -460,12 +461,12 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
             blocks,
             payload_sha256: sha256_hex(&payload),
         };
-        write_file(out, &header, &payload)?;
+        let bytes = write_file(out, &header, &payload)?;
         return Ok(MergedPass {
             kind: "state",
             pass,
             passes,
-            bytes: (16 + payload.len()) as u64,
+            bytes,
         });
     }
     // The last pass: Q from the state, B from the parts in view order.
