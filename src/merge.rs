@@ -546,7 +546,7 @@ fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
         if p.is_dir() || !rsvd_shard::is_part_file(p) {
             return Err(not_a_part(
                 p,
-                "the first part is a .gpart of `gonio compress --shard` (pca/dfmf), this is not",
+                "the first part is a .gpart of `gonio compress --shard` (pca/dfmf/local-pca), this is not",
             ));
         }
         let (h, payload) = rsvd_shard::read_part(p)?;

@@ -23,8 +23,8 @@ pub enum ShardedKind {
     Acquire,
     /// `gonio compress … --method pvmf`: parts are `.gbtf` files.
     CompressPvmf,
-    /// `gonio compress … --method pca|dfmf`: a chain of `passes` rounds (one per pass of
-    /// the randomized SVD), each an array of `.gpart` parts and a merge into the state
+    /// `gonio compress … --method pca|dfmf|local-pca`: a chain of `passes` rounds (one
+    /// per pass over the views), each an array of `.gpart` parts and a merge into the state
     /// the next round starts from (`--state`); the last merge writes the file.
     CompressRsvd { passes: usize },
     /// `gonio dataset generate SPEC …`: every shard writes its own members into the one
@@ -54,6 +54,13 @@ impl ShardedKind {
                 };
                 if method("pvmf") {
                     ShardedKind::CompressPvmf
+                } else if method("local-pca") {
+                    if args.iter().any(|a| a.split('=').next() == Some("--state")) {
+                        return Err("`--state` is set by the batch for every round after the first".into());
+                    }
+                    ShardedKind::CompressRsvd {
+                        passes: crate::compress::local_pca::passes::PASSES,
+                    }
                 } else if method("pca") || method("dfmf") {
                     // 2 + power iterations passes (the default is compress's own, 2).
                     let value = args
@@ -73,14 +80,14 @@ impl ShardedKind {
                     ShardedKind::CompressRsvd { passes: iters + 2 }
                 } else {
                     return Err(
-                        "`compress` is sharded for --method pvmf (by views), pca and dfmf (by passes of the                          randomized SVD)"
+                        "`compress` is sharded for --method pvmf (by views), pca, dfmf and local-pca (by passes over the views)"
                             .into(),
                     );
                 }
             }
             _ => {
                 return Err(format!(
-                    "`{}` cannot be sharded; give `sim btf …`, `acquire …`, `compress DATASET --method pvmf|pca|dfmf …` or `dataset generate SPEC` after --",
+                    "`{}` cannot be sharded; give `sim btf …`, `acquire …`, `compress DATASET --method pvmf|pca|dfmf|local-pca …` or `dataset generate SPEC` after --",
                     args.join(" ")
                 ))
             }

@@ -55,7 +55,7 @@ pub struct SlurmArgs {
 #[derive(Serialize)]
 struct Report {
     shards: usize,
-    /// The last round's scripts (the only round, except for pca/dfmf).
+    /// The last round's scripts (the only round, except for pca/dfmf/local-pca).
     array_script: PathBuf,
     merge_script: PathBuf,
     /// The last round's parts.
@@ -66,7 +66,7 @@ struct Report {
     /// Slurm job ids (with --submit) of the last round: its merge writes `out`.
     array_job: Option<String>,
     merge_job: Option<String>,
-    /// Every round (pca/dfmf: one per pass of the randomized SVD, each array depending on
+    /// Every round (pca/dfmf/local-pca: one per pass over the views, each array depending on
     /// the previous merge with afterok).
     rounds: Vec<Round>,
 }

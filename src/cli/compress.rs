@@ -155,11 +155,12 @@ pub struct CompressArgs {
     /// part to --out; `gonio merge` joins the parts into the file one process would have
     /// written, byte for byte. PVMF: one round (a `.gbtf` part). PCA and DFMF: one pass
     /// of the randomized SVD per round (a `.gpart`; `2 + --power-iters` rounds, each
-    /// merged into the `--state` of the next; docs/scale.md). A part is not evaluated
-    /// (evaluate the merged file).
+    /// merged into the `--state` of the next; docs/scale.md). Local PCA (with
+    /// `--subspace d > 0`): 8 rounds the same way. A part is not evaluated (evaluate
+    /// the merged file).
     #[arg(long)]
     pub shard: Option<crate::shard::Shard>,
-    /// PCA/DFMF with --shard: the merged state of the previous pass (`gonio merge` of
+    /// PCA/DFMF/local PCA with --shard: the merged state of the previous pass (`gonio merge` of
     /// its `.gpart` parts); without it the shard runs the first pass.
     #[arg(long, requires = "shard", value_name = "STATE.gstate")]
     pub state: Option<PathBuf>,
@@ -258,7 +259,7 @@ pub(crate) struct TruthReport {
 }
 
 pub fn run(args: CompressArgs) -> Result<ExitCode> {
-    if let (Some(shard), Some(MethodArg::Pca | MethodArg::Dfmf)) = (args.shard, args.method) {
+    if let (Some(shard), Some(MethodArg::Pca | MethodArg::Dfmf | MethodArg::LocalPca)) = (args.shard, args.method) {
         return shard_pass(&args, shard);
     }
     let r = compress_report(&args)?;
@@ -270,7 +271,7 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// One shard's pass of a sharded PCA or DFMF (`--shard I/N [--state S]`): writes a
+/// One shard's pass of a sharded PCA, DFMF or local PCA (`--shard I/N [--state S]`): writes a
 /// `.gpart` and says what to run next.
 fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCode> {
     use compress::rsvd_shard::{run_shard, Output};
@@ -280,7 +281,9 @@ fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCod
         );
     }
     let ds = DatasetViews::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
-    let c = args.components.context("--method pca|dfmf needs -c (components)")?;
+    let c = args
+        .components
+        .context("--method pca|dfmf|local-pca needs -c (components)")?;
     let method = args.method.context("--method is required with --shard")?;
     // The same default format as one process (compress_report).
     let format = args.format.unwrap_or(match (method, args.color_model) {
@@ -300,6 +303,11 @@ fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCod
             params: Params {
                 method: match m {
                     MethodArg::Pca => Method::Pca,
+                    MethodArg::LocalPca => Method::LocalPca {
+                        clusters: args.clusters,
+                        iters: args.iters,
+                        subspace: args.subspace,
+                    },
                     _ => Method::Dfmf {
                         color_model: color_model(args.color_model),
                         chroma_components: args.chroma_components.unwrap_or(c),
@@ -372,7 +380,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
         && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some() || args.target_ratio.is_some())
     {
         anyhow::bail!(
-            "--shard splits --method pvmf by views, and pca and dfmf by passes of the randomized SVD; \
+            "--shard splits --method pvmf by views, and pca, dfmf and local-pca by passes over the views; \
              other methods are compressed in one process (leave out --shard)"
         );
     }

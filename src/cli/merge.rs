@@ -9,7 +9,7 @@ use std::time::Instant;
 pub struct MergeArgs {
     /// The parts: dataset directories of `gonio sim btf --shard`, `.gbtf` files of
     /// `gonio compress --method pvmf --shard`, or the `.gpart` files of one pass of
-    /// `gonio compress --method pca|dfmf --shard`; every shard 1..=N exactly once, any order.
+    /// `gonio compress --method pca|dfmf|local-pca --shard`; every shard 1..=N exactly once, any order.
     #[arg(required = true)]
     pub parts: Vec<PathBuf>,
     /// The merged dataset directory or `.gbtf` file; for `.gpart` parts the pass's state

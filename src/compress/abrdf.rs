@@ -63,17 +63,25 @@ impl Abrdfs {
     /// Read the dataset once, view by view. f32 when `texels · dims · 4 ≤ budget`, else
     /// 8-bit sRGB codes with a per-column scale (see the module docs).
     pub fn load(ds: &DatasetViews, budget: usize) -> Result<Self, CompressError> {
-        let (t, lc, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
-        let dims = lc * nv;
-        let exact = t.saturating_mul(dims).saturating_mul(4) <= budget;
+        Self::load_views(ds, 0..ds.n_views(), keeps_f32(ds, budget))
+    }
+
+    /// The ABRDFs' columns of `views` only (column `(v − views.start) · lights · 3 + …`),
+    /// kept as f32 if `exact`, else as 8-bit codes. A shard of a sharded local PCA holds
+    /// its views this way; `exact` comes from [`keeps_f32`] of the whole dataset, and a
+    /// column's 8-bit scale depends on that column alone, so every shard holds its columns
+    /// as the single process holds them.
+    pub fn load_views(ds: &DatasetViews, views: std::ops::Range<usize>, exact: bool) -> Result<Self, CompressError> {
+        let (t, lc) = (ds.texels(), ds.n_lights() * 3);
+        let dims = lc * views.len();
         let mut filled = Vec::new();
         let mut f32s = if exact { vec![0f32; t * dims] } else { Vec::new() };
         let mut codes = if exact { Vec::new() } else { vec![0u8; t * dims] };
         let mut scale = if exact { Vec::new() } else { vec![0f32; dims] };
-        for v in 0..nv {
+        for (i, v) in views.clone().enumerate() {
             let vm = ds.view_matrix(v)?;
             filled.extend(vm.filled.iter().map(|&(l, _)| [l, v]));
-            let off = v * lc;
+            let off = i * lc;
             if exact {
                 f32s.par_chunks_mut(dims)
                     .zip(vm.data.par_chunks(lc))
@@ -103,7 +111,7 @@ impl Abrdfs {
             }
             Store::Srgb8 { codes, scale, lut }
         };
-        tracing::info!(texels = t, dims, exact, "ABRDF matrix loaded");
+        tracing::info!(texels = t, dims, exact, views = ?views, "ABRDF matrix loaded");
         Ok(Abrdfs {
             texels: t,
             dims,
@@ -186,6 +194,29 @@ impl Abrdfs {
             });
     }
 
+    /// Decode columns `cols` of `rows` (all rows if `None`) into the row-major `out`
+    /// (resized to `rows × cols.len()`).
+    pub fn decode_cols(&self, rows: Option<&[u32]>, cols: std::ops::Range<usize>, out: &mut Vec<f32>) {
+        let (d, w) = (self.dims, cols.len());
+        let n = rows.map_or(self.texels, |r| r.len());
+        out.resize(n * w, 0.0);
+        out.par_chunks_mut(w.max(1)).enumerate().for_each(|(i, o)| {
+            let t = rows.map_or(i, |r| r[i] as usize);
+            match &self.store {
+                Store::F32(v) => o.copy_from_slice(&v[t * d + cols.start..t * d + cols.end]),
+                Store::Srgb8 { codes, scale, lut } => {
+                    for ((o, &c), &s) in o
+                        .iter_mut()
+                        .zip(&codes[t * d + cols.start..t * d + cols.end])
+                        .zip(&scale[cols.clone()])
+                    {
+                        *o = lut[c as usize] * s;
+                    }
+                }
+            }
+        });
+    }
+
     /// Call `f(offset, block)` for consecutive blocks of `rows` (decoded, `mean`
     /// subtracted); `offset` is the position of the block's first row in `rows`.
     pub fn for_blocks(
@@ -219,6 +250,13 @@ impl Abrdfs {
     }
 }
 
+/// Whether the ABRDF matrix of `ds` is kept as f32 under `budget` bytes (else as 8-bit
+/// codes): decided on the whole matrix, whichever views a process holds.
+pub fn keeps_f32(ds: &DatasetViews, budget: usize) -> bool {
+    let dims = ds.n_lights() * 3 * ds.n_views();
+    ds.texels().saturating_mul(dims).saturating_mul(4) <= budget
+}
+
 /// Check that every texel's index block entry is an integer in `0..n`.
 pub fn check_indices(idx: &[f32], n: usize, what: &str) -> Result<(), CompressError> {
     if let Some((t, v)) = idx
@@ -243,23 +281,38 @@ pub fn encode_gbtf(
     blocks: Vec<(BlockInfo, Vec<f32>)>,
     extra: &[(&str, serde_json::Value)],
 ) -> (Gbtf, EncodeInfo) {
-    let (infos, blocks): (Vec<BlockInfo>, Vec<Vec<f32>>) = blocks.into_iter().unzip();
-    let mut header = header_for(ds, params, a.filled.clone(), infos);
-    if let Some(o) = header.params.as_object_mut() {
-        for (k, v) in extra {
-            o.insert((*k).into(), v.clone());
-        }
-        o.insert(
-            "abrdf_storage".into(),
-            if a.is_exact() { "f32" } else { "srgb8" }.into(),
-        );
-    }
+    let header = header_for(ds, params, Vec::new(), Vec::new());
+    let g = abrdf_gbtf(header, a.filled.clone(), blocks, extra, a.is_exact());
     let info = EncodeInfo {
         filled: a.filled.len(),
         passes: 1,
         ..Default::default()
     };
-    (Gbtf { header, blocks }, info)
+    (g, info)
+}
+
+/// The `.gbtf` of an ABRDF method from the common header: its filled pairs and blocks,
+/// the method's `extra` parameters, then `abrdf_storage` (`f32` if `exact`, else
+/// `srgb8`). The merge of a sharded local PCA builds its file here too, so both files
+/// have the same bytes.
+pub fn abrdf_gbtf(
+    mut header: super::container::GbtfHeader,
+    filled: Vec<[usize; 2]>,
+    blocks: Vec<(BlockInfo, Vec<f32>)>,
+    extra: &[(&str, serde_json::Value)],
+    exact: bool,
+) -> Gbtf {
+    let (infos, blocks): (Vec<BlockInfo>, Vec<Vec<f32>>) = blocks.into_iter().unzip();
+    header.filled = filled;
+    header.blocks = infos;
+    if let Some(o) = header.params.as_object_mut() {
+        o.shift_remove("abrdf_storage");
+        for (k, v) in extra {
+            o.insert((*k).into(), v.clone());
+        }
+        o.insert("abrdf_storage".into(), if exact { "f32" } else { "srgb8" }.into());
+    }
+    Gbtf { header, blocks }
 }
 
 /// One colour channel of an ABRDF row (column `(view · nl + light) · 3 + ch`) as the

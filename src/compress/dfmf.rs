@@ -467,11 +467,11 @@ pub(crate) fn problem(ds: &DatasetViews, params: &DfmfParams) -> Result<Rsvd, Co
     Ok(Rsvd {
         channels: (0..3)
             .map(|ch| Channel {
+                rows: t,
                 k: (params.components[ch] + params.oversample).min(t).min(n),
                 sketch: GaussianSketch::new(params.seed.wrapping_add(ch as u64), SketchKeying::Hashed),
             })
             .collect(),
-        rows: t,
         width: nl,
         views: nv,
         power_iters: params.power_iters,

@@ -43,11 +43,13 @@ use super::params::{EncodeInfo, Method, Params};
 use faer::Mat;
 use rayon::prelude::*;
 
+pub mod passes;
+
 /// Candidates for k-means++ seeding: at most this many rows (evenly strided), so seeding
 /// costs `k · 4096 · dims` however large the image.
 const SEED_CANDIDATES: usize = 4096;
 /// Extra sketch columns of the per-cluster randomized SVD.
-const OVERSAMPLE: usize = 10;
+pub(crate) const OVERSAMPLE: usize = 10;
 /// Power iterations of the per-cluster randomized SVD.
 const POWER_ITERS: usize = 2;
 
@@ -170,7 +172,15 @@ fn cluster_basis(
     }
     let q = y.qr().compute_thin_Q();
     let bt = xt_q(&q)?; // (Qᵀ X)ᵀ: dims × kp
-    let (us, _) = truncated_svd(bt.as_ref(), c)?;
+    basis_from_bt(bt.as_ref(), c)
+}
+
+/// The orthonormal basis (dims × c) of the top `c` left singular vectors of `bt = (Qᵀ X)ᵀ`,
+/// with zero columns where the rank is below `c` (singular values below 10⁻⁹ of the
+/// largest).
+pub(crate) fn basis_from_bt(bt: faer::MatRef<'_, f64>, c: usize) -> Result<Mat<f64>, CompressError> {
+    let dims = bt.nrows();
+    let (us, _) = truncated_svd(bt, c)?;
     let norms: Vec<f64> = (0..c).map(|j| us.col(j).norm_l2()).collect();
     let top = norms.iter().cloned().fold(0.0, f64::max);
     Ok(Mat::from_fn(dims, c, |i, j| {
@@ -323,13 +333,13 @@ pub fn fit(a: &Abrdfs, k: usize, c: usize, iters: usize, seed: u64) -> Result<Lo
 }
 
 /// Seed of cluster `j`'s randomized SVD.
-fn cluster_seed(seed: u64, j: usize) -> u64 {
+pub(crate) fn cluster_seed(seed: u64, j: usize) -> u64 {
     seed ^ (j as u64 + 1).wrapping_mul(0x9e37)
 }
 
 /// Pack means and bases into a [`LocalPca`].
 #[allow(clippy::too_many_arguments)]
-fn model(
+pub(crate) fn model(
     dims: usize,
     c: usize,
     assign: Vec<u32>,
@@ -363,77 +373,55 @@ fn model(
 
 /// Default dimension of the global subspace the clustering runs in (`--subspace`).
 pub const DEFAULT_SUBSPACE: usize = 64;
-/// Power iterations of the global subspace's randomized SVD.
-const SUBSPACE_POWER_ITERS: usize = 1;
 
 /// Local PCA with the alternation run in a `d`-dimensional global subspace (see the
-/// module docs, "Clustering in a subspace"); `d = 0` (or `d ≥ dims`) runs [`fit`] in the
-/// full space.
+/// module docs, "Clustering in a subspace") of ABRDFs made of `views` equal blocks of
+/// columns; `d = 0` (or `d ≥ dims`, `d ≥ texels`) runs [`fit`] in the full space.
 ///
 /// 1. A randomized SVD of all mean-centred ABRDFs gives an orthonormal basis `G`
-///    (dims × d) and every ABRDF's coordinates `z = Gᵀ(x − μ)`: one sketch pass, two per
-///    power iteration and one projection pass over the data.
+///    (dims × d) and every ABRDF's coordinates `z ≈ Gᵀ(x − μ)` (`Q B G`): one sketch
+///    pass, one power iteration and one projection pass over the data.
 /// 2. [`fit`] on the `texels × d` coordinates: seeding, assignment and per-cluster PCA
 ///    there cost `d / dims` of the full-space rounds (64 / 19683 at 81 × 81).
-/// 3. In the full space, once: each cluster's mean and eigen-ABRDFs from its members, then
-///    one assignment pass (the final coefficients, and every texel moved to the cluster
-///    whose full-space model reconstructs it best).
+/// 3. In the full space, once: each cluster's mean and eigen-ABRDFs from its members
+///    (a randomized SVD of four passes), then one assignment pass (the final
+///    coefficients, and every texel moved to the cluster whose full-space model
+///    reconstructs it best).
+///
+/// The steps are written as passes over ranges of views ([`passes`]),
+/// which is what lets `--shard I/N` split them; one process runs the same passes.
 pub fn fit_in_subspace(
     a: &Abrdfs,
+    views: usize,
     k: usize,
     c: usize,
     iters: usize,
     seed: u64,
     d: usize,
 ) -> Result<LocalPca, CompressError> {
-    if d == 0 || d >= a.dims || d >= a.texels {
+    if !passes::Plan::applies(d, a.dims, a.texels) {
         return fit(a, k, c, iters, seed);
     }
     if k == 0 {
         return Err(CompressError::Invalid("local PCA needs at least 1 cluster".into()));
     }
-    let all: Vec<u32> = (0..a.texels as u32).collect();
-    let mu = a.mean_of(&all);
-    let g = cluster_basis(a, &all, &mu, d, seed ^ 0x6c6f_6361_6c70_6361, SUBSPACE_POWER_ITERS)?;
-    let gf = Mat::<f32>::from_fn(a.dims, d, |i, j| g[(i, j)] as f32);
-    let mut z = vec![0f32; a.texels * d];
-    a.for_blocks(&all, Some(&mu), |off, b| {
-        let zb = b * &gf;
-        for i in 0..zb.nrows() {
-            for j in 0..d {
-                z[(off + i) * d + j] = zb[(i, j)];
-            }
-        }
-        Ok(())
-    })?;
-    let coarse = fit(&Abrdfs::from_f32(a.texels, d, z)?, k, c, iters, seed)?;
-    let mut members: Vec<Vec<u32>> = vec![Vec::new(); coarse.k];
-    for (t, &j) in coarse.assign.iter().enumerate() {
-        members[j as usize].push(t as u32);
+    if views == 0 || !a.dims.is_multiple_of(views) {
+        return Err(CompressError::Invalid(format!(
+            "local PCA: {} ABRDF columns do not split into {views} views",
+            a.dims
+        )));
     }
-    let means: Vec<Vec<f32>> = members
-        .iter()
-        .map(|m| if m.is_empty() { vec![0f32; a.dims] } else { a.mean_of(m) })
-        .collect();
-    let bases: Vec<Mat<f64>> = members
-        .iter()
-        .zip(&means)
-        .enumerate()
-        .map(|(j, (m, mu))| cluster_basis(a, m, mu, c, cluster_seed(seed, j), POWER_ITERS))
-        .collect::<Result<_, _>>()?;
-    let mut fin = assign(a, &means, &bases, c)?;
-    let coef = std::mem::take(&mut fin.coef);
-    tracing::debug!(rounds = coarse.rounds, d, sse = fin.sse, "local PCA in a subspace");
-    Ok(model(
-        a.dims,
+    let plan = passes::Plan {
+        k,
         c,
-        fin.assign,
-        coef,
-        &means,
-        &bases,
-        coarse.rounds,
-        fin.sse,
-    ))
+        iters,
+        seed,
+        d,
+        texels: a.texels,
+        width: a.dims / views,
+        views,
+    };
+    plan.fit(a)
 }
 
 /// `gonio compress --method local-pca`.
@@ -449,24 +437,38 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         ));
     };
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
-    let m = fit_in_subspace(&a, clusters, params.components, iters, params.seed, subspace)?;
-    let c = params.components;
+    let m = fit_in_subspace(
+        &a,
+        ds.n_views(),
+        clusters,
+        params.components,
+        iters,
+        params.seed,
+        subspace,
+    )?;
+    let (blocks, extra) = file_blocks(m, a.texels, a.dims, params.components, subspace);
+    Ok(encode_gbtf(ds, params, &a, blocks, &extra))
+}
+
+/// Blocks of a `.gbtf` and the method's extra parameters.
+pub(crate) type FileBlocks = (Vec<(BlockInfo, Vec<f32>)>, [(&'static str, serde_json::Value); 3]);
+
+/// The stored blocks and extra parameters of a fitted model: what one process and the
+/// merge of a sharded run both write.
+pub(crate) fn file_blocks(m: LocalPca, texels: usize, dims: usize, c: usize, subspace: usize) -> FileBlocks {
     let info = BlockInfo::new;
     let blocks = vec![
-        (
-            info("cluster", a.texels, 1),
-            m.assign.iter().map(|&j| j as f32).collect(),
-        ),
-        (info("coef", a.texels, c), m.coef),
-        (info("mean", m.k, a.dims), m.means),
-        (info("basis", m.k * c, a.dims), m.basis),
+        (info("cluster", texels, 1), m.assign.iter().map(|&j| j as f32).collect()),
+        (info("coef", texels, c), m.coef),
+        (info("mean", m.k, dims), m.means),
+        (info("basis", m.k * c, dims), m.basis),
     ];
     let extra = [
         ("clusters_used", m.k.into()),
         ("rounds", m.rounds.into()),
         ("subspace", subspace.into()),
     ];
-    Ok(encode_gbtf(ds, params, &a, blocks, &extra))
+    (blocks, extra)
 }
 
 /// Check the block shapes of a local-PCA file; returns (k, c).
@@ -562,7 +564,7 @@ mod tests {
         });
         let a = Abrdfs::load(&noisy, ABRDF_F32_BUDGET).unwrap();
         let full = fit(&a, 4, 2, 20, 3).unwrap();
-        let sub = fit_in_subspace(&a, 4, 2, 20, 3, 12).unwrap();
+        let sub = fit_in_subspace(&a, noisy.n_views(), 4, 2, 20, 3, 12).unwrap();
         println!(
             "noisy groups: full-space SSE {:.4e}, subspace 12 SSE {:.4e}",
             full.sse, sub.sse

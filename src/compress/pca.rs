@@ -80,10 +80,10 @@ pub(crate) fn problem(ds: &DatasetViews, params: &Params) -> Rsvd {
     let n = lc * ds.n_views();
     Rsvd {
         channels: vec![Channel {
+            rows: t,
             k: (c + params.oversample).min(t).min(n),
             sketch: GaussianSketch::new(params.seed, SketchKeying::Hashed),
         }],
-        rows: t,
         width: lc,
         views: ds.n_views(),
         power_iters: params.power_iters,

@@ -29,6 +29,9 @@ use std::ops::Range;
 /// One channel of the factorization.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Channel {
+    /// Rows of the channel's matrix (PCA, DFMF: the texels; local PCA's clusters: their
+    /// members).
+    pub rows: usize,
     /// Sketch width (components + oversampling, at most the matrix's smaller side).
     pub k: usize,
     /// Ω, row `v · width + j` for column `j` of view `v`.
@@ -39,8 +42,6 @@ pub struct Channel {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Rsvd {
     pub channels: Vec<Channel>,
-    /// Rows of every channel matrix (texels).
-    pub rows: usize,
     /// Columns per view of every channel matrix.
     pub width: usize,
     pub views: usize,
@@ -50,7 +51,7 @@ pub struct Rsvd {
 /// Where the views' channel matrices come from (a dataset, with or without a cache).
 pub trait ViewSource {
     /// Call `f` with the channel matrices of view `v` (one per [`Channel`], each
-    /// `rows × width`).
+    /// `channel.rows × width`).
     fn with_view(&mut self, v: usize, f: &mut dyn FnMut(&[MatRef<'_, f64>])) -> Result<(), CompressError>;
 }
 
@@ -118,7 +119,7 @@ impl Rsvd {
             }
             return Ok(PassOutput::Projection(b));
         }
-        let mut sums: Vec<ExactMat> = self.channels.iter().map(|c| ExactMat::zeros(self.rows, c.k)).collect();
+        let mut sums: Vec<ExactMat> = self.channels.iter().map(|c| ExactMat::zeros(c.rows, c.k)).collect();
         for v in views {
             let mut err = None;
             src.with_view(v, &mut |a| {

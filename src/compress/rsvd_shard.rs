@@ -30,12 +30,17 @@
 //! Missing, duplicate, overlapping parts, parts of another job, pass or state are refused
 //! by name (the checks of [`crate::shard`]).
 
+use super::abrdf::{abrdf_gbtf, keeps_f32, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::dfmf::{self, DfmfParams, Stream};
 use super::error::CompressError;
 use super::exact::ExactMat;
 use super::linalg::orthonormalize;
+use super::local_pca::{
+    self,
+    passes::{Finished as LocalFinished, Merged, Plan as LocalPlan, State as LocalState},
+};
 use super::params::{header_for, Method, Params};
 use super::pca::{self, ViewCache};
 use super::rsvd::{PassOutput, Rsvd, ViewSource};
@@ -217,12 +222,26 @@ impl Job {
     pub fn new(ds: &DatasetViews, output: Output) -> Result<Job, CompressError> {
         let params = match &output {
             Output::Gbtf { params, .. } => {
-                if !matches!(params.method, Method::Pca | Method::Dfmf { .. }) {
-                    return Err(CompressError::Invalid(format!(
-                        "method {} is not a randomized SVD; --shard with --state splits pca and dfmf (pvmf splits \
-                         without --state)",
-                        params.method.name()
-                    )));
+                match params.method {
+                    Method::Pca | Method::Dfmf { .. } => {}
+                    Method::LocalPca { subspace, .. } => {
+                        let dims = ds.n_lights() * 3 * ds.n_views();
+                        if !LocalPlan::applies(subspace, dims, ds.texels()) {
+                            return Err(CompressError::Invalid(format!(
+                                "local PCA with --subspace {subspace} clusters in the full space ({dims}-value ABRDFs, \
+                                 {} texels), which is not split into passes; give --subspace d with 0 < d < {}",
+                                ds.texels(),
+                                dims.min(ds.texels())
+                            )));
+                        }
+                    }
+                    _ => {
+                        return Err(CompressError::Invalid(format!(
+                            "method {} is not split into passes; --shard with --state splits pca, dfmf and local-pca \
+                             (pvmf splits without --state)",
+                            params.method.name()
+                        )))
+                    }
                 }
                 params.clone()
             }
@@ -234,7 +253,54 @@ impl Job {
             header.method = "dfmf".into();
             header.params = serde_json::Value::Null;
         }
+        if matches!(params.method, Method::LocalPca { .. }) {
+            // How the ABRDFs are held is decided on the whole dataset; every shard holds
+            // its columns that way (see `Abrdfs::load_views`).
+            if let Some(o) = header.params.as_object_mut() {
+                let exact = keeps_f32(ds, ABRDF_F32_BUDGET);
+                o.insert("abrdf_storage".into(), if exact { "f32" } else { "srgb8" }.into());
+            }
+        }
         Ok(Job { output, header })
+    }
+
+    /// The passes of a local PCA job (none for PCA and DFMF).
+    pub fn local_pca(&self) -> Option<LocalPlan> {
+        let Output::Gbtf { params, .. } = &self.output else {
+            return None;
+        };
+        let Method::LocalPca {
+            clusters,
+            iters,
+            subspace,
+        } = params.method
+        else {
+            return None;
+        };
+        let h = &self.header;
+        Some(LocalPlan {
+            k: clusters,
+            c: params.components,
+            iters,
+            seed: params.seed,
+            d: subspace,
+            texels: h.width * h.height,
+            width: h.lights_deg.len() * 3,
+            views: h.views_deg.len(),
+        })
+    }
+
+    /// Whether a local PCA job holds its ABRDFs as f32.
+    fn abrdf_exact(&self) -> bool {
+        self.header.params.get("abrdf_storage").and_then(|v| v.as_str()) == Some("f32")
+    }
+
+    /// Passes over the data.
+    pub fn passes(&self, ds: &DatasetViews) -> Result<usize, CompressError> {
+        match self.local_pca() {
+            Some(p) => Ok(p.passes()),
+            None => Ok(self.problem(ds)?.passes()),
+        }
     }
 
     fn dfmf_params(&self) -> Result<Option<DfmfParams>, CompressError> {
@@ -284,10 +350,10 @@ pub fn run_shard(
     out: &Path,
 ) -> Result<PartReport, CompressError> {
     let job = Job::new(ds, output)?;
-    let rsvd = job.problem(ds)?;
+    let passes = job.passes(ds)?;
     shard.check_views(ds.n_views()).map_err(CompressError::Invalid)?;
     let info = shard.info(ds.n_views());
-    let (pass, q, state_ref) = match state {
+    let (pass, before, state_ref) = match state {
         None => (0, None, None),
         Some(p) => {
             let (h, y, sha) = read_state(p)?;
@@ -307,23 +373,33 @@ pub fn run_shard(
                 path: p.to_path_buf(),
                 source,
             })?;
-            let q: Vec<Mat<f64>> = y.iter().map(orthonormalize).collect();
-            (h.pass + 1, Some(q), Some(StateRef { path: abs, sha256: sha }))
+            let named = LocalState {
+                blocks: h.blocks.iter().map(|b| b.name.clone()).zip(y).collect(),
+            };
+            (h.pass + 1, Some(named), Some(StateRef { path: abs, sha256: sha }))
         }
     };
-    let passes = rsvd.passes();
-    let (output, filled) = {
-        let views = info.first_view..info.end_view;
-        match job.dfmf_params()? {
-            None => {
-                let mut src = ViewCache::new(ds, 0);
-                let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
-                (o, src.filled)
-            }
-            Some(d) => {
-                let mut src = Stream::new(ds, d.color_model).without_cache();
-                let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
-                (o, src.filled)
+    let views = info.first_view..info.end_view;
+    let (output, filled) = match job.local_pca() {
+        Some(plan) => {
+            let a = Abrdfs::load_views(ds, views.clone(), job.abrdf_exact())?;
+            let o = plan.run_pass(pass, views, &a, before.as_ref())?;
+            (o, a.filled)
+        }
+        None => {
+            let rsvd = job.problem(ds)?;
+            let q: Option<Vec<Mat<f64>>> = before.map(|s| s.blocks.iter().map(|(_, y)| orthonormalize(y)).collect());
+            match job.dfmf_params()? {
+                None => {
+                    let mut src = ViewCache::new(ds, 0);
+                    let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
+                    (o, src.filled)
+                }
+                Some(d) => {
+                    let mut src = Stream::new(ds, d.color_model).without_cache();
+                    let o = rsvd.run_pass(pass, views, q.as_deref(), &mut src as &mut dyn ViewSource)?;
+                    (o, src.filled)
+                }
             }
         }
     };
@@ -428,6 +504,9 @@ pub struct MergedPass {
 pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Result<MergedPass, CompressError> {
     let (first_path, first, _) = &parts[0];
     let (pass, passes) = (first.pass, first.passes);
+    if let Some(plan) = first.job.local_pca() {
+        return merge_local_pca(&plan, parts, out);
+    }
     if pass + 1 < passes {
         // A sum pass: the exact sum of every part, rounded once.
         let mut sums: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
@@ -549,6 +628,155 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
         passes,
         bytes,
     })
+}
+
+/// The state `part` started from (its named blocks), read from where its pass ran and
+/// checked by hash, job and pass.
+fn state_of(part: &Path, h: &PartHeader) -> Result<Option<LocalState>, CompressError> {
+    let Some(sref) = h.state.as_ref() else {
+        return Ok(None);
+    };
+    let (sh, y, sha) = read_state(&sref.path).map_err(|e| {
+        CompressError::Invalid(format!(
+            "{}: reading the state it started from, {} ({e}); the state must stay where its pass was run",
+            part.display(),
+            sref.path.display()
+        ))
+    })?;
+    if sha != sref.sha256 || sh.job != h.job || sh.pass + 1 != h.pass {
+        return Err(invalid(
+            &sref.path,
+            format!("is not the state {} started from (its SHA-256 differs)", part.display()),
+        ));
+    }
+    Ok(Some(LocalState {
+        blocks: sh.blocks.iter().map(|b| b.name.clone()).zip(y).collect(),
+    }))
+}
+
+/// Merge one pass of a sharded local PCA: sum or join the parts' blocks, then the
+/// pass's own step ([`LocalPlan::finish_pass`]) gives the next state or the `.gbtf`.
+fn merge_local_pca(
+    plan: &LocalPlan,
+    parts: &[(PathBuf, PartHeader, Vec<u8>)],
+    out: &Path,
+) -> Result<MergedPass, CompressError> {
+    let (first_path, first, _) = &parts[0];
+    let (pass, passes) = (first.pass, first.passes);
+    let sums = first.blocks.iter().all(|b| b.dtype == "exact256");
+    let mut filled = Vec::new();
+    let merged = if sums {
+        let mut acc: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
+        for (p, h, payload) in parts {
+            let same = h.blocks.len() == acc.len()
+                && h.blocks
+                    .iter()
+                    .zip(&first.blocks)
+                    .all(|(a, b)| a.dtype == "exact256" && (a.rows, a.cols) == (b.rows, b.cols));
+            if !same {
+                return Err(invalid(
+                    p,
+                    "its blocks are not the sums of the pass its first part holds",
+                ));
+            }
+            for ((s, b), bytes) in acc.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
+                let m = ExactMat::from_bytes(b.rows, b.cols, bytes).map_err(|e| invalid(p, e))?;
+                s.add_exact(&m, &p.display().to_string())?;
+            }
+        }
+        Merged::Sums(acc.iter().map(ExactMat::to_mat).collect())
+    } else {
+        let total: usize = parts
+            .iter()
+            .map(|(_, h, _)| h.blocks.first().map_or(0, |b| b.cols))
+            .sum();
+        let mut cols: Vec<Mat<f64>> = first.blocks.iter().map(|b| Mat::zeros(b.rows, total)).collect();
+        let mut off = 0;
+        for (p, h, payload) in parts {
+            let w = h.blocks.first().map_or(0, |b| b.cols);
+            let same = h.blocks.len() == cols.len()
+                && h.blocks
+                    .iter()
+                    .zip(&first.blocks)
+                    .all(|(a, b)| a.dtype == "f64le" && a.rows == b.rows && a.cols == w);
+            if !same {
+                return Err(invalid(
+                    p,
+                    "its blocks are not the columns of the pass its first part holds",
+                ));
+            }
+            for ((m, b), bytes) in cols.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
+                m.as_mut()
+                    .subcols_mut(off, w)
+                    .copy_from(&f64s_from_bytes(b.rows, b.cols, bytes));
+            }
+            off += w;
+        }
+        Merged::Columns(cols)
+    };
+    for (_, h, _) in parts {
+        filled.extend_from_slice(&h.filled);
+    }
+    let before = state_of(first_path, first)?;
+    if pass > 0 && before.is_none() {
+        return Err(invalid(
+            first_path,
+            format!("a part of pass {pass} without the state it started from"),
+        ));
+    }
+    match plan.finish_pass(pass, before.as_ref(), merged)? {
+        LocalFinished::State(st) => {
+            let mut blocks = Vec::new();
+            let mut payload = Vec::new();
+            for (name, m) in &st.blocks {
+                blocks.push(BlockSpec {
+                    name: name.clone(),
+                    rows: m.nrows(),
+                    cols: m.ncols(),
+                    dtype: "f64le".into(),
+                });
+                f64s_to_bytes(m, &mut payload);
+            }
+            let header = StateHeader {
+                kind: STATE_KIND.into(),
+                job: first.job.clone(),
+                pass,
+                passes,
+                shards: first.shard.count,
+                blocks,
+                payload_sha256: sha256_hex(&payload),
+            };
+            let bytes = write_file(out, &header, &payload)?;
+            Ok(MergedPass {
+                kind: "state",
+                pass,
+                passes,
+                bytes,
+            })
+        }
+        LocalFinished::Model(m) => {
+            let Output::Gbtf { quantize, .. } = &first.job.output else {
+                unreachable!("local PCA writes a .gbtf")
+            };
+            let (blocks, extra) = local_pca::file_blocks(m, plan.texels, plan.dims(), plan.c, plan.d);
+            let mut g = abrdf_gbtf(
+                first.job.header.clone(),
+                filled,
+                blocks,
+                &extra,
+                first.job.abrdf_exact(),
+            );
+            if let Some(bits) = quantize {
+                g.quantize(*bits)?;
+            }
+            Ok(MergedPass {
+                kind: "gbtf",
+                pass,
+                passes,
+                bytes: g.write(out)?,
+            })
+        }
+    }
 }
 
 fn dfmf_of(job: &Job, d: &DfmfParams, q: &[Mat<f64>], b: &[Mat<f64>]) -> Result<dfmf::Dfmf, CompressError> {

@@ -642,6 +642,11 @@ fn method_files_import_only_the_ground_floor() {
         ("pca", include_str!("pca.rs"), GROUND),
         ("pvmf", include_str!("pvmf.rs"), GROUND),
         ("local_pca", include_str!("local_pca.rs"), GROUND),
+        (
+            "local_pca/passes",
+            include_str!("local_pca/passes.rs"),
+            &["abrdf", "error", "exact", "linalg", "rsvd", "local_pca"],
+        ),
         ("median_cut", include_str!("median_cut.rs"), GROUND),
         ("homomorphic", include_str!("homomorphic.rs"), GROUND),
         ("dfmf", include_str!("dfmf.rs"), GROUND),

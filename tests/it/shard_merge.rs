@@ -1,5 +1,6 @@
-//! Shards and merge through the gonio binary: `gonio sim btf --shard I/N` and
-//! `gonio compress --method pvmf --shard I/N` merged by `gonio merge` equal the
+//! Shards and merge through the gonio binary: `gonio sim btf --shard I/N`,
+//! `gonio acquire --shard I/N` and `gonio compress --method pvmf|pca|dfmf|local-pca
+//! --shard I/N` merged by `gonio merge` equal the
 //! single-process outputs byte for byte (a dataset's manifest: all but `created_unix`);
 //! bad shard specs and bad part sets are refused by name; `gonio batch slurm` writes its
 //! scripts without Slurm and, asked to submit without sbatch, says what to install.
@@ -205,8 +206,24 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
     let tmp = tempfile::tempdir().unwrap();
     let t = tmp.path();
     ok(t, &[&BTF[..], &["--out", "full"]].concat());
-    let cases: [(&str, &[&str]); 3] = [
+    let cases: [(&str, &[&str]); 4] = [
         ("pca", &["compress", "full", "--method", "pca", "-c", "4", "--no-eval"]),
+        (
+            "lpca",
+            &[
+                "compress",
+                "full",
+                "--method",
+                "local-pca",
+                "-c",
+                "2",
+                "--clusters",
+                "4",
+                "--subspace",
+                "12",
+                "--no-eval",
+            ],
+        ),
         (
             "lab",
             &[
@@ -250,7 +267,12 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
         for shards in [2, 3] {
             let merged = format!("{tag}-merged-{shards}");
             let passes = sharded_rsvd(t, args, &format!("{tag}{shards}"), shards, &merged);
-            assert_eq!(passes, if tag == "btf" { 3 } else { 4 }, "{tag}");
+            let want = match tag {
+                "btf" => 3,
+                "lpca" => 8,
+                _ => 4,
+            };
+            assert_eq!(passes, want, "{tag}");
             assert!(
                 std::fs::read(t.join(&single)).unwrap() == std::fs::read(t.join(&merged)).unwrap(),
                 "{tag}: {shards} merged shards differ from the single-process file"
@@ -433,9 +455,7 @@ fn bad_shard_specs_are_refused_with_the_valid_form() {
             "compress",
             ".",
             "--method",
-            "local-pca",
-            "-c",
-            "2",
+            "median-cut",
             "--shard",
             "1/2",
             "--out",
@@ -443,6 +463,26 @@ fn bad_shard_specs_are_refused_with_the_valid_form() {
         ],
     );
     assert!(e.contains("--shard splits --method pvmf"), "{e}");
+    // Local PCA is split into passes only when it clusters in a subspace.
+    ok(t, &[&BTF[..], &["--out", "ds"]].concat());
+    let e = fails(
+        t,
+        &[
+            "compress",
+            "ds",
+            "--method",
+            "local-pca",
+            "-c",
+            "2",
+            "--subspace",
+            "0",
+            "--shard",
+            "1/2",
+            "--out",
+            "x.gpart",
+        ],
+    );
+    assert!(e.contains("--subspace 0") && e.contains("0 < d < 75"), "{e}");
     // --state belongs to a sharded pass.
     let e = fails(
         t,

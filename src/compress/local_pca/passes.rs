@@ -1,0 +1,580 @@
+//! Local PCA in a subspace ([`super`], `--subspace d > 0`) written as
+//! **passes over a range of views**, so that one process runs them all in turn and N
+//! processes (`gonio compress --method local-pca --shard I/N`) can each run one pass over
+//! their own views, with a merge between passes ([`crate::compress::rsvd_shard`] carries
+//! the files).
+//!
+//! The ABRDF matrix `X` (texels × views · lights · 3) splits by views into column blocks
+//! `X_v`. Everything local PCA computes is either a sum over views of per-view products
+//! (summed exactly, [`crate::compress::exact`], so the grouping into shards does not show in the
+//! bits), columns that belong to one view, or a small global step the merge runs:
+//!
+//! | pass | a shard computes over its views | the merge after it |
+//! |---|---|---|
+//! | 0 | `Y = Σ_v X̃_v Ω_v` (X̃: the global column mean removed) | exact sum |
+//! | 1 | `Y = Σ_v X̃_v (X̃_vᵀ Q)`, `Q = orth(Y)` | exact sum |
+//! | 2 | its columns of `B = Qᵀ X̃` | `G` = the top `d` right singular vectors of B; coordinates `z = Q (B G)`; k-means++ seeding and the clustering rounds on `z` (texels × d, in the merge) |
+//! | 3 | per cluster `Y_j = Σ_v X̃_{j,v} Ω_{j,v}` (members, the cluster mean removed) | exact sums |
+//! | 4, 5 | per cluster `Y_j = Σ_v X̃_{j,v} (X̃_{j,v}ᵀ Q_j)` | exact sums |
+//! | 6 | its columns of `B_j = Q_jᵀ X̃_j` and of the cluster means | eigen-ABRDFs: the top `c` right singular vectors of each `B_j` |
+//! | 7 | per texel `Σ_v x_v · w_v` for every mean and eigen-ABRDF `w`, and `Σ_v ‖x_v‖²` | every texel to the cluster that reconstructs it best; coefficients; the `.gbtf` |
+//!
+//! A column mean and a cluster mean depend on their own column alone, so every shard
+//! computes its own. The single process runs exactly these passes (one "shard" of all
+//! views), so a merged sharded run gives its file byte for byte.
+//!
+//! **Cost of sharding.** Pass 7's part is `texels × (k (c + 1) + 1)` exact sums of 32
+//! bytes (606 MB at 256², k = 32, c = 8): every texel's error under every cluster is a
+//! sum over all views. The other parts are the `texels × (d + 10)` and `texels × (c + 10)`
+//! sketches and the `(d + 10)`- and `k (c + 10)`-row projections of the shard's columns.
+
+use crate::compress::abrdf::Abrdfs;
+use crate::compress::error::CompressError;
+use crate::compress::exact::ExactMat;
+use crate::compress::linalg::{orthonormalize, GaussianSketch, SketchKeying};
+use crate::compress::local_pca::{self, LocalPca};
+use crate::compress::rsvd::{Channel, PassOutput, Rsvd, ViewSource};
+use faer::{Mat, MatRef};
+use rayon::prelude::*;
+use std::ops::Range;
+
+/// Power iterations of the global subspace's randomized SVD.
+const SUBSPACE_POWER_ITERS: usize = 1;
+/// Power iterations of each cluster's randomized SVD.
+const CLUSTER_POWER_ITERS: usize = 2;
+/// Passes of the subspace's randomized SVD (sketch, power iterations, projection).
+const SUBSPACE_PASSES: usize = SUBSPACE_POWER_ITERS + 2;
+/// Passes of the clusters' randomized SVDs.
+const CLUSTER_PASSES: usize = CLUSTER_POWER_ITERS + 2;
+/// All passes: the subspace, the clusters, the final assignment.
+pub const PASSES: usize = SUBSPACE_PASSES + CLUSTER_PASSES + 1;
+
+/// What every pass and every shard must agree on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Plan {
+    /// Clusters asked for.
+    pub k: usize,
+    /// Eigen-ABRDFs per cluster.
+    pub c: usize,
+    /// Most clustering rounds (in the subspace).
+    pub iters: usize,
+    pub seed: u64,
+    /// Subspace dimension, `0 < d < min(dims, texels)`.
+    pub d: usize,
+    pub texels: usize,
+    /// Columns per view (lights · 3).
+    pub width: usize,
+    pub views: usize,
+}
+
+/// Which part of the algorithm a pass belongs to.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Stage {
+    /// Pass `i` of the subspace's randomized SVD.
+    Subspace(usize),
+    /// Pass `i` of the clusters' randomized SVDs.
+    Clusters(usize),
+    /// The final assignment sums.
+    Assign,
+}
+
+fn stage(pass: usize) -> Stage {
+    if pass < SUBSPACE_PASSES {
+        Stage::Subspace(pass)
+    } else if pass < SUBSPACE_PASSES + CLUSTER_PASSES {
+        Stage::Clusters(pass - SUBSPACE_PASSES)
+    } else {
+        Stage::Assign
+    }
+}
+
+/// Named f64 blocks: what one pass hands the next (`y0`…: rounded sums; `assign`: the
+/// cluster of every texel; `meta`: clusters used and rounds; `mean`, `basis`: the models).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct State {
+    pub blocks: Vec<(String, Mat<f64>)>,
+}
+
+impl State {
+    fn get(&self, name: &str) -> Result<&Mat<f64>, CompressError> {
+        self.blocks
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, m)| m)
+            .ok_or_else(|| CompressError::Invalid(format!("local PCA state without its `{name}` block")))
+    }
+
+    fn sums(&self) -> Vec<&Mat<f64>> {
+        self.blocks
+            .iter()
+            .filter(|(n, _)| n.starts_with('y'))
+            .map(|(_, m)| m)
+            .collect()
+    }
+
+    fn carried(&self) -> Vec<(String, Mat<f64>)> {
+        self.blocks
+            .iter()
+            .filter(|(n, _)| n == "assign" || n == "meta")
+            .cloned()
+            .collect()
+    }
+
+    /// The cluster of every texel and the clusters used.
+    fn assignment(&self, texels: usize) -> Result<(Vec<u32>, usize), CompressError> {
+        let a = self.get("assign")?;
+        let meta = self.get("meta")?;
+        let k = meta[(0, 0)] as usize;
+        if a.nrows() != texels || a.ncols() != 1 || k == 0 {
+            return Err(CompressError::Invalid(format!(
+                "local PCA state: assignment of {} texels and {k} clusters, {texels} texels expected",
+                a.nrows()
+            )));
+        }
+        let assign: Vec<u32> = (0..texels).map(|t| a[(t, 0)] as u32).collect();
+        if let Some(t) = (0..texels).find(|&t| a[(t, 0)] != assign[t] as f64 || assign[t] as usize >= k) {
+            return Err(CompressError::Invalid(format!(
+                "local PCA state: texel {t}'s cluster {} is not one of the {k} clusters",
+                a[(t, 0)]
+            )));
+        }
+        Ok((assign, k))
+    }
+}
+
+/// What merging a pass gives.
+pub enum Finished {
+    /// The input of the next pass.
+    State(State),
+    /// The last pass: the model.
+    Model(LocalPca),
+}
+
+impl Plan {
+    pub fn dims(&self) -> usize {
+        self.width * self.views
+    }
+
+    pub fn passes(&self) -> usize {
+        PASSES
+    }
+
+    /// Whether `d` makes a subspace fit (else local PCA runs in the full space, which is
+    /// not written as passes).
+    pub fn applies(d: usize, dims: usize, texels: usize) -> bool {
+        d > 0 && d < dims && d < texels
+    }
+
+    /// The global subspace's randomized SVD.
+    fn subspace(&self) -> Rsvd {
+        let kp = (self.d + local_pca::OVERSAMPLE).min(self.texels).min(self.dims());
+        Rsvd {
+            channels: vec![Channel {
+                rows: self.texels,
+                k: kp,
+                sketch: GaussianSketch::new(self.seed ^ 0x6c6f_6361_6c70_6361, SketchKeying::Stream),
+            }],
+            width: self.width,
+            views: self.views,
+            power_iters: SUBSPACE_POWER_ITERS,
+        }
+    }
+
+    /// The clusters' randomized SVDs: one channel per cluster with members (when c > 0).
+    fn clusters(&self, members: &[Vec<u32>]) -> (Rsvd, Vec<usize>) {
+        let active: Vec<usize> = (0..members.len())
+            .filter(|&j| !members[j].is_empty() && self.c > 0)
+            .collect();
+        let channels = active
+            .iter()
+            .map(|&j| Channel {
+                rows: members[j].len(),
+                k: (self.c + local_pca::OVERSAMPLE).min(members[j].len()).min(self.dims()),
+                sketch: GaussianSketch::new(local_pca::cluster_seed(self.seed, j), SketchKeying::Stream),
+            })
+            .collect();
+        (
+            Rsvd {
+                channels,
+                width: self.width,
+                views: self.views,
+                power_iters: CLUSTER_POWER_ITERS,
+            },
+            active,
+        )
+    }
+
+    /// Run `pass` over `views`; `a` holds the ABRDF columns of exactly those views, and
+    /// `state` is what the previous pass's merge gave (none for pass 0).
+    pub fn run_pass(
+        &self,
+        pass: usize,
+        views: Range<usize>,
+        a: &Abrdfs,
+        state: Option<&State>,
+    ) -> Result<PassOutput, CompressError> {
+        if a.dims != views.len() * self.width || a.texels != self.texels || views.end > self.views {
+            return Err(CompressError::Invalid(format!(
+                "local PCA pass {pass}: {} × {} ABRDF columns given for views {views:?} ({} texels, {} columns per view)",
+                a.texels, a.dims, self.texels, self.width
+            )));
+        }
+        fn need(s: Option<&State>, pass: usize) -> Result<&State, CompressError> {
+            s.ok_or_else(|| {
+                CompressError::Invalid(format!(
+                    "local PCA pass {pass} needs the state of pass {}",
+                    pass.max(1) - 1
+                ))
+            })
+        }
+        match stage(pass) {
+            Stage::Subspace(p) => {
+                let rsvd = self.subspace();
+                let q = match p {
+                    0 => None,
+                    _ => Some(bases_of(&need(state, pass)?.sums())),
+                };
+                let mut src = Centred {
+                    a,
+                    first: views.start,
+                    width: self.width,
+                    members: None,
+                };
+                rsvd.run_pass(p, views, q.as_deref(), &mut src)
+            }
+            Stage::Clusters(p) => {
+                let st = need(state, pass)?;
+                let (assign, k) = st.assignment(self.texels)?;
+                let members = members_of(&assign, k);
+                let (rsvd, active) = self.clusters(&members);
+                let q = match p {
+                    0 => None,
+                    _ => Some(bases_of(&st.sums())),
+                };
+                let active_members: Vec<Vec<u32>> = active.iter().map(|&j| members[j].clone()).collect();
+                let mut src = Centred {
+                    a,
+                    first: views.start,
+                    width: self.width,
+                    members: Some(&active_members),
+                };
+                let out = rsvd.run_pass(p, views.clone(), q.as_deref(), &mut src)?;
+                match out {
+                    PassOutput::Projection(mut b) if rsvd.is_projection(p) => {
+                        // The cluster means' columns travel with the projection.
+                        let mut means = Mat::<f64>::zeros(k, a.dims);
+                        for (j, m) in members.iter().enumerate() {
+                            if m.is_empty() {
+                                continue;
+                            }
+                            for i in 0..views.len() {
+                                let cols = i * self.width..(i + 1) * self.width;
+                                for (c, x) in column_means(a, Some(m), cols.clone()).into_iter().enumerate() {
+                                    means[(j, cols.start + c)] = x as f64;
+                                }
+                            }
+                        }
+                        b.push(means);
+                        Ok(PassOutput::Projection(b))
+                    }
+                    o => Ok(o),
+                }
+            }
+            Stage::Assign => {
+                let st = need(state, pass)?;
+                let (_, k) = st.assignment(self.texels)?;
+                let (mean, basis) = (st.get("mean")?, st.get("basis")?);
+                let c = self.c;
+                let ncol = k * (c + 1) + 1;
+                let mut sums = ExactMat::zeros(self.texels, ncol);
+                let mut buf = Vec::new();
+                for (i, v) in views.enumerate() {
+                    let col0 = v * self.width;
+                    let w = Mat::<f32>::from_fn(self.width, k * (c + 1), |r, col| {
+                        if col < k {
+                            mean[(col, col0 + r)] as f32
+                        } else {
+                            basis[(col - k, col0 + r)] as f32
+                        }
+                    });
+                    a.decode_cols(None, i * self.width..(i + 1) * self.width, &mut buf);
+                    let x = MatRef::from_row_major_slice(&buf[..], self.texels, self.width);
+                    let p = x * &w;
+                    let mut term = Mat::<f64>::zeros(self.texels, ncol);
+                    for r in 0..self.texels {
+                        for col in 0..ncol - 1 {
+                            term[(r, col)] = p[(r, col)] as f64;
+                        }
+                        term[(r, ncol - 1)] = x.row(r).iter().map(|&e| (e as f64) * (e as f64)).sum();
+                    }
+                    sums.add(term.as_ref(), &format!("view {v}, local PCA pass {pass}"))?;
+                }
+                Ok(PassOutput::Sums(vec![sums]))
+            }
+        }
+    }
+
+    /// The merge after `pass`: from the state the pass started from and the pass's whole
+    /// output (sums exactly summed and rounded, or every view's columns in view order).
+    pub fn finish_pass(&self, pass: usize, before: Option<&State>, merged: Merged) -> Result<Finished, CompressError> {
+        let need = || {
+            before.ok_or_else(|| {
+                CompressError::Invalid(format!("merging local PCA pass {pass} needs the state it started from"))
+            })
+        };
+        let sums_state = |carried: Vec<(String, Mat<f64>)>, s: Vec<Mat<f64>>| {
+            let mut blocks = carried;
+            blocks.extend(s.into_iter().enumerate().map(|(i, m)| (format!("y{i}"), m)));
+            Finished::State(State { blocks })
+        };
+        match (stage(pass), merged) {
+            (Stage::Subspace(p), Merged::Sums(s)) if p + 1 < SUBSPACE_PASSES => Ok(sums_state(Vec::new(), s)),
+            (Stage::Subspace(_), Merged::Columns(b)) => {
+                let q = bases_of(&need()?.sums());
+                let b = b
+                    .first()
+                    .ok_or_else(|| CompressError::Invalid("local PCA pass 2 without its projection".into()))?;
+                let g = local_pca::basis_from_bt(b.transpose(), self.d)?;
+                let z = &q[0] * (b * &g);
+                let zf: Vec<f32> = (0..self.texels)
+                    .flat_map(|t| (0..self.d).map(move |j| (t, j)))
+                    .map(|(t, j)| z[(t, j)] as f32)
+                    .collect();
+                let coarse = local_pca::fit(
+                    &Abrdfs::from_f32(self.texels, self.d, zf)?,
+                    self.k,
+                    self.c,
+                    self.iters,
+                    self.seed,
+                )?;
+                tracing::debug!(
+                    rounds = coarse.rounds,
+                    d = self.d,
+                    "local PCA clustered in its subspace"
+                );
+                Ok(Finished::State(State {
+                    blocks: vec![
+                        (
+                            "assign".into(),
+                            Mat::from_fn(self.texels, 1, |t, _| coarse.assign[t] as f64),
+                        ),
+                        (
+                            "meta".into(),
+                            Mat::from_fn(1, 2, |_, j| if j == 0 { coarse.k as f64 } else { coarse.rounds as f64 }),
+                        ),
+                    ],
+                }))
+            }
+            (Stage::Clusters(p), Merged::Sums(s)) if p + 1 < CLUSTER_PASSES => Ok(sums_state(need()?.carried(), s)),
+            (Stage::Clusters(_), Merged::Columns(mut b)) => {
+                let st = need()?;
+                let (assign, k) = st.assignment(self.texels)?;
+                let members = members_of(&assign, k);
+                let (rsvd, active) = self.clusters(&members);
+                let means = b
+                    .pop()
+                    .filter(|m| m.nrows() == k && m.ncols() == self.dims())
+                    .ok_or_else(|| {
+                        CompressError::Invalid(format!(
+                            "local PCA pass {pass}: the cluster means are missing or misshapen"
+                        ))
+                    })?;
+                if b.len() != rsvd.channels.len() {
+                    return Err(CompressError::Invalid(format!(
+                        "local PCA pass {pass}: {} projections for {} clusters",
+                        b.len(),
+                        rsvd.channels.len()
+                    )));
+                }
+                let dims = self.dims();
+                let mut basis = Mat::<f64>::zeros(k * self.c, dims);
+                for (bj, &j) in b.iter().zip(&active) {
+                    let g = local_pca::basis_from_bt(bj.transpose(), self.c)?;
+                    for q in 0..self.c {
+                        for i in 0..dims {
+                            basis[(j * self.c + q, i)] = g[(i, q)];
+                        }
+                    }
+                }
+                let mut blocks = st.carried();
+                blocks.push(("mean".into(), means));
+                blocks.push(("basis".into(), basis));
+                Ok(Finished::State(State { blocks }))
+            }
+            (Stage::Assign, Merged::Sums(s)) => {
+                let st = need()?;
+                let (_, k) = st.assignment(self.texels)?;
+                let rounds = st.get("meta")?[(0, 1)] as usize;
+                let p = s
+                    .first()
+                    .ok_or_else(|| CompressError::Invalid("local PCA: the last pass has no sums".into()))?;
+                Ok(Finished::Model(self.final_model(
+                    k,
+                    rounds,
+                    st.get("mean")?,
+                    st.get("basis")?,
+                    p,
+                )?))
+            }
+            (s, _) => Err(CompressError::Invalid(format!(
+                "local PCA pass {pass} ({s:?}): its parts hold the other kind of blocks"
+            ))),
+        }
+    }
+
+    /// Every texel to the cluster with the smallest reconstruction error, from the summed
+    /// products `p` (texels × (k (c + 1) + 1): means, eigen-ABRDFs, ‖x‖²).
+    fn final_model(
+        &self,
+        k: usize,
+        rounds: usize,
+        mean: &Mat<f64>,
+        basis: &Mat<f64>,
+        p: &Mat<f64>,
+    ) -> Result<LocalPca, CompressError> {
+        let (c, dims) = (self.c, self.dims());
+        if p.nrows() != self.texels || p.ncols() != k * (c + 1) + 1 {
+            return Err(CompressError::Invalid(format!(
+                "local PCA: final sums are {} × {}, {} × {} expected",
+                p.nrows(),
+                p.ncols(),
+                self.texels,
+                k * (c + 1) + 1
+            )));
+        }
+        let means: Vec<Vec<f32>> = (0..k)
+            .map(|j| (0..dims).map(|i| mean[(j, i)] as f32).collect())
+            .collect();
+        let bases: Vec<Mat<f64>> = (0..k)
+            .map(|j| Mat::from_fn(dims, c, |i, q| basis[(j * c + q, i)]))
+            .collect();
+        let mu_sq: Vec<f64> = means
+            .iter()
+            .map(|m| m.iter().map(|&x| (x as f64).powi(2)).sum())
+            .collect();
+        let bmu: Vec<Vec<f64>> = (0..k)
+            .map(|j| {
+                (0..c)
+                    .map(|q| (0..dims).map(|i| bases[j][(i, q)] * means[j][i] as f64).sum())
+                    .collect()
+            })
+            .collect();
+        let res: Vec<(u32, f64, Vec<f32>)> = (0..self.texels)
+            .into_par_iter()
+            .map(|t| {
+                let xsq = p[(t, k * (c + 1))];
+                let mut best = (0u32, f64::INFINITY);
+                for j in 0..k {
+                    let mut e = xsq - 2.0 * p[(t, j)] + mu_sq[j];
+                    for q in 0..c {
+                        let cq = p[(t, k + j * c + q)] - bmu[j][q];
+                        e -= cq * cq;
+                    }
+                    if e < best.1 {
+                        best = (j as u32, e);
+                    }
+                }
+                let j = best.0 as usize;
+                let coef = (0..c).map(|q| (p[(t, k + j * c + q)] - bmu[j][q]) as f32).collect();
+                (best.0, best.1.max(0.0), coef)
+            })
+            .collect();
+        let mut assign = Vec::with_capacity(self.texels);
+        let mut coef = Vec::with_capacity(self.texels * c);
+        let mut sse = 0.0;
+        for (j, e, cf) in res {
+            assign.push(j);
+            sse += e;
+            coef.extend(cf);
+        }
+        Ok(local_pca::model(dims, c, assign, coef, &means, &bases, rounds, sse))
+    }
+
+    /// All passes in one process: what a merged sharded run reproduces.
+    pub fn fit(&self, a: &Abrdfs) -> Result<LocalPca, CompressError> {
+        let mut state: Option<State> = None;
+        for pass in 0..PASSES {
+            let out = self.run_pass(pass, 0..self.views, a, state.as_ref())?;
+            let merged = match out {
+                PassOutput::Sums(s) => Merged::Sums(s.iter().map(ExactMat::to_mat).collect()),
+                PassOutput::Projection(b) => Merged::Columns(b),
+            };
+            match self.finish_pass(pass, state.as_ref(), merged)? {
+                Finished::State(s) => state = Some(s),
+                Finished::Model(m) => return Ok(m),
+            }
+        }
+        unreachable!("the last pass gives the model")
+    }
+}
+
+/// A pass's whole output.
+pub enum Merged {
+    /// The exact sums, rounded once.
+    Sums(Vec<Mat<f64>>),
+    /// Every view's columns, in view order.
+    Columns(Vec<Mat<f64>>),
+}
+
+fn bases_of(sums: &[&Mat<f64>]) -> Vec<Mat<f64>> {
+    sums.iter().map(|s| orthonormalize(s)).collect()
+}
+
+fn members_of(assign: &[u32], k: usize) -> Vec<Vec<u32>> {
+    let mut members = vec![Vec::new(); k];
+    for (t, &j) in assign.iter().enumerate() {
+        members[j as usize].push(t as u32);
+    }
+    members
+}
+
+/// Mean of columns `cols` over `rows` (all texels if `None`): f64 sums in row order,
+/// rounded to f32. A column's mean depends on that column alone.
+fn column_means(a: &Abrdfs, rows: Option<&[u32]>, cols: Range<usize>) -> Vec<f32> {
+    let mut buf = Vec::new();
+    a.decode_cols(rows, cols.clone(), &mut buf);
+    let w = cols.len();
+    let n = buf.len().checked_div(w).unwrap_or(0);
+    (0..w)
+        .into_par_iter()
+        .map(|j| {
+            let s: f64 = (0..n).map(|i| buf[i * w + j] as f64).sum();
+            (s / n.max(1) as f64) as f32
+        })
+        .collect()
+}
+
+/// The view matrices a pass multiplies: all texels less the global column mean, or each
+/// cluster's members less the cluster's mean.
+struct Centred<'a> {
+    a: &'a Abrdfs,
+    /// First view held by `a`.
+    first: usize,
+    width: usize,
+    members: Option<&'a [Vec<u32>]>,
+}
+
+impl Centred<'_> {
+    fn centred(&self, rows: Option<&[u32]>, cols: Range<usize>) -> Mat<f64> {
+        let mu = column_means(self.a, rows, cols.clone());
+        let mut buf = Vec::new();
+        self.a.decode_cols(rows, cols, &mut buf);
+        let w = self.width;
+        let n = buf.len().checked_div(w).unwrap_or(0);
+        Mat::from_fn(n, w, |i, j| (buf[i * w + j] - mu[j]) as f64)
+    }
+}
+
+impl ViewSource for Centred<'_> {
+    fn with_view(&mut self, v: usize, f: &mut dyn FnMut(&[MatRef<'_, f64>])) -> Result<(), CompressError> {
+        let off = (v - self.first) * self.width;
+        let cols = off..off + self.width;
+        let mats: Vec<Mat<f64>> = match self.members {
+            None => vec![self.centred(None, cols)],
+            Some(ms) => ms.iter().map(|m| self.centred(Some(m), cols.clone())).collect(),
+        };
+        let refs: Vec<MatRef<'_, f64>> = mats.iter().map(|m| m.as_ref()).collect();
+        f(&refs);
+        Ok(())
+    }
+}
