@@ -156,7 +156,7 @@ pub struct CompressArgs {
     /// written, byte for byte. PVMF: one round (a `.gbtf` part). PCA and DFMF: one pass
     /// of the randomized SVD per round (a `.gpart`; `2 + --power-iters` rounds, each
     /// merged into the `--state` of the next; docs/scale.md). Local PCA (with
-    /// `--subspace d > 0`): 8 rounds the same way. A part is not evaluated (evaluate
+    /// `--subspace d > 0`): 9 rounds the same way. A part is not evaluated (evaluate
     /// the merged file).
     #[arg(long)]
     pub shard: Option<crate::shard::Shard>,

@@ -200,21 +200,24 @@ impl Abrdfs {
         let (d, w) = (self.dims, cols.len());
         let n = rows.map_or(self.texels, |r| r.len());
         out.resize(n * w, 0.0);
-        out.par_chunks_mut(w.max(1)).enumerate().for_each(|(i, o)| {
-            let t = rows.map_or(i, |r| r[i] as usize);
-            match &self.store {
-                Store::F32(v) => o.copy_from_slice(&v[t * d + cols.start..t * d + cols.end]),
-                Store::Srgb8 { codes, scale, lut } => {
-                    for ((o, &c), &s) in o
-                        .iter_mut()
-                        .zip(&codes[t * d + cols.start..t * d + cols.end])
-                        .zip(&scale[cols.clone()])
-                    {
-                        *o = lut[c as usize] * s;
+        out.par_chunks_mut(w.max(1))
+            .with_min_len(256)
+            .enumerate()
+            .for_each(|(i, o)| {
+                let t = rows.map_or(i, |r| r[i] as usize);
+                match &self.store {
+                    Store::F32(v) => o.copy_from_slice(&v[t * d + cols.start..t * d + cols.end]),
+                    Store::Srgb8 { codes, scale, lut } => {
+                        for ((o, &c), &s) in o
+                            .iter_mut()
+                            .zip(&codes[t * d + cols.start..t * d + cols.end])
+                            .zip(&scale[cols.clone()])
+                        {
+                            *o = lut[c as usize] * s;
+                        }
                     }
                 }
-            }
-        });
+            });
     }
 
     /// Call `f(offset, block)` for consecutive blocks of `rows` (decoded, `mean`

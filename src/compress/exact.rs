@@ -198,9 +198,12 @@ impl ExactMat {
             )));
         }
         let cols = self.cols;
+        // Small sums (a cluster's sketch) are not worth waking the pool for.
+        let min_len = if self.data.len() < 1 << 16 { usize::MAX } else { 1 };
         let bad = self
             .data
             .par_chunks_mut(CHUNK_ROWS * cols.max(1))
+            .with_min_len(min_len)
             .enumerate()
             .map(|(c, chunk)| {
                 let r0 = c * CHUNK_ROWS;

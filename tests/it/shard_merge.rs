@@ -269,7 +269,7 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
             let passes = sharded_rsvd(t, args, &format!("{tag}{shards}"), shards, &merged);
             let want = match tag {
                 "btf" => 3,
-                "lpca" => 8,
+                "lpca" => 9,
                 _ => 4,
             };
             assert_eq!(passes, want, "{tag}");
