@@ -658,3 +658,155 @@ impl ViewSource for Centred<'_> {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::compress::testdata::{self, hash};
+
+    /// Run every pass the way a sharded job does: each range of `splits` on the ABRDF
+    /// columns of its views only (loaded alone, stored as `exact` says), sums added
+    /// exactly in reverse shard order, columns joined in view order.
+    fn sharded(plan: &Plan, ds: &crate::compress::DatasetViews, splits: &[Range<usize>], exact: bool) -> LocalPca {
+        let parts: Vec<Abrdfs> = splits
+            .iter()
+            .map(|r| Abrdfs::load_views(ds, r.clone(), exact).unwrap())
+            .collect();
+        let mut state: Option<State> = None;
+        for pass in 0..PASSES {
+            let outs: Vec<PassOutput> = splits
+                .iter()
+                .zip(&parts)
+                .rev()
+                .map(|(r, a)| plan.run_pass(pass, r.clone(), a, state.as_ref()).unwrap())
+                .collect();
+            let merged = match &outs[0] {
+                PassOutput::Sums(first) => {
+                    let mut acc: Vec<ExactMat> = first.iter().map(|m| ExactMat::zeros(m.nrows(), m.ncols())).collect();
+                    for o in &outs {
+                        let PassOutput::Sums(s) = o else {
+                            panic!("mixed outputs")
+                        };
+                        for (a, m) in acc.iter_mut().zip(s) {
+                            a.add_exact(m, "test").unwrap();
+                        }
+                    }
+                    Merged::Sums(acc.iter().map(ExactMat::to_mat).collect())
+                }
+                PassOutput::Projection(first) => {
+                    let n = first.len();
+                    let cols: Vec<Mat<f64>> = (0..n)
+                        .map(|b| {
+                            let blocks: Vec<&Mat<f64>> = outs
+                                .iter()
+                                .rev()
+                                .map(|o| match o {
+                                    PassOutput::Projection(p) => &p[b],
+                                    _ => panic!("mixed outputs"),
+                                })
+                                .collect();
+                            let total: usize = blocks.iter().map(|m| m.ncols()).sum();
+                            let mut out = Mat::zeros(blocks[0].nrows(), total);
+                            let mut off = 0;
+                            for m in blocks {
+                                out.as_mut().subcols_mut(off, m.ncols()).copy_from(m);
+                                off += m.ncols();
+                            }
+                            out
+                        })
+                        .collect();
+                    Merged::Columns(cols)
+                }
+            };
+            match plan.finish_pass(pass, state.as_ref(), merged).unwrap() {
+                Finished::State(s) => state = Some(s),
+                Finished::Model(m) => return m,
+            }
+        }
+        unreachable!()
+    }
+
+    fn plan(ds: &crate::compress::DatasetViews, k: usize, c: usize, d: usize) -> Plan {
+        Plan {
+            k,
+            c,
+            iters: 10,
+            seed: 5,
+            d,
+            texels: ds.texels(),
+            width: ds.n_lights() * 3,
+            views: ds.n_views(),
+        }
+    }
+
+    fn same(a: &LocalPca, b: &LocalPca) -> bool {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        a.assign == b.assign
+            && bits(&a.coef) == bits(&b.coef)
+            && bits(&a.means) == bits(&b.means)
+            && bits(&a.basis) == bits(&b.basis)
+            && a.sse.to_bits() == b.sse.to_bits()
+            && a.rounds == b.rounds
+    }
+
+    /// Any split of the views gives the single process's model bit for bit, with the
+    /// ABRDFs held as f32 and as 8-bit codes (each shard's codes from its own columns).
+    #[test]
+    fn any_split_of_the_views_gives_the_single_process_model() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write_grid(
+            &tmp.path().join("ds"),
+            16,
+            12,
+            &testdata::lights(),
+            &testdata::views(),
+            |l, v, t, c| 0.2 + 0.5 * hash(t % 7, (v * 5 + l) * 3 + c) + 0.1 * hash(t, v * 3 + c),
+        );
+        let p = plan(&ds, 5, 2, 6);
+        for exact in [true, false] {
+            let whole = Abrdfs::load_views(&ds, 0..4, exact).unwrap();
+            let single = p.fit(&whole).unwrap();
+            assert!(single.sse.is_finite() && single.k >= 2, "{} clusters", single.k);
+            for splits in [vec![0..2, 2..4], vec![0..1, 1..3, 3..4], vec![0..1, 1..2, 2..3, 3..4]] {
+                let m = sharded(&p, &ds, &splits, exact);
+                assert!(same(&single, &m), "exact {exact}, splits {splits:?}");
+            }
+        }
+    }
+
+    /// Constant and all-zero ABRDFs: one cluster, zero error, finite factors (rank-zero
+    /// sketches must not give NaN bases).
+    #[test]
+    fn constant_input_gives_one_exact_cluster() {
+        let tmp = tempfile::tempdir().unwrap();
+        for (name, value) in [("const", 0.25f32), ("zero", 0.0)] {
+            let ds = testdata::write(&tmp.path().join(name), |_, _, _, _| value);
+            let a = Abrdfs::load(&ds, crate::compress::abrdf::ABRDF_F32_BUDGET).unwrap();
+            let m = plan(&ds, 4, 3, 5).fit(&a).unwrap();
+            assert_eq!(m.k, 1, "{name}");
+            assert!(
+                m.coef.iter().chain(&m.means).chain(&m.basis).all(|x| x.is_finite()),
+                "{name}"
+            );
+            assert!(m.sse.abs() < 1e-9, "{name}: SSE {}", m.sse);
+        }
+    }
+
+    /// A state without what the pass needs is refused by name, not a panic.
+    #[test]
+    fn a_pass_without_its_state_is_refused() {
+        let tmp = tempfile::tempdir().unwrap();
+        let ds = testdata::write(&tmp.path().join("ds"), |l, v, t, c| hash(t, (v * 5 + l) * 3 + c));
+        let a = Abrdfs::load(&ds, crate::compress::abrdf::ABRDF_F32_BUDGET).unwrap();
+        let p = plan(&ds, 3, 2, 5);
+        let e = p.run_pass(4, 0..4, &a, None).unwrap_err().to_string();
+        assert!(e.contains("pass 4 needs the state of pass 3"), "{e}");
+        let e = p
+            .run_pass(4, 0..4, &a, Some(&State::default()))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`assign`"), "{e}");
+        let e = p.run_pass(0, 0..3, &a, None).unwrap_err().to_string();
+        assert!(e.contains("views 0..3"), "{e}");
+    }
+}
