@@ -9,6 +9,9 @@
 #      .gbtf must equal the single-process file byte for byte;
 #   3. a sharded PVMF whose shard 3 always fails: the retry fails too, the merge job still
 #      runs (afterany) and its error names the missing part;
+#   3b. sharded PCA (3 shards) and local PCA (2 shards): a chain of one array and one merge
+#      per pass over the views; the merged .gbtf must equal the single-process file;
+#   3c. a sharded simulated acquisition (3 shards): images and plan equal one process's;
 #   4. a dataset family (`gonio dataset generate`, 3 shards into one directory): the last
 #      job's check finds every member complete, equal to a single-process run byte for byte.
 # Per-task times of the shards and the merges are printed as `slurm:` lines.
@@ -199,6 +202,20 @@ for r in 0 1 2; do
 done
 cmp "$S/ref-pca.gbtf" "$S/pca.gbtf" || die "merged sharded PCA differs from the single-process file"
 log "PCA, 3 shards × 4 passes (8 chained jobs): merged .gbtf = single-process, byte for byte"
+
+# --- 3b'. sharded local PCA: nine passes over the views, the same chain -----------------
+LPCA_ARGS=(--method local-pca -c 2 --clusters 3 --subspace 8 --no-eval --json)
+"$GONIO" compress "$S/btf" "${LPCA_ARGS[@]}" --out "$S/ref-lpca.gbtf" >/dev/null
+t0=$(date +%s.%N)
+"$GONIO" batch slurm --shards 2 --work "$S/w-lpca" --out "$S/lpca.gbtf" --submit --json \
+  -- compress "$S/btf" "${LPCA_ARGS[@]}" >"$S/w-lpca.json"
+m=$(json_field "$S/w-lpca.json" merge_job)
+wait_job "$m" 900
+t1=$(date +%s.%N)
+echo "slurm: local PCA chain of 18 jobs: $(awk "BEGIN {printf \"%.1f\", $t1 - $t0}") s wall from submit to the last merge"
+[ "$(job_state "$m")" = COMPLETED ] || die "local PCA final merge job $m: $(job_state "$m"); $(cat "$S/w-lpca/logs/"merge*.log)"
+cmp "$S/ref-lpca.gbtf" "$S/lpca.gbtf" || die "merged sharded local PCA differs from the single-process file"
+log "local PCA, 2 shards × 9 passes (18 chained jobs): merged .gbtf = single-process, byte for byte"
 
 # --- 3c. a sharded simulated acquisition ------------------------------------------------
 ACQ_ARGS=(acquire --sweep fibonacci:6 --size 24x24 --seed 7 --json)

@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Per-pass model of a sharded local PCA, fitted to and checked against
+bench/local_pca_shards.sh's output (docs/scale.md, "Local PCA").
+
+Per pass, a shard's time is t = a + b·v (v views of the shard): a and b are fitted by
+least squares on the 2- and 4-shard runs, the model predicts the 1-shard run, and the
+prediction is compared with the measurement. A merge's time is fitted as
+m = m0 + m1 · (bytes of its parts) over the 1-, 2- and 4-shard merges of that pass.
+
+Carried to UBO2014 size (151 views × 151 lights × 400² texels): a pass's per-view cost
+grows with lights × texels (every view multiplies lights · 3 columns of all texels), its
+part with the texels (sketch and final-sum parts hold one row per texel; projections one
+column per measurement), and the merges after pass 3 (k-means in the subspace, texels × d)
+and pass 8 (every texel's best cluster) with the texels.
+
+Usage: bench/local_pca_model.py LPCA.jsonl   (prints a JSON report)
+"""
+import json
+import sys
+
+rows = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+runs = [r for r in rows if "task" in r]
+r0 = runs[0]
+V, L, T = r0["views"], r0["lights"], r0["texels"]
+passes = sorted({r["pass"] for r in runs if r["task"] == "lpca_pass"})
+
+
+def lsq(pts):
+    n = len(pts)
+    mx = sum(x for x, _ in pts) / n
+    my = sum(y for _, y in pts) / n
+    sxx = sum((x - mx) ** 2 for x, _ in pts)
+    b = sum((x - mx) * (y - my) for x, y in pts) / sxx if sxx > 0 else 0.0
+    return my - b * mx, b
+
+
+report = {"inputs": {"views": V, "lights": L, "texels": T, "k": r0["k"], "c": r0["c"], "d": r0["d"]}, "passes": {}}
+single = next(r["seconds"] for r in runs if r["task"] == "lpca" and r["shards"] == 0)
+pred_total = meas_total = 0.0
+model = {}
+for p in passes:
+    pts = [(V / r["shards"], r["seconds"]) for r in runs
+           if r["task"] == "lpca_pass" and r["pass"] == p and r["shards"] in (2, 4)]
+    a, b = lsq(pts)
+    meas = sum(r["seconds"] for r in runs if r["task"] == "lpca_pass" and r["pass"] == p and r["shards"] == 1)
+    merges = [(r["shards"], r["seconds"]) for r in runs if r["task"] == "merge_pass" and r["pass"] == p]
+    part = {r["shards"]: r["bytes"] for r in runs if r["task"] == "lpca_pass" and r["pass"] == p and r["shard"] == 1}
+    mpts = [(n * part[n], s) for n, s in merges]
+    m0, m1 = lsq(mpts)
+    out_bytes = next((r["bytes"] for r in runs if r["task"] == "merge_pass" and r["pass"] == p and r["shards"] == 1), 0)
+    model[p] = (a, b, m0, m1, part[1])
+    pred = a + b * V
+    pred_total += pred
+    meas_total += meas
+    report["passes"][p] = {
+        "startup_s": round(a, 3),
+        "per_view_s": round(b, 5),
+        "predicted_1_shard_s": round(pred, 3),
+        "measured_1_shard_s": round(meas, 3),
+        "predicted_over_measured": round(pred / meas, 3) if meas else None,
+        "part_bytes_1_shard": part[1],
+        "part_bytes_per_shard": {n: part[n] for n in sorted(part)},
+        "merge_s": {n: round(s, 3) for n, s in merges},
+        "merged_bytes": out_bytes,
+    }
+report["all_passes_1_shard"] = {
+    "predicted_s": round(pred_total, 2),
+    "measured_s": round(meas_total, 2),
+    "predicted_over_measured": round(pred_total / meas_total, 3),
+}
+report["single_process_s"] = round(single, 3)
+report["sharded_1_over_single"] = round(
+    (meas_total + sum(s for r in runs if r["task"] == "merge_pass" and r["shards"] == 1 for s in [r["seconds"]])) / single, 3)
+report["checks"] = [r for r in rows if "check" in r]
+
+# --- carried to UBO2014 size -------------------------------------------------------------
+UV, UL, UT = 151, 151, 400 * 400
+view_scale = (UL * UT) / (L * T)
+texel_scale = UT / T
+pred = {}
+for nodes in (1, 8, 64):
+    vpn = -(-UV // nodes)
+    wall = 0.0
+    for p, (a, b, m0, m1, part1) in model.items():
+        # Parts: one row per texel (sums) scale with the texels; the shard's share of a
+        # projection scales with its columns, which the merge joins to the same total.
+        part_bytes = part1 * texel_scale * (1.0 if p not in (2, 7) else (UL * UV) / (L * V) / nodes)
+        merge = max(m0, 0.0) * (texel_scale if p in (3, 8) else 1.0) + max(m1, 0.0) * nodes * part_bytes
+        wall += a + vpn * b * view_scale + merge
+    pred[f"{nodes}_nodes_s"] = round(wall, 1)
+part8 = UT * (r0["k"] * (r0["c"] + 1) + 1) * 32
+pred["pass8_part_GiB"] = round(part8 / 2**30, 2)
+pred["pass8_merge_reads_GiB_64_nodes"] = round(64 * part8 / 2**30, 1)
+pred["note"] = ("per node as this machine (2 cores); Slurm's start latency per dependent job (18 jobs) and the "
+                "shared filesystem come on top")
+report["ubo2014_prediction"] = pred
+print(json.dumps(report, indent=1))
