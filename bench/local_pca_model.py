@@ -8,10 +8,13 @@ prediction is compared with the measurement. A merge's time is fitted as
 m = m0 + m1 · (bytes of its parts) over the 1-, 2- and 4-shard merges of that pass.
 
 Carried to UBO2014 size (151 views × 151 lights × 400² texels): a pass's per-view cost
-grows with lights × texels (every view multiplies lights · 3 columns of all texels), its
-part with the texels (sketch and final-sum parts hold one row per texel; projections one
-column per measurement), and the merges after pass 3 (k-means in the subspace, texels × d)
-and pass 8 (every texel's best cluster) with the texels.
+grows with lights × texels (every view multiplies lights · 3 columns of all texels). A sum
+pass's part holds one row per texel, so it grows with the texels, and its merge costs
+m0 + m1 · N · part; the merges after round 3 (k-means in the subspace, texels × d) and
+round 8 (every texel's best cluster) also do work per texel, so their m0 grows with the
+texels. A projection pass (rounds 2 and 7) joins one column per measurement: its parts
+together hold the same bytes at any N, and its merge (SVDs of measurements × sketch
+matrices) grows with the measurements.
 
 Usage: bench/local_pca_model.py LPCA.jsonl   (prints a JSON report)
 """
@@ -77,17 +80,22 @@ report["checks"] = [r for r in rows if "check" in r]
 UV, UL, UT = 151, 151, 400 * 400
 view_scale = (UL * UT) / (L * T)
 texel_scale = UT / T
+meas_scale = (UL * UV) / (L * V)
 pred = {}
 for nodes in (1, 8, 64):
     vpn = -(-UV // nodes)
     wall = 0.0
+    parts = {}
     for p, (a, b, m0, m1, part1) in model.items():
-        # Parts: one row per texel (sums) scale with the texels; the shard's share of a
-        # projection scales with its columns, which the merge joins to the same total.
-        part_bytes = part1 * texel_scale * (1.0 if p not in (2, 7) else (UL * UV) / (L * V) / nodes)
-        merge = max(m0, 0.0) * (texel_scale if p in (3, 8) else 1.0) + max(m1, 0.0) * nodes * part_bytes
-        wall += a + vpn * b * view_scale + merge
+        compute = a + vpn * b * view_scale
+        if p in (2, 7):
+            merge = report["passes"][p]["merge_s"][1] * meas_scale
+        else:
+            merge = max(m0, 0.0) * (texel_scale if p in (3, 8) else 1.0) + max(m1, 0.0) * nodes * part1 * texel_scale
+        parts[p] = {"compute_s": round(compute, 1), "merge_s": round(merge, 1)}
+        wall += compute + merge
     pred[f"{nodes}_nodes_s"] = round(wall, 1)
+    pred[f"{nodes}_nodes_per_round"] = parts
 part8 = UT * (r0["k"] * (r0["c"] + 1) + 1) * 32
 pred["pass8_part_GiB"] = round(part8 / 2**30, 2)
 pred["pass8_merge_reads_GiB_64_nodes"] = round(64 * part8 / 2**30, 1)

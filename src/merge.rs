@@ -55,7 +55,8 @@ pub enum MergeError {
 /// What a merge did.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct MergeReport {
-    /// `dataset` or `gbtf`.
+    /// `dataset`, `gbtf`; for `.gpart` parts `state`, `gbtf`, `btf`, or `part` (a
+    /// partial merge).
     pub kind: &'static str,
     pub parts: usize,
     pub shards: usize,
@@ -536,10 +537,15 @@ fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
 }
 
 // ---------------------------------------------------------------------------------------
-// .gpart (one pass of a sharded PCA or DFMF)
+// .gpart (one pass of a sharded PCA, DFMF or local PCA)
 // ---------------------------------------------------------------------------------------
 
-fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+/// A read `.gpart`: its path, header and payload.
+type ReadPart = (PathBuf, PartHeader, Vec<u8>);
+
+/// Read and check the `.gpart` parts of one pass: the same job, pass and state, filled
+/// pairs inside their views.
+fn read_rsvd_parts(parts: &[PathBuf]) -> Result<Vec<ReadPart>, MergeError> {
     let mut read: Vec<(PathBuf, PartHeader, Vec<u8>)> = Vec::with_capacity(parts.len());
     let mut norms = Vec::with_capacity(parts.len());
     for p in parts {
@@ -555,8 +561,6 @@ fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
         norms.push(norm);
         read.push((p.clone(), h, payload));
     }
-    let infos: Vec<(PathBuf, ShardInfo)> = read.iter().map(|(p, h, _)| (p.clone(), h.shard)).collect();
-    let order = shard::check_complete(&infos)?;
     check_same(parts, &norms)?;
     for (p, h, _) in &read {
         if let Some(f) = h
@@ -567,20 +571,70 @@ fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
             return Err(part_err(p, format!("filled pair {f:?} lies outside its views")));
         }
     }
+    Ok(read)
+}
+
+fn in_order(read: Vec<ReadPart>, order: &[usize]) -> Vec<ReadPart> {
+    let mut slots: Vec<Option<ReadPart>> = read.into_iter().map(Some).collect();
+    order
+        .iter()
+        .map(|&k| slots[k].take().expect("each part once"))
+        .collect()
+}
+
+fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let read = read_rsvd_parts(parts)?;
+    let infos: Vec<(PathBuf, ShardInfo)> = read.iter().map(|(p, h, _)| (p.clone(), h.shard)).collect();
+    let order = shard::check_complete(&infos)?;
     if out.exists() && !force {
         return Err(MergeError::Exists {
             path: out.to_path_buf(),
         });
     }
     let (shards, views) = (read[0].1.shard.count, read[0].1.shard.views_total);
-    let mut ordered = Vec::with_capacity(read.len());
-    let mut slots: Vec<Option<(PathBuf, PartHeader, Vec<u8>)>> = read.into_iter().map(Some).collect();
-    for &k in &order {
-        ordered.push(slots[k].take().expect("each part once"));
-    }
+    let ordered = in_order(read, &order);
     let merged = rsvd_shard::merge_parts(&ordered, out)?;
     Ok(MergeReport {
         kind: merged.kind,
+        parts: parts.len(),
+        shards,
+        views,
+        items: parts.len(),
+        pass: Some([merged.pass, merged.passes]),
+        out: out.to_path_buf(),
+    })
+}
+
+/// `gonio merge --partial`: join one group of a pass's `.gpart` parts (shards
+/// `(g−1)·m + 1 ..= g·m` of N, see [`shard::check_group`]) into one `.gpart`, shard `g` of
+/// `N / m`. The final merge takes such parts like any others, so merges can form a tree
+/// whose every node reads `m` parts; exact sums keep every tree's result the same bytes.
+pub fn merge_partial(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport, MergeError> {
+    let first = parts.first().ok_or(ShardError::NoParts)?;
+    if let Some(p) = parts.iter().find(|p| !p.exists()) {
+        return Err(MergeError::Absent {
+            parts: vec![p.display().to_string()],
+        });
+    }
+    if !rsvd_shard::is_part_file(first) {
+        return Err(not_a_part(
+            first,
+            "--partial joins the .gpart parts of one pass of `gonio compress --shard` (pca/dfmf/local-pca)",
+        ));
+    }
+    let read = read_rsvd_parts(parts)?;
+    let infos: Vec<(PathBuf, ShardInfo)> = read.iter().map(|(p, h, _)| (p.clone(), h.shard)).collect();
+    let (order, group) = shard::check_group(&infos)?;
+    if out.exists() && !force {
+        return Err(MergeError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    let (shards, views) = (read[0].1.shard.count, read[0].1.shard.views_total);
+    let ordered = in_order(read, &order);
+    let merged = rsvd_shard::merge_group(&ordered, group.info(views), out)?;
+    Ok(MergeReport {
+        kind: "part",
         parts: parts.len(),
         shards,
         views,

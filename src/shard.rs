@@ -154,6 +154,8 @@ pub enum ShardError {
         views_total: usize,
         count: usize,
     },
+    #[error("shards {given} of {count} are not a group for a partial merge: {why}")]
+    BadGroup { count: usize, given: String, why: String },
     #[error("{path} and {first} are parts of different jobs: {field} differs ({detail})")]
     Mismatch {
         path: PathBuf,
@@ -166,6 +168,61 @@ pub enum ShardError {
 /// Check that `parts` (path, recorded shard) are exactly the shards `1..=N` of one split,
 /// and return their positions in shard order.
 pub fn check_complete(parts: &[(PathBuf, ShardInfo)]) -> Result<Vec<usize>, ShardError> {
+    let (slot, count, views_total) = slots(parts)?;
+    let missing: Vec<String> = slot
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.is_none())
+        .map(|(i, _)| Shard { index: i + 1, count }.info(views_total).label())
+        .collect();
+    if !missing.is_empty() {
+        return Err(ShardError::Missing { count, missing });
+    }
+    Ok(slot.into_iter().map(|s| s.expect("checked above")).collect())
+}
+
+/// Check that `parts` are one **group** of a split of N: the `m` consecutive shards
+/// `(g−1)·m + 1 ..= g·m`, with `m` dividing N. Their views are then exactly shard `g` of
+/// `N / m` (`⌊(g−1)·m·V/N⌋ = ⌊(g−1)·V/(N/m)⌋`), so a partial merge of a group is a part
+/// of the coarser split, and merges can form a tree. Returns the parts' positions in
+/// shard order and the group's shard.
+pub fn check_group(parts: &[(PathBuf, ShardInfo)]) -> Result<(Vec<usize>, Shard), ShardError> {
+    let (slot, count, views_total) = slots(parts)?;
+    let given: Vec<usize> = (0..count).filter(|&i| slot[i].is_some()).collect();
+    let (lo, m) = (given[0], given.len());
+    let bad = |why: String| ShardError::BadGroup {
+        count,
+        given: format!("{}..={}", lo + 1, given[m - 1] + 1),
+        why,
+    };
+    if given[m - 1] - lo + 1 != m {
+        let gap = (lo..given[m - 1]).find(|i| slot[*i].is_none()).unwrap_or(lo);
+        return Err(bad(format!("shard {}/{count} is missing from the run", gap + 1)));
+    }
+    if count % m != 0 || lo % m != 0 {
+        return Err(bad(format!(
+            "a group is m consecutive shards starting after a multiple of m, with m dividing {count}              (for m = {m}: {})",
+            if count % m == 0 {
+                format!("shards {}..={}", lo / m * m + 1, lo / m * m + m)
+            } else {
+                format!("{m} does not divide {count}")
+            }
+        )));
+    }
+    let group = Shard {
+        index: lo / m + 1,
+        count: count / m,
+    };
+    debug_assert_eq!(
+        group.views(views_total).start,
+        Shard { index: lo + 1, count }.views(views_total).start
+    );
+    Ok((slot.into_iter().flatten().collect(), group))
+}
+
+/// Every part's slot among the shards `1..=N` of one split (checked: the same N and
+/// views, a range that matches the split, no shard twice), with N and the views.
+fn slots(parts: &[(PathBuf, ShardInfo)]) -> Result<(Vec<Option<usize>>, usize, usize), ShardError> {
     let Some((first_path, first)) = parts.first() else {
         return Err(ShardError::NoParts);
     };
@@ -200,16 +257,7 @@ pub fn check_complete(parts: &[(PathBuf, ShardInfo)]) -> Result<Vec<usize>, Shar
         }
         slot[info.index - 1] = Some(k);
     }
-    let missing: Vec<String> = slot
-        .iter()
-        .enumerate()
-        .filter(|(_, s)| s.is_none())
-        .map(|(i, _)| Shard { index: i + 1, count }.info(first.views_total).label())
-        .collect();
-    if !missing.is_empty() {
-        return Err(ShardError::Missing { count, missing });
-    }
-    Ok(slot.into_iter().map(|s| s.expect("checked above")).collect())
+    Ok((slot, count, first.views_total))
 }
 
 /// The first top-level key (sorted) whose value differs between two JSON objects, with
@@ -304,5 +352,46 @@ mod tests {
         let e = check_complete(&p).unwrap_err().to_string();
         assert!(e.contains("part-2") && e.contains("views 3..9"), "{e}");
         assert!(matches!(check_complete(&[]), Err(ShardError::NoParts)));
+    }
+
+    /// A group of m consecutive shards starting after a multiple of m (m dividing N) covers
+    /// exactly the views of shard g of N/m, for every view count; anything else is refused.
+    #[test]
+    fn groups_are_shards_of_the_coarser_split() {
+        for views in [5, 7, 12, 151] {
+            for (n, m) in [(4, 2), (6, 3), (6, 2), (8, 4), (8, 8), (3, 1)] {
+                if n > views {
+                    continue;
+                }
+                for g in 0..n / m {
+                    let spec: Vec<(usize, usize)> = (g * m + 1..=g * m + m).rev().map(|i| (i, n)).collect();
+                    let ps = parts(&spec, views);
+                    let (order, group) = check_group(&ps).unwrap();
+                    assert_eq!(
+                        group,
+                        Shard {
+                            index: g + 1,
+                            count: n / m
+                        }
+                    );
+                    let first = &ps[order[0]].1;
+                    let last = &ps[order[m - 1]].1;
+                    assert_eq!(
+                        group.views(views),
+                        first.first_view..last.end_view,
+                        "views {views}, {n}/{m}, group {g}"
+                    );
+                }
+            }
+        }
+        let e = check_group(&parts(&[(2, 4), (3, 4)], 8)).unwrap_err().to_string();
+        assert!(e.contains("shards 1..=2"), "{e}");
+        let e = check_group(&parts(&[(1, 4), (3, 4)], 8)).unwrap_err().to_string();
+        assert!(e.contains("shard 2/4 is missing"), "{e}");
+        let e = check_group(&parts(&[(1, 4), (2, 4), (3, 4)], 8))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("3 does not divide 4"), "{e}");
+        assert!(check_group(&parts(&[(1, 4), (1, 4)], 8)).is_err());
     }
 }

@@ -16,6 +16,11 @@ pub struct MergeArgs {
     /// (`.gstate`, the next round's `--state`) or, after the last pass, the `.gbtf`/`.btf`.
     #[arg(long)]
     pub out: PathBuf,
+    /// Join one group of a pass's `.gpart` parts into one `.gpart` (shards
+    /// `(g−1)·m+1 ..= g·m` of N become shard g of N/m), for a tree of merges: every merge
+    /// then reads m parts, and the final merge takes the group parts as it takes shards.
+    #[arg(long)]
+    pub partial: bool,
     /// Replace an existing output.
     #[arg(long)]
     pub force: bool,
@@ -25,13 +30,25 @@ pub struct MergeArgs {
 
 pub fn run(a: MergeArgs) -> Result<ExitCode> {
     let t0 = Instant::now();
-    let report = crate::merge::merge(&a.parts, &a.out, a.force)
-        .with_context(|| format!("merging {} part(s) into {}", a.parts.len(), a.out.display()))?;
+    let report = if a.partial {
+        crate::merge::merge_partial(&a.parts, &a.out, a.force)
+    } else {
+        crate::merge::merge(&a.parts, &a.out, a.force)
+    }
+    .with_context(|| format!("merging {} part(s) into {}", a.parts.len(), a.out.display()))?;
     let seconds = t0.elapsed().as_secs_f64();
     if a.json {
         let mut v = serde_json::to_value(&report)?;
         v["seconds"] = serde_json::json!(seconds);
         println!("{}", serde_json::to_string_pretty(&v)?);
+    } else if report.kind == "part" {
+        println!(
+            "joined {} of the {} shards of pass {} into {} in {seconds:.2} s; the final merge takes it like a shard",
+            report.parts,
+            report.shards,
+            report.pass.map_or(0, |p| p[0] + 1),
+            report.out.display()
+        );
     } else if let Some([pass, passes]) = report.pass {
         println!(
             "merged {} part(s) of pass {}/{passes} ({} shards, {} views) into {} {} in {seconds:.2} s{}",

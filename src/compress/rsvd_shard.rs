@@ -1,5 +1,6 @@
-//! Sharded PCA and DFMF: one pass of the randomized SVD ([`super::rsvd`]) over one shard's
-//! views per process, and the files that carry a pass between processes.
+//! Sharded PCA, DFMF and local PCA: one pass over one shard's views per process (PCA and
+//! DFMF: of the randomized SVD, [`super::rsvd`]; local PCA: one of the nine passes of
+//! [`super::local_pca::passes`]), and the files that carry a pass between processes.
 //!
 //! A randomized SVD needs `2 + power_iters` passes over the data, and every pass after
 //! the first starts from the whole previous pass. So a sharded run is a chain of rounds,
@@ -26,6 +27,10 @@
 //!   hash), assembles B in view order and finishes exactly as [`super::pca::compress`] or
 //!   [`super::dfmf`] do, so the merged `.gbtf` (or `.btf`) equals the single-process file
 //!   byte for byte. `tests/it/shard_merge.rs` checks that.
+//!
+//! Local PCA uses the same files: a part holds its pass's exact sums or its views'
+//! columns, a state the merged pass and what the later passes need (the subspace basis,
+//! every texel's cluster, the models), and the last merge writes the `.gbtf`.
 //!
 //! Missing, duplicate, overlapping parts, parts of another job, pass or state are refused
 //! by name (the checks of [`crate::shard`]).
@@ -626,6 +631,92 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
         kind,
         pass,
         passes,
+        bytes,
+    })
+}
+
+/// Join one group of a pass's parts (in shard order) into one part of the coarser split
+/// `group`: exact sums added exactly, or projection columns joined in view order.
+pub fn merge_group(
+    parts: &[(PathBuf, PartHeader, Vec<u8>)],
+    group: ShardInfo,
+    out: &Path,
+) -> Result<MergedPass, CompressError> {
+    let (_, first, _) = &parts[0];
+    let mut blocks = Vec::new();
+    let mut payload = Vec::new();
+    if first.blocks.iter().all(|b| b.dtype == "exact256") {
+        let mut acc: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
+        for (p, h, bytes) in parts {
+            let same = h.blocks.len() == acc.len()
+                && h.blocks
+                    .iter()
+                    .zip(&first.blocks)
+                    .all(|(a, b)| a.dtype == "exact256" && (a.rows, a.cols) == (b.rows, b.cols));
+            if !same {
+                return Err(invalid(
+                    p,
+                    "its blocks are not the sums of the pass its first part holds",
+                ));
+            }
+            for ((s, b), raw) in acc.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, bytes)) {
+                let m = ExactMat::from_bytes(b.rows, b.cols, raw).map_err(|e| invalid(p, e))?;
+                s.add_exact(&m, &p.display().to_string())?;
+            }
+        }
+        for (b, s) in first.blocks.iter().zip(&acc) {
+            blocks.push(b.clone());
+            payload.extend_from_slice(&s.to_bytes());
+        }
+    } else {
+        for (i, b) in first.blocks.iter().enumerate() {
+            let mut cols = 0;
+            let mut mats = Vec::with_capacity(parts.len());
+            for (p, h, bytes) in parts {
+                let Some(hb) = h
+                    .blocks
+                    .get(i)
+                    .filter(|hb| hb.dtype == "f64le" && hb.rows == b.rows && hb.name == b.name)
+                else {
+                    return Err(invalid(
+                        p,
+                        "its blocks are not the columns of the pass its first part holds",
+                    ));
+                };
+                mats.push(f64s_from_bytes(hb.rows, hb.cols, blocks_of(&h.blocks, bytes)[i]));
+                cols += hb.cols;
+            }
+            let mut m = Mat::<f64>::zeros(b.rows, cols);
+            let mut off = 0;
+            for part in &mats {
+                m.as_mut().subcols_mut(off, part.ncols()).copy_from(part);
+                off += part.ncols();
+            }
+            blocks.push(BlockSpec {
+                name: b.name.clone(),
+                rows: b.rows,
+                cols,
+                dtype: "f64le".into(),
+            });
+            f64s_to_bytes(&m, &mut payload);
+        }
+    }
+    let header = PartHeader {
+        kind: PART_KIND.into(),
+        job: first.job.clone(),
+        pass: first.pass,
+        passes: first.passes,
+        shard: group,
+        state: first.state.clone(),
+        filled: parts.iter().flat_map(|(_, h, _)| h.filled.iter().copied()).collect(),
+        blocks,
+        payload_sha256: sha256_hex(&payload),
+    };
+    let bytes = write_file(out, &header, &payload)?;
+    Ok(MergedPass {
+        kind: "part",
+        pass: first.pass,
+        passes: first.passes,
         bytes,
     })
 }

@@ -159,8 +159,10 @@ fn sharded_sim_btf_and_pvmf_merge_to_the_single_process_bytes() {
 }
 
 /// Run every pass of a sharded randomized SVD in `t`: `shards` parts per pass, each pass
-/// merged into the next pass's state, the last into `out`. Returns the passes run.
-fn sharded_rsvd(t: &Path, args: &[&str], tag: &str, shards: usize, out: &str) -> usize {
+/// merged into the next pass's state, the last into `out`. With `tree`, every pass is
+/// merged as a tree: pairs of shards first (`gonio merge --partial`), then the pairs.
+/// Returns the passes run.
+fn sharded_rsvd(t: &Path, args: &[&str], tag: &str, shards: usize, out: &str, tree: bool) -> usize {
     let mut state: Option<String> = None;
     for pass in 0.. {
         let parts: Vec<String> = (1..=shards).map(|i| format!("{tag}-p{pass}-{i}.gpart")).collect();
@@ -186,8 +188,22 @@ fn sharded_rsvd(t: &Path, args: &[&str], tag: &str, shards: usize, out: &str) ->
                 String::from_utf8_lossy(&o.stderr)
             );
         }
+        let groups: Vec<String> = if tree {
+            (0..shards / 2)
+                .map(|g| {
+                    let name = format!("{tag}-p{pass}-g{}.gpart", g + 1);
+                    ok(
+                        t,
+                        &["merge", "--partial", &parts[2 * g + 1], &parts[2 * g], "--out", &name],
+                    );
+                    name
+                })
+                .collect()
+        } else {
+            parts.clone()
+        };
         let mut m: Vec<&str> = vec!["merge"];
-        m.extend(parts.iter().rev().map(String::as_str));
+        m.extend(groups.iter().rev().map(String::as_str));
         let merged = format!("{tag}-s{pass}.gstate");
         let o = gonio(t, &[&m[..], &["--out", &merged, "--json"]].concat());
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -264,9 +280,9 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
             .output()
             .unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        for shards in [2, 3] {
+        for (shards, tree) in [(2, false), (3, false), (4, true)] {
             let merged = format!("{tag}-merged-{shards}");
-            let passes = sharded_rsvd(t, args, &format!("{tag}{shards}"), shards, &merged);
+            let passes = sharded_rsvd(t, args, &format!("{tag}{shards}"), shards, &merged, tree);
             let want = match tag {
                 "btf" => 3,
                 "lpca" => 9,
@@ -282,6 +298,61 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
 
     // Refusals, each naming what is wrong.
     let pca = ["compress", "full", "--method", "pca", "-c", "4", "--no-eval"];
+
+    // A partial merge takes one group of consecutive shards, m dividing N.
+    let e = fails(
+        t,
+        &[
+            "merge",
+            "--partial",
+            "pca4-p0-2.gpart",
+            "pca4-p0-3.gpart",
+            "--out",
+            "g.gpart",
+        ],
+    );
+    assert!(
+        e.contains("shards 2..=3 of 4 are not a group") && e.contains("shards 1..=2"),
+        "{e}"
+    );
+    let e = fails(
+        t,
+        &[
+            "merge",
+            "--partial",
+            "pca4-p0-1.gpart",
+            "pca4-p0-3.gpart",
+            "--out",
+            "g.gpart",
+        ],
+    );
+    assert!(e.contains("shard 2/4 is missing"), "{e}");
+    let e = fails(
+        t,
+        &[
+            "merge",
+            "--partial",
+            "pca4-p0-1.gpart",
+            "pca4-p0-2.gpart",
+            "pca4-p0-3.gpart",
+            "--out",
+            "g.gpart",
+        ],
+    );
+    assert!(e.contains("3 does not divide 4"), "{e}");
+    // A group part with a shard of the finer split is not one split.
+    let e = fails(
+        t,
+        &[
+            "merge",
+            "pca4-p0-g1.gpart",
+            "pca4-p0-3.gpart",
+            "pca4-p0-4.gpart",
+            "--out",
+            "x.gstate",
+        ],
+    );
+    assert!(e.contains("the same N"), "{e}");
     let e = fails(t, &["merge", "pca2-p0-1.gpart", "--out", "x.gstate"]);
     assert!(e.contains("missing shard 2/2"), "{e}");
     let e = fails(t, &["merge", "pca2-p0-1.gpart", "pca2-p1-2.gpart", "--out", "x.gstate"]);
