@@ -14,7 +14,8 @@ m0 + m1 · N · part; the merges after round 3 (k-means in the subspace, texels 
 round 8 (every texel's best cluster) also do work per texel, so their m0 grows with the
 texels. A projection pass (rounds 2 and 7) joins one column per measurement: its parts
 together hold the same bytes at any N, and its merge (SVDs of measurements × sketch
-matrices) grows with the measurements.
+matrices) grows with the measurements. A two-level tree merge (64 nodes, groups of 8) reads
+8 parts per merge on each level.
 
 Usage: bench/local_pca_model.py LPCA.jsonl   (prints a JSON report)
 """
@@ -82,7 +83,9 @@ view_scale = (UL * UT) / (L * T)
 texel_scale = UT / T
 meas_scale = (UL * UV) / (L * V)
 pred = {}
-for nodes in (1, 8, 64):
+# (nodes, fanout): a flat merge, or a two-level tree (groups of `fanout` parts merged in
+# parallel, then the nodes / fanout group parts; `gonio batch slurm --merge-fanout`).
+for nodes, fanout in ((1, None), (8, None), (64, None), (64, 8)):
     vpn = -(-UV // nodes)
     wall = 0.0
     parts = {}
@@ -91,15 +94,22 @@ for nodes in (1, 8, 64):
         if p in (2, 7):
             merge = report["passes"][p]["merge_s"][1] * meas_scale
         else:
-            merge = max(m0, 0.0) * (texel_scale if p in (3, 8) else 1.0) + max(m1, 0.0) * nodes * part1 * texel_scale
+            start = max(m0, 0.0) * (texel_scale if p in (3, 8) else 1.0)
+            per_part = max(m1, 0.0) * part1 * texel_scale
+            if fanout:
+                # Both levels read `fanout` parts; only the last does the round's own step.
+                merge = start + 2 * fanout * per_part + max(m0, 0.0)
+            else:
+                merge = start + nodes * per_part
         parts[p] = {"compute_s": round(compute, 1), "merge_s": round(merge, 1)}
         wall += compute + merge
-    pred[f"{nodes}_nodes_s"] = round(wall, 1)
-    pred[f"{nodes}_nodes_per_round"] = parts
+    key = f"{nodes}_nodes" + (f"_tree{fanout}" if fanout else "")
+    pred[f"{key}_s"] = round(wall, 1)
+    pred[f"{key}_per_round"] = parts
 part8 = UT * (r0["k"] * (r0["c"] + 1) + 1) * 32
 pred["pass8_part_GiB"] = round(part8 / 2**30, 2)
 pred["pass8_merge_reads_GiB_64_nodes"] = round(64 * part8 / 2**30, 1)
-pred["note"] = ("per node as this machine (2 cores); Slurm's start latency per dependent job (18 jobs) and the "
+pred["note"] = ("per node as this machine (2 cores); Slurm's start latency per dependent job (18 jobs flat, 27 as trees) and the "
                 "shared filesystem come on top")
 report["ubo2014_prediction"] = pred
 print(json.dumps(report, indent=1))

@@ -36,8 +36,10 @@ impl ShardedKind {
     /// Recognise the command from its arguments (without the program name); refuse
     /// commands that cannot be sharded and arguments the batch sets itself.
     /// `default_power_iters`: `gonio compress`'s default, for a PCA/DFMF command that does
-    /// not set `--power-iters` (the number of rounds depends on it).
-    pub fn of(args: &[String], default_power_iters: usize) -> Result<ShardedKind, String> {
+    /// not set `--power-iters` (the number of rounds depends on it); `local_pca_passes`: the
+    /// rounds of a local PCA (`compress::local_pca::passes::PASSES`, given by the caller:
+    /// this floor does not name `compress`).
+    pub fn of(args: &[String], default_power_iters: usize, local_pca_passes: usize) -> Result<ShardedKind, String> {
         let kind = match args {
             [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
             [a, ..] if a == "acquire" => {
@@ -59,7 +61,7 @@ impl ShardedKind {
                         return Err("`--state` is set by the batch for every round after the first".into());
                     }
                     ShardedKind::CompressRsvd {
-                        passes: crate::compress::local_pca::passes::PASSES,
+                        passes: local_pca_passes,
                     }
                 } else if method("pca") || method("dfmf") {
                     // 2 + power iterations passes (the default is compress's own, 2).
@@ -150,6 +152,9 @@ pub struct SlurmJob {
     pub cpus_per_task: usize,
     /// Extra `#SBATCH` lines (e.g. `--partition=debug`, `--time=1:00:00`), one option each.
     pub sbatch_options: Vec<String>,
+    /// `.gpart` rounds: merge as a two-level tree, groups of this many shards first (an
+    /// array of `gonio merge --partial` tasks), then the groups; `None`: one flat merge.
+    pub merge_fanout: Option<usize>,
 }
 
 /// Quote a word for bash (single quotes; `'` as `'\''`).
@@ -201,6 +206,54 @@ impl SlurmJob {
         } else {
             format!("-{r}")
         }
+    }
+
+    /// Group `g` (1-based) of round `r` in a tree merge: shards `(g−1)·F + 1 ..= g·F`.
+    pub fn group_part(&self, r: usize, g: usize) -> PathBuf {
+        self.parts_dir(r).join(format!("group-{g}.gpart"))
+    }
+
+    /// Groups of a tree merge (0: a flat merge).
+    pub fn groups(&self) -> usize {
+        self.merge_fanout.map_or(0, |f| self.shards / f)
+    }
+
+    pub fn group_script_path(&self, r: usize) -> PathBuf {
+        self.work.join(format!("groups{}.sbatch", self.suffix(r)))
+    }
+
+    /// The group merges of round `r` in a tree merge: task `G` joins its `F` shards into
+    /// `parts/…/group-G.gpart` (`gonio merge --partial`).
+    pub fn group_script(&self, r: usize) -> Option<String> {
+        let f = self.merge_fanout?;
+        let sfx = self.suffix(r);
+        let mut s = self.header(&format!("groups{sfx}"), &format!("group{sfx}-%a.log"));
+        s.push_str(&format!(
+            "#SBATCH --array=1-{}
+",
+            self.groups()
+        ));
+        s.push_str(
+            "set -u
+",
+        );
+        s.push_str(
+            "G=${SLURM_ARRAY_TASK_ID:?submit this script with sbatch (it is a job array)}
+",
+        );
+        s.push_str(&format!(
+            "parts=()
+for i in $(seq $(( (G - 1) * {f} + 1 )) $(( G * {f} ))); do parts+=(\"{}/part-$i{}\"); done
+",
+            self.parts_dir(r).display(),
+            self.kind.part_suffix()
+        ));
+        s.push_str(&format!(
+            "exec {} merge --partial \"${{parts[@]}}\" --out \"{}/group-$G.gpart\" --force --json\n",
+            q(&self.gonio),
+            self.parts_dir(r).display()
+        ));
+        Some(s)
     }
 
     pub fn array_script_path(&self, r: usize) -> PathBuf {
@@ -299,8 +352,8 @@ impl SlurmJob {
         s
     }
 
-    /// The merge job of round `r`: every part, in shard order, into the round's
-    /// [`SlurmJob::merged`] output.
+    /// The merge job of round `r`: every part (or, in a tree merge, every group part), in
+    /// shard order, into the round's [`SlurmJob::merged`] output.
     pub fn merge_script(&self, r: usize) -> String {
         let sfx = self.suffix(r);
         let mut s = self.header(&format!("merge{sfx}"), &format!("merge{sfx}.log"));
@@ -310,7 +363,11 @@ impl SlurmJob {
             cmd.extend(["dataset".into(), "check".into(), q(&self.out), "--json".into()]);
         } else {
             cmd.push("merge".into());
-            cmd.extend((1..=self.shards).map(|i| q(&self.part(r, i))));
+            if self.merge_fanout.is_some() {
+                cmd.extend((1..=self.groups()).map(|g| q(&self.group_part(r, g))));
+            } else {
+                cmd.extend((1..=self.shards).map(|i| q(&self.part(r, i))));
+            }
             cmd.extend(["--out".into(), q(&self.merged(r)), "--force".into(), "--json".into()]);
         }
         s.push_str(&cmd.join(" "));
@@ -333,7 +390,7 @@ mod tests {
 
     impl ShardedKind {
         fn of2(args: &[String]) -> Result<ShardedKind, String> {
-            ShardedKind::of(args, 2)
+            ShardedKind::of(args, 2, 9)
         }
     }
 
@@ -380,6 +437,7 @@ mod tests {
             retry_mode: RetryMode::InJob,
             cpus_per_task: 2,
             sbatch_options: vec!["--time=10".into()],
+            merge_fanout: None,
         };
         let a = job.array_script(0);
         assert!(a.contains("#SBATCH --array=1-3\n"), "{a}");
@@ -442,5 +500,31 @@ mod tests {
         );
         assert!(c.merge_script(1).contains("--out '/w d/state-1.gstate'"));
         assert!(c.merge_script(2).contains("--out /o --force"));
+        assert!(c.group_script(0).is_none());
+        assert_eq!(
+            ShardedKind::of2(&args("compress /ds --method local-pca -c 2")),
+            Ok(ShardedKind::CompressRsvd { passes: 9 })
+        );
+
+        // A tree merge: 6 shards in groups of 3, then the 2 groups.
+        let t = SlurmJob {
+            shards: 6,
+            merge_fanout: Some(3),
+            ..c
+        };
+        let g = t.group_script(1).unwrap();
+        assert!(g.contains("#SBATCH --array=1-2\n"), "{g}");
+        assert!(g.contains("seq $(( (G - 1) * 3 + 1 )) $(( G * 3 ))"), "{g}");
+        assert!(
+            g.contains(r#"merge --partial "${parts[@]}" --out "/w d/parts/pass-1/group-$G.gpart" --force"#),
+            "{g}"
+        );
+        let m = t.merge_script(1);
+        assert!(
+            m.contains(
+                "merge '/w d/parts/pass-1/group-1.gpart' '/w d/parts/pass-1/group-2.gpart' --out '/w d/state-1.gstate'"
+            ),
+            "{m}"
+        );
     }
 }

@@ -41,6 +41,12 @@ pub struct SlurmArgs {
     /// Extra sbatch option for both jobs, e.g. `--sbatch-option=--time=1:00:00`; repeatable.
     #[arg(long = "sbatch-option")]
     pub sbatch_options: Vec<String>,
+    /// PCA, DFMF, local PCA: merge every round as a two-level tree, groups of F shards
+    /// first (an array of `gonio merge --partial` jobs, in parallel), then the N/F group
+    /// parts; F must divide --shards. Every merge then reads F or N/F parts instead of N
+    /// (docs/scale.md).
+    #[arg(long, value_name = "F")]
+    pub merge_fanout: Option<usize>,
     /// The gonio executable the jobs run (default: this one).
     #[arg(long)]
     pub gonio: Option<PathBuf>,
@@ -74,9 +80,14 @@ struct Report {
 #[derive(Serialize)]
 struct Round {
     array_script: PathBuf,
+    /// The group merges of a tree merge (`--merge-fanout`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    group_script: Option<PathBuf>,
     merge_script: PathBuf,
     merged: PathBuf,
     array_job: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    group_job: Option<String>,
     merge_job: Option<String>,
 }
 
@@ -92,7 +103,8 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
         command.remove(0);
     }
     let default_iters = crate::compress::Params::new(crate::compress::Method::Pca, 1).power_iters;
-    let kind = ShardedKind::of(&command, default_iters).map_err(anyhow::Error::msg)?;
+    let kind = ShardedKind::of(&command, default_iters, crate::compress::local_pca::passes::PASSES)
+        .map_err(anyhow::Error::msg)?;
     if !(1..=crate::shard::MAX_SHARDS).contains(&a.shards) {
         bail!(
             "--shards {}: valid range is 1 ..= {}",
@@ -102,6 +114,18 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     }
     if a.retries > 10 {
         bail!("--retries {}: at most 10", a.retries);
+    }
+    if let Some(f) = a.merge_fanout {
+        if !matches!(kind, ShardedKind::CompressRsvd { .. }) {
+            bail!("--merge-fanout builds a tree of `gonio merge --partial` jobs for compress --method pca|dfmf|local-pca only");
+        }
+        if f < 2 || !a.shards.is_multiple_of(f) || a.shards / f < 2 {
+            bail!(
+                "--merge-fanout {f} with --shards {}: F must be at least 2, divide the shards and leave at least 2 groups \
+                 (e.g. --shards 64 --merge-fanout 8)",
+                a.shards
+            );
+        }
     }
     if !(1..=1024).contains(&a.cpus_per_task) {
         bail!("--cpus-per-task {}: valid range is 1 ..= 1024", a.cpus_per_task);
@@ -144,6 +168,7 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
         retry_mode: a.retry_mode,
         cpus_per_task: a.cpus_per_task,
         sbatch_options: a.sbatch_options.clone(),
+        merge_fanout: a.merge_fanout,
     };
     for p in job.dirs() {
         std::fs::create_dir_all(&p).with_context(|| format!("creating {}", p.display()))?;
@@ -151,17 +176,23 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     let last = kind.rounds() - 1;
     let mut rounds = Vec::with_capacity(kind.rounds());
     for r in 0..=last {
-        for (path, text) in [
+        let mut scripts = vec![
             (job.array_script_path(r), job.array_script(r)),
             (job.merge_script_path(r), job.merge_script(r)),
-        ] {
+        ];
+        if let Some(g) = job.group_script(r) {
+            scripts.push((job.group_script_path(r), g));
+        }
+        for (path, text) in scripts {
             std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         }
         rounds.push(Round {
             array_script: job.array_script_path(r),
+            group_script: job.merge_fanout.map(|_| job.group_script_path(r)),
             merge_script: job.merge_script_path(r),
             merged: job.merged(r),
             array_job: None,
+            group_job: None,
             merge_job: None,
         });
     }
@@ -219,9 +250,21 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
             }
             args.push(round.array_script.display().to_string());
             let array = submit(&args)?;
+            // A tree merge: the group merges after the array, the final merge after them
+            // (afterany both: a missing part is named by the merge that lacks it).
+            let mut before = array.clone();
+            if let Some(g) = &round.group_script {
+                let groups = submit(&[
+                    "--parsable".into(),
+                    format!("--dependency=afterany:{array}"),
+                    g.display().to_string(),
+                ])?;
+                round.group_job = Some(groups.clone());
+                before = groups;
+            }
             let merge = submit(&[
                 "--parsable".into(),
-                format!("--dependency=afterany:{array}"),
+                format!("--dependency=afterany:{before}"),
                 round.merge_script.display().to_string(),
             ])?;
             previous = Some(merge.clone());

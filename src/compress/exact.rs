@@ -149,11 +149,13 @@ fn any_below(m: &Fixed, s: i32) -> bool {
 /// Largest magnitude a running sum may reach: 2¹²⁶, leaving one bit of headroom so one
 /// more addend below 2¹²⁶ cannot wrap before the check.
 fn in_range(f: &Fixed) -> bool {
-    let mut m = *f;
-    if m.is_negative() {
-        m.negate();
+    // |x| < 2¹²⁶: bits 255 … 126 all equal the sign (x in [−2¹²⁶, 2¹²⁶)), less −2¹²⁶
+    // itself. Read from the top limb, without negating.
+    match f.0[3] >> 62 {
+        0 => true,
+        3 => !(f.0[3] == 3 << 62 && f.0[..3] == [0, 0, 0]),
+        _ => false,
     }
-    m.0[3] >> 62 == 0
 }
 
 /// An exact sum of `rows × cols` f64 matrices ([module docs](self)).
@@ -207,17 +209,26 @@ impl ExactMat {
             .enumerate()
             .map(|(c, chunk)| {
                 let r0 = c * CHUNK_ROWS;
-                for (k, acc) in chunk.iter_mut().enumerate() {
-                    let (i, j) = (r0 + k / cols, k % cols);
-                    let x = m[(i, j)];
-                    match Fixed::from_f64(x) {
-                        Some(f) => {
-                            acc.add(&f);
-                            if !in_range(acc) {
-                                return Some((i, j, x));
+                let rows = chunk.len() / cols.max(1);
+                // Column by column from contiguous slices (faer's columns), not `m[(i, j)]`.
+                for j in 0..cols {
+                    let col = m.col(j).subrows(r0, rows);
+                    let at = |i: usize| match col.try_as_col_major() {
+                        Some(s) => s.as_slice()[i],
+                        None => col[i],
+                    };
+                    for i in 0..rows {
+                        let x = at(i);
+                        let acc = &mut chunk[i * cols + j];
+                        match Fixed::from_f64(x) {
+                            Some(f) => {
+                                acc.add(&f);
+                                if !in_range(acc) {
+                                    return Some((r0 + i, j, x));
+                                }
                             }
+                            None => return Some((r0 + i, j, x)),
                         }
-                        None => return Some((i, j, x)),
                     }
                 }
                 None
@@ -403,6 +414,21 @@ mod tests {
         let mut e = ExactMat::zeros(1, 1);
         let big = Mat::from_fn(1, 1, |_, _| 1e38);
         assert!(e.add(big.as_ref(), "big").is_err());
+        // The range is |sum| < 2¹²⁶, on both sides: 2¹²⁵ + 2¹²⁵ and −2¹²⁵ − 2¹²⁵ are out,
+        // 2¹²⁵ + (2¹²⁵ − ulp) and its negative are in.
+        let p125 = 2f64.powi(125);
+        let below = p125 - p125 * f64::EPSILON;
+        for (a, b, ok) in [
+            (p125, p125, false),
+            (-p125, -p125, false),
+            (p125, below, true),
+            (-p125, -below, true),
+        ] {
+            let mut e = ExactMat::zeros(1, 1);
+            let m = |x: f64| Mat::from_fn(1, 1, move |_, _| x);
+            e.add(m(a).as_ref(), "a").unwrap();
+            assert_eq!(e.add(m(b).as_ref(), "b").is_ok(), ok, "{a} + {b}");
+        }
     }
 
     #[test]

@@ -9,8 +9,9 @@
 #      .gbtf must equal the single-process file byte for byte;
 #   3. a sharded PVMF whose shard 3 always fails: the retry fails too, the merge job still
 #      runs (afterany) and its error names the missing part;
-#   3b. sharded PCA (3 shards) and local PCA (2 shards): a chain of one array and one merge
-#      per pass over the views; the merged .gbtf must equal the single-process file;
+#   3b. sharded PCA (3 shards) and local PCA (4 shards, every pass merged as a tree of
+#      2 groups of 2, --merge-fanout): a chain of one array and one merge (tree) per pass
+#      over the views; the merged .gbtf must equal the single-process file;
 #   3c. a sharded simulated acquisition (3 shards): images and plan equal one process's;
 #   4. a dataset family (`gonio dataset generate`, 3 shards into one directory): the last
 #      job's check finds every member complete, equal to a single-process run byte for byte.
@@ -203,19 +204,22 @@ done
 cmp "$S/ref-pca.gbtf" "$S/pca.gbtf" || die "merged sharded PCA differs from the single-process file"
 log "PCA, 3 shards × 4 passes (8 chained jobs): merged .gbtf = single-process, byte for byte"
 
-# --- 3b'. sharded local PCA: nine passes over the views, the same chain -----------------
+# --- 3b'. sharded local PCA: nine passes over the views, each merged as a tree ----------
 LPCA_ARGS=(--method local-pca -c 2 --clusters 3 --subspace 8 --no-eval --json)
 "$GONIO" compress "$S/btf" "${LPCA_ARGS[@]}" --out "$S/ref-lpca.gbtf" >/dev/null
 t0=$(date +%s.%N)
-"$GONIO" batch slurm --shards 2 --work "$S/w-lpca" --out "$S/lpca.gbtf" --submit --json \
+"$GONIO" batch slurm --shards 4 --merge-fanout 2 --work "$S/w-lpca" --out "$S/lpca.gbtf" --submit --json \
   -- compress "$S/btf" "${LPCA_ARGS[@]}" >"$S/w-lpca.json"
 m=$(json_field "$S/w-lpca.json" merge_job)
 wait_job "$m" 900
 t1=$(date +%s.%N)
-echo "slurm: local PCA chain of 18 jobs: $(awk "BEGIN {printf \"%.1f\", $t1 - $t0}") s wall from submit to the last merge"
+echo "slurm: local PCA chain of 27 jobs: $(awk "BEGIN {printf \"%.1f\", $t1 - $t0}") s wall from submit to the last merge"
 [ "$(job_state "$m")" = COMPLETED ] || die "local PCA final merge job $m: $(job_state "$m"); $(cat "$S/w-lpca/logs/"merge*.log)"
+for g in 1 2; do
+  [ -f "$S/w-lpca/parts/pass-8/group-$g.gpart" ] || die "the tree merge left no group part $g"
+done
 cmp "$S/ref-lpca.gbtf" "$S/lpca.gbtf" || die "merged sharded local PCA differs from the single-process file"
-log "local PCA, 2 shards × 9 passes (18 chained jobs): merged .gbtf = single-process, byte for byte"
+log "local PCA, 4 shards × 9 passes, merged as trees of 2 groups of 2 (27 chained jobs): merged .gbtf = single-process, byte for byte"
 
 # --- 3c. a sharded simulated acquisition ------------------------------------------------
 ACQ_ARGS=(acquire --sweep fibonacci:6 --size 24x24 --seed 7 --json)
