@@ -73,6 +73,9 @@ report["all_passes_1_shard"] = {
     "predicted_over_measured": round(pred_total / meas_total, 3),
 }
 report["single_process_s"] = round(single, 3)
+fused = next((r["seconds"] for r in runs if r["task"] == "lpca_fused"), None)
+if fused:
+    report["single_process_fused_s"] = round(fused, 3)
 report["sharded_1_over_single"] = round(
     (meas_total + sum(s for r in runs if r["task"] == "merge_pass" and r["shards"] == 1 for s in [r["seconds"]])) / single, 3)
 report["checks"] = [r for r in rows if "check" in r]

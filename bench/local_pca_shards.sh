@@ -37,12 +37,15 @@ timed() { # TASK SHARDS SHARD PASS OUTFILE CMD…
   "$@" >/dev/null
   line "$task" "$n" "$i" "$p" "$(awk "BEGIN {print $(now) - $t}")" "$(stat -c %s "$out")"
 }
-LPCA=(--method local-pca --clusters "$K" -c "$C" --subspace "$D" --no-eval --json)
+LPCA_FUSED=(--method local-pca --clusters "$K" -c "$C" --subspace "$D" --no-eval --json)
+LPCA=("${LPCA_FUSED[@]}" --in-passes)
 PASSES=9
 
 "$G" sim btf --sweep "fibonacci:$VIEWS" --size "$SIZE" --json --out "$W/full" >/dev/null
-# One process without --shard ("shards": 0): the reference.
+# One process without --shard ("shards": 0): the reference (--in-passes), and the fused
+# encoder one process runs by default.
 timed lpca 0 1 0 "$W/single.gbtf" "$G" compress "$W/full" "${LPCA[@]}" --out "$W/single.gbtf"
+timed lpca_fused 0 1 0 "$W/fused.gbtf" "$G" compress "$W/full" "${LPCA_FUSED[@]}" --out "$W/fused.gbtf"
 for n in 1 2 4; do
   state=()
   for p in $(seq 0 $((PASSES - 1))); do

@@ -113,6 +113,11 @@ pub struct CompressArgs {
     /// algorithm, ~10× slower at 81 × 81).
     #[arg(long, default_value_t = crate::compress::local_pca::DEFAULT_SUBSPACE)]
     pub subspace: usize,
+    /// Local PCA: run the nine passes over the views that `--shard I/N` splits, in this
+    /// one process: the file a sharded run merges to, byte for byte (exact sums; about 3×
+    /// the fused encoder's time at 256², docs/scale.md). Implied by --shard.
+    #[arg(long)]
+    pub in_passes: bool,
     /// Median cut: number of boxes (BRDFs).
     #[arg(long, default_value_t = 256)]
     pub boxes: usize,
@@ -303,10 +308,12 @@ fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCod
             params: Params {
                 method: match m {
                     MethodArg::Pca => Method::Pca,
+                    // A sharded local PCA always runs the nine passes.
                     MethodArg::LocalPca => Method::LocalPca {
                         clusters: args.clusters,
                         iters: args.iters,
                         subspace: args.subspace,
+                        in_passes: true,
                     },
                     _ => Method::Dfmf {
                         color_model: color_model(args.color_model),
@@ -427,6 +434,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
                 clusters: args.clusters,
                 iters: args.iters,
                 subspace: args.subspace,
+                in_passes: args.in_passes,
             },
             MethodArg::MedianCut => Method::MedianCut {
                 boxes: args.boxes,
@@ -531,6 +539,7 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
         clusters: k,
         iters: args.iters,
         subspace: args.subspace,
+        in_passes: args.in_passes,
     };
     let pca: Vec<Params> = [4, 8, 16, 32, 64].map(|c| p(Method::Pca, c)).to_vec();
     let local = |k: usize| -> Vec<Params> { [2, 4, 8, 16].map(|c| p(lpca(k), c)).to_vec() };

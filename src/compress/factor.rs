@@ -104,6 +104,7 @@ impl CompressedBtf {
                     clusters: k,
                     iters: 0,
                     subspace: 0,
+                    in_passes: false,
                 };
                 return Ok(CompressedBtf {
                     gbtf,

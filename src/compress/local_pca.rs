@@ -374,9 +374,84 @@ pub(crate) fn model(
 /// Default dimension of the global subspace the clustering runs in (`--subspace`).
 pub const DEFAULT_SUBSPACE: usize = 64;
 
+/// Power iterations of the global subspace's randomized SVD.
+const SUBSPACE_POWER_ITERS: usize = 1;
+
+/// Local PCA with the alternation run in a `d`-dimensional global subspace (see the
+/// module docs, "Clustering in a subspace"), fused: every step over whole ABRDF rows in
+/// f32 products; `d = 0` (or `d ≥ dims`) runs [`fit`] in the full space. The default;
+/// [`fit_in_passes`] is the same algorithm written as the passes `--shard` splits.
+///
+/// 1. A randomized SVD of all mean-centred ABRDFs gives an orthonormal basis `G`
+///    (dims × d) and every ABRDF's coordinates `z = Gᵀ(x − μ)`: one sketch pass, two per
+///    power iteration and one projection pass over the data.
+/// 2. [`fit`] on the `texels × d` coordinates: seeding, assignment and per-cluster PCA
+///    there cost `d / dims` of the full-space rounds (64 / 19683 at 81 × 81).
+/// 3. In the full space, once: each cluster's mean and eigen-ABRDFs from its members, then
+///    one assignment pass (the final coefficients, and every texel moved to the cluster
+///    whose full-space model reconstructs it best).
+pub fn fit_in_subspace(
+    a: &Abrdfs,
+    k: usize,
+    c: usize,
+    iters: usize,
+    seed: u64,
+    d: usize,
+) -> Result<LocalPca, CompressError> {
+    if d == 0 || d >= a.dims || d >= a.texels {
+        return fit(a, k, c, iters, seed);
+    }
+    if k == 0 {
+        return Err(CompressError::Invalid("local PCA needs at least 1 cluster".into()));
+    }
+    let all: Vec<u32> = (0..a.texels as u32).collect();
+    let mu = a.mean_of(&all);
+    let g = cluster_basis(a, &all, &mu, d, seed ^ 0x6c6f_6361_6c70_6361, SUBSPACE_POWER_ITERS)?;
+    let gf = Mat::<f32>::from_fn(a.dims, d, |i, j| g[(i, j)] as f32);
+    let mut z = vec![0f32; a.texels * d];
+    a.for_blocks(&all, Some(&mu), |off, b| {
+        let zb = b * &gf;
+        for i in 0..zb.nrows() {
+            for j in 0..d {
+                z[(off + i) * d + j] = zb[(i, j)];
+            }
+        }
+        Ok(())
+    })?;
+    let coarse = fit(&Abrdfs::from_f32(a.texels, d, z)?, k, c, iters, seed)?;
+    let mut members: Vec<Vec<u32>> = vec![Vec::new(); coarse.k];
+    for (t, &j) in coarse.assign.iter().enumerate() {
+        members[j as usize].push(t as u32);
+    }
+    let means: Vec<Vec<f32>> = members
+        .iter()
+        .map(|m| if m.is_empty() { vec![0f32; a.dims] } else { a.mean_of(m) })
+        .collect();
+    let bases: Vec<Mat<f64>> = members
+        .iter()
+        .zip(&means)
+        .enumerate()
+        .map(|(j, (m, mu))| cluster_basis(a, m, mu, c, cluster_seed(seed, j), POWER_ITERS))
+        .collect::<Result<_, _>>()?;
+    let mut fin = assign(a, &means, &bases, c)?;
+    let coef = std::mem::take(&mut fin.coef);
+    tracing::debug!(rounds = coarse.rounds, d, sse = fin.sse, "local PCA in a subspace");
+    Ok(model(
+        a.dims,
+        c,
+        fin.assign,
+        coef,
+        &means,
+        &bases,
+        coarse.rounds,
+        fin.sse,
+    ))
+}
+
 /// Local PCA with the alternation run in a `d`-dimensional global subspace (see the
 /// module docs, "Clustering in a subspace") of ABRDFs made of `views` equal blocks of
-/// columns; `d = 0` (or `d ≥ dims`, `d ≥ texels`) runs [`fit`] in the full space.
+/// columns, as nine passes over view ranges; `d = 0` (or `d ≥ dims`, `d ≥ texels`) runs
+/// [`fit`] in the full space.
 ///
 /// 1. A randomized SVD of all mean-centred ABRDFs gives an orthonormal basis `G`
 ///    (dims × d) and every ABRDF's coordinates `z ≈ Gᵀ(x − μ)` (`Q B G`): one sketch
@@ -390,7 +465,7 @@ pub const DEFAULT_SUBSPACE: usize = 64;
 ///
 /// The steps are written as passes over ranges of views ([`passes`]),
 /// which is what lets `--shard I/N` split them; one process runs the same passes.
-pub fn fit_in_subspace(
+pub fn fit_in_passes(
     a: &Abrdfs,
     views: usize,
     k: usize,
@@ -430,6 +505,7 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         clusters,
         iters,
         subspace,
+        in_passes,
     } = params.method
     else {
         return Err(CompressError::Invalid(
@@ -437,15 +513,12 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         ));
     };
     let a = Abrdfs::load(ds, ABRDF_F32_BUDGET)?;
-    let m = fit_in_subspace(
-        &a,
-        ds.n_views(),
-        clusters,
-        params.components,
-        iters,
-        params.seed,
-        subspace,
-    )?;
+    let (c, seed) = (params.components, params.seed);
+    let m = if in_passes {
+        fit_in_passes(&a, ds.n_views(), clusters, c, iters, seed, subspace)?
+    } else {
+        fit_in_subspace(&a, clusters, c, iters, seed, subspace)?
+    };
     let (blocks, extra) = file_blocks(m, a.texels, a.dims, params.components, subspace);
     Ok(encode_gbtf(ds, params, &a, blocks, &extra))
 }
@@ -542,6 +615,7 @@ mod tests {
                 clusters: k,
                 iters: 20,
                 subspace: d,
+                in_passes: false,
             },
             c,
         )
@@ -564,7 +638,7 @@ mod tests {
         });
         let a = Abrdfs::load(&noisy, ABRDF_F32_BUDGET).unwrap();
         let full = fit(&a, 4, 2, 20, 3).unwrap();
-        let sub = fit_in_subspace(&a, noisy.n_views(), 4, 2, 20, 3, 12).unwrap();
+        let sub = fit_in_subspace(&a, 4, 2, 20, 3, 12).unwrap();
         println!(
             "noisy groups: full-space SSE {:.4e}, subspace 12 SSE {:.4e}",
             full.sse, sub.sse
@@ -573,6 +647,15 @@ mod tests {
             sub.sse <= full.sse * 1.10,
             "subspace SSE {} vs full {}",
             sub.sse,
+            full.sse
+        );
+        // The same algorithm as the nine passes `--shard` splits: as close to the full
+        // space as the fused encoder.
+        let passes = fit_in_passes(&a, noisy.n_views(), 4, 2, 20, 3, 12).unwrap();
+        assert!(
+            passes.sse <= full.sse * 1.10,
+            "in passes SSE {} vs full {}",
+            passes.sse,
             full.sse
         );
     }

@@ -17,11 +17,17 @@ pub enum Method {
     /// Local PCA / PCMF (`local_pca`): `clusters` clusters of ABRDFs with `components`
     /// eigen-ABRDFs each, at most `iters` alternation rounds, run in a global subspace of
     /// `subspace` dimensions (0: in the full ABRDF space).
+    /// `in_passes`: run as the nine passes over the views that `--shard I/N` splits
+    /// (`local_pca::passes`; exact sums, slower in one process) instead of the fused
+    /// encoder; absent from the file's parameters when false, so fused files keep their
+    /// bytes.
     #[serde(rename = "local-pca")]
     LocalPca {
         clusters: usize,
         iters: usize,
         subspace: usize,
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        in_passes: bool,
     },
     /// Median-cut quantization of ABRDFs (`median_cut`): index image + BRDF block.
     #[serde(rename = "median-cut")]

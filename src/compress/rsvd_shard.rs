@@ -229,6 +229,12 @@ impl Job {
             Output::Gbtf { params, .. } => {
                 match params.method {
                     Method::Pca | Method::Dfmf { .. } => {}
+                    Method::LocalPca { in_passes: false, .. } => {
+                        return Err(CompressError::Invalid(
+                            "a sharded local PCA runs its nine passes (in_passes); the fused encoder is not split"
+                                .into(),
+                        ))
+                    }
                     Method::LocalPca { subspace, .. } => {
                         let dims = ds.n_lights() * 3 * ds.n_views();
                         if !LocalPlan::applies(subspace, dims, ds.texels()) {
@@ -278,6 +284,7 @@ impl Job {
             clusters,
             iters,
             subspace,
+            ..
         } = params.method
         else {
             return None;

@@ -734,6 +734,7 @@ fn quantized_files_decode_for_every_method() {
                 clusters: 3,
                 iters: 5,
                 subspace: 0,
+                in_passes: false,
             },
             2,
         ),

@@ -444,6 +444,7 @@ mod tests {
                 clusters: 3,
                 iters: 4,
                 subspace: 0,
+                in_passes: false,
             },
             Method::MedianCut {
                 boxes: 5,

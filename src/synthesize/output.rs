@@ -340,6 +340,7 @@ mod tests {
                 clusters: 3,
                 iters: 4,
                 subspace: 0,
+                in_passes: false,
             },
             Method::MedianCut {
                 boxes: 6,

@@ -237,6 +237,7 @@ fn sharded_pca_and_dfmf_merge_to_the_single_process_bytes() {
                 "4",
                 "--subspace",
                 "12",
+                "--in-passes",
                 "--no-eval",
             ],
         ),

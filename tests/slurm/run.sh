@@ -205,7 +205,7 @@ cmp "$S/ref-pca.gbtf" "$S/pca.gbtf" || die "merged sharded PCA differs from the 
 log "PCA, 3 shards × 4 passes (8 chained jobs): merged .gbtf = single-process, byte for byte"
 
 # --- 3b'. sharded local PCA: nine passes over the views, each merged as a tree ----------
-LPCA_ARGS=(--method local-pca -c 2 --clusters 3 --subspace 8 --no-eval --json)
+LPCA_ARGS=(--method local-pca -c 2 --clusters 3 --subspace 8 --in-passes --no-eval --json)
 "$GONIO" compress "$S/btf" "${LPCA_ARGS[@]}" --out "$S/ref-lpca.gbtf" >/dev/null
 t0=$(date +%s.%N)
 "$GONIO" batch slurm --shards 4 --merge-fanout 2 --work "$S/w-lpca" --out "$S/lpca.gbtf" --submit --json \

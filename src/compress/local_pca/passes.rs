@@ -21,8 +21,10 @@
 //! | 8 | per texel `Σ_v x_v · w_v` for every mean and eigen-ABRDF `w`, and `Σ_v ‖x_v‖²` | every texel to the cluster that reconstructs it best; coefficients; the `.gbtf` |
 //!
 //! A column mean and a cluster mean depend on their own column alone, so every shard
-//! computes its own. The single process runs exactly these passes (one "shard" of all
-//! views), so a merged sharded run gives its file byte for byte.
+//! computes its own. `--in-passes` runs exactly these passes in one process (one "shard"
+//! of all views), so a merged sharded run gives its file byte for byte. Without it one
+//! process runs the fused encoder (`local_pca::fit_in_subspace`), the same algorithm
+//! over whole rows in f32 products, about 3× faster at 256² (docs/scale.md).
 //!
 //! The coordinates are the exact projection `X̃ G`, not the sketch's `Q (B G)`: that
 //! saves pass 3 but clustered worse (on a 64², 81 × 81 sample, k = 32, c = 8, seeds
