@@ -212,17 +212,7 @@ fn assign(a: &Abrdfs, means: &[Vec<f32>], bases: &[Mat<f64>], c: usize) -> Resul
             bases[j][(i, q)] as f32
         }
     });
-    let mu_sq: Vec<f64> = means
-        .iter()
-        .map(|m| m.iter().map(|&x| (x as f64).powi(2)).sum())
-        .collect();
-    let bmu: Vec<Vec<f64>> = (0..k)
-        .map(|j| {
-            (0..c)
-                .map(|q| (0..dims).map(|i| bases[j][(i, q)] * means[j][i] as f64).sum())
-                .collect()
-        })
-        .collect();
+    let norms = ModelNorms::of(means, bases, c);
     let all: Vec<u32> = (0..a.texels as u32).collect();
     let mut out = Assignment {
         assign: vec![0; a.texels],
@@ -236,18 +226,7 @@ fn assign(a: &Abrdfs, means: &[Vec<f32>], bases: &[Mat<f64>], c: usize) -> Resul
             .into_par_iter()
             .map(|i| {
                 let xsq: f64 = b.row(i).iter().map(|&x| (x as f64).powi(2)).sum();
-                let mut best = (0u32, f64::INFINITY);
-                for j in 0..k {
-                    let mut e = xsq - 2.0 * p[(i, j)] as f64 + mu_sq[j];
-                    for q in 0..c {
-                        let cq = p[(i, k + j * c + q)] as f64 - bmu[j][q];
-                        e -= cq * cq;
-                    }
-                    if e < best.1 {
-                        best = (j as u32, e);
-                    }
-                }
-                (best.0, best.1.max(0.0))
+                norms.best(xsq, |col| p[(i, col)] as f64)
             })
             .collect();
         for (i, (j, e)) in res.into_iter().enumerate() {
@@ -256,12 +235,62 @@ fn assign(a: &Abrdfs, means: &[Vec<f32>], bases: &[Mat<f64>], c: usize) -> Resul
             out.err[t] = e;
             out.sse += e;
             for q in 0..c {
-                out.coef[t * c + q] = (p[(i, k + j as usize * c + q)] as f64 - bmu[j as usize][q]) as f32;
+                out.coef[t * c + q] = (p[(i, k + j as usize * c + q)] as f64 - norms.bmu[j as usize][q]) as f32;
             }
         }
         Ok(())
     })?;
     Ok(out)
+}
+
+/// What the reconstruction error of an ABRDF `x` under each cluster needs besides `x`'s
+/// products with the means and eigen-ABRDFs: `‖μ_j‖²` and `b_jqᵀ μ_j`.
+pub(crate) struct ModelNorms {
+    k: usize,
+    c: usize,
+    mu_sq: Vec<f64>,
+    pub(crate) bmu: Vec<Vec<f64>>,
+}
+
+impl ModelNorms {
+    pub(crate) fn of(means: &[Vec<f32>], bases: &[Mat<f64>], c: usize) -> Self {
+        let k = means.len();
+        let dims = means.first().map_or(0, |m| m.len());
+        ModelNorms {
+            k,
+            c,
+            mu_sq: means
+                .iter()
+                .map(|m| m.iter().map(|&x| (x as f64).powi(2)).sum())
+                .collect(),
+            bmu: (0..k)
+                .map(|j| {
+                    (0..c)
+                        .map(|q| (0..dims).map(|i| bases[j][(i, q)] * means[j][i] as f64).sum())
+                        .collect()
+                })
+                .collect(),
+        }
+    }
+
+    /// The cluster with the smallest error `‖x − μ_j‖² − Σ_q (b_jqᵀ(x − μ_j))²` (the
+    /// first on ties) and that error (clamped at 0), from `‖x‖²` and `p(col)`: `x · μ_j`
+    /// at column `j`, `x · b_jq` at column `k + j·c + q`.
+    pub(crate) fn best(&self, xsq: f64, p: impl Fn(usize) -> f64) -> (u32, f64) {
+        let (k, c) = (self.k, self.c);
+        let mut best = (0u32, f64::INFINITY);
+        for j in 0..k {
+            let mut e = xsq - 2.0 * p(j) + self.mu_sq[j];
+            for q in 0..c {
+                let cq = p(k + j * c + q) - self.bmu[j][q];
+                e -= cq * cq;
+            }
+            if e < best.1 {
+                best = (j as u32, e);
+            }
+        }
+        (best.0, best.1.max(0.0))
+    }
 }
 
 /// Fit `k` clusters with `c` eigen-ABRDFs each, at most `iters` alternation rounds.

@@ -521,16 +521,9 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
     }
     if pass + 1 < passes {
         // A sum pass: the exact sum of every part, rounded once.
-        let mut sums: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
-        for (p, h, payload) in parts {
-            if h.blocks.len() != sums.len() || h.blocks.iter().any(|b| b.dtype != "exact256") {
-                return Err(invalid(p, "its blocks are not the sums of the pass"));
-            }
-            for ((s, b), bytes) in sums.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
-                let m = ExactMat::from_bytes(b.rows, b.cols, bytes).map_err(|e| invalid(p, e))?;
-                s.add_exact(&m, &p.display().to_string())?;
-            }
-        }
+        let Joined::Sums(sums) = join_parts(parts)? else {
+            return Err(invalid(first_path, "its blocks are not the sums of the pass"));
+        };
         let mut blocks = Vec::new();
         let mut payload = Vec::new();
         for (ch, s) in sums.iter().enumerate() {
@@ -642,16 +635,17 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
     })
 }
 
-/// Join one group of a pass's parts (in shard order) into one part of the coarser split
-/// `group`: exact sums added exactly, or projection columns joined in view order.
-pub fn merge_group(
-    parts: &[(PathBuf, PartHeader, Vec<u8>)],
-    group: ShardInfo,
-    out: &Path,
-) -> Result<MergedPass, CompressError> {
+/// A pass's parts put together: the exact sums added exactly, or every block's columns
+/// joined in view order (the parts in shard order).
+enum Joined {
+    Sums(Vec<ExactMat>),
+    Columns(Vec<Mat<f64>>),
+}
+
+/// Put one pass's parts (in shard order) together, refusing a part whose blocks are not
+/// the kind and shape of the first part's.
+fn join_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)]) -> Result<Joined, CompressError> {
     let (_, first, _) = &parts[0];
-    let mut blocks = Vec::new();
-    let mut payload = Vec::new();
     if first.blocks.iter().all(|b| b.dtype == "exact256") {
         let mut acc: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
         for (p, h, bytes) in parts {
@@ -671,41 +665,66 @@ pub fn merge_group(
                 s.add_exact(&m, &p.display().to_string())?;
             }
         }
-        for (b, s) in first.blocks.iter().zip(&acc) {
-            blocks.push(b.clone());
-            payload.extend_from_slice(&s.to_bytes());
+        return Ok(Joined::Sums(acc));
+    }
+    let mut out = Vec::with_capacity(first.blocks.len());
+    for (i, b) in first.blocks.iter().enumerate() {
+        let mut mats = Vec::with_capacity(parts.len());
+        for (p, h, bytes) in parts {
+            let Some(hb) = h.blocks.get(i).filter(|hb| {
+                // every block of a part holds all its views' columns
+                h.blocks.len() == first.blocks.len()
+                    && hb.dtype == "f64le"
+                    && hb.rows == b.rows
+                    && hb.name == b.name
+                    && hb.cols == h.blocks[0].cols
+            }) else {
+                return Err(invalid(
+                    p,
+                    "its blocks are not the columns of the pass its first part holds",
+                ));
+            };
+            mats.push(f64s_from_bytes(hb.rows, hb.cols, blocks_of(&h.blocks, bytes)[i]));
         }
-    } else {
-        for (i, b) in first.blocks.iter().enumerate() {
-            let mut cols = 0;
-            let mut mats = Vec::with_capacity(parts.len());
-            for (p, h, bytes) in parts {
-                let Some(hb) = h
-                    .blocks
-                    .get(i)
-                    .filter(|hb| hb.dtype == "f64le" && hb.rows == b.rows && hb.name == b.name)
-                else {
-                    return Err(invalid(
-                        p,
-                        "its blocks are not the columns of the pass its first part holds",
-                    ));
-                };
-                mats.push(f64s_from_bytes(hb.rows, hb.cols, blocks_of(&h.blocks, bytes)[i]));
-                cols += hb.cols;
+        let cols: usize = mats.iter().map(|m| m.ncols()).sum();
+        let mut m = Mat::<f64>::zeros(b.rows, cols);
+        let mut off = 0;
+        for part in &mats {
+            m.as_mut().subcols_mut(off, part.ncols()).copy_from(part);
+            off += part.ncols();
+        }
+        out.push(m);
+    }
+    Ok(Joined::Columns(out))
+}
+
+/// Join one group of a pass's parts (in shard order) into one part of the coarser split
+/// `group`: exact sums added exactly, or projection columns joined in view order.
+pub fn merge_group(
+    parts: &[(PathBuf, PartHeader, Vec<u8>)],
+    group: ShardInfo,
+    out: &Path,
+) -> Result<MergedPass, CompressError> {
+    let (_, first, _) = &parts[0];
+    let mut blocks = Vec::new();
+    let mut payload = Vec::new();
+    match join_parts(parts)? {
+        Joined::Sums(acc) => {
+            for (b, s) in first.blocks.iter().zip(&acc) {
+                blocks.push(b.clone());
+                payload.extend_from_slice(&s.to_bytes());
             }
-            let mut m = Mat::<f64>::zeros(b.rows, cols);
-            let mut off = 0;
-            for part in &mats {
-                m.as_mut().subcols_mut(off, part.ncols()).copy_from(part);
-                off += part.ncols();
+        }
+        Joined::Columns(cols) => {
+            for (b, m) in first.blocks.iter().zip(&cols) {
+                blocks.push(BlockSpec {
+                    name: b.name.clone(),
+                    rows: m.nrows(),
+                    cols: m.ncols(),
+                    dtype: "f64le".into(),
+                });
+                f64s_to_bytes(m, &mut payload);
             }
-            blocks.push(BlockSpec {
-                name: b.name.clone(),
-                rows: b.rows,
-                cols,
-                dtype: "f64le".into(),
-            });
-            f64s_to_bytes(&m, &mut payload);
         }
     }
     let header = PartHeader {
@@ -761,56 +780,10 @@ fn merge_local_pca(
 ) -> Result<MergedPass, CompressError> {
     let (first_path, first, _) = &parts[0];
     let (pass, passes) = (first.pass, first.passes);
-    let sums = first.blocks.iter().all(|b| b.dtype == "exact256");
     let mut filled = Vec::new();
-    let merged = if sums {
-        let mut acc: Vec<ExactMat> = first.blocks.iter().map(|b| ExactMat::zeros(b.rows, b.cols)).collect();
-        for (p, h, payload) in parts {
-            let same = h.blocks.len() == acc.len()
-                && h.blocks
-                    .iter()
-                    .zip(&first.blocks)
-                    .all(|(a, b)| a.dtype == "exact256" && (a.rows, a.cols) == (b.rows, b.cols));
-            if !same {
-                return Err(invalid(
-                    p,
-                    "its blocks are not the sums of the pass its first part holds",
-                ));
-            }
-            for ((s, b), bytes) in acc.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
-                let m = ExactMat::from_bytes(b.rows, b.cols, bytes).map_err(|e| invalid(p, e))?;
-                s.add_exact(&m, &p.display().to_string())?;
-            }
-        }
-        Merged::Sums(acc.iter().map(ExactMat::to_mat).collect())
-    } else {
-        let total: usize = parts
-            .iter()
-            .map(|(_, h, _)| h.blocks.first().map_or(0, |b| b.cols))
-            .sum();
-        let mut cols: Vec<Mat<f64>> = first.blocks.iter().map(|b| Mat::zeros(b.rows, total)).collect();
-        let mut off = 0;
-        for (p, h, payload) in parts {
-            let w = h.blocks.first().map_or(0, |b| b.cols);
-            let same = h.blocks.len() == cols.len()
-                && h.blocks
-                    .iter()
-                    .zip(&first.blocks)
-                    .all(|(a, b)| a.dtype == "f64le" && a.rows == b.rows && a.cols == w);
-            if !same {
-                return Err(invalid(
-                    p,
-                    "its blocks are not the columns of the pass its first part holds",
-                ));
-            }
-            for ((m, b), bytes) in cols.iter_mut().zip(&h.blocks).zip(blocks_of(&h.blocks, payload)) {
-                m.as_mut()
-                    .subcols_mut(off, w)
-                    .copy_from(&f64s_from_bytes(b.rows, b.cols, bytes));
-            }
-            off += w;
-        }
-        Merged::Columns(cols)
+    let merged = match join_parts(parts)? {
+        Joined::Sums(acc) => Merged::Sums(acc.iter().map(ExactMat::to_mat).collect()),
+        Joined::Columns(cols) => Merged::Columns(cols),
     };
     for (_, h, _) in parts {
         filled.extend_from_slice(&h.filled);

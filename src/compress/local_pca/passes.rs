@@ -497,35 +497,15 @@ impl Plan {
         let bases: Vec<Mat<f64>> = (0..k)
             .map(|j| Mat::from_fn(dims, c, |i, q| basis[(j * c + q, i)]))
             .collect();
-        let mu_sq: Vec<f64> = means
-            .iter()
-            .map(|m| m.iter().map(|&x| (x as f64).powi(2)).sum())
-            .collect();
-        let bmu: Vec<Vec<f64>> = (0..k)
-            .map(|j| {
-                (0..c)
-                    .map(|q| (0..dims).map(|i| bases[j][(i, q)] * means[j][i] as f64).sum())
-                    .collect()
-            })
-            .collect();
+        let norms = local_pca::ModelNorms::of(&means, &bases, c);
         let res: Vec<(u32, f64, Vec<f32>)> = (0..self.texels)
             .into_par_iter()
             .map(|t| {
-                let xsq = p[(t, k * (c + 1))];
-                let mut best = (0u32, f64::INFINITY);
-                for j in 0..k {
-                    let mut e = xsq - 2.0 * p[(t, j)] + mu_sq[j];
-                    for q in 0..c {
-                        let cq = p[(t, k + j * c + q)] - bmu[j][q];
-                        e -= cq * cq;
-                    }
-                    if e < best.1 {
-                        best = (j as u32, e);
-                    }
-                }
-                let j = best.0 as usize;
-                let coef = (0..c).map(|q| (p[(t, k + j * c + q)] - bmu[j][q]) as f32).collect();
-                (best.0, best.1.max(0.0), coef)
+                let (j, e) = norms.best(p[(t, k * (c + 1))], |col| p[(t, col)]);
+                let coef = (0..c)
+                    .map(|q| (p[(t, k + j as usize * c + q)] - norms.bmu[j as usize][q]) as f32)
+                    .collect();
+                (j, e, coef)
             })
             .collect();
         let mut assign = Vec::with_capacity(self.texels);
