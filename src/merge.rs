@@ -594,15 +594,7 @@ fn merge_rsvd(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
     let (shards, views) = (read[0].1.shard.count, read[0].1.shard.views_total);
     let ordered = in_order(read, &order);
     let merged = rsvd_shard::merge_parts(&ordered, out)?;
-    Ok(MergeReport {
-        kind: merged.kind,
-        parts: parts.len(),
-        shards,
-        views,
-        items: parts.len(),
-        pass: Some([merged.pass, merged.passes]),
-        out: out.to_path_buf(),
-    })
+    Ok(pass_report(parts.len(), shards, views, merged, out))
 }
 
 /// `gonio merge --partial`: join one group of a pass's `.gpart` parts (shards
@@ -633,13 +625,18 @@ pub fn merge_partial(parts: &[PathBuf], out: &Path, force: bool) -> Result<Merge
     let (shards, views) = (read[0].1.shard.count, read[0].1.shard.views_total);
     let ordered = in_order(read, &order);
     let merged = rsvd_shard::merge_group(&ordered, group.info(views), out)?;
-    Ok(MergeReport {
-        kind: "part",
-        parts: parts.len(),
+    Ok(pass_report(parts.len(), shards, views, merged, out))
+}
+
+/// The report of a merged `.gpart` pass (flat or partial).
+fn pass_report(parts: usize, shards: usize, views: usize, merged: rsvd_shard::MergedPass, out: &Path) -> MergeReport {
+    MergeReport {
+        kind: merged.kind,
+        parts,
         shards,
         views,
-        items: parts.len(),
+        items: parts,
         pass: Some([merged.pass, merged.passes]),
         out: out.to_path_buf(),
-    })
+    }
 }

@@ -427,7 +427,7 @@ pub fn fit_in_subspace(
     seed: u64,
     d: usize,
 ) -> Result<LocalPca, CompressError> {
-    if d == 0 || d >= a.dims || d >= a.texels {
+    if !passes::Plan::applies(d, a.dims, a.texels) {
         return fit(a, k, c, iters, seed);
     }
     if k == 0 {

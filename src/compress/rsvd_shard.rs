@@ -194,6 +194,17 @@ fn check_payload(path: &Path, blocks: &[BlockSpec], payload: &[u8], sha: &str) -
     Ok(())
 }
 
+/// Append `m` to a file's blocks and payload as the f64 block `name`.
+fn push_f64_block(name: String, m: &Mat<f64>, blocks: &mut Vec<BlockSpec>, payload: &mut Vec<u8>) {
+    blocks.push(BlockSpec {
+        name,
+        rows: m.nrows(),
+        cols: m.ncols(),
+        dtype: "f64le".into(),
+    });
+    f64s_to_bytes(m, payload);
+}
+
 fn f64s_to_bytes(m: &Mat<f64>, out: &mut Vec<u8>) {
     for i in 0..m.nrows() {
         for j in 0..m.ncols() {
@@ -431,13 +442,7 @@ pub fn run_shard(
         }
         PassOutput::Projection(b) => {
             for (ch, m) in b.iter().enumerate() {
-                blocks.push(BlockSpec {
-                    name: format!("b{ch}"),
-                    rows: m.nrows(),
-                    cols: m.ncols(),
-                    dtype: "f64le".into(),
-                });
-                f64s_to_bytes(m, &mut payload);
+                push_f64_block(format!("b{ch}"), m, &mut blocks, &mut payload);
             }
         }
     }
@@ -527,14 +532,7 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
         let mut blocks = Vec::new();
         let mut payload = Vec::new();
         for (ch, s) in sums.iter().enumerate() {
-            let m = s.to_mat();
-            blocks.push(BlockSpec {
-                name: format!("y{ch}"),
-                rows: m.nrows(),
-                cols: m.ncols(),
-                dtype: "f64le".into(),
-            });
-            f64s_to_bytes(&m, &mut payload);
+            push_f64_block(format!("y{ch}"), &s.to_mat(), &mut blocks, &mut payload);
         }
         let header = StateHeader {
             kind: STATE_KIND.into(),
@@ -717,13 +715,7 @@ pub fn merge_group(
         }
         Joined::Columns(cols) => {
             for (b, m) in first.blocks.iter().zip(&cols) {
-                blocks.push(BlockSpec {
-                    name: b.name.clone(),
-                    rows: m.nrows(),
-                    cols: m.ncols(),
-                    dtype: "f64le".into(),
-                });
-                f64s_to_bytes(m, &mut payload);
+                push_f64_block(b.name.clone(), m, &mut blocks, &mut payload);
             }
         }
     }
@@ -800,13 +792,7 @@ fn merge_local_pca(
             let mut blocks = Vec::new();
             let mut payload = Vec::new();
             for (name, m) in &st.blocks {
-                blocks.push(BlockSpec {
-                    name: name.clone(),
-                    rows: m.nrows(),
-                    cols: m.ncols(),
-                    dtype: "f64le".into(),
-                });
-                f64s_to_bytes(m, &mut payload);
+                push_f64_block(name.clone(), m, &mut blocks, &mut payload);
             }
             let header = StateHeader {
                 kind: STATE_KIND.into(),
