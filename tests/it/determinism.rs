@@ -10,28 +10,17 @@
 //!
 //! Compared: the SHA-256 of every file of the two outputs, walked in sorted order; the file
 //! lists must be equal too. Each run works in its own directory under the same relative
-//! names (the summary and a `.gbtf` header record the paths they were given). Exceptions,
-//! by name only — fields that measure the run itself (wall-clock readings, peak memory),
-//! which no rerun can reproduce:
-//! * `manifest.json`: `created_unix`; `records[].wall_time_unix`; `summary.wall_time_s`,
-//!   `summary.images_per_s`, `summary.stage_seconds`, `summary.peak_rss_mib`.
-//! * `journal.jsonl`: `rec.wall_time_unix` of every line, and the line's `crc` (a CRC of
-//!   the record bytes, which include `wall_time_unix`); everything else byte for byte.
+//! names (the summary and a `.gbtf` header record the paths they were given). The fields
+//! that measure the run itself are left out by name ([`common::hashes`]).
 //!
 //! `plan.json`, every image and every other byte must match exactly.
 
 use crate::common;
 
+use common::hashes::hashes;
 use common::{bin, write_scene};
-use sha2::{Digest, Sha256};
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-
-/// Manifest fields that hold wall-clock readings (see the module documentation).
-const MANIFEST_WALL_CLOCK: [&str; 1] = ["created_unix"];
-const SUMMARY_WALL_CLOCK: [&str; 4] = ["wall_time_s", "images_per_s", "stage_seconds", "peak_rss_mib"];
-const RECORD_WALL_CLOCK: &str = "wall_time_unix";
 
 /// A busy-looping child (bounded: it exits by itself after `seconds`), so the runs under
 /// test compete for the CPU as on a loaded machine.
@@ -74,72 +63,9 @@ fn gonio(cwd: &Path, threads: usize, args: &[&str]) {
     );
 }
 
-fn sha(bytes: &[u8]) -> String {
-    format!("{:x}", Sha256::digest(bytes))
-}
 
-fn drop_keys(v: &mut serde_json::Value, keys: &[&str]) {
-    if let Some(o) = v.as_object_mut() {
-        for k in keys {
-            o.remove(*k);
-        }
-    }
-}
 
-/// The bytes a file is compared by: its own, or for the manifest and the journal the
-/// JSON without the wall-clock fields named above.
-fn comparable(rel: &str, bytes: &[u8]) -> Vec<u8> {
-    let name = Path::new(rel).file_name().unwrap().to_string_lossy().into_owned();
-    match name.as_str() {
-        "manifest.json" => {
-            let mut v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
-            drop_keys(&mut v, &MANIFEST_WALL_CLOCK);
-            if let Some(s) = v.get_mut("summary") {
-                drop_keys(s, &SUMMARY_WALL_CLOCK);
-            }
-            if let Some(rs) = v.get_mut("records").and_then(|r| r.as_array_mut()) {
-                for r in rs {
-                    drop_keys(r, &[RECORD_WALL_CLOCK]);
-                }
-            }
-            serde_json::to_vec(&v).unwrap()
-        }
-        "journal.jsonl" => {
-            let mut out = Vec::new();
-            for line in bytes.split(|&b| b == b'\n').filter(|l| !l.is_empty()) {
-                let mut v: serde_json::Value = serde_json::from_slice(line).unwrap();
-                drop_keys(&mut v, &["crc"]);
-                drop_keys(v.get_mut("rec").unwrap(), &[RECORD_WALL_CLOCK]);
-                out.extend(serde_json::to_vec(&v).unwrap());
-                out.push(b'\n');
-            }
-            out
-        }
-        _ => bytes.to_vec(),
-    }
-}
 
-/// Relative path → SHA-256 of the comparable bytes, for a file or every file of a tree.
-fn hashes(root: &Path) -> BTreeMap<String, String> {
-    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<String, String>) {
-        for e in std::fs::read_dir(dir).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                walk(root, &p, out);
-            } else {
-                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
-                out.insert(rel.clone(), sha(&comparable(&rel, &std::fs::read(&p).unwrap())));
-            }
-        }
-    }
-    let mut out = BTreeMap::new();
-    if root.is_dir() {
-        walk(root, root, &mut out);
-    } else {
-        out.insert(String::new(), sha(&std::fs::read(root).unwrap()));
-    }
-    out
-}
 
 fn assert_same(what: &str, a: &Path, b: &Path) -> usize {
     let (ha, hb) = (hashes(a), hashes(b));

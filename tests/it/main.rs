@@ -25,6 +25,7 @@ mod fuzz_import;
 mod fuzz_inputs;
 mod fuzz_protocols;
 mod fuzz_resume;
+mod golden;
 mod hdr;
 mod serial_drivers;
 mod shard_merge;

@@ -2,6 +2,8 @@
 //! Each module uses a subset of them, hence the `dead_code` allowance.
 #![allow(dead_code)]
 
+pub mod hashes;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
