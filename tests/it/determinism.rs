@@ -63,10 +63,6 @@ fn gonio(cwd: &Path, threads: usize, args: &[&str]) {
     );
 }
 
-
-
-
-
 fn assert_same(what: &str, a: &Path, b: &Path) -> usize {
     let (ha, hb) = (hashes(a), hashes(b));
     assert_eq!(

@@ -31,69 +31,246 @@ use std::process::Command;
 const STEPS: &[(&str, &[&str], &str)] = &[
     (
         "acquire",
-        &["acquire", "--rig", "RIG", "--sweep", "SWEEP", "--size", "32x32", "--seed", "7", "--json", "--out", "acq"],
+        &[
+            "acquire", "--rig", "RIG", "--sweep", "SWEEP", "--size", "32x32", "--seed", "7", "--json", "--out", "acq",
+        ],
         "acq",
     ),
-    ("sim-btf", &["sim", "btf", "--sweep", "fibonacci:6", "--size", "32", "--json", "--out", "btf"], "btf"),
+    (
+        "sim-btf",
+        &[
+            "sim",
+            "btf",
+            "--sweep",
+            "fibonacci:6",
+            "--size",
+            "32",
+            "--json",
+            "--out",
+            "btf",
+        ],
+        "btf",
+    ),
     (
         "sim-btf-shard-1",
-        &["sim", "btf", "--sweep", "fibonacci:6", "--size", "32", "--shard", "1/2", "--out", "part1"],
+        &[
+            "sim",
+            "btf",
+            "--sweep",
+            "fibonacci:6",
+            "--size",
+            "32",
+            "--shard",
+            "1/2",
+            "--out",
+            "part1",
+        ],
         "part1",
     ),
     (
         "sim-btf-shard-2",
-        &["sim", "btf", "--sweep", "fibonacci:6", "--size", "32", "--shard", "2/2", "--out", "part2"],
+        &[
+            "sim",
+            "btf",
+            "--sweep",
+            "fibonacci:6",
+            "--size",
+            "32",
+            "--shard",
+            "2/2",
+            "--out",
+            "part2",
+        ],
         "part2",
     ),
-    ("merge", &["merge", "part1", "part2", "--out", "merged", "--json"], "merged"),
-    ("pca", &["compress", "btf", "--method", "pca", "-c", "4", "--json", "--out", "pca.gbtf"], "pca.gbtf"),
-    ("pvmf", &["compress", "btf", "--method", "pvmf", "-c", "3", "--json", "--out", "pvmf.gbtf"], "pvmf.gbtf"),
-    ("dfmf", &["compress", "btf", "--method", "dfmf", "-c", "3", "--json", "--out", "dfmf.btf"], "dfmf.btf"),
+    (
+        "merge",
+        &["merge", "part1", "part2", "--out", "merged", "--json"],
+        "merged",
+    ),
+    (
+        "pca",
+        &[
+            "compress", "btf", "--method", "pca", "-c", "4", "--json", "--out", "pca.gbtf",
+        ],
+        "pca.gbtf",
+    ),
+    (
+        "pvmf",
+        &[
+            "compress",
+            "btf",
+            "--method",
+            "pvmf",
+            "-c",
+            "3",
+            "--json",
+            "--out",
+            "pvmf.gbtf",
+        ],
+        "pvmf.gbtf",
+    ),
+    (
+        "dfmf",
+        &[
+            "compress", "btf", "--method", "dfmf", "-c", "3", "--json", "--out", "dfmf.btf",
+        ],
+        "dfmf.btf",
+    ),
     (
         "dfmf-lab-q",
         &[
-            "compress", "btf", "--method", "dfmf", "--color-model", "lab", "-c", "3", "--quantize", "10", "--json",
-            "--out", "dfmf-lab.gbtf",
+            "compress",
+            "btf",
+            "--method",
+            "dfmf",
+            "--color-model",
+            "lab",
+            "-c",
+            "3",
+            "--quantize",
+            "10",
+            "--json",
+            "--out",
+            "dfmf-lab.gbtf",
         ],
         "dfmf-lab.gbtf",
     ),
     (
         "local-pca",
         &[
-            "compress", "btf", "--method", "local-pca", "-c", "2", "--clusters", "3", "--subspace", "8", "--json",
-            "--out", "lpca.gbtf",
+            "compress",
+            "btf",
+            "--method",
+            "local-pca",
+            "-c",
+            "2",
+            "--clusters",
+            "3",
+            "--subspace",
+            "8",
+            "--json",
+            "--out",
+            "lpca.gbtf",
         ],
         "lpca.gbtf",
     ),
     (
         "median-cut",
-        &["compress", "btf", "--method", "median-cut", "--boxes", "16", "--json", "--out", "mc.gbtf"],
+        &[
+            "compress",
+            "btf",
+            "--method",
+            "median-cut",
+            "--boxes",
+            "16",
+            "--json",
+            "--out",
+            "mc.gbtf",
+        ],
         "mc.gbtf",
     ),
     (
         "homomorphic",
-        &["compress", "btf", "--method", "homomorphic", "-c", "3", "--json", "--out", "hom.gbtf"],
+        &[
+            "compress",
+            "btf",
+            "--method",
+            "homomorphic",
+            "-c",
+            "3",
+            "--json",
+            "--out",
+            "hom.gbtf",
+        ],
         "hom.gbtf",
     ),
-    ("nd", &["compress", "btf", "--method", "nd", "-c", "3", "--json", "--out", "nd.gbtf"], "nd.gbtf"),
-    ("svd-j", &["compress", "btf", "--method", "svd-j", "-c", "2", "--json", "--out", "svdj.gbtf"], "svdj.gbtf"),
-    ("gshd", &["compress", "btf", "--method", "gshd", "-c", "3", "--json", "--out", "gshd.gbtf"], "gshd.gbtf"),
-    ("cmf", &["compress", "btf", "--method", "cmf", "-c", "2", "--json", "--out", "cmf.gbtf"], "cmf.gbtf"),
+    (
+        "nd",
+        &[
+            "compress", "btf", "--method", "nd", "-c", "3", "--json", "--out", "nd.gbtf",
+        ],
+        "nd.gbtf",
+    ),
+    (
+        "svd-j",
+        &[
+            "compress",
+            "btf",
+            "--method",
+            "svd-j",
+            "-c",
+            "2",
+            "--json",
+            "--out",
+            "svdj.gbtf",
+        ],
+        "svdj.gbtf",
+    ),
+    (
+        "gshd",
+        &[
+            "compress",
+            "btf",
+            "--method",
+            "gshd",
+            "-c",
+            "3",
+            "--json",
+            "--out",
+            "gshd.gbtf",
+        ],
+        "gshd.gbtf",
+    ),
+    (
+        "cmf",
+        &[
+            "compress", "btf", "--method", "cmf", "-c", "2", "--json", "--out", "cmf.gbtf",
+        ],
+        "cmf.gbtf",
+    ),
     (
         "synthesize-quilting",
         &[
-            "synthesize", "pca.gbtf", "--method", "quilting", "--size", "48x40", "--block", "8", "--json", "--out",
+            "synthesize",
+            "pca.gbtf",
+            "--method",
+            "quilting",
+            "--size",
+            "48x40",
+            "--block",
+            "8",
+            "--json",
+            "--out",
             "quilt.gbtf",
         ],
         "quilt.gbtf",
     ),
     (
         "synthesize-tile",
-        &["synthesize", "pvmf.gbtf", "--method", "tile", "--size", "48x40", "--json", "--out", "tile.gbtf"],
+        &[
+            "synthesize",
+            "pvmf.gbtf",
+            "--method",
+            "tile",
+            "--size",
+            "48x40",
+            "--json",
+            "--out",
+            "tile.gbtf",
+        ],
         "tile.gbtf",
     ),
-    ("export-npy", &["export", "btf", "--format", "npy", "btf.npy", "--json"], "btf.npy"),
-    ("export-ubo2003", &["export", "btf", "--format", "ubo2003", "btf.zip", "--json"], "btf.zip"),
+    (
+        "export-npy",
+        &["export", "btf", "--format", "npy", "btf.npy", "--json"],
+        "btf.npy",
+    ),
+    (
+        "export-ubo2003",
+        &["export", "btf", "--format", "ubo2003", "btf.zip", "--json"],
+        "btf.zip",
+    ),
 ];
 
 /// The golden file: one `step/path sha256` line per written file, sorted.
@@ -128,7 +305,11 @@ fn run_all(dir: &Path) -> BTreeMap<String, String> {
             String::from_utf8_lossy(&o.stderr)
         );
         for (rel, h) in hashes(&dir.join(output)) {
-            let key = if rel.is_empty() { format!("{name}/{output}") } else { format!("{name}/{output}/{rel}") };
+            let key = if rel.is_empty() {
+                format!("{name}/{output}")
+            } else {
+                format!("{name}/{output}/{rel}")
+            };
             out.insert(key, h);
         }
     }
@@ -154,7 +335,10 @@ fn fixed_command_list_writes_the_golden_bytes() {
         .collect();
     let missing: Vec<&String> = want.keys().filter(|k| !got.contains_key(*k)).collect();
     let extra: Vec<&String> = got.keys().filter(|k| !want.contains_key(*k)).collect();
-    let differ: Vec<&String> = want.keys().filter(|k| got.get(*k).is_some_and(|h| h != &want[*k])).collect();
+    let differ: Vec<&String> = want
+        .keys()
+        .filter(|k| got.get(*k).is_some_and(|h| h != &want[*k]))
+        .collect();
     assert!(
         missing.is_empty() && extra.is_empty() && differ.is_empty(),
         "outputs changed against {}:\n  differ: {differ:?}\n  no longer written: {missing:?}\n  new: {extra:?}\n\
