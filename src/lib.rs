@@ -1,26 +1,23 @@
-//! gonio: plan, drive, develop, store and compress gonioreflectometer acquisitions.
+//! gonio: the command line, the browser viewer, synthetic dataset families, shard merges and
+//! the Slurm front end, on top of the library crates (ARCHITECTURE.md, "Crates"):
 //!
-//! See ARCHITECTURE.md for the map and its invariants. Data flows sweep → [`plan`] →
-//! [`session`] → [`engine`] (steps the [`rig`]) → [`develop`] → [`store`]; [`calibrate`]
-//! steps the same rig through recipes, [`compress`] reads the stored datasets and
-//! [`synthesize`] grows compressed ones.
+//! * `gonio-dataset`: sweeps, shards and the dataset's one writer (`store`);
+//! * `gonio-acquire`: plan, rig, develop, engine, calibrate, session;
+//! * `gonio-btf`: compress, fit, synthesize;
+//! * `gonio-brdf`, `gonio-devices`, `gonio-simulator`, `gonio-calibration` below them.
+//!
+//! The library crates' modules are re-exported under their old paths (`gonio::store`,
+//! `gonio::session`, …) so that scripts and tests written against the single crate keep
+//! compiling; new code names the crate that owns the module.
 
-pub mod calibrate;
+pub use gonio_acquire::{calibrate, develop, engine, plan, rig, session};
+pub use gonio_btf::{compress, fit, synthesize};
+pub use gonio_dataset::{shard, store, sweep};
+
 pub mod cli;
-pub mod compress;
-pub mod develop;
-pub mod engine;
-pub mod fit;
 pub mod merge;
-pub mod plan;
-pub mod rig;
-pub mod session;
-pub mod shard;
 pub mod slurm;
-pub mod store;
-pub mod sweep;
 pub mod synth;
-pub mod synthesize;
 pub mod view;
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! `gonio merge`: put the parts of a sharded job back together ([`crate::shard`]).
+//! `gonio merge`: put the parts of a sharded job back together ([`gonio_dataset::shard`]).
 //!
 //! Two kinds of parts:
 //! * **datasets** (`gonio sim btf --shard`): every record and image of every part, written
@@ -15,10 +15,10 @@
 //! Every part must be a complete part of the same job: missing, duplicate, overlapping,
 //! incomplete or mismatched parts are refused, naming the part and the field.
 
-use crate::compress::rsvd_shard::{self, PartHeader};
-use crate::compress::{Gbtf, GbtfHeader};
-use crate::shard::{self, first_difference, ShardError, ShardInfo};
-use crate::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
+use gonio_btf::compress::rsvd_shard::{self, PartHeader};
+use gonio_btf::compress::{Gbtf, GbtfHeader};
+use gonio_dataset::shard::{self, first_difference, ShardError, ShardInfo};
+use gonio_dataset::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
 use std::path::{Path, PathBuf};
 
 /// Errors of a merge; each names the part (or output) concerned.
@@ -29,7 +29,7 @@ pub enum MergeError {
     #[error(transparent)]
     Store(#[from] StoreError),
     #[error(transparent)]
-    Compress(#[from] crate::compress::CompressError),
+    Compress(#[from] gonio_btf::compress::CompressError),
     #[error("{path}: {reason}")]
     Part { path: PathBuf, reason: String },
     #[error(

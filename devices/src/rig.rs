@@ -28,6 +28,25 @@ pub enum RigError {
     },
 }
 
+/// A rig-file option that is present but wrong: its key (`camera.options.k1`), its value
+/// and what it must be. Every option that more than one place reads has one typed reader on
+/// the schema ([`CameraSpec::distortion`], [`CameraSpec::noise_seed`],
+/// [`RigSpec::lamp_radius_mm`]), so the rule and its message live in one place.
+#[derive(Debug, Clone, PartialEq, Error)]
+#[error("`{key}` = {value}: {message}")]
+pub struct OptionError {
+    pub key: String,
+    pub value: String,
+    pub message: String,
+}
+
+/// A finite number from a TOML value (integer or float).
+fn option_number(v: &toml::Value) -> Option<f64> {
+    v.as_float()
+        .or_else(|| v.as_integer().map(|i| i as f64))
+        .filter(|x| x.is_finite())
+}
+
 /// What kind of mechanism the rig is; selects the kinematics.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -201,6 +220,38 @@ impl CameraSpec {
     pub fn capture_time(&self) -> f64 {
         self.exposure_s + self.readout_s
     }
+
+    /// The lens distortion `[k1, k2, p1, p2, k3]` (OpenCV's order; `camera.options.k1` …),
+    /// 0 where absent. Each may be negative and must satisfy |value| < 10.
+    pub fn distortion(&self) -> Result<[f64; 5], OptionError> {
+        let mut c = [0.0; 5];
+        for (k, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
+            if let Some(v) = self.options.get(*key) {
+                c[k] = option_number(v).filter(|x| x.abs() < 10.0).ok_or_else(|| OptionError {
+                    key: format!("camera.options.{key}"),
+                    value: v.to_string(),
+                    message: "must be a number with |value| < 10".into(),
+                })?;
+            }
+        }
+        Ok(c)
+    }
+
+    /// The sensor noise seed the rig file sets (`camera.options.seed`, an integer ≥ 0), if
+    /// any. `--seed` overrides it; the manifest records the seed actually used.
+    pub fn noise_seed(&self) -> Result<Option<u64>, OptionError> {
+        let Some(v) = self.options.get("seed") else {
+            return Ok(None);
+        };
+        option_number(v)
+            .filter(|x| *x >= 0.0 && x.fract() == 0.0 && *x <= u64::MAX as f64)
+            .map(|x| Some(x as u64))
+            .ok_or_else(|| OptionError {
+                key: "camera.options.seed".into(),
+                value: v.to_string(),
+                message: "must be a whole number ≥ 0".into(),
+            })
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -288,6 +339,22 @@ impl AlignmentSpec {
 }
 
 impl RigSpec {
+    /// The lamp's disc radius (`light.options.radius_mm`, mm; absent = 0, a point lamp), at
+    /// most half the lamp's distance from the sample, so the disc stays a lamp.
+    pub fn lamp_radius_mm(&self) -> Result<f64, OptionError> {
+        let Some(v) = self.light.options.get("radius_mm") else {
+            return Ok(0.0);
+        };
+        let max = self.geometry.light_distance_mm / 2.0;
+        option_number(v)
+            .filter(|r| *r >= 0.0 && *r <= max)
+            .ok_or_else(|| OptionError {
+                key: "light.options.radius_mm".into(),
+                value: v.to_string(),
+                message: format!("must be a number of millimetres in [0, {max}] (half the lamp distance)"),
+            })
+    }
+
     /// Load and validate a rig file.
     pub fn load(path: &Path) -> Result<RigSpec, RigError> {
         let file = path.display().to_string();

@@ -662,21 +662,18 @@ pub fn sensor_response(spec: &RigSpec) -> Result<Option<crate::sensor::SensorRes
     )
 }
 
-/// The lamp's disc radius from the rig file (`light.options.radius_mm`, default 0 = a
-/// point lamp); at most half the lamp's distance from the sample, so the disc stays a lamp.
+/// The lamp's disc radius from the rig file ([`RigSpec::lamp_radius_mm`]), as a
+/// simulator error.
 pub fn lamp_radius_mm(spec: &RigSpec) -> Result<f64, SimRigError> {
-    let Some(v) = spec.light.options.get("radius_mm") else {
-        return Ok(0.0);
-    };
-    let max = spec.geometry.light_distance_mm / 2.0;
-    v.as_float()
-        .or_else(|| v.as_integer().map(|i| i as f64))
-        .filter(|r| r.is_finite() && *r >= 0.0 && *r <= max)
-        .ok_or(SimRigError {
-            rig: spec.name.clone(),
-            key: "light.options.radius_mm".into(),
-            message: format!("{v}: must be a number of millimetres in [0, {max}] (half the lamp distance)"),
-        })
+    spec.lamp_radius_mm().map_err(|e| option_error(spec, e))
+}
+
+fn option_error(spec: &RigSpec, e: gonio_devices::rig::OptionError) -> SimRigError {
+    SimRigError {
+        rig: spec.name.clone(),
+        key: e.key,
+        message: format!("{}: {}", e.value, e.message),
+    }
 }
 
 pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions) -> Result<SimRig, SimRigError> {
@@ -719,7 +716,14 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         gain: spec.camera.gain,
         exposure_s: spec.camera.exposure_s,
         noise: opts.noise.unwrap_or(true),
-        seed: opts.seed.unwrap_or(opt("seed", 1.0)? as u64),
+        seed: match opts.seed {
+            Some(seed) => seed,
+            None => spec
+                .camera
+                .noise_seed()
+                .map_err(|e| option_error(spec, e))?
+                .unwrap_or(1),
+        },
     };
     let light = Arc::new(SimLight {
         state: Mutex::new((false, 0.0)),
@@ -739,24 +743,7 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         readout_s: spec.camera.readout_s,
         width: spec.camera.width,
         height: spec.camera.height,
-        lens: {
-            // Distortion coefficients may be negative: read them without `opt`'s ≥ 0 rule.
-            let mut c = [0.0; 5];
-            for (k, key) in ["k1", "k2", "p1", "p2", "k3"].iter().enumerate() {
-                if let Some(v) = spec.camera.options.get(*key) {
-                    c[k] = v
-                        .as_float()
-                        .or_else(|| v.as_integer().map(|i| i as f64))
-                        .filter(|x| x.is_finite() && x.abs() < 10.0)
-                        .ok_or(SimRigError {
-                            rig: spec.name.clone(),
-                            key: format!("camera.options.{key}"),
-                            message: format!("{v}: must be a number with |value| < 10"),
-                        })?;
-                }
-            }
-            crate::render::LensDistortion(c)
-        },
+        lens: crate::render::LensDistortion(spec.camera.distortion().map_err(|e| option_error(spec, e))?),
         response: sensor_response(spec)?,
         truth_views: ViewCache::with_budget(TRUTH_VIEW_CACHE, TRUTH_VIEW_BUDGET),
         raw_views: ViewCache::new(RAW_VIEW_CACHE),

@@ -10,7 +10,9 @@
 //! The simulator implements the hardware traits of `gonio-devices`, so the acquisition
 //! engine cannot tell it from a real rig.
 
-pub mod brdf;
+/// The material library lives in its own crate (`gonio-brdf`), shared with fitting and
+/// compression; re-exported here under its old path.
+pub use gonio_brdf as brdf;
 pub mod camera_faults;
 pub mod clock;
 pub mod devices;

@@ -1,9 +1,9 @@
 //! `gonio acquire`: run (or resume) an acquisition and print its summary.
 
 use super::common::{load_sample, RigArgs, SweepArgs};
-use crate::engine::{Observer, RunEvent};
-use crate::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, Summary};
 use anyhow::{Context, Result};
+use gonio_acquire::engine::{Observer, RunEvent};
+use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, Summary};
 use gonio_devices::hdr::{HdrMode, HdrSpec};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -71,7 +71,7 @@ pub struct AcquireArgs {
     /// shard's views are run, so `gonio merge` of the N parts gives the single-process
     /// images byte for byte (docs/scale.md). Simulated rigs; not with --isotropic.
     #[arg(long, conflicts_with = "resume")]
-    pub shard: Option<crate::shard::Shard>,
+    pub shard: Option<gonio_dataset::shard::Shard>,
     /// Port of --view (0 picks a free one).
     #[arg(long, default_value_t = 0, requires = "view")]
     pub view_port: u16,

@@ -102,14 +102,14 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     if command.first().map(String::as_str) == Some("--") {
         command.remove(0);
     }
-    let default_iters = crate::compress::Params::new(crate::compress::Method::Pca, 1).power_iters;
-    let kind = ShardedKind::of(&command, default_iters, crate::compress::local_pca::passes::PASSES)
+    let default_iters = gonio_btf::compress::Params::new(gonio_btf::compress::Method::Pca, 1).power_iters;
+    let kind = ShardedKind::of(&command, default_iters, gonio_btf::compress::local_pca::passes::PASSES)
         .map_err(anyhow::Error::msg)?;
-    if !(1..=crate::shard::MAX_SHARDS).contains(&a.shards) {
+    if !(1..=gonio_dataset::shard::MAX_SHARDS).contains(&a.shards) {
         bail!(
             "--shards {}: valid range is 1 ..= {}",
             a.shards,
-            crate::shard::MAX_SHARDS
+            gonio_dataset::shard::MAX_SHARDS
         );
     }
     if a.retries > 10 {

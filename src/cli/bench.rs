@@ -2,8 +2,8 @@
 //! baseline measured in the same process (absolute times vary with the machine).
 
 use super::common::{load_sample, RigArgs};
-use crate::sweep;
 use anyhow::Result;
+use gonio_dataset::sweep;
 use gonio_devices::kinematics;
 use gonio_simulator::sensor::SensorModel;
 use gonio_simulator::{PointLight, RenderQuality, Renderer};
@@ -294,7 +294,7 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
             .map(|p| gonio_devices::rig::RigSpec::load(p).with_context(|| format!("loading rig {}", p.display())))
             .collect::<Result<Vec<_>>>()?
     };
-    let sweep = crate::sweep::Sweep::resolve(&a.sweep)?;
+    let sweep = gonio_dataset::sweep::Sweep::resolve(&a.sweep)?;
     for &b in &a.budgets {
         anyhow::ensure!(
             b.is_finite() && (0.0..=600.0).contains(&b),
@@ -309,12 +309,12 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
         .chain(a.kicks.iter().map(|&k| (None, k)))
         .collect();
     for (rig, &(b, kicks)) in rigs.iter().flat_map(|r| budgets.iter().map(move |b| (r, b))) {
-        let opts = crate::plan::PlanOptions {
+        let opts = gonio_acquire::plan::PlanOptions {
             kicks,
             time_cap: b.map(std::time::Duration::from_secs_f64),
             ..Default::default()
         };
-        let p = crate::plan::Plan::build(rig, &sweep, &opts)
+        let p = gonio_acquire::plan::Plan::build(rig, &sweep, &opts)
             .with_context(|| format!("planning sweep `{}` on rig `{}`", sweep.name, rig.name))?;
         let d = &p.durations;
         rows.push(PlanRow {

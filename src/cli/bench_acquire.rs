@@ -12,9 +12,9 @@
 //! between phases), so a short and a full run show whether memory grows with the sweep.
 
 use super::common::{load_sample, RigArgs, SweepArgs};
-use crate::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
 use crate::synth;
 use anyhow::{Context, Result};
+use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
 use gonio_devices::Direction;
 use gonio_simulator::{RenderQuality, Renderer, SimOptions};
 use serde::Serialize;
@@ -88,7 +88,7 @@ struct Report {
     /// Acquisition ms/image over raw-frame rendering with the sensor model.
     acquire_over_raw_capture: f64,
     /// The acquisition's own summary (stage seconds, truth error, peak memory).
-    acquisition: crate::session::Summary,
+    acquisition: gonio_acquire::session::Summary,
 }
 
 fn loadavg() -> Option<[f64; 3]> {
@@ -135,7 +135,7 @@ fn bench(
     a: &AcquireBenchArgs,
     rig: &gonio_devices::rig::RigSpec,
     sample: &gonio_simulator::SampleSpec,
-    sweep: &crate::sweep::Sweep,
+    sweep: &gonio_dataset::sweep::Sweep,
     out: &std::path::Path,
 ) -> Result<ExitCode> {
     let load_before = loadavg();
@@ -162,7 +162,7 @@ fn bench(
         shard: None,
     })
     .with_context(|| format!("creating the benchmark dataset {}", out.display()))?;
-    let steps: Vec<crate::plan::Step> = session
+    let steps: Vec<gonio_acquire::plan::Step> = session
         .plan()
         .steps
         .iter()
@@ -185,16 +185,16 @@ fn bench(
                 limit: a.limit,
             },
             Arc::new(AtomicBool::new(false)),
-            Arc::new(|_: &crate::engine::RunEvent<'_>| {}),
+            Arc::new(|_: &gonio_acquire::engine::RunEvent<'_>| {}),
         ))
         .with_context(|| format!("acquiring into {}", out.display()))?;
     let acquire_s = t.elapsed().as_secs_f64();
-    let acquire_rss = crate::session::peak_rss_mib().filter(|_| reset);
+    let acquire_rss = gonio_acquire::session::peak_rss_mib().filter(|_| reset);
     let images = summary.stored_this_run.max(1);
     let acquire_ms = acquire_s * 1e3 / images as f64;
 
     // The baselines render the pairs the acquisition measured (every K-th of them).
-    let picked: Vec<&crate::plan::Step> = steps.iter().step_by(a.baseline_every).collect();
+    let picked: Vec<&gonio_acquire::plan::Step> = steps.iter().step_by(a.baseline_every).collect();
     let renderer = Arc::new(Renderer::new(
         Arc::new(sample.clone().build()?),
         RenderQuality::default(),
@@ -207,7 +207,7 @@ fn bench(
     // 2. `gonio sim btf`: the same pairs' truth, each view traced once and shaded per light.
     let reset = reset_peak_rss();
     let scale = synth::truth_scale(&world.sensor.lock().expect("sensor lock"));
-    let mut by_view: Vec<(usize, Vec<&crate::plan::Step>)> = Vec::new();
+    let mut by_view: Vec<(usize, Vec<&gonio_acquire::plan::Step>)> = Vec::new();
     for s in &picked {
         match by_view.iter_mut().find(|(v, _)| *v == s.view_index) {
             Some((_, list)) => list.push(s),
@@ -228,7 +228,7 @@ fn bench(
         }
     }
     let btf_s = t.elapsed().as_secs_f64();
-    let btf_rss = crate::session::peak_rss_mib().filter(|_| reset);
+    let btf_rss = gonio_acquire::session::peak_rss_mib().filter(|_| reset);
 
     // 3. Raw frames alone: the simulated camera's render, then its sensor model.
     let qs: Vec<Vec<f64>> = picked
@@ -254,7 +254,7 @@ fn bench(
         checksum += dn[dn.len() / 2] as f64;
     }
     let capture_s = t.elapsed().as_secs_f64();
-    let raw_rss = crate::session::peak_rss_mib().filter(|_| reset);
+    let raw_rss = gonio_acquire::session::peak_rss_mib().filter(|_| reset);
     tracing::debug!(
         checksum,
         "baseline checksum (keeps the renders from being optimised away)"

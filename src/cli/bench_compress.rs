@@ -493,7 +493,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let ds = tmp.path().join("ds");
         let dirs = [[0.0, 0.0], [40.0, 90.0], [60.0, 200.0]];
-        crate::compress::testdata::write_test_dataset(&ds, (4, 3), &dirs, &dirs, &[], |l, v, t, c| {
+        gonio_btf::compress::testdata::write_test_dataset(&ds, (4, 3), &dirs, &dirs, &[], |l, v, t, c| {
             0.1 + 0.02 * (l + 2 * v + 3 * c) as f32 + 0.01 * (t % 5) as f32
         });
         let out = tmp.path().join("x.gbtf");
@@ -674,13 +674,13 @@ struct SpeedReport {
 }
 
 fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
-    use crate::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
-    use crate::compress::linalg::{gram_truncated, truncated_svd};
     use faer::linalg::matmul::triangular::{matmul as tri_matmul, BlockStructure};
     use faer::Mat;
+    use gonio_btf::compress::dfmf::{ChannelFactors, ColorModel, Dfmf};
+    use gonio_btf::compress::linalg::{gram_truncated, truncated_svd};
     use std::time::Instant;
-    let ds =
-        crate::compress::DatasetViews::open(&a.dataset).with_context(|| format!("opening {}", a.dataset.display()))?;
+    let ds = gonio_btf::compress::DatasetViews::open(&a.dataset)
+        .with_context(|| format!("opening {}", a.dataset.display()))?;
     let (t, n, nv) = (ds.texels(), ds.n_lights() * 3, ds.n_views());
     let c = 8;
     let timed = nv.min(6);
@@ -756,7 +756,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
     };
     let tri_s = best(&mut triangular);
     let chunked = |big: &Mat<f64>| {
-        std::hint::black_box(crate::compress::linalg::gram_by_row_chunks(big.as_ref()));
+        std::hint::black_box(gonio_btf::compress::linalg::gram_by_row_chunks(big.as_ref()));
     };
     let chunk_s = best(&mut || chunked(&big));
     // Both products again while a reader thread loads views, as during PVMF's encode.
@@ -789,7 +789,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
         .into_iter()
         .map(|b| {
             let s = best(&mut || {
-                std::hint::black_box(crate::compress::linalg::gram_lower(big.as_ref(), b));
+                std::hint::black_box(gonio_btf::compress::linalg::gram_lower(big.as_ref(), b));
             });
             (b, s)
         })
@@ -857,7 +857,7 @@ fn speed(a: &CompressBenchArgs) -> Result<ExitCode> {
         extrapolated_full_encode_seconds_gram: per(read_s) * scale + 81.0 * full_gram,
         decode_ms_256_rgb_c8: decode_ms(&synth(ColorModel::Rgb))?,
         decode_ms_256_logyuv_c8: decode_ms(&synth(ColorModel::LogYuv))?,
-        peak_memory_bytes: crate::compress::peak_memory_bytes(),
+        peak_memory_bytes: gonio_btf::compress::peak_memory_bytes(),
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);

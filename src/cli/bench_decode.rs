@@ -7,9 +7,9 @@
 //! and the median round is reported. The baseline in the same run is reading the same
 //! images from the dataset's EXR files (`--dataset`): what decoding replaces.
 
-use crate::compress::interp::AnyModel;
-use crate::compress::DatasetViews;
 use anyhow::{bail, Context, Result};
+use gonio_btf::compress::interp::AnyModel;
+use gonio_btf::compress::DatasetViews;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;

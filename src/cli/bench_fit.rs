@@ -2,10 +2,10 @@
 //! of a known model (exact values at a Fibonacci sweep's pairs: the error is the model
 //! mismatch plus what the solver has not converged yet, never noise).
 
-use crate::fit::lm::LmOptions;
-use crate::fit::{fit, FitOptions, Observations, Space};
-use crate::sweep::Sweep;
 use anyhow::{anyhow, Context, Result};
+use gonio_btf::fit::lm::LmOptions;
+use gonio_btf::fit::{fit, FitOptions, Observations, Space};
+use gonio_dataset::sweep::Sweep;
 use gonio_simulator::brdf::{
     BeckmannLobe, BrdfModel, Distribution, Fresnel, LafortuneLobe, Masking, WardNormalization,
 };

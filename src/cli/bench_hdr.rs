@@ -20,9 +20,9 @@
 
 use super::common::{load_sample, RigArgs, SweepArgs};
 use super::svg_plot::{log_log, Series};
-use crate::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
-use crate::store;
 use anyhow::{Context, Result};
+use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
+use gonio_dataset::store;
 use gonio_devices::hdr::HdrMode;
 use serde::Serialize;
 use std::path::PathBuf;

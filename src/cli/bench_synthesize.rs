@@ -9,10 +9,10 @@
 
 use super::svg_plot;
 use super::synthesize::{open_exemplar, parse_size, SynthArgs};
-use crate::compress::DatasetViews;
-use crate::synthesize::quality::{self, ImageStats};
-use crate::synthesize::{self, features, FeatureImage, SynthMethod, TexelMap};
 use anyhow::{bail, Context, Result};
+use gonio_btf::compress::DatasetViews;
+use gonio_btf::synthesize::quality::{self, ImageStats};
+use gonio_btf::synthesize::{self, features, FeatureImage, SynthMethod, TexelMap};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::PathBuf;

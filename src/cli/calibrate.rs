@@ -2,9 +2,9 @@
 //! versioned result (`DIR/calibration.json`, plus `DIR/corners.json` for intrinsics).
 
 use super::common::{load_sample, RigArgs};
-use crate::calibrate::{self, Recipe};
-use crate::rig::Rig;
 use anyhow::{Context, Result};
+use gonio_acquire::calibrate::{self, Recipe};
+use gonio_acquire::rig::Rig;
 use std::path::PathBuf;
 use std::process::ExitCode;
 

@@ -1,8 +1,8 @@
 //! Options shared by several subcommands: which rig, which sample, which sweep.
 
-use crate::plan::{Plan, PlanOptions, Policy};
-use crate::sweep::Sweep;
 use anyhow::{Context, Result};
+use gonio_acquire::plan::{Plan, PlanOptions, Policy};
+use gonio_dataset::sweep::Sweep;
 use gonio_devices::rig::RigSpec;
 use gonio_simulator::SampleSpec;
 use std::path::PathBuf;
@@ -34,7 +34,7 @@ pub struct SweepArgs {
     pub policy: Policy,
     /// Kicks (improvement steps) of the order optimizer: a work count, so the same inputs
     /// give the same plan on any machine and under any load.
-    #[arg(long, default_value_t = crate::plan::order::DEFAULT_KICKS)]
+    #[arg(long, default_value_t = gonio_acquire::plan::order::DEFAULT_KICKS)]
     pub plan_kicks: usize,
     /// Optional wall-clock cap (seconds) on the order optimizer. The plan then depends on
     /// the machine's speed and load; plan.json records the cap (`budget.time_cap_s`).

@@ -1,12 +1,12 @@
 //! `gonio compress` and `gonio reconstruct`.
 
 use super::common::parse_angles;
-use crate::compress::btf_ubo2014::{self, Precision};
-use crate::compress::dfmf::{self, ColorModel, DfmfParams};
-use crate::compress::interp::AnyModel;
-use crate::compress::target::Goal;
-use crate::compress::{self, DatasetViews, Method, Params};
 use anyhow::{Context, Result};
+use gonio_btf::compress::btf_ubo2014::{self, Precision};
+use gonio_btf::compress::dfmf::{self, ColorModel, DfmfParams};
+use gonio_btf::compress::interp::AnyModel;
+use gonio_btf::compress::target::Goal;
+use gonio_btf::compress::{self, DatasetViews, Method, Params};
 use gonio_devices::image::RgbImage;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -111,7 +111,7 @@ pub struct CompressArgs {
     /// Local PCA: dimension of the global PCA subspace the clustering runs in before the
     /// final full-space models (0: every round in the full ABRDF space, the original
     /// algorithm, ~10× slower at 81 × 81).
-    #[arg(long, default_value_t = crate::compress::local_pca::DEFAULT_SUBSPACE)]
+    #[arg(long, default_value_t = gonio_btf::compress::local_pca::DEFAULT_SUBSPACE)]
     pub subspace: usize,
     /// Local PCA: run the nine passes over the views that `--shard I/N` splits, in this
     /// one process: the file a sharded run merges to, byte for byte (exact sums; about 3×
@@ -164,7 +164,7 @@ pub struct CompressArgs {
     /// `--subspace d > 0`): 9 rounds the same way. A part is not evaluated (evaluate
     /// the merged file).
     #[arg(long)]
-    pub shard: Option<crate::shard::Shard>,
+    pub shard: Option<gonio_dataset::shard::Shard>,
     /// PCA/DFMF/local PCA with --shard: the merged state of the previous pass (`gonio merge` of
     /// its `.gpart` parts); without it the shard runs the first pass.
     #[arg(long, requires = "shard", value_name = "STATE.gstate")]
@@ -278,7 +278,7 @@ pub fn run(args: CompressArgs) -> Result<ExitCode> {
 
 /// One shard's pass of a sharded PCA, DFMF or local PCA (`--shard I/N [--state S]`): writes a
 /// `.gpart` and says what to run next.
-fn shard_pass(args: &CompressArgs, shard: crate::shard::Shard) -> Result<ExitCode> {
+fn shard_pass(args: &CompressArgs, shard: gonio_dataset::shard::Shard) -> Result<ExitCode> {
     use compress::rsvd_shard::{run_shard, Output};
     if args.target_psnr.is_some() || args.target_ratio.is_some() {
         anyhow::bail!(
@@ -831,7 +831,7 @@ pub fn reconstruct(args: ReconstructArgs) -> Result<ExitCode> {
     };
     let comparison = match &args.compare {
         Some(p) => {
-            let reference = crate::store::read_exr(p).with_context(|| format!("reading {}", p.display()))?;
+            let reference = gonio_dataset::store::read_exr(p).with_context(|| format!("reading {}", p.display()))?;
             if (reference.width, reference.height) != (img.width, img.height) {
                 anyhow::bail!(
                     "{} is {}×{}, the reconstruction is {}×{}",
@@ -850,9 +850,9 @@ pub fn reconstruct(args: ReconstructArgs) -> Result<ExitCode> {
     };
     if args.out.extension().and_then(|e| e.to_str()) == Some("npy") {
         // Raw float32 (H, W, 3) for scripts (tests/interop/check_ubo2014.py).
-        let mut bytes = crate::store::export::npy_header(&[img.height, img.width, 3]);
+        let mut bytes = gonio_dataset::store::export::npy_header(&[img.height, img.width, 3]);
         bytes.extend(img.data.iter().flat_map(|v| v.to_le_bytes()));
-        crate::store::atomic::write_atomic(&args.out, &bytes, None)
+        gonio_dataset::store::atomic::write_atomic(&args.out, &bytes, None)
             .with_context(|| format!("writing {}", args.out.display()))?;
     } else {
         super::sim::write_image(&args.out, &img)?;

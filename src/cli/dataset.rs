@@ -1,9 +1,9 @@
 //! `gonio dataset generate`: a family of synthetic datasets with their labels (see
 //! `crate::synth::family`).
 
-use crate::shard::Shard;
 use crate::synth::family::Family;
 use anyhow::{Context, Result};
+use gonio_dataset::shard::Shard;
 use std::path::PathBuf;
 use std::process::ExitCode;
 

@@ -1,7 +1,7 @@
 //! `gonio export` and `gonio verify`.
 
-use crate::store;
 use anyhow::{Context, Result};
+use gonio_dataset::store;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -27,7 +27,7 @@ pub struct ExportArgs {
     /// Zarr only: write the shards of views of part I of N (1-based) into OUT; N such
     /// processes fill one store, equal byte for byte to a single-process export.
     #[arg(long)]
-    pub shard: Option<crate::shard::Shard>,
+    pub shard: Option<gonio_dataset::shard::Shard>,
     /// Zarr only: replace an existing Zarr store at OUT.
     #[arg(long)]
     pub force: bool,
@@ -62,7 +62,17 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!("{report:?}");
+        println!(
+            "{}: {} images exported ({} with a substituted light direction), {} skipped measurements left out; {} bytes",
+            report.path.display(),
+            report.entries,
+            report.substituted,
+            report.skipped,
+            report.bytes
+        );
+        if let Some(sidecar) = &report.sidecar {
+            println!("index: {}", sidecar.display());
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -122,7 +132,7 @@ pub fn verify(args: VerifyArgs) -> Result<ExitCode> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        println!("{report:?}");
+        print_verify(&report);
     }
     if report.damaged.is_empty() {
         Ok(ExitCode::SUCCESS)
@@ -134,5 +144,46 @@ pub fn verify(args: VerifyArgs) -> Result<ExitCode> {
             args.dir.display()
         );
         Ok(ExitCode::from(2))
+    }
+}
+
+/// `gonio verify` for a person: what was checked, then each kind of problem, one line each.
+fn print_verify(r: &store::VerifyReport) {
+    println!(
+        "{}: {} journal records ({} measured, {} substituted, {} skipped), {}; {} images and {} raw frames \
+         match their SHA-256 ({} bytes hashed)",
+        r.dir.display(),
+        r.records,
+        r.measured,
+        r.substituted,
+        r.skipped,
+        if r.complete { "complete" } else { "incomplete" },
+        r.images_ok,
+        r.raw_ok,
+        r.bytes_hashed
+    );
+    for d in &r.damaged {
+        println!("damaged or missing: record {d}");
+    }
+    if !r.orphans.is_empty() {
+        println!(
+            "{} file(s) without a journal line (a resume removes them)",
+            r.orphans.len()
+        );
+    }
+    if !r.temp_files.is_empty() {
+        println!(
+            "{} leftover temporary file(s) (a resume removes them)",
+            r.temp_files.len()
+        );
+    }
+    if !r.duplicates.is_empty() {
+        println!("indices recorded more than once: {:?}", r.duplicates);
+    }
+    if let Some((line, why)) = &r.torn_line {
+        println!("the journal's last line ({line}) is torn: {why}");
+    }
+    if r.manifest_stale {
+        println!("the manifest's records differ from the journal's (the journal is the record)");
     }
 }

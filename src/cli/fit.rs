@@ -1,14 +1,14 @@
 //! `gonio fit DATASET|FILE --model M`: fit an analytic BRDF model to a homogeneous sample's
 //! averaged BRDF, or to every texel (`--per-texel`, McAllister's scaled Lafortune SBRDF),
-//! and report the parameters, the residual and where the model fails (see `crate::fit`,
+//! and report the parameters, the residual and where the model fails (see `gonio_btf::fit`,
 //! docs/fitting.md).
 
-use crate::compress::{CompressedBtf, DatasetViews};
-use crate::fit::data::{load_csv, load_dataset, WhiteRef};
-use crate::fit::lm::LmOptions;
-use crate::fit::texel::{fit_texels, TexelSummary};
-use crate::fit::{fit, Band, FitOptions, FitReport, ModelKind, Space};
 use anyhow::{anyhow, Context, Result};
+use gonio_btf::compress::{CompressedBtf, DatasetViews};
+use gonio_btf::fit::data::{load_csv, load_dataset, WhiteRef};
+use gonio_btf::fit::lm::LmOptions;
+use gonio_btf::fit::texel::{fit_texels, TexelSummary};
+use gonio_btf::fit::{fit, Band, FitOptions, FitReport, ModelKind, Space};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -179,8 +179,8 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
                 .with_context(|| format!("storing the SVBRDF of {input}"))?;
             let stored = gbtf.to_bytes().context("encoding the SVBRDF's .gbtf")?.len();
             let decoder = CompressedBtf::new(gbtf.clone()).context("decoding the SVBRDF's .gbtf")?;
-            let ev =
-                crate::compress::evaluate(&ds, &decoder).with_context(|| format!("decoding the SVBRDF of {input}"))?;
+            let ev = gonio_btf::compress::evaluate(&ds, &decoder)
+                .with_context(|| format!("decoding the SVBRDF of {input}"))?;
             let raw = svbrdf.lights_deg.len() * svbrdf.views_deg.len() * svbrdf.width * svbrdf.height * 3;
             let r = TexelResult {
                 raw_bytes: raw,

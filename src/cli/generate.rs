@@ -9,9 +9,9 @@
 //! bright). With equal counts it is a permutation, so every BRDF is used. `--map
 //! modulo` is kept for comparison.
 
-use crate::compress::median_cut::{self, BoxMap};
-use crate::compress::Gbtf;
 use anyhow::{Context, Result};
+use gonio_btf::compress::median_cut::{self, BoxMap};
+use gonio_btf::compress::Gbtf;
 use std::path::PathBuf;
 use std::process::ExitCode;
 

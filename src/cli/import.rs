@@ -1,7 +1,7 @@
 //! `gonio import`: a foreign archive (Bonn UBO2003) into a native dataset.
 
-use crate::store::import_ubo2003::{import_ubo2003, ImportLimits};
 use anyhow::{Context, Result};
+use gonio_dataset::store::import_ubo2003::{import_ubo2003, ImportLimits};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

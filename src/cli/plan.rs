@@ -1,8 +1,8 @@
 //! `gonio plan`: plan a sweep for a rig and print it, moving nothing.
 
 use super::common::{load_sample, RigArgs, SweepArgs};
-use crate::plan::{Plan, PlanCounts};
 use anyhow::Result;
+use gonio_acquire::plan::{Plan, PlanCounts};
 use serde::Serialize;
 use std::process::ExitCode;
 

@@ -55,7 +55,8 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
     };
     let pic = render::render(src.model(), &scene).with_context(|| format!("rendering {}", a.file.display()))?;
     let png = render::png(pic.width, pic.height, &pic.srgb8)?;
-    crate::store::atomic::write_atomic(&a.out, &png, None).with_context(|| format!("writing {}", a.out.display()))?;
+    gonio_dataset::store::atomic::write_atomic(&a.out, &png, None)
+        .with_context(|| format!("writing {}", a.out.display()))?;
     let report = Report {
         source: src.kind(),
         out: a.out.display().to_string(),

@@ -1,11 +1,11 @@
 //! `gonio sim …`: the simulator on its own.
 
 use super::common::{load_sample, parse_angles, RigArgs};
-use crate::develop::frame_to_linear;
-use crate::develop::rectify::{self, RectifyParams};
-use crate::rig::Rig;
-use crate::store;
 use anyhow::{bail, Context, Result};
+use gonio_acquire::develop::frame_to_linear;
+use gonio_acquire::develop::rectify::{self, RectifyParams};
+use gonio_acquire::rig::Rig;
+use gonio_dataset::store;
 use gonio_devices::image::RgbImage;
 use gonio_devices::Direction;
 use gonio_simulator::{RenderQuality, SimOptions};

@@ -2,9 +2,9 @@
 //! simulating the acquisition (see `crate::synth`).
 
 use super::common::{load_sample, RigArgs};
-use crate::sweep::Sweep;
 use crate::synth::dataset::{write_btf, BtfJob, BtfOutput};
 use anyhow::{Context, Result};
+use gonio_dataset::sweep::Sweep;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -38,7 +38,7 @@ pub struct BtfArgs {
     /// Render only shard I of N (1-based; a contiguous range of views) into --out; `gonio
     /// merge` joins the parts into the dataset one process would have written.
     #[arg(long)]
-    pub shard: Option<crate::shard::Shard>,
+    pub shard: Option<gonio_dataset::shard::Shard>,
     #[arg(long)]
     pub json: bool,
 }
@@ -54,7 +54,7 @@ struct Report {
     mode: &'static str,
     /// `I/N` and the views rendered, for a shard.
     #[serde(skip_serializing_if = "Option::is_none")]
-    shard: Option<crate::shard::ShardInfo>,
+    shard: Option<gonio_dataset::shard::ShardInfo>,
     /// Wall seconds rendering (both cores) and, with --out, storing (the store runs on its
     /// own thread, overlapped with rendering; `total_seconds` is the wall time of both).
     render_seconds: f64,

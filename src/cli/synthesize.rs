@@ -2,11 +2,11 @@
 //! Efros–Leung, Wei–Levoy or image quilting on ABRDF features; the output is a `.gbtf` of
 //! the input's kind (readable by `reconstruct`, `render`, `export`) plus its texel map.
 
-use crate::compress::interp::AnyModel;
-use crate::compress::CompressedBtf;
-use crate::synthesize::exemplar::Exemplar;
-use crate::synthesize::{self, features, SynthMethod, SynthParams};
 use anyhow::{bail, Context, Result};
+use gonio_btf::compress::interp::AnyModel;
+use gonio_btf::compress::CompressedBtf;
+use gonio_btf::synthesize::exemplar::Exemplar;
+use gonio_btf::synthesize::{self, features, SynthMethod, SynthParams};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -175,10 +175,11 @@ fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::
             dir.display()
         );
     }
-    let ds = crate::compress::DatasetViews::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?;
+    let ds =
+        gonio_btf::compress::DatasetViews::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?;
     let t0 = Instant::now();
-    let params = crate::compress::Params::new(crate::compress::Method::Pca, c);
-    let (gbtf, info) = crate::compress::compress(&ds, &params)
+    let params = gonio_btf::compress::Params::new(gonio_btf::compress::Method::Pca, c);
+    let (gbtf, info) = gonio_btf::compress::compress(&ds, &params)
         .with_context(|| format!("compressing dataset {} to PCA c = {c}", dir.display()))?;
     let model = CompressedBtf::new(gbtf)?;
     let note = serde_json::json!({
@@ -250,7 +251,7 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
             "out": written,
             "compact": compact,
             "from_dataset": &from_dataset,
-            "peak_memory_bytes": crate::compress::peak_memory_bytes(),
+            "peak_memory_bytes": gonio_btf::compress::peak_memory_bytes(),
         });
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {

@@ -7,9 +7,9 @@
 //! with the rendering, fed in canonical order so the dataset does not depend on timing.
 
 use super::{lamp_at, positions, render_btf_views, truth_scale};
-use crate::shard::{Shard, ShardInfo};
-use crate::store::{Dataset, ManifestHeader, MeasurementRecord, StoreError};
-use crate::sweep::Sweep;
+use gonio_dataset::shard::{Shard, ShardInfo};
+use gonio_dataset::store::{Dataset, ManifestHeader, MeasurementRecord, StoreError};
+use gonio_dataset::sweep::Sweep;
 use gonio_devices::image::RgbImage;
 use gonio_devices::rig::RigSpec;
 use gonio_simulator::{RenderQuality, Renderer, SampleSpec, SimOptions};

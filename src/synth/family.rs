@@ -20,9 +20,9 @@
 //! the same sample is kept, so a rerun resumes; a partial one is rendered again whole.
 
 use super::dataset::{write_btf, BtfJob, BtfOutput, SynthError};
-use crate::shard::Shard;
-use crate::store::{self, StoreError};
-use crate::sweep::Sweep;
+use gonio_dataset::shard::Shard;
+use gonio_dataset::store::{self, StoreError};
+use gonio_dataset::sweep::Sweep;
 use gonio_devices::rig::RigSpec;
 use gonio_simulator::SampleSpec;
 use serde::{Deserialize, Serialize};
@@ -446,7 +446,7 @@ impl Family {
         if force {
             return Ok(false);
         }
-        let reason = match crate::shard::first_difference(&header.sample, &want) {
+        let reason = match gonio_dataset::shard::first_difference(&header.sample, &want) {
             Some((path, what)) => format!("sample differs at {path}: {what}"),
             None => format!("size {} instead of {}", header.image_width, self.spec.size),
         };

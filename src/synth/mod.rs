@@ -18,7 +18,7 @@
 pub mod dataset;
 pub mod family;
 
-use crate::sweep::Sweep;
+use gonio_dataset::sweep::Sweep;
 use gonio_devices::image::RgbImage;
 use gonio_devices::rig::RigSpec;
 use gonio_devices::{Direction, Vec3};
@@ -58,7 +58,7 @@ pub fn render_btf<E>(
     render_btf_views(renderer, rig, radius, sweep, 0..sweep.views.len(), size, scale, sink)
 }
 
-/// [`render_btf`] for the views `views` only (a shard, see `crate::shard`); `sink` gets
+/// [`render_btf`] for the views `views` only (a shard, see `gonio_dataset::shard`); `sink` gets
 /// the canonical view index. Each view is rendered exactly as in a full run, so the
 /// shards of a split give the same images as one process.
 #[allow(clippy::too_many_arguments)]

@@ -8,7 +8,7 @@
 //!
 //! * **DFMF** (`dfmf.rs`, `Dfmf::reconstruct` of one grid pair): per channel of the colour
 //!   model `c_ch = Σ_k U[view·L + light, k] · SxV[texel, k]`, then the colour model's
-//!   inverse with its clamping ([`crate::compress::dfmf::decode_color`]: RGB as is;
+//!   inverse with its clamping ([`gonio_btf::compress::dfmf::decode_color`]: RGB as is;
 //!   log-YUV `Y = e^{c₀} − ε`, `U = c₁·Y + ε`, `V = c₂·Y + ε`, RGB = `M·YUV` clamped to
 //!   [0, 1]; CIELab through XYZ, negative RGB clamped to 0). Blocks: `sxv0..2` (texels ×
 //!   c_ch, padded to a multiple of 4 columns) and one block of all U rows laid out for a
@@ -30,10 +30,10 @@
 //! 0.5 % in the result, about 0.6/255 on a bright value. Rows of U are f32 (small).
 
 use super::source::Source;
-use crate::compress::dfmf::{self, inverse3, ColorModel};
-use crate::compress::homomorphic;
-use crate::compress::interp::AnyModel;
-use crate::compress::{CompressedBtf, Method, Params};
+use gonio_btf::compress::dfmf::{self, inverse3, ColorModel};
+use gonio_btf::compress::homomorphic;
+use gonio_btf::compress::interp::AnyModel;
+use gonio_btf::compress::{CompressedBtf, Method, Params};
 use serde_json::{json, Value};
 
 /// Linear sRGB (D65) → CIE XYZ: the matrix of `compress::dfmf` (IEC 61966-2-1); the unit

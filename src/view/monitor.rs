@@ -2,7 +2,7 @@
 //! monitor works the same on a dataset written by another process (`gonio acquire`) as on
 //! one written in-process: nothing here talks to the rig, and nothing can move it.
 
-use crate::store::{self, MeasurementStatus};
+use gonio_dataset::store::{self, MeasurementStatus};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::Path;

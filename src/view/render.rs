@@ -25,11 +25,11 @@
 //!   [`RenderStats::unmeasured_pixels`]).
 //! * **Radiance** = exposure × BTF value: a BTF image already contains the cosine of the
 //!   light's incidence, so no extra cosine is applied. **Tone mapping**: clamp to [0, 1],
-//!   sRGB encoding, 8 bits ([`crate::store::linear_to_srgb8`]). Background: black.
+//!   sRGB encoding, 8 bits ([`gonio_dataset::store::linear_to_srgb8`]). Background: black.
 
-use crate::compress::interp::{cross, direction_weights, dot, normalize, unit, BtfModel};
-use crate::compress::CompressError;
-use crate::compress::{CompressedBtf, Method};
+use gonio_btf::compress::interp::{cross, direction_weights, dot, normalize, unit, BtfModel};
+use gonio_btf::compress::CompressError;
+use gonio_btf::compress::{CompressedBtf, Method};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -301,7 +301,10 @@ pub fn render(model: &dyn BtfModel, scene: &Scene) -> Result<Rendered, CompressE
         }
     }
     let e = scene.exposure as f32;
-    let srgb8 = linear.iter().map(|&x| crate::store::linear_to_srgb8(e * x)).collect();
+    let srgb8 = linear
+        .iter()
+        .map(|&x| gonio_dataset::store::linear_to_srgb8(e * x))
+        .collect();
     Ok(Rendered {
         width: w,
         height: h,
@@ -365,9 +368,9 @@ pub fn png(width: usize, height: usize, rgb: &[u8]) -> Result<Vec<u8>, CompressE
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::compress::interp::reconstruct_at;
-    use crate::compress::testdata::write_test_dataset;
-    use crate::compress::{compress, Params};
+    use gonio_btf::compress::interp::reconstruct_at;
+    use gonio_btf::compress::testdata::write_test_dataset;
+    use gonio_btf::compress::{compress, Params};
 
     fn model() -> (tempfile::TempDir, CompressedBtf) {
         let dir = tempfile::tempdir().unwrap();
@@ -405,7 +408,10 @@ mod tests {
             for (a, b) in pic.linear.iter().zip(&img) {
                 assert!((a - b).abs() < 1e-5, "{light:?}: {a} vs {b}");
             }
-            let want: Vec<u8> = img.iter().map(|&x| crate::store::linear_to_srgb8(2.0 * x)).collect();
+            let want: Vec<u8> = img
+                .iter()
+                .map(|&x| gonio_dataset::store::linear_to_srgb8(2.0 * x))
+                .collect();
             assert_eq!(pic.srgb8, want);
             assert_eq!(pic.stats.shape_pixels, 36);
         }

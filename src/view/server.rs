@@ -22,8 +22,6 @@ use super::monitor;
 use super::params::{self, ParamError};
 use super::render::{self, Scene, Shape};
 use super::source::{RawModel, Source, SourceError, SourceKind};
-use crate::compress::interp::{reconstruct_at, AnyModel, BtfModel};
-use crate::compress::{CompressedBtf, Method};
 use axum::body::Body;
 use axum::extract::{Query, Request, State};
 use axum::http::{header, HeaderValue, StatusCode};
@@ -31,6 +29,8 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
+use gonio_btf::compress::interp::{reconstruct_at, AnyModel, BtfModel};
+use gonio_btf::compress::{CompressedBtf, Method};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::net::{IpAddr, SocketAddr};
@@ -213,10 +213,10 @@ pub fn model_mismatch(ds: &dyn BtfModel, model: &dyn BtfModel) -> Option<String>
                 a.len()
             ));
         }
-        let u = |d: [f64; 2]| crate::compress::interp::unit(d);
+        let u = |d: [f64; 2]| gonio_btf::compress::interp::unit(d);
         for (i, (x, y)) in a.iter().zip(b).enumerate() {
-            let c = crate::compress::interp::dot(u(*x), u(*y)).clamp(-1.0, 1.0);
-            if c.acos().to_degrees() > crate::compress::interp::SAME_DEG {
+            let c = gonio_btf::compress::interp::dot(u(*x), u(*y)).clamp(-1.0, 1.0);
+            if c.acos().to_degrees() > gonio_btf::compress::interp::SAME_DEG {
                 return Some(format!(
                     "{which} {i} is ({:.2}, {:.2})° in it and ({:.2}, {:.2})° in the dataset",
                     y[0], y[1], x[0], x[1]
@@ -800,7 +800,10 @@ async fn render_png(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
 
 fn tone_png(img: &[f32], w: usize, h: usize, exposure: f64) -> ApiResult {
     let e = exposure as f32;
-    let rgb: Vec<u8> = img.iter().map(|&x| crate::store::linear_to_srgb8(e * x)).collect();
+    let rgb: Vec<u8> = img
+        .iter()
+        .map(|&x| gonio_dataset::store::linear_to_srgb8(e * x))
+        .collect();
     Ok(png_response(render::png(w, h, &rgb).map_err(internal)?))
 }
 
@@ -856,7 +859,7 @@ fn pair_image(src: &Source, model: Option<&AnyModel>, l: usize, v: usize, which:
     match (src, which) {
         (Source::Dataset(d), "truth") => {
             let p = truth_path(d, l, v).ok_or_else(|| bad("no truth image"))?;
-            Ok(crate::store::read_exr(&p).map_err(internal)?.data)
+            Ok(gonio_dataset::store::read_exr(&p).map_err(internal)?.data)
         }
         (Source::Dataset(_), "model") => match model {
             Some(m) => m.model().reconstruct(l, v).map_err(internal),
@@ -1161,7 +1164,7 @@ async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
             let root = slot.0.root.clone();
             let key = (
                 monitor::journal_len(&root),
-                mtime(&root.join(crate::store::MANIFEST_FILE)),
+                mtime(&root.join(gonio_dataset::store::MANIFEST_FILE)),
             );
             if last.as_ref() != Some(&key) {
                 let snap = tokio::task::spawn_blocking(move || monitor::snapshot(&root)).await;
@@ -1183,8 +1186,8 @@ async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::compress::testdata::write_test_dataset;
-    use crate::compress::{compress, Params};
+    use gonio_btf::compress::testdata::write_test_dataset;
+    use gonio_btf::compress::{compress, Params};
 
     /// `--model` refuses a file of another texture size or other directions and names
     /// what differs; the file compressed from the dataset fits.

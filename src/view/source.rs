@@ -1,9 +1,9 @@
 //! What the viewer shows: a native dataset (raw measurements) or a compressed file.
 
-use crate::compress::data::DatasetViews;
-use crate::compress::interp::{AnyModel, BtfModel};
-use crate::compress::CompressError;
-use crate::store;
+use gonio_btf::compress::data::DatasetViews;
+use gonio_btf::compress::interp::{AnyModel, BtfModel};
+use gonio_btf::compress::CompressError;
+use gonio_dataset::store;
 use std::path::{Path, PathBuf};
 
 /// Errors of opening a viewer source.
@@ -122,9 +122,9 @@ impl Source {
                 return Err(not(format!("only {n} bytes long")));
             }
         }
-        let kind = if head[..8] == crate::compress::container::MAGIC[..] {
+        let kind = if head[..8] == gonio_btf::compress::container::MAGIC[..] {
             SourceKind::Gbtf
-        } else if crate::compress::btf_ubo2014::is_dfmf(&head) {
+        } else if gonio_btf::compress::btf_ubo2014::is_dfmf(&head) {
             SourceKind::Btf
         } else {
             return Err(not(

@@ -1,0 +1,592 @@
+//! The acquisition session: what `gonio acquire` does around the engine, as a library, so
+//! the CLI, the tests, the web monitor and batch runners all acquire the same way.
+//!
+//! - [`Session::create`]: load the calibration (a rig-geometry result corrects the rig's
+//!   kinematics before anything is planned), plan, create the dataset (manifest header with
+//!   the run settings, `plan.json`, copies of the applied calibration results);
+//! - [`Session::resume`]: reopen an interrupted dataset with its own rig, sample, plan and
+//!   calibration copies, and measure only what is missing;
+//! - [`Session::run`]: record the skipped pairs once, build the rig and the
+//!   [`Developer`](crate::develop::Developer), run the engine (optionally only `limit`
+//!   measurements), and return the [`Summary`]; a complete run finishes the manifest.
+//!
+//! Progress goes to an [`Observer`] (the engine's events); nothing here prints.
+
+mod summary;
+
+pub use summary::{peak_rss_mib, Summary};
+
+use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadError, LoadedResult};
+use crate::develop::rectify::RectifyParams;
+use crate::develop::Developer;
+use crate::engine::{self, EngineError, Observer, RunOptions};
+use crate::plan::{Plan, PlanError, PlanOptions};
+use crate::rig::{Rig, RigBuildError};
+use gonio_dataset::shard::ShardInfo;
+use gonio_dataset::store::{self, Dataset, ManifestHeader, StoreError};
+use gonio_dataset::sweep::Sweep;
+use gonio_devices::rig::RigSpec;
+use gonio_devices::Direction;
+use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use thiserror::Error;
+
+/// Supersampling cap of the rectification filter in acquisitions.
+pub const MAX_SUPERSAMPLE: usize = 8;
+
+/// Why a session could not be created, resumed or run. Each names the dataset or input
+/// and says how to go on.
+#[derive(Debug, Error)]
+pub enum SessionError {
+    #[error("creating dataset {dir} (use --force to replace a dataset, --resume to continue one)")]
+    Create { dir: String, source: Box<StoreError> },
+    #[error("resuming dataset {dir}")]
+    Resume { dir: String, source: Box<StoreError> },
+    #[error("dataset {dir}: {what}")]
+    Store {
+        dir: String,
+        what: String,
+        source: Box<StoreError>,
+    },
+    #[error("planning the sweep")]
+    Plan(#[source] PlanError),
+    #[error("dataset {dir}: {message}")]
+    Invalid { dir: String, message: String },
+    #[error("dataset {dir}: {what}")]
+    Json {
+        dir: String,
+        what: String,
+        source: serde_json::Error,
+    },
+    #[error("loading the calibration of {dir}")]
+    DatasetCalibration { dir: String, source: Box<LoadError> },
+    #[error(transparent)]
+    Calibration(Box<LoadError>),
+    #[error("building the rig")]
+    Rig(#[source] RigBuildError),
+    /// The engine stopped; the journal is consistent, so the dataset can be resumed.
+    #[error("the journal is consistent; fix the cause and run `gonio acquire --resume {dir}`")]
+    Engine { dir: String, source: Box<EngineError> },
+}
+
+impl From<LoadError> for SessionError {
+    fn from(e: LoadError) -> Self {
+        SessionError::Calibration(Box::new(e))
+    }
+}
+
+/// Settings recorded in the manifest so `--resume` rebuilds the same rig.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunSettings {
+    pub width: usize,
+    pub height: usize,
+    pub noise: bool,
+    pub truth: bool,
+    pub seed: Option<u64>,
+    pub raw: bool,
+    #[serde(default)]
+    pub store_truth: bool,
+}
+
+/// How to plan a new session.
+#[derive(Clone, Debug)]
+pub struct PlanRequest {
+    pub options: PlanOptions,
+    /// Plan one pair per isotropy class (also when the sample declares `isotropic = true`).
+    pub isotropic: bool,
+}
+
+/// A new acquisition: where, with what, how.
+#[derive(Clone, Debug)]
+pub struct NewSession {
+    pub out: PathBuf,
+    /// Replace an existing gonio dataset at `out`.
+    pub force: bool,
+    /// The rig file as loaded (a rig-geometry calibration in `calibration` corrects it).
+    pub rig: RigSpec,
+    pub sample: SampleSpec,
+    pub sweep: Sweep,
+    pub plan: PlanRequest,
+    pub settings: RunSettings,
+    /// Directory of calibration results to apply.
+    pub calibration: Option<PathBuf>,
+    /// Measure only this shard's views (the whole sweep is planned; `gonio merge` joins
+    /// the parts). Recorded as `extra.shard` in the manifest.
+    pub shard: Option<gonio_dataset::shard::Shard>,
+}
+
+/// How one run of a session goes.
+#[derive(Clone, Debug, Default)]
+pub struct RunRequest {
+    /// Pace the simulated rig in real time.
+    pub realtime: bool,
+    /// Stop after this many measurements (the dataset stays resumable).
+    pub limit: Option<usize>,
+}
+
+/// An open acquisition: its dataset and everything needed to continue it.
+pub struct Session {
+    rig: RigSpec,
+    sample: SampleSpec,
+    plan: Plan,
+    settings: RunSettings,
+    dataset: Dataset,
+    done: HashSet<usize>,
+    /// The views this session measures (all without a shard).
+    shard: Option<ShardInfo>,
+}
+
+impl Session {
+    /// Plan and create a new dataset (see the module docs).
+    pub fn create(new: &NewSession) -> Result<Session, SessionError> {
+        let mut rig = new.rig.clone();
+        // A rig-geometry calibration corrects the kinematics before anything is planned.
+        let calibration = match &new.calibration {
+            Some(dir) => Some(load_dir(dir, &rig.name)?),
+            None => None,
+        };
+        if let Some(results) = &calibration {
+            let (applied, _) = AppliedCalibration::from_results(results)?;
+            applied.correct_rig(&mut rig);
+        }
+        // A sample that declares `isotropic = true` gets the reduced plan; the plan
+        // records it (and the time saved) like `--isotropic` does.
+        let plan = if new.plan.isotropic || new.sample.isotropic {
+            Plan::build_isotropic(&rig, &new.sweep, &new.plan.options)
+        } else {
+            Plan::build(&rig, &new.sweep, &new.plan.options)
+        }
+        .map_err(SessionError::Plan)?;
+        let out = new.out.display().to_string();
+        let shard = match new.shard {
+            None => None,
+            Some(s) => {
+                let invalid = |message: String| SessionError::Invalid {
+                    dir: out.clone(),
+                    message,
+                };
+                if plan.isotropic.is_some() {
+                    return Err(invalid(format!(
+                        "--shard {s} with an isotropic plan: its measured pairs stand for pairs of other views, \
+                         so views cannot be split; acquire it in one process"
+                    )));
+                }
+                if !rig.is_simulated() {
+                    return Err(invalid(format!(
+                        "--shard {s} on rig `{}`, which drives real hardware: shards are for simulated rigs \
+                         (one physical rig measures one process's plan)",
+                        rig.name
+                    )));
+                }
+                s.check_views(new.sweep.views.len()).map_err(invalid)?;
+                Some(s.info(new.sweep.views.len()))
+            }
+        };
+        let json = |what: &str, e: serde_json::Error| SessionError::Json {
+            dir: out.clone(),
+            what: what.into(),
+            source: e,
+        };
+        let settings = new.settings.clone();
+        let mut header = ManifestHeader::new(
+            serde_json::to_value(&rig).map_err(|e| json("the rig snapshot", e))?,
+            serde_json::to_value(&new.sample).map_err(|e| json("the sample snapshot", e))?,
+            new.sweep.manifest_json(plan.policy),
+            settings.width,
+            settings.height,
+            "linear normalised sensor signal (DN / max DN), radiometrically uncalibrated",
+        );
+        // The seed the sensor uses: `--seed`, else the rig file's `camera.options.seed`, else 1.
+        header.seed = match settings.seed {
+            Some(seed) => seed,
+            None => rig
+                .camera
+                .noise_seed()
+                .map_err(|e| SessionError::Invalid {
+                    dir: out.clone(),
+                    message: format!("rig `{}`: {e}", rig.name),
+                })?
+                .unwrap_or(1),
+        };
+        header.raw_frames = settings.raw;
+        header.extra = serde_json::json!({ "run_settings": settings });
+        if let Some(info) = shard {
+            header.extra["shard"] = serde_json::json!(info);
+        }
+        if let Some(results) = &calibration {
+            describe_calibration(results, &rig, &mut header)?;
+        }
+        let dataset = Dataset::create(&new.out, &header, new.force).map_err(|source| SessionError::Create {
+            dir: out.clone(),
+            source: Box::new(source),
+        })?;
+        let store_err = |what: String, source| SessionError::Store {
+            dir: out.clone(),
+            what,
+            source: Box::new(source),
+        };
+        for r in calibration.iter().flatten() {
+            dataset
+                .store_calibration_copy(&r.kind, &r.bytes)
+                .map_err(|e| store_err(format!("writing {}", store::calibration_rel_path(&r.kind)), e))?;
+        }
+        let bytes = serde_json::to_vec(&plan).map_err(|e| json("the plan", e))?;
+        dataset
+            .write_plan(&bytes)
+            .map_err(|e| store_err("writing plan.json".into(), e))?;
+        Ok(Session {
+            rig,
+            sample: new.sample.clone(),
+            plan,
+            settings,
+            dataset,
+            done: HashSet::new(),
+            shard,
+        })
+    }
+
+    /// Reopen the interrupted acquisition in `dir` (rig, sample, sweep, plan and
+    /// calibration come from it).
+    pub fn resume(dir: &Path) -> Result<Session, SessionError> {
+        let name = dir.display().to_string();
+        let (dataset, header, records) = Dataset::resume(dir).map_err(|source| SessionError::Resume {
+            dir: name.clone(),
+            source: Box::new(source),
+        })?;
+        let json = |what: &str, e: serde_json::Error| SessionError::Json {
+            dir: name.clone(),
+            what: what.into(),
+            source: e,
+        };
+        let rig: RigSpec = serde_json::from_value(header.rig.clone())
+            .map_err(|e| json("reading the rig snapshot from the manifest", e))?;
+        let sample: SampleSpec = serde_json::from_value(header.sample.clone())
+            .map_err(|e| json("reading the sample snapshot from the manifest", e))?;
+        let stored = dataset.read_plan().map_err(|source| SessionError::Store {
+            dir: name.clone(),
+            what: "reading plan.json".into(),
+            source: Box::new(source),
+        })?;
+        let plan: Plan = match stored {
+            None if records.is_empty() => {
+                // Interrupted between creating the dataset and writing its plan: nothing
+                // was measured yet, so plan again from the manifest's snapshots.
+                tracing::warn!(dir = %dir.display(), "plan.json missing in an empty dataset: planning again");
+                let sweep = sweep_from_header(&header.sweep).map_err(|e| json("reading the sweep snapshot", e))?;
+                let policy = serde_json::from_value(header.sweep["policy"].clone()).unwrap_or_default();
+                let plan = Plan::build(
+                    &rig,
+                    &sweep,
+                    &PlanOptions {
+                        policy,
+                        kicks: 0,
+                        time_cap: None,
+                        seed: 1,
+                    },
+                )
+                .map_err(SessionError::Plan)?;
+                let bytes = serde_json::to_vec(&plan).map_err(|e| json("the plan", e))?;
+                dataset.write_plan(&bytes).map_err(|source| SessionError::Store {
+                    dir: name.clone(),
+                    what: "writing plan.json".into(),
+                    source: Box::new(source),
+                })?;
+                plan
+            }
+            None => {
+                return Err(SessionError::Invalid {
+                    dir: name,
+                    message: format!(
+                        "holds {} records but no {}: the plan it was measured with is lost, so it cannot be resumed",
+                        records.len(),
+                        store::PLAN_FILE
+                    ),
+                })
+            }
+            Some(bytes) => serde_json::from_slice(&bytes).map_err(|e| json("parsing plan.json", e))?,
+        };
+        let settings: RunSettings = serde_json::from_value(header.extra["run_settings"].clone())
+            .map_err(|e| json("reading run settings from the manifest", e))?;
+        let done: HashSet<usize> = records.iter().map(|r| r.index).collect();
+        let shard: Option<ShardInfo> = match header.extra.get("shard") {
+            None => None,
+            Some(v) => Some(serde_json::from_value(v.clone()).map_err(|e| json("reading extra.shard", e))?),
+        };
+        if done.len() > plan.pairs {
+            return Err(SessionError::Invalid {
+                dir: name,
+                message: format!("holds {} records but its plan has {} pairs", done.len(), plan.pairs),
+            });
+        }
+        Ok(Session {
+            rig,
+            sample,
+            plan,
+            settings,
+            dataset,
+            done,
+            shard,
+        })
+    }
+
+    /// The dataset directory.
+    pub fn dir(&self) -> &Path {
+        self.dataset.dir()
+    }
+
+    /// The plan this session executes.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// Measurements already stored when the session was opened.
+    pub fn done(&self) -> &HashSet<usize> {
+        &self.done
+    }
+
+    /// Run the session's remaining measurements (see the module docs). `pause`: set it to
+    /// stop at the next measurement boundary (Ctrl-C). A complete run finishes the manifest.
+    pub async fn run(
+        self,
+        req: &RunRequest,
+        pause: Arc<AtomicBool>,
+        observer: Observer,
+    ) -> Result<Summary, SessionError> {
+        let Session {
+            rig: rig_spec,
+            sample,
+            plan,
+            settings,
+            mut dataset,
+            done,
+            shard,
+        } = self;
+        let dir = dataset.dir().to_path_buf();
+        let name = dir.display().to_string();
+        let sim = SimOptions {
+            realtime: req.realtime,
+            noise: Some(settings.noise),
+            seed: settings.seed,
+            quality: RenderQuality::default(),
+        };
+        let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).map_err(SessionError::Rig)?);
+        let calibration = dataset_calibration(dataset.header(), &dir, &rig_spec)?;
+        // A shard runs the steps of its views only. The others count as done for the
+        // engine, so every step keeps its position in the whole plan (`order`) and the
+        // single-process journal order is what `gonio merge` restores.
+        let in_shard = |index: usize| {
+            shard.is_none_or(|sh| (sh.first_view..sh.end_view).contains(&(index / plan.light_count.max(1))))
+        };
+        let mut plan_shard = plan.clone();
+        plan_shard.steps.retain(|s| in_shard(s.index));
+        plan_shard.skipped.retain(|s| in_shard(s.index));
+        let others: HashSet<usize> = plan.steps.iter().map(|s| s.index).filter(|&i| !in_shard(i)).collect();
+        let done_run: HashSet<usize> = done.union(&others).copied().collect();
+        // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
+        for s in &plan_shard.skipped {
+            if !done.contains(&s.index) {
+                let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
+                dataset.store(rec, None, None).map_err(|source| SessionError::Store {
+                    dir: name.clone(),
+                    what: format!("recording skipped pair {}", s.index),
+                    source: Box::new(source),
+                })?;
+            }
+        }
+        let mut plan_run = plan.clone();
+        if let Some(limit) = req.limit {
+            let mut left = limit;
+            plan_run.steps.retain(|s| {
+                if done_run.contains(&s.index) {
+                    return true;
+                }
+                if left == 0 {
+                    return false;
+                }
+                left -= 1;
+                true
+            });
+        }
+        let params = RectifyParams {
+            width: settings.width,
+            height: settings.height,
+            sample_mm: rig.sample_mm,
+            max_supersample: MAX_SUPERSAMPLE,
+        };
+        let corrections = calibration
+            .as_ref()
+            .map(|c| c.developer_corrections())
+            .unwrap_or_default();
+        let truth_k = rig.truth.as_ref().and_then(|t| t.sensor()).map(|s| s.k());
+        let developer = Developer::new(
+            params,
+            rig_spec.camera.intrinsics(),
+            rig.border.clone(),
+            corrections,
+            truth_k,
+        );
+        let opts = RunOptions {
+            developer: Arc::new(developer),
+            raw_frames: settings.raw,
+            truth: settings.truth,
+            store_truth: settings.store_truth,
+        };
+        let result = engine::run(
+            rig.clone(),
+            Arc::new(plan_run),
+            dataset,
+            done_run,
+            opts,
+            pause,
+            observer,
+        )
+        .await;
+        let (mut dataset, report) = result.map_err(|(_, source)| SessionError::Engine {
+            dir: name.clone(),
+            source: Box::new(source),
+        })?;
+        let mut report = report;
+        report.already_done -= others.len().min(report.already_done);
+        let summary = Summary::new(
+            &name,
+            &rig_spec,
+            &sample,
+            &plan_shard,
+            &done,
+            &report,
+            calibration.as_deref(),
+        );
+        if summary.complete {
+            let value = serde_json::to_value(&summary).map_err(|e| SessionError::Json {
+                dir: name.clone(),
+                what: "the summary".into(),
+                source: e,
+            })?;
+            dataset.finish(&value).map_err(|source| SessionError::Store {
+                dir: name.clone(),
+                what: "writing the final manifest".into(),
+                source: Box::new(source),
+            })?;
+        }
+        Ok(summary)
+    }
+}
+
+/// Load the results for rig `rig` and describe them in the header: `calibration` = the
+/// applied ids (comma-separated), `values` and `extra.value_unit` = the unit of the stored
+/// values, `extra.calibrations` = every result found (kind, id, source file, copy in the
+/// dataset, applied or not).
+fn describe_calibration(results: &[LoadedResult], rig: &RigSpec, header: &mut ManifestHeader) -> Result<(), LoadError> {
+    let (applied, not_applied) = AppliedCalibration::from_results(results)?;
+    check_raw_correction(&applied, rig)?;
+    for kind in &not_applied {
+        tracing::warn!(kind = %kind, "calibration kind is not applied by acquire yet: recorded as not applied");
+    }
+    if !applied.ids.is_empty() {
+        header.calibration = Some(applied.ids.join(","));
+    }
+    if applied.radiometric.is_some() {
+        header.values = "BRDF (1/sr) per texel, radiometrically calibrated with a white standard \
+                         (value / (K · exposure · gain · E(x)), E from the lamp position per texel)"
+            .into();
+    }
+    if let Some(raw) = &applied.raw {
+        let kinds = raw.kinds().join(", ");
+        header.values = if applied.radiometric.is_some() {
+            format!("{} Raw frames corrected first: {kinds}.", header.values)
+        } else {
+            format!(
+                "linear values (½ exp g of the response curve's scale), raw frames corrected: {kinds}; \
+                 no white standard, so not BRDF"
+            )
+        };
+        header.extra["corrections"] = serde_json::json!(raw.sources);
+    }
+    header.extra["value_unit"] = serde_json::json!(applied.value_unit());
+    header.extra["calibrations"] = serde_json::Value::Array(
+        results
+            .iter()
+            .map(|r| {
+                serde_json::json!({
+                    "kind": r.kind,
+                    "id": r.id,
+                    "source": r.file.display().to_string(),
+                    "file": store::calibration_rel_path(&r.kind),
+                    "applied": !not_applied.contains(&r.kind),
+                })
+            })
+            .collect(),
+    );
+    Ok(())
+}
+
+/// Refuse raw-frame corrections made on another camera (size, bit depth) before anything is
+/// created; warn when the dark frames were taken at another exposure (dark current scales
+/// with it).
+fn check_raw_correction(applied: &AppliedCalibration, rig: &RigSpec) -> Result<(), LoadError> {
+    let Some(raw) = &applied.raw else { return Ok(()) };
+    let c = &rig.camera;
+    raw.check_camera(c.width, c.height, c.bit_depth)?;
+    if let Some(t) = raw.dark_exposure_s {
+        if (t - c.exposure_s).abs() > 1e-3 * c.exposure_s.abs().max(1e-9) {
+            tracing::warn!(
+                dark_exposure_s = t,
+                exposure_s = c.exposure_s,
+                "the dark frame was taken at another exposure than the camera's: its dark current differs"
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The calibration a dataset applies, from its own copies (new run and resume alike);
+/// `None` for an uncalibrated dataset.
+fn dataset_calibration(
+    header: &ManifestHeader,
+    dir: &Path,
+    rig: &RigSpec,
+) -> Result<Option<Arc<AppliedCalibration>>, SessionError> {
+    let Some(list) = header.extra.get("calibrations").and_then(|v| v.as_array()) else {
+        return Ok(None);
+    };
+    let files: Vec<PathBuf> = list
+        .iter()
+        .filter_map(|e| e.get("file").and_then(|f| f.as_str()))
+        .map(|f| dir.join(f))
+        .collect();
+    let results = load_files(&files, &rig.name).map_err(|source| SessionError::DatasetCalibration {
+        dir: dir.display().to_string(),
+        source: Box::new(source),
+    })?;
+    let (applied, _) = AppliedCalibration::from_results(&results)?;
+    check_raw_correction(&applied, rig)?;
+    let expected = header.calibration.clone().unwrap_or_default();
+    if applied.ids.join(",") != expected {
+        return Err(SessionError::Invalid {
+            dir: dir.display().to_string(),
+            message: format!(
+                "its calibration copies have ids {:?}, the manifest says {:?}",
+                applied.ids.join(","),
+                expected
+            ),
+        });
+    }
+    Ok(Some(Arc::new(applied)))
+}
+
+/// The sweep recorded in a manifest header (`lights_deg`, `views_deg`, degrees).
+fn sweep_from_header(v: &serde_json::Value) -> Result<Sweep, serde_json::Error> {
+    let list = |key: &str| -> Result<Vec<Direction>, serde_json::Error> {
+        let raw: Vec<[f64; 2]> = serde_json::from_value(v[key].clone())?;
+        Ok(raw.iter().map(|[t, p]| Direction::from_degrees(*t, *p)).collect())
+    };
+    Ok(Sweep {
+        name: v["name"].as_str().unwrap_or("sweep").to_string(),
+        lights: list("lights_deg")?,
+        views: list("views_deg")?,
+    })
+}
