@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Per-pass model of a sharded local PCA, fitted to and checked against
-bench/local_pca_shards.sh's output (docs/scale.md, "Local PCA").
+bench/local_pca_shards.sh's output (docs/guide/scale.md, "Local PCA").
 
 Per pass, a shard's time is t = a + b·v (v views of the shard): a and b are fitted by
 least squares on the 2- and 4-shard runs, the model predicts the 1-shard run, and the

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Sharded local PCA (docs/scale.md, "Local PCA"): on a fibonacci:$VIEWS BTF of $SIZE²
+# Sharded local PCA (docs/guide/scale.md, "Local PCA"): on a fibonacci:$VIEWS BTF of $SIZE²
 # texels, local PCA (k = $K, c = $C, subspace $D) in one process, then all nine passes in
 # 1, 2 and 4 shards run one after the other (so each shard's time is its own, not a share
 # of a contended CPU), every merge, the bytes of every pass's part and state, and whether

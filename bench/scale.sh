@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The scale model's inputs and its check (docs/scale.md, "Scale model"): per-task costs of
+# The scale model's inputs and its check (docs/guide/scale.md, "Scale model"): per-task costs of
 # `gonio sim btf`, PVMF and PCA (every pass of the randomized SVD) on a fibonacci:$VIEWS
 # BTF of $SIZE² texels, in 1 process and in 2 and 4 shards run one after the other (so each
 # shard's time is its own, not a share of a contended CPU), the merges, and the bytes.

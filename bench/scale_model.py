@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The scale model of docs/scale.md, fitted to and checked against bench/scale.sh's output.
+"""The scale model of docs/guide/scale.md, fitted to and checked against bench/scale.sh's output.
 
 Runs with "shards": 0 are one process without --shard (the references); "shards": N ≥ 1
 are the N parts of a sharded run, one after the other.

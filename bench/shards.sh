@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Per-task costs of sharded runs (docs/scale.md): `gonio sim btf` and PVMF of a
+# Per-task costs of sharded runs (docs/guide/scale.md): `gonio sim btf` and PVMF of a
 # fibonacci:$VIEWS × $SIZE² BTF in 1 process and in 2 and 4 shards run one after the
 # other (so each shard's time is its own, not a share of a contended CPU), plus the merges.
 # Prints one JSON line per run. Usage: bench/shards.sh [VIEWS] [SIZE] (default 16 64).

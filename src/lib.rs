@@ -11,13 +11,16 @@
 //! compiling; new code names the crate that owns the module.
 
 pub use gonio_acquire::{calibrate, develop, engine, plan, rig, session};
+#[cfg(feature = "btf")]
 pub use gonio_btf::{compress, fit, synthesize};
 pub use gonio_dataset::{shard, store, sweep};
 
 pub mod cli;
+#[cfg(feature = "btf")]
 pub mod merge;
 pub mod slurm;
 pub mod synth;
+#[cfg(feature = "monitor")]
 pub mod view;
 
 #[cfg(test)]

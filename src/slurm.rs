@@ -9,7 +9,7 @@
 //! A failed shard is retried ([`RetryMode`]): by default inside its own allocation (the
 //! array task runs the command again, immediately), or by asking Slurm to requeue the task
 //! (`scontrol requeue`; on the test's Slurm 22.05 a requeued task became eligible again
-//! only ~2 minutes later, see docs/scale.md). Both kinds of retry are bounded by
+//! only ~2 minutes later, see docs/guide/scale.md). Both kinds of retry are bounded by
 //! `retries`; `#SBATCH --requeue` also lets Slurm requeue tasks whose node failed.
 
 use std::path::{Path, PathBuf};
@@ -273,7 +273,7 @@ for i in $(seq $(( (G - 1) * {f} + 1 )) $(( G * {f} ))); do parts+=(\"{}/part-$i
 
     fn header(&self, name: &str, log: &str) -> String {
         let mut s = format!(
-            "#!/bin/bash\n# Written by `gonio batch slurm`; submit with sbatch (see docs/scale.md).\n\
+            "#!/bin/bash\n# Written by `gonio batch slurm`; submit with sbatch (see docs/guide/scale.md).\n\
              #SBATCH --job-name=gonio-{name}\n#SBATCH --output={}\n#SBATCH --open-mode=append\n",
             self.work.join("logs").join(log).display()
         );

@@ -20,8 +20,16 @@ cargo clippy --workspace --all-targets -- -D warnings
 # A build that leaves out the default features (Zarr export) must still build and lint:
 # "no dependency is paid for by a build that does not use it" holds only if it compiles.
 # Library and binary only: the tests assume the default features.
-echo "== cargo clippy -p gonio --no-default-features (lib, bins)"
+echo "== cargo clippy -p gonio --no-default-features (lib, bins): the lab build"
 cargo clippy -p gonio --no-default-features --lib --bins -- -D warnings
+# The lab build (acquisition only) links no faer, no zarrs and no axum: the crate cut and
+# the features hold that, this checks it (ARCHITECTURE.md, "Crates").
+lab_heavy=$(cargo tree -p gonio --no-default-features -e normal --prefix none | grep -E '^(faer|zarrs|axum) ' | sort -u || true)
+if [ -n "$lab_heavy" ]; then
+  echo "the lab build (--no-default-features) links: $lab_heavy" >&2
+  exit 1
+fi
+echo "lab build: $(cargo tree -p gonio --no-default-features -e normal --prefix none | sort -u | wc -l) crates, no faer/zarrs/axum"
 echo "== cargo test"
 cargo test --workspace
 disk

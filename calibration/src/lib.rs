@@ -28,7 +28,7 @@
 //! - [`light_geometry`]: the lamp axes' zero offsets from a near-mirror's highlight;
 //!   the two offset fits share their checks and parameter table (`offset_fit.rs`);
 //! - [`radiometric`]: dark frame, flat field, Debevec–Malik response, HDR merge with
-//!   diagnosis, colour 3 × 3 (linear algebra from `faer`).
+//!   diagnosis, colour 3 × 3 (linear algebra from `nalgebra`).
 
 pub mod board;
 pub mod checkerboard;

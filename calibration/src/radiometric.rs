@@ -13,10 +13,9 @@
 //! in the HDR merge. Between them the weight is Debevec and Malik's hat, peaking mid-range
 //! where the response is best conditioned.
 
-use faer::linalg::solvers::SolveLstsq;
-use faer::Mat;
 use gonio_devices::image::RgbImage;
 use gonio_devices::Frame;
+use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -478,10 +477,31 @@ pub struct ResponseFit {
     pub residual_rms: [f64; 3],
 }
 
+/// Least squares `min ‖A X − B‖` for a tall `A` (rows ≥ columns) by Householder QR with
+/// column pivoting (`A P = Q R`, then `X = P R⁻¹ Qᵀ B`): stable on the ill-conditioned
+/// systems of the response and colour fits without forming `AᵀA`. `None` when `A` is wide
+/// or `R` is singular.
+fn lstsq(a: DMatrix<f64>, mut b: DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let n = a.ncols();
+    if a.nrows() < n {
+        return None;
+    }
+    let qr = a.col_piv_qr();
+    qr.q_tr_mul(&mut b);
+    let r = qr.r();
+    let r = r.view((0, 0), (n, n));
+    let mut x = b.rows(0, n).into_owned();
+    if !r.solve_upper_triangular_mut(&mut x) {
+        return None;
+    }
+    qr.p().inv_permute_rows(&mut x);
+    Some(x)
+}
+
 /// Recover the inverse response from frames of the same static scene at different
 /// exposures (Debevec & Malik 1997): minimise
 /// `Σ w(z_ij) (g(z_ij) − ln E_i − ln Δt_j)² + λ² Σ w(z) g''(z)²` with `g(mid) = 0`,
-/// solved as one dense least-squares problem (faer, column-pivoted QR).
+/// solved as one dense least-squares problem (column-pivoted QR, [`lstsq`]).
 pub fn recover_response(frames: &[Frame], opts: &ResponseOptions) -> Result<ResponseFit, RadiometricError> {
     let what = "response";
     opts.validity.check()?;
@@ -602,15 +622,15 @@ pub fn recover_response(frames: &[Frame], opts: &ResponseOptions) -> Result<Resp
             }
         }
         let ncols = ng + take;
-        let mut a = Mat::<f64>::zeros(rows.len(), ncols);
-        let mut b = Mat::<f64>::zeros(rows.len(), 1);
+        let mut a = DMatrix::<f64>::zeros(rows.len(), ncols);
+        let mut b = DMatrix::<f64>::zeros(rows.len(), 1);
         for (r, (entries, rhs)) in rows.iter().enumerate() {
             for &(col, v) in entries {
                 a[(r, col)] += v;
             }
             b[(r, 0)] = *rhs;
         }
-        let x = a.col_piv_qr().solve_lstsq(&b);
+        let x = lstsq(a, b).unwrap_or_else(|| DMatrix::from_element(ncols, 1, f64::NAN));
         if (0..ncols).any(|k| !x[(k, 0)].is_finite()) {
             return Err(RadiometricError::Solve {
                 what,
@@ -872,19 +892,18 @@ pub fn colour_matrix(measured: &[[f64; 3]], reference: &[[f64; 3]]) -> Result<Co
             });
         }
     }
-    let a = Mat::<f64>::from_fn(p, 3, |i, j| measured[i][j]);
-    let b = Mat::<f64>::from_fn(p, 3, |i, j| reference[i][j]);
-    let sv = a.singular_values().map_err(|e| RadiometricError::Solve {
-        what: "colour",
-        message: format!("{e:?}"),
-    })?;
+    let a = DMatrix::<f64>::from_fn(p, 3, |i, j| measured[i][j]);
+    let b = DMatrix::<f64>::from_fn(p, 3, |i, j| reference[i][j]);
+    let sv = a.clone().singular_values();
     let smax = sv.iter().copied().fold(0.0, f64::max);
     let smin = sv.iter().copied().fold(f64::INFINITY, f64::min);
     let condition = if smin > 0.0 { smax / smin } else { f64::INFINITY };
     if condition.is_nan() || condition > MAX_COLOUR_CONDITION {
         return Err(RadiometricError::ColourDegenerate { condition });
     }
-    let x = a.col_piv_qr().solve_lstsq(&b);
+    let x = lstsq(a, b).ok_or(RadiometricError::ColourDegenerate {
+        condition: f64::INFINITY,
+    })?;
     let matrix: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|k| x[(k, r)]));
     let cm = ColourMatrix {
         matrix,
@@ -913,6 +932,24 @@ pub fn colour_matrix(measured: &[[f64; 3]], reference: &[[f64; 3]]) -> Result<Co
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The pivoted-QR least squares recovers an exact solution of a tall, badly scaled
+    /// system, and its least-squares answer satisfies the normal equations.
+    #[test]
+    fn lstsq_solves_tall_systems() {
+        // A Vandermonde matrix with columns scaled by 1, 10³, 10⁶: full rank, badly scaled.
+        let a = DMatrix::<f64>::from_fn(7, 3, |i, j| {
+            (0.37 * i as f64 + 1.0).powi(j as i32) * 10f64.powi(j as i32 * 3)
+        });
+        let x_true = DMatrix::<f64>::from_column_slice(3, 2, &[1.0, -2.0, 0.5, 3.0, 0.25, -1.0]);
+        let x = lstsq(a.clone(), &a * &x_true).unwrap();
+        assert!((&x - &x_true).abs().max() < 1e-6, "{x}");
+        let b = DMatrix::<f64>::from_fn(7, 1, |i, _| (i as f64).cos());
+        let x = lstsq(a.clone(), b.clone()).unwrap();
+        let normal = a.transpose() * (&a * &x - &b);
+        assert!(normal.abs().max() < 1e-6 * a.norm() * b.norm(), "{normal}");
+        assert!(lstsq(DMatrix::zeros(2, 3), DMatrix::zeros(2, 1)).is_none());
+    }
     use gonio_devices::FrameMeta;
 
     /// A smooth non-linear camera: `f(u) = (1 − e^{−a u}) / (1 − e^{−a})`.

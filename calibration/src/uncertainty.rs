@@ -33,7 +33,7 @@ pub struct UncertaintyOptions {
     /// One-sigma projection uncertainty (px) above which a region is flagged. 0.1 px: the
     /// intrinsics recipes' own reprojection target, and at the wide-lens rig's 1100 px
     /// focal length ≈ 0.09 mrad, an order below a texel of the rectified BTF
-    /// (`docs/calibration-uncertainty.md`).
+    /// (`docs/guide/calibration-uncertainty.md`).
     pub threshold_px: f64,
     /// Side of the cells (px) the coverage is counted in.
     pub coverage_cell_px: f64,

@@ -80,7 +80,7 @@ pub struct HdrSpec {
     /// Extra exposures per measurement `auto` is planned with, each costed as a readout
     /// plus the base exposure (the plan cannot see the sample; the progress bar's ETA
     /// follows the measured rate once the run starts). The default is what `auto` took on
-    /// `brushed-metal` (docs/hdr.md).
+    /// `brushed-metal` (docs/guide/hdr.md).
     #[serde(default = "default_planned_extra")]
     pub planned_extra_exposures: f64,
 }

@@ -211,7 +211,7 @@ pub struct SampleSpec {
     /// grid cell holds where shading varies little within a cell (the normal and the
     /// material are interpolated and looked up per cell). A lobe much narrower than the
     /// relief's change of normal across one cell varies within it, and the estimate needs
-    /// more rays (docs/hdr.md measures this on `brushed-metal`). Not written when 1, so
+    /// more rays (docs/guide/hdr.md measures this on `brushed-metal`). Not written when 1, so
     /// other samples' manifests keep their bytes.
     #[serde(default = "one", skip_serializing_if = "is_one")]
     pub truth_rays_per_cell: usize,

@@ -69,7 +69,7 @@ pub struct AcquireArgs {
     /// Measure only shard I of N (1-based; the contiguous views `[(I−1)·V/N, I·V/N)`):
     /// the whole sweep is planned as one process would plan it, and only the steps of the
     /// shard's views are run, so `gonio merge` of the N parts gives the single-process
-    /// images byte for byte (docs/scale.md). Simulated rigs; not with --isotropic.
+    /// images byte for byte (docs/guide/scale.md). Simulated rigs; not with --isotropic.
     #[arg(long, conflicts_with = "resume")]
     pub shard: Option<gonio_dataset::shard::Shard>,
     /// Port of --view (0 picks a free one).
@@ -78,7 +78,7 @@ pub struct AcquireArgs {
     /// Exposure bracketing per measurement: `off` (one exposure), `auto` (extra exposures
     /// only where the sample region saturates or its darkest decile is below the SNR
     /// floor), or N fixed exposures (2 ..= 8). Default: the rig file's `[hdr] mode`, else
-    /// off. Limits and noise model come from the rig file's `[hdr]` (see docs/hdr.md).
+    /// off. Limits and noise model come from the rig file's `[hdr]` (see docs/guide/hdr.md).
     #[arg(long, value_name = "off|auto|N", value_parser = parse_hdr, conflicts_with = "resume")]
     pub hdr: Option<HdrMode>,
 }
@@ -182,6 +182,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
 }
 
 /// Start the viewer on the session's dataset (loopback only) and print its URL on stderr.
+#[cfg(feature = "monitor")]
 async fn serve_view(dir: &std::path::Path, port: u16) -> Result<String> {
     let opts = crate::view::server::ViewOptions {
         path: dir.to_path_buf(),
@@ -202,6 +203,16 @@ async fn serve_view(dir: &std::path::Path, port: u16) -> Result<String> {
         }
     });
     Ok(url)
+}
+
+/// This build has no browser server (cargo feature `monitor`).
+#[cfg(not(feature = "monitor"))]
+async fn serve_view(dir: &std::path::Path, _port: u16) -> Result<String> {
+    anyhow::bail!(
+        "--view: this gonio was built without the live monitor (cargo feature `monitor`, on by default); \
+         rebuild with `cargo build --release --features monitor`, or watch {} with `gonio verify` instead",
+        dir.display()
+    )
 }
 
 /// The new session the arguments describe.

@@ -44,7 +44,7 @@ pub struct SlurmArgs {
     /// PCA, DFMF, local PCA: merge every round as a two-level tree, groups of F shards
     /// first (an array of `gonio merge --partial` jobs, in parallel), then the N/F group
     /// parts; F must divide --shards. Every merge then reads F or N/F parts instead of N
-    /// (docs/scale.md).
+    /// (docs/guide/scale.md).
     #[arg(long, value_name = "F")]
     pub merge_fanout: Option<usize>,
     /// The gonio executable the jobs run (default: this one).

@@ -23,8 +23,10 @@ pub enum BenchCommand {
     /// Serial layer cost over a pty: round trips/s and per-measurement overhead vs. sim axes.
     Serial(super::bench_serial::SerialBenchArgs),
     /// Every compression method over its knob: error vs. encode time and vs. ratio (table + SVG).
+    #[cfg(feature = "btf")]
     Compress(super::bench_compress::CompressBenchArgs),
     /// Every synthesis method against a 4×-area simulator reference: seams, statistics, repetition, time.
+    #[cfg(feature = "btf")]
     Synthesize(Box<super::bench_synthesize::SynthesizeBenchArgs>),
     /// The full simulated acquisition against `gonio sim btf` and raw-frame rendering alone
     /// (ms/image ratios measured in one run, peak memory per phase).
@@ -32,8 +34,10 @@ pub enum BenchCommand {
     /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
     Hdr(super::bench_hdr::HdrBenchArgs),
     /// Decode time of one image of a compressed BTF, on its own (median of rounds; EXR reads of the same images as the baseline).
+    #[cfg(feature = "btf")]
     Decode(super::bench_decode::DecodeBenchArgs),
     /// BRDF fitting: starts × iterations against residual and time, on data of known models.
+    #[cfg(feature = "btf")]
     Fit(super::bench_fit::FitBenchArgs),
 }
 
@@ -402,11 +406,15 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Plan(a) => plan(a),
         BenchCommand::Render(a) => render(a),
         BenchCommand::Serial(a) => super::bench_serial::run(a),
+        #[cfg(feature = "btf")]
         BenchCommand::Compress(a) => super::bench_compress::run(a),
+        #[cfg(feature = "btf")]
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
         BenchCommand::Hdr(a) => super::bench_hdr::run(a),
+        #[cfg(feature = "btf")]
         BenchCommand::Decode(a) => super::bench_decode::run(a),
+        #[cfg(feature = "btf")]
         BenchCommand::Fit(a) => super::bench_fit::run(a),
     }
 }

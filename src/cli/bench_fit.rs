@@ -16,7 +16,7 @@ use std::time::Instant;
 #[derive(clap::Args, Debug)]
 pub struct FitBenchArgs {
     /// The truth: lafortune | ward | cook-torrance | rough-conductor (the parameters of
-    /// docs/fitting.md).
+    /// docs/guide/fitting.md).
     #[arg(long, default_value = "cook-torrance")]
     pub truth: String,
     /// The model fitted.
@@ -49,7 +49,7 @@ struct Row {
     stop: String,
 }
 
-/// The truths of the bench and of docs/fitting.md.
+/// The truths of the bench and of docs/guide/fitting.md.
 pub fn truth(name: &str) -> Option<BrdfModel> {
     Some(match name {
         "lafortune" => BrdfModel::Lafortune {

@@ -1,4 +1,4 @@
-//! `gonio bench hdr`: error against run time of HDR acquisition (docs/hdr.md).
+//! `gonio bench hdr`: error against run time of HDR acquisition (docs/guide/hdr.md).
 //!
 //! Runs the same acquisition (rig, sample, sweep, size, seed) once per HDR mode — `off`,
 //! fixed brackets and `auto` — with the simulator's unclipped ground truth stored, then

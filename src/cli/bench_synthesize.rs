@@ -25,7 +25,7 @@ pub struct SynthesizeBenchArgs {
     #[arg(long)]
     pub exemplar: PathBuf,
     /// Reference dataset: the same material over a larger area at the same texel pitch and
-    /// on the same direction grid (see docs/synthesis.md for the recipe).
+    /// on the same direction grid (see docs/guide/synthesis.md for the recipe).
     #[arg(long)]
     pub reference: PathBuf,
     /// Output size (default: twice the exemplar's side, 4× its area).

@@ -115,7 +115,7 @@ pub struct CompressArgs {
     pub subspace: usize,
     /// Local PCA: run the nine passes over the views that `--shard I/N` splits, in this
     /// one process: the file a sharded run merges to, byte for byte (exact sums; about 3×
-    /// the fused encoder's time at 256², docs/scale.md). Implied by --shard.
+    /// the fused encoder's time at 256², docs/guide/scale.md). Implied by --shard.
     #[arg(long)]
     pub in_passes: bool,
     /// Median cut: number of boxes (BRDFs).
@@ -160,7 +160,7 @@ pub struct CompressArgs {
     /// part to --out; `gonio merge` joins the parts into the file one process would have
     /// written, byte for byte. PVMF: one round (a `.gbtf` part). PCA and DFMF: one pass
     /// of the randomized SVD per round (a `.gpart`; `2 + --power-iters` rounds, each
-    /// merged into the `--state` of the next; docs/scale.md). Local PCA (with
+    /// merged into the `--state` of the next; docs/guide/scale.md). Local PCA (with
     /// `--subspace d > 0`): 9 rounds the same way. A part is not evaluated (evaluate
     /// the merged file).
     #[arg(long)]
@@ -527,7 +527,7 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
 /// The ladders `--target-psnr` climbs (see `compress::target`): each method's knobs in
 /// order of growing file size. PVMF, median cut and homomorphic factorization are left
 /// out of the default search: on the default sample their files are larger at every
-/// quality PCA or local PCA reach (docs/compression.md); `--method` still searches them.
+/// quality PCA or local PCA reach (docs/guide/compression.md); `--method` still searches them.
 fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
     let p = |method, c| Params {
         seed: args.seed,

@@ -27,7 +27,7 @@ pub struct CheckArgs {
 
 #[derive(clap::Args, Debug)]
 pub struct GenerateArgs {
-    /// The family spec (TOML; see docs/scale.md, "Dataset families").
+    /// The family spec (TOML; see docs/guide/scale.md, "Dataset families").
     pub spec: PathBuf,
     /// The family directory (members/NNNN/ datasets, labels.csv, family.json, family.toml).
     #[arg(long)]

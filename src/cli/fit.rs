@@ -1,7 +1,7 @@
 //! `gonio fit DATASET|FILE --model M`: fit an analytic BRDF model to a homogeneous sample's
 //! averaged BRDF, or to every texel (`--per-texel`, McAllister's scaled Lafortune SBRDF),
 //! and report the parameters, the residual and where the model fails (see `gonio_btf::fit`,
-//! docs/fitting.md).
+//! docs/guide/fitting.md).
 
 use anyhow::{anyhow, Context, Result};
 use gonio_btf::compress::{CompressedBtf, DatasetViews};

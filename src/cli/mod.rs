@@ -4,33 +4,45 @@
 //! `anyhow`. Every command that prints figures has `--json` for scripts.
 
 mod acquire;
+#[cfg(feature = "btf")]
 mod batch;
 mod bench;
 mod bench_acquire;
+#[cfg(feature = "btf")]
 mod bench_compress;
+#[cfg(feature = "btf")]
 mod bench_decode;
+#[cfg(feature = "btf")]
 mod bench_fit;
 mod bench_hdr;
 mod bench_serial;
+#[cfg(feature = "btf")]
 mod bench_synthesize;
 mod brdf;
 mod calibrate;
 mod common;
+#[cfg(feature = "btf")]
 mod compress;
 mod dataset;
 mod devices;
 mod export;
+#[cfg(feature = "btf")]
 mod fit;
+#[cfg(feature = "btf")]
 mod generate;
 mod import;
+#[cfg(feature = "btf")]
 mod merge;
 mod plan;
+#[cfg(feature = "monitor")]
 mod render;
 mod serve_stage;
 mod sim;
 mod sim_btf;
 mod svg_plot;
+#[cfg(feature = "btf")]
 mod synthesize;
+#[cfg(feature = "monitor")]
 mod view;
 
 use clap::{Parser, Subcommand};
@@ -76,9 +88,11 @@ pub enum Command {
     Bench(bench::BenchCommand),
     /// Compress a dataset (PCA, PVMF, local PCA, median cut, homomorphic: .gbtf; DFMF: UBO2014 .btf)
     /// and report its size and error.
+    #[cfg(feature = "btf")]
     Compress(compress::CompressArgs),
     /// Fit an analytic BRDF model (lafortune, ward, cook-torrance, rough-conductor) to a
     /// homogeneous sample's averaged BRDF or per texel; parameters, residual, where it fails.
+    #[cfg(feature = "btf")]
     Fit(Box<fit::FitArgs>),
     /// Find hardware: list serial ports and video devices, probe a port for a controller.
     #[command(subcommand)]
@@ -86,18 +100,25 @@ pub enum Command {
     /// Run a calibration recipe (calibration/recipes/*.toml) on a rig; write a versioned result.
     Calibrate(calibrate::CalibrateArgs),
     /// Reconstruct one (light, view) image from a .gbtf file.
+    #[cfg(feature = "btf")]
     Reconstruct(compress::ReconstructArgs),
     /// A new BTF from one median-cut file's index image and another's BRDF block.
+    #[cfg(feature = "btf")]
     Generate(generate::GenerateArgs),
     /// Grow a compressed BTF to any size (tile, efros-leung, wei-levoy, quilting).
+    #[cfg(feature = "btf")]
     Synthesize(synthesize::SynthesizeArgs),
     /// Render a dataset or compressed file on a plane, sphere or cylinder (the viewer's CPU reference).
+    #[cfg(feature = "monitor")]
     Render(render::RenderArgs),
     /// Serve the browser viewer (relight, inspect, live monitor) for a dataset or compressed file.
+    #[cfg(feature = "monitor")]
     View(view::ViewArgs),
     /// Join the parts of a sharded run (`--shard I/N`) into the single-process output.
+    #[cfg(feature = "btf")]
     Merge(merge::MergeArgs),
     /// Run a sharded command on a cluster scheduler (Slurm job array + merge job).
+    #[cfg(feature = "btf")]
     #[command(subcommand)]
     Batch(batch::BatchCommand),
     /// Families of synthetic datasets for testing other software.
@@ -133,16 +154,25 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim(c) => sim::run(c),
         Command::Bench(c) => bench::run(c),
         Command::Brdf(c) => brdf::run(c),
+        #[cfg(feature = "btf")]
         Command::Compress(a) => compress::run(a),
+        #[cfg(feature = "btf")]
         Command::Fit(a) => fit::run(*a),
         Command::Devices(c) => devices::run(c),
+        #[cfg(feature = "btf")]
         Command::Reconstruct(a) => compress::reconstruct(a),
+        #[cfg(feature = "btf")]
         Command::Generate(a) => generate::run(a),
+        #[cfg(feature = "btf")]
         Command::Synthesize(a) => synthesize::run(a),
         Command::Calibrate(a) => calibrate::run(a),
+        #[cfg(feature = "monitor")]
         Command::Render(a) => render::run(a),
+        #[cfg(feature = "monitor")]
         Command::View(a) => view::run(a),
+        #[cfg(feature = "btf")]
         Command::Merge(a) => merge::run(a),
+        #[cfg(feature = "btf")]
         Command::Batch(c) => batch::run(c),
         Command::Dataset(c) => dataset::run(c),
     }

@@ -54,7 +54,7 @@ pub struct SynthArgs {
     pub leaf: usize,
     /// Wei–Levoy coherence κ: prefer the texel continuing a neighbour's source patch when
     /// its neighbourhood distance is within 1 + κ·2⁻ˡ of the tree's match (0 = the tree's
-    /// match alone, as Wei & Levoy; see docs/synthesis.md).
+    /// match alone, as Wei & Levoy; see docs/guide/synthesis.md).
     #[arg(long, default_value_t = 1.0)]
     pub coherence: f64,
 }

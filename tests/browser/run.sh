@@ -38,7 +38,7 @@ trap 'rm -rf "$scratch"' EXIT
 "$gonio" -q sim btf --size 32 --sweep fibonacci:10 --out "$scratch/other" >/dev/null
 "$gonio" -q compress "$scratch/other" --method pca -c 2 --out "$scratch/other.gbtf" >/dev/null
 export GONIO_MISMATCHED_MODELS="$scratch/small.gbtf=texels,$scratch/other.gbtf=light directions"
-# Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/viewer.md shows them).
+# Screenshots go to docs/img/ (viewer-relight.png, viewer-monitor.png; docs/guide/viewer.md shows them).
 "$py" tests/browser/check_pages.py "$gonio" "$scratch/ds" "$scratch/pvmf.gbtf" "$scratch" docs/img \
   "$scratch/dfmf.btf" "$scratch/lpca.gbtf" "$scratch/pca.gbtf" "$scratch/dfmf-rgb.btf" \
   "$scratch/dfmf-lab.gbtf" "$scratch/mcut.gbtf" "$scratch/homo.gbtf"

@@ -228,7 +228,7 @@ if [ -x /bin/gonio ]; then
   done
   # HDR bracketing against a camera that cannot apply the exposure it is asked for: vivid
   # has no exposure control, so the bracket's shorter exposure is not applied and every
-  # measurement must record why (docs/hdr.md), never clip silently.
+  # measurement must record why (docs/guide/hdr.md), never clip silently.
   echo
   echo "VIVID_HDR_BEGIN"
   /bin/gonio acquire --rig /rigs/v4l2-vivid.toml --sample white-standard --sweep fibonacci:3 \\

@@ -329,8 +329,9 @@ mod tests {
     use gonio_simulator::SampleSpec;
     use std::path::Path;
 
+    /// The workspace root (rig files and recipes are named relative to it).
     fn root() -> &'static Path {
-        Path::new(env!("CARGO_MANIFEST_DIR"))
+        Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/.."))
     }
 
     fn wide_rig(recipe: &Recipe) -> Rig {

@@ -377,7 +377,7 @@ mod tests {
 
     #[test]
     fn shipped_recipes_parse() {
-        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("calibration/recipes");
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../calibration/recipes");
         let mut n = 0;
         for e in std::fs::read_dir(&dir).unwrap() {
             let p = e.unwrap().path();

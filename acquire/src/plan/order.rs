@@ -114,7 +114,7 @@ pub struct OrderOptions {
 }
 
 /// Default kick budget: on the default rig's full Bonn sweep (6480 nodes) about as many
-/// kicks as the former 2 s wall-clock budget ran on an idle 2-core machine (docs/scale.md).
+/// kicks as the former 2 s wall-clock budget ran on an idle 2-core machine (docs/guide/scale.md).
 pub const DEFAULT_KICKS: usize = 20_000;
 
 impl Default for OrderOptions {

@@ -148,7 +148,7 @@ mod tests {
     }
 
     /// f32 against f64: the same per-ABRDF SVD done in f32 on 81 × 81-like graded
-    /// matrices. Prints where f32 leaves the optimum (see docs/compression.md).
+    /// matrices. Prints where f32 leaves the optimum (see docs/guide/compression.md).
     #[test]
     fn f32_versus_f64_per_abrdf() {
         let (nl, nv) = (81, 81);

@@ -1048,7 +1048,7 @@ fn unit_hash(a: usize, b: usize) -> f64 {
 /// the f32 side is the same alternating least squares in f32 (`cmf::fit_link::<f32>`),
 /// the residual `M / F` in f32 and faer's f32 SVD. Errors are ‖M − M̂‖ / ‖M‖ in f64, on
 /// inputs rounded to f32 first (the production input is f32). Prints the table of
-/// docs/compression.md with `--nocapture`.
+/// docs/guide/compression.md with `--nocapture`.
 ///
 /// - GSHD on `M = G(h) · E(d) · (1 + ε n(l, v))`: how close to a product the data is (ε)
 ///   and the highlight's dynamic range `R` (half vectors within 22.5° of the normal are `R`
@@ -1172,7 +1172,7 @@ fn f32_versus_f64_gshd_and_cmf() {
     for r in &rows {
         assert!(r.2.is_finite(), "f64 error not finite: {r:?}");
     }
-    // Where f32 holds and where it fails (measured; docs/compression.md): far from a
+    // Where f32 holds and where it fails (measured; docs/guide/compression.md): far from a
     // product and within f32's range it matches f64, ...
     for r in rows
         .iter()

@@ -14,7 +14,7 @@
 //! **Directions** are the sweep's nominal ones (the sample's centre seen from the rig's
 //! distance). A texel off the centre sees the lamp and camera up to `atan(size/2 / d)`
 //! away from them (1.7° for a 60 mm sample at 1 m); the fit of a lobe much narrower than
-//! that is blurred accordingly (see docs/fitting.md).
+//! that is blurred accordingly (see docs/guide/fitting.md).
 
 use super::{FitError, Observations, Rgb};
 use crate::compress::DatasetViews;

@@ -48,7 +48,7 @@ impl Exemplar {
         }
     }
     /// Whether the output stores only a texel map into shared factors (see
-    /// `docs/synthesis.md`, "What is stored").
+    /// `docs/guide/synthesis.md`, "What is stored").
     pub fn compact(&self) -> bool {
         match self {
             Exemplar::Dfmf(_) => true,

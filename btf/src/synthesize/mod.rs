@@ -125,7 +125,7 @@ pub struct SynthParams {
 impl SynthParams {
     /// The default quilting overlap for a block edge: a quarter of the block. Efros &
     /// Freeman's sixth leaves the boundary cut too little room on ABRDF features: on the
-    /// quality bench (docs/synthesis.md) block 32 with overlap 5 gave seam ratios of
+    /// quality bench (docs/guide/synthesis.md) block 32 with overlap 5 gave seam ratios of
     /// 1.13–1.21 over three seeds, overlap 8 gave 1.07–1.08.
     pub fn default_overlap(block: usize) -> usize {
         (block / 4).max(1)

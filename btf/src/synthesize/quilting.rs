@@ -403,7 +403,7 @@ mod tests {
     /// The default overlap (block / 4) gives lower seams (`quality::seams`, mean over three
     /// seeds) than Efros & Freeman's sixth on a high-contrast blob texture: measured 1.20
     /// against 1.36. (The issue's ≤ 1.2 target is measured on the leather bench, see
-    /// docs/synthesis.md; this synthetic texture sits at the limit, hence 1.25 here.)
+    /// docs/guide/synthesis.md; this synthetic texture sits at the limit, hence 1.25 here.)
     #[test]
     fn the_default_overlap_lowers_the_seams() {
         let ex = testutil::blobs(64, 64, 11);

@@ -16,7 +16,7 @@
 //!   output texel takes the exemplar texel of its approximate nearest neighbour.
 //! * **Coherence** (`coherence` κ > 0). The greedy tree walk alone lets the output drift
 //!   onto a few exemplar texels whose neighbourhoods sit near many centroids (measured:
-//!   one texel used 760 times, 61 % of the exemplar never used; docs/synthesis.md). Every
+//!   one texel used 760 times, 61 % of the exemplar never used; docs/guide/synthesis.md). Every
 //!   already-synthesized causal neighbour also proposes the exemplar texel that continues
 //!   its own source patch (Ashikhmin 2001); the best of those is taken when its distance
 //!   is within `1 + κ·2⁻ˡ` of the tree's answer (Hertzmann et al. 2001, level `l`, 0 =
@@ -274,7 +274,7 @@ mod tests {
     }
 
     /// The coherence candidates stop the drift onto a few exemplar texels that the greedy
-    /// tree walk alone shows (docs/synthesis.md): on a blob texture the most used texel
+    /// tree walk alone shows (docs/guide/synthesis.md): on a blob texture the most used texel
     /// is used far less often, and more of the exemplar is used at all.
     #[test]
     fn coherence_spreads_the_use_of_the_exemplar() {

@@ -706,7 +706,7 @@ fn ubo2003_interop_with_btf_extractor() {
     let npy_path = tmp.path().join("ref.npy");
     export_ubo2003(&dir, &zip_path).unwrap();
     export_npy(&dir, &npy_path).unwrap();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/interop/check_ubo2003.py");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/interop/check_ubo2003.py");
     let out = std::process::Command::new(python)
         .arg(&script)
         .arg(&zip_path)

@@ -24,7 +24,7 @@
 //! computes its own. `--in-passes` runs exactly these passes in one process (one "shard"
 //! of all views), so a merged sharded run gives its file byte for byte. Without it one
 //! process runs the fused encoder (`local_pca::fit_in_subspace`), the same algorithm
-//! over whole rows in f32 products, about 3× faster at 256² (docs/scale.md).
+//! over whole rows in f32 products, about 3× faster at 256² (docs/guide/scale.md).
 //!
 //! The coordinates are the exact projection `X̃ G`, not the sketch's `Q (B G)`: that
 //! saves pass 3 but clustered worse (on a 64², 81 × 81 sample, k = 32, c = 8, seeds
