@@ -144,7 +144,6 @@ fn sharded_kind(args: &[String]) -> Result<(ShardedKind, Option<Input>), String>
                 .or_else(|_| parse(false, false))
         })
         .map_err(|_| clap_error.clone())?;
-    let state_refused = || "`--state` is set by the batch for every round after the first".to_string();
     // (kind, whether the user's command sets --out, --shard, --force; the input argument).
     // Without the batch's `--out`, a user's `--out` is the one parsed (it is required, or
     // acquire's default, which conflicts only with `--resume`, refused below).
@@ -181,7 +180,7 @@ fn sharded_kind(args: &[String]) -> Result<(ShardedKind, Option<Input>), String>
                 }
             };
             if c.state.is_some() {
-                return Err(state_refused());
+                return Err("`--state` is set by the batch for every round after the first".into());
             }
             (kind, true, c.shard.is_some(), false, Some((c.dataset.clone(), "dataset")))
         }
