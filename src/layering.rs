@@ -181,6 +181,8 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "sim",
             "sim_btf",
             "serve_stage",
+            // `batch slurm` matches on the parsed commands it shards
+            "dataset",
             "bench_acquire",
             "bench_compress",
             "bench_decode",

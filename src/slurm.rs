@@ -14,7 +14,8 @@
 
 use std::path::{Path, PathBuf};
 
-/// Which sharded gonio command the array runs.
+/// Which sharded gonio command the array runs (`cli::batch` recognises it from the parsed
+/// command line).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ShardedKind {
     /// `gonio sim btf …`: parts are dataset directories.
@@ -33,78 +34,6 @@ pub enum ShardedKind {
 }
 
 impl ShardedKind {
-    /// Recognise the command from its arguments (without the program name); refuse
-    /// commands that cannot be sharded and arguments the batch sets itself.
-    /// `default_power_iters`: `gonio compress`'s default, for a PCA/DFMF command that does
-    /// not set `--power-iters` (the number of rounds depends on it); `local_pca_passes`: the
-    /// rounds of a local PCA (`compress::local_pca::passes::PASSES`, given by the caller:
-    /// this floor does not name `compress`).
-    pub fn of(args: &[String], default_power_iters: usize, local_pca_passes: usize) -> Result<ShardedKind, String> {
-        let kind = match args {
-            [a, b, ..] if a == "sim" && b == "btf" => ShardedKind::SimBtf,
-            [a, ..] if a == "acquire" => {
-                if args.iter().any(|a| a.split('=').next() == Some("--resume")) {
-                    return Err("`acquire --resume` continues one dataset; give the acquisition's own options".into());
-                }
-                ShardedKind::Acquire
-            }
-            [a, b, ..] if a == "dataset" && b == "generate" => ShardedKind::DatasetGenerate,
-            [a, ..] if a == "compress" => {
-                let method = |m: &str| {
-                    args.windows(2).any(|w| w[0] == "--method" && w[1] == m)
-                        || args.iter().any(|a| *a == format!("--method={m}"))
-                };
-                if method("pvmf") {
-                    ShardedKind::CompressPvmf
-                } else if method("local-pca") {
-                    if args.iter().any(|a| a.split('=').next() == Some("--state")) {
-                        return Err("`--state` is set by the batch for every round after the first".into());
-                    }
-                    ShardedKind::CompressRsvd {
-                        passes: local_pca_passes,
-                    }
-                } else if method("pca") || method("dfmf") {
-                    // 2 + power iterations passes (the default is compress's own, 2).
-                    let value = args
-                        .windows(2)
-                        .find(|w| w[0] == "--power-iters")
-                        .map(|w| w[1].clone())
-                        .or_else(|| args.iter().find_map(|a| a.strip_prefix("--power-iters=").map(String::from)));
-                    let iters = match value {
-                        None => default_power_iters,
-                        Some(v) => v
-                            .parse::<usize>()
-                            .map_err(|_| format!("--power-iters `{v}` is not a whole number"))?,
-                    };
-                    if args.iter().any(|a| a.split('=').next() == Some("--state")) {
-                        return Err("`--state` is set by the batch for every round after the first".into());
-                    }
-                    ShardedKind::CompressRsvd { passes: iters + 2 }
-                } else {
-                    return Err(
-                        "`compress` is sharded for --method pvmf (by views), pca, dfmf and local-pca (by passes over the views)"
-                            .into(),
-                    );
-                }
-            }
-            _ => {
-                return Err(format!(
-                    "`{}` cannot be sharded; give `sim btf …`, `acquire …`, `compress DATASET --method pvmf|pca|dfmf|local-pca …` or `dataset generate SPEC` after --",
-                    args.join(" ")
-                ))
-            }
-        };
-        if let Some(a) = args
-            .iter()
-            .find(|a| matches!(a.split('=').next(), Some("--shard" | "--out" | "--force")))
-        {
-            return Err(format!(
-                "`{a}` is set by the batch for every shard (parts go to --work DIR/parts, the merged result to --out)"
-            ));
-        }
-        Ok(kind)
-    }
-
     fn part_suffix(self) -> &'static str {
         match self {
             ShardedKind::SimBtf | ShardedKind::Acquire | ShardedKind::DatasetGenerate => "",
@@ -388,40 +317,8 @@ pub fn which(program: &str) -> Option<PathBuf> {
 mod tests {
     use super::*;
 
-    impl ShardedKind {
-        fn of2(args: &[String]) -> Result<ShardedKind, String> {
-            ShardedKind::of(args, 2, 9)
-        }
-    }
-
     fn args(s: &str) -> Vec<String> {
         s.split_whitespace().map(String::from).collect()
-    }
-
-    #[test]
-    fn only_shardable_commands_without_their_own_shard_or_out() {
-        assert_eq!(ShardedKind::of2(&args("sim btf --size 32")), Ok(ShardedKind::SimBtf));
-        assert_eq!(
-            ShardedKind::of2(&args("compress ds --method pvmf -c 4")),
-            Ok(ShardedKind::CompressPvmf)
-        );
-        assert_eq!(
-            ShardedKind::of2(&args("compress ds --method pca -c 4")),
-            Ok(ShardedKind::CompressRsvd { passes: 4 })
-        );
-        assert_eq!(
-            ShardedKind::of2(&args("compress ds --method dfmf -c 4 --power-iters 0")),
-            Ok(ShardedKind::CompressRsvd { passes: 2 })
-        );
-        assert!(ShardedKind::of2(&args("compress ds --method pca -c 4 --state s")).is_err());
-        assert!(ShardedKind::of2(&args("compress ds --method median-cut")).is_err());
-        assert_eq!(ShardedKind::of2(&args("acquire --size 32")), Ok(ShardedKind::Acquire));
-        assert!(ShardedKind::of2(&args("acquire --resume d")).is_err());
-        assert!(ShardedKind::of2(&args("plan --size 32")).is_err());
-        assert!(ShardedKind::of2(&args("sim btf --out x"))
-            .unwrap_err()
-            .contains("--out"));
-        assert!(ShardedKind::of2(&args("sim btf --shard=1/2")).is_err());
     }
 
     #[test]
@@ -463,10 +360,6 @@ mod tests {
         assert!(a.contains("scontrol requeue"), "{a}");
 
         // A family: every shard writes into the family directory; the last job checks it.
-        assert_eq!(
-            ShardedKind::of2(&args("dataset generate /s.toml")),
-            Ok(ShardedKind::DatasetGenerate)
-        );
         let f = SlurmJob {
             kind: ShardedKind::DatasetGenerate,
             args: args("dataset generate /s.toml"),
@@ -501,10 +394,6 @@ mod tests {
         assert!(c.merge_script(1).contains("--out '/w d/state-1.gstate'"));
         assert!(c.merge_script(2).contains("--out /o --force"));
         assert!(c.group_script(0).is_none());
-        assert_eq!(
-            ShardedKind::of2(&args("compress /ds --method local-pca -c 2")),
-            Ok(ShardedKind::CompressRsvd { passes: 9 })
-        );
 
         // A tree merge: 6 shards in groups of 3, then the 2 groups.
         let t = SlurmJob {

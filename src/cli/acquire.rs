@@ -1,10 +1,10 @@
 //! `gonio acquire`: run (or resume) an acquisition and print its summary.
 
-use super::common::{load_sample, RigArgs, SweepArgs};
+use super::common::{load_sample, parse_size, RigArgs, SweepArgs, IMAGE_SIDES};
 use anyhow::{Context, Result};
 use gonio_acquire::engine::{Observer, RunEvent};
 use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, Summary};
-use gonio_devices::hdr::{HdrMode, HdrSpec};
+use gonio_devices::hdr::HdrMode;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -29,7 +29,7 @@ pub struct AcquireArgs {
     #[command(flatten)]
     pub sweep: SweepArgs,
     /// Rectified image size in texels (W×H).
-    #[arg(long, default_value = "256x256", value_parser = parse_size)]
+    #[arg(long, default_value = "256x256", value_parser = |s: &str| parse_size(s, IMAGE_SIDES))]
     pub size: (usize, usize),
     /// Pace the simulated rig in real time instead of on a virtual clock.
     #[arg(long)]
@@ -85,34 +85,6 @@ pub struct AcquireArgs {
 
 fn parse_hdr(s: &str) -> std::result::Result<HdrMode, String> {
     HdrMode::parse(s)
-}
-
-/// The rig with `--hdr` applied: `off` on a rig without `[hdr]` leaves it unchanged (so the
-/// manifest's rig snapshot is today's); any other mode sets `[hdr] mode`, keeping the rig
-/// file's limits or the defaults.
-pub fn apply_hdr(rig: &mut gonio_devices::rig::RigSpec, mode: Option<HdrMode>) {
-    match (mode, &mut rig.hdr) {
-        (None, _) | (Some(HdrMode::Off), None) => {}
-        (Some(m), Some(h)) => h.mode = m.word(),
-        (Some(m), None) => {
-            rig.hdr = Some(HdrSpec {
-                mode: m.word(),
-                ..HdrSpec::default()
-            })
-        }
-    }
-}
-
-pub(super) fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
-    let (a, b) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
-    let w: usize = a.parse().map_err(|_| format!("`{s}`: width is not a number"))?;
-    let h: usize = b.parse().map_err(|_| format!("`{s}`: height is not a number"))?;
-    if !(8..=8192).contains(&w) || !(8..=8192).contains(&h) {
-        return Err(format!("`{s}`: each side must be 8 ..= 8192"));
-    }
-    Ok((w, h))
 }
 
 pub fn run(args: AcquireArgs) -> Result<ExitCode> {
@@ -217,18 +189,14 @@ async fn serve_view(dir: &std::path::Path, _port: u16) -> Result<String> {
 
 /// The new session the arguments describe.
 fn new_session(args: &AcquireArgs) -> Result<NewSession> {
-    let mut rig = args.rig.load()?;
-    apply_hdr(&mut rig, args.hdr);
-    if let Some(h) = &rig.hdr {
-        h.validate(rig.camera.exposure_s)
-            .map_err(|(key, value, message)| anyhow::anyhow!("rig `{}`: {key} = {value}: {message}", rig.name))?;
-    }
+    let rig = args.rig.load()?;
     let sample = load_sample(&args.sample)?;
     let sweep = args.sweep.load()?;
     Ok(NewSession {
         out: args.out.clone(),
         force: args.force,
         rig,
+        hdr: args.hdr,
         sample,
         sweep,
         plan: PlanRequest {

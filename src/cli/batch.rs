@@ -1,10 +1,15 @@
 //! `gonio batch slurm`: write (and with `--submit` submit) a Slurm job array that runs a
 //! sharded command, plus a merge job that depends on it (see `crate::slurm`).
 
+use super::compress::MethodArg;
+use super::dataset::DatasetCommand;
+use super::sim::SimCommand;
+use super::{Cli, Command as Gonio};
 use crate::slurm::{self, RetryMode, ShardedKind, SlurmJob};
 use anyhow::{bail, Context, Result};
+use clap::Parser;
 use serde::Serialize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
 
 #[derive(clap::Subcommand, Debug)]
@@ -97,14 +102,118 @@ pub fn run(c: BatchCommand) -> Result<ExitCode> {
     }
 }
 
+/// An input argument the jobs need absolute (they may start elsewhere): its path as
+/// parsed, and what it is.
+type Input = (PathBuf, &'static str);
+
+/// What the batch sets itself on every shard's command line: a placeholder `--out` (the
+/// parts' paths) and `--shard` (the task's index).
+const BATCH_SET: [&str; 4] = ["--out", "gonio-batch-part", "--shard", "1/1"];
+
+/// Recognise the sharded command by parsing it with gonio's own command line (`args`
+/// without the program name), and the input argument to make absolute (a dataset, a family
+/// spec). Refuses commands that cannot be sharded, clap's errors, and the options the
+/// batch sets itself (`--out`, `--shard`, `--force`, `acquire --resume`, `compress --state`).
+fn sharded_kind(args: &[String]) -> Result<(ShardedKind, Option<Input>), String> {
+    // The batch's own `--out` and `--shard` are appended; when that fails, the command is
+    // parsed without them (one or both were given by the user, or the command has none).
+    let parse = |with_out: bool, with_shard: bool| {
+        let extra = BATCH_SET
+            .chunks(2)
+            .zip([with_out, with_shard])
+            .filter(|(_, on)| *on)
+            .flat_map(|(kv, _)| kv.iter().copied());
+        Cli::try_parse_from(
+            ["gonio"]
+                .into_iter()
+                .chain(args.iter().map(String::as_str))
+                .chain(extra),
+        )
+        .map(|cli| (cli.command, with_out, with_shard))
+    };
+    let mut clap_error = String::new();
+    let (command, batch_out, batch_shard) = parse(true, true)
+        .or_else(|e| {
+            clap_error = format!(
+                "`{}` does not parse as a gonio command: {}",
+                args.join(" "),
+                e.render().to_string().trim_start_matches("error: ").trim_end()
+            );
+            parse(true, false)
+                .or_else(|_| parse(false, true))
+                .or_else(|_| parse(false, false))
+        })
+        .map_err(|_| clap_error.clone())?;
+    // (kind, whether the user's command sets --out, --shard, --force; the input argument).
+    // Without the batch's `--out`, a user's `--out` is the one parsed (it is required, or
+    // acquire's default, which conflicts only with `--resume`, refused below).
+    let (kind, out, shard, force, input) = match &command {
+        Gonio::Sim(SimCommand::Btf(b)) => (ShardedKind::SimBtf, b.out.is_some(), b.shard.is_some(), b.force, None),
+        Gonio::Acquire(a) => {
+            if a.resume.is_some() {
+                return Err("`acquire --resume` continues one dataset; give the acquisition's own options".into());
+            }
+            (ShardedKind::Acquire, true, a.shard.is_some(), a.force, None)
+        }
+        Gonio::Dataset(DatasetCommand::Generate(g)) => (
+            ShardedKind::DatasetGenerate,
+            true,
+            g.shard.is_some(),
+            g.force,
+            Some((g.spec.clone(), "family spec")),
+        ),
+        Gonio::Compress(c) => {
+            let kind = match c.method {
+                Some(MethodArg::Pvmf) => ShardedKind::CompressPvmf,
+                Some(MethodArg::LocalPca) => ShardedKind::CompressRsvd {
+                    passes: gonio_btf::compress::local_pca::passes::PASSES,
+                },
+                // 2 + power iterations passes.
+                Some(MethodArg::Pca | MethodArg::Dfmf) => ShardedKind::CompressRsvd {
+                    passes: c.power_iters + 2,
+                },
+                _ => {
+                    return Err(
+                        "`compress` is sharded for --method pvmf (by views), pca, dfmf and local-pca (by passes over the views)"
+                            .into(),
+                    )
+                }
+            };
+            if c.state.is_some() {
+                return Err("`--state` is set by the batch for every round after the first".into());
+            }
+            (kind, true, c.shard.is_some(), false, Some((c.dataset.clone(), "dataset")))
+        }
+        _ => {
+            return Err(format!(
+                "`{}` cannot be sharded; give `sim btf …`, `acquire …`, `compress DATASET --method pvmf|pca|dfmf|local-pca …` or `dataset generate SPEC` after --",
+                args.join(" ")
+            ))
+        }
+    };
+    let own = if out && !batch_out {
+        "--out"
+    } else if shard && !batch_shard {
+        "--shard"
+    } else if force {
+        "--force"
+    } else if !(batch_out && batch_shard) {
+        // The batch's options made it fail for another reason: clap's own words.
+        return Err(clap_error);
+    } else {
+        return Ok((kind, input));
+    };
+    Err(format!(
+        "`{own}` is set by the batch for every shard (parts go to --work DIR/parts, the merged result to --out)"
+    ))
+}
+
 fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     let mut command = a.command.clone();
     if command.first().map(String::as_str) == Some("--") {
         command.remove(0);
     }
-    let default_iters = gonio_btf::compress::Params::new(gonio_btf::compress::Method::Pca, 1).power_iters;
-    let kind = ShardedKind::of(&command, default_iters, gonio_btf::compress::local_pca::passes::PASSES)
-        .map_err(anyhow::Error::msg)?;
+    let (kind, input) = sharded_kind(&command).map_err(anyhow::Error::msg)?;
     if !(1..=gonio_dataset::shard::MAX_SHARDS).contains(&a.shards) {
         bail!(
             "--shards {}: valid range is 1 ..= {}",
@@ -146,15 +255,9 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
     };
     // The input argument (a dataset, a family spec) must be absolute too: the jobs may
     // start elsewhere.
-    let input = match kind {
-        ShardedKind::CompressPvmf | ShardedKind::CompressRsvd { .. } => Some((1, "dataset")),
-        ShardedKind::DatasetGenerate => Some((2, "family spec")),
-        ShardedKind::SimBtf | ShardedKind::Acquire => None,
-    };
-    if let Some((at, what)) = input {
-        if let Some(arg) = command.get(at).filter(|d| !d.starts_with('-')) {
-            let p = abs(&PathBuf::from(arg), what)?;
-            command[at] = p.display().to_string();
+    if let Some((input, what)) = input {
+        if let Some(arg) = command.iter_mut().skip(1).find(|a| Path::new(a.as_str()) == input) {
+            *arg = abs(&input, what)?.display().to_string();
         }
     }
     let job = SlurmJob {
@@ -306,4 +409,85 @@ fn slurm_run(a: SlurmArgs) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn kind(s: &str) -> Result<ShardedKind, String> {
+        let args: Vec<String> = s.split_whitespace().map(String::from).collect();
+        sharded_kind(&args).map(|(k, _)| k)
+    }
+
+    #[test]
+    fn only_shardable_commands_without_their_own_shard_or_out() {
+        assert_eq!(kind("sim btf --size 32"), Ok(ShardedKind::SimBtf));
+        assert_eq!(kind("compress ds --method pvmf -c 4"), Ok(ShardedKind::CompressPvmf));
+        assert_eq!(kind("compress ds --method=pvmf -c 4"), Ok(ShardedKind::CompressPvmf));
+        // 2 + power iterations (compress's default: 2)
+        assert_eq!(
+            kind("compress ds --method pca -c 4"),
+            Ok(ShardedKind::CompressRsvd { passes: 4 })
+        );
+        assert_eq!(
+            kind("compress ds --method dfmf -c 4 --power-iters 0"),
+            Ok(ShardedKind::CompressRsvd { passes: 2 })
+        );
+        assert_eq!(
+            kind("compress ds -c 4 --power-iters=1 --method dfmf"),
+            Ok(ShardedKind::CompressRsvd { passes: 3 })
+        );
+        assert_eq!(
+            kind("compress /ds --method local-pca -c 2"),
+            Ok(ShardedKind::CompressRsvd {
+                passes: gonio_btf::compress::local_pca::passes::PASSES
+            })
+        );
+        assert!(kind("compress ds --method pca -c 4 --state s")
+            .unwrap_err()
+            .contains("--state"));
+        assert!(kind("compress ds --method median-cut")
+            .unwrap_err()
+            .contains("is sharded for --method pvmf"));
+        assert!(kind("compress ds --target-psnr 30")
+            .unwrap_err()
+            .contains("is sharded for"));
+        assert!(kind("compress ds --method pca --power-iters x")
+            .unwrap_err()
+            .contains("does not parse"));
+        assert_eq!(kind("acquire --size 32x32"), Ok(ShardedKind::Acquire));
+        assert!(kind("acquire --resume d").unwrap_err().contains("--resume"));
+        assert_eq!(kind("dataset generate /s.toml"), Ok(ShardedKind::DatasetGenerate));
+        assert!(kind("plan --sweep bonn81").unwrap_err().contains("cannot be sharded"));
+        assert!(kind("sim btf --bogus").unwrap_err().contains("does not parse"));
+        for (cmd, own) in [
+            ("sim btf --out x", "--out"),
+            ("sim btf --out=x --size 8", "--out"),
+            ("sim btf --shard=1/2", "--shard"),
+            ("sim btf --force", "--force"),
+            ("acquire --out d", "--out"),
+            ("acquire --shard 1/2", "--shard"),
+            ("acquire --force", "--force"),
+            ("compress ds --method pvmf -c 4 --out f.gbtf", "--out"),
+            ("compress ds --method pca -c 4 --shard 2/3", "--shard"),
+            ("dataset generate s.toml --out f", "--out"),
+            ("dataset generate s.toml --shard 1/3", "--shard"),
+            ("dataset generate s.toml --force", "--force"),
+        ] {
+            let e = kind(cmd).unwrap_err();
+            assert!(e.starts_with(&format!("`{own}` is set by the batch")), "{cmd}: {e}");
+        }
+    }
+
+    #[test]
+    fn the_input_is_the_parsed_dataset_or_spec() {
+        let args = |s: &str| s.split_whitespace().map(String::from).collect::<Vec<_>>();
+        let (_, input) = sharded_kind(&args("compress --method pvmf -c 4 rel/ds")).unwrap();
+        assert_eq!(input, Some((PathBuf::from("rel/ds"), "dataset")));
+        let (_, input) = sharded_kind(&args("dataset generate s.toml")).unwrap();
+        assert_eq!(input, Some((PathBuf::from("s.toml"), "family spec")));
+        let (_, input) = sharded_kind(&args("sim btf --size 8")).unwrap();
+        assert_eq!(input, None);
+    }
 }

@@ -105,7 +105,7 @@ fn reset_peak_rss() -> bool {
 
 pub fn run(a: AcquireBenchArgs) -> Result<ExitCode> {
     anyhow::ensure!(
-        (8..=8192).contains(&a.size),
+        super::common::IMAGE_SIDES.contains(&a.size),
         "--size {}: each side must be 8 ..= 8192",
         a.size
     );
@@ -143,6 +143,7 @@ fn bench(
         out: out.to_path_buf(),
         force: true,
         rig: rig.clone(),
+        hdr: None,
         sample: sample.clone(),
         sweep: sweep.clone(),
         plan: PlanRequest {

@@ -40,7 +40,7 @@ pub struct HdrBenchArgs {
     #[command(flatten)]
     pub sweep: SweepArgs,
     /// Rectified image size in texels (W×H).
-    #[arg(long, default_value = "128x128", value_parser = super::acquire::parse_size)]
+    #[arg(long, default_value = "128x128", value_parser = |s: &str| super::common::parse_size(s, super::common::IMAGE_SIDES))]
     pub size: (usize, usize),
     /// Comma-separated HDR modes to compare.
     #[arg(long, default_value = "off,2,3,5,auto")]
@@ -99,13 +99,13 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut rows: Vec<HdrRow> = Vec::new();
     for mode in modes {
-        let mut rig = args.rig.load()?;
-        super::acquire::apply_hdr(&mut rig, Some(mode));
+        let rig = args.rig.load()?;
         let dir = args.out.join(format!("hdr-{}", mode.word()));
         let new = NewSession {
             out: dir.clone(),
             force: true,
             rig,
+            hdr: Some(mode),
             sample: load_sample(&args.sample)?,
             sweep: args.sweep.load()?,
             plan: PlanRequest {

@@ -7,8 +7,9 @@
 //! exactly what the written `.gbtf` decodes to (`synthesize::output` tests that), so no
 //! file is written per run.
 
+use super::common::parse_size;
 use super::svg_plot;
-use super::synthesize::{open_exemplar, parse_size, SynthArgs};
+use super::synthesize::{open_exemplar, SynthArgs};
 use anyhow::{bail, Context, Result};
 use gonio_btf::compress::DatasetViews;
 use gonio_btf::synthesize::quality::{self, ImageStats};
@@ -210,7 +211,7 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
     let model = open_exemplar(&a.exemplar)?;
     let (ew, eh) = (model.width(), model.height());
     let (ow, oh) = match &a.size {
-        Some(s) => parse_size(s)?,
+        Some(s) => parse_size(s, 1..=usize::MAX).map_err(|e| anyhow::anyhow!("--size {e}"))?,
         None => (2 * ew, 2 * eh),
     };
     let reference = DatasetViews::open(&a.reference).with_context(|| format!("opening {}", a.reference.display()))?;

@@ -8,6 +8,26 @@ use gonio_simulator::SampleSpec;
 use std::path::PathBuf;
 use std::time::Duration;
 
+/// Sides of an acquired or rendered image (`--size` of acquire and the benchmarks driving it).
+pub const IMAGE_SIDES: std::ops::RangeInclusive<usize> = 8..=8192;
+
+/// The one parser of `--size WxH` (`x` or `X`, e.g. `256x256`): whole numbers, each side in
+/// `sides`. Errors name the value, for clap or for `--size` context.
+pub fn parse_size(s: &str, sides: std::ops::RangeInclusive<usize>) -> std::result::Result<(usize, usize), String> {
+    let (a, b) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WxH, e.g. 256x256"))?;
+    let w: usize = a.trim().parse().map_err(|_| format!("`{s}`: width is not a number"))?;
+    let h: usize = b.trim().parse().map_err(|_| format!("`{s}`: height is not a number"))?;
+    if !sides.contains(&w) || !sides.contains(&h) {
+        return Err(match sides.end() {
+            &usize::MAX => format!("`{s}`: each side must be at least {}", sides.start()),
+            end => format!("`{s}`: each side must be {} ..= {end}", sides.start()),
+        });
+    }
+    Ok((w, h))
+}
+
 #[derive(clap::Args, Debug, Clone)]
 pub struct RigArgs {
     /// Rig file (TOML, see devices/rigs/); default: the embedded simulated two-arm rig.

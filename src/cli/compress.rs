@@ -524,87 +524,34 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
     }
 }
 
-/// The ladders `--target-psnr` climbs (see `compress::target`): each method's knobs in
-/// order of growing file size. PVMF, median cut and homomorphic factorization are left
-/// out of the default search: on the default sample their files are larger at every
-/// quality PCA or local PCA reach (docs/guide/compression.md); `--method` still searches them.
+/// The search's ladders for `--method` (`compress::target::ladders`) with the knobs given.
 fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
-    let p = |method, c| Params {
+    use compress::target::SearchMethod as S;
+    let method = method.map(|m| match m {
+        MethodArg::Pca => S::Pca,
+        MethodArg::Pvmf => S::Pvmf,
+        MethodArg::Dfmf => S::Dfmf,
+        MethodArg::LocalPca => S::LocalPca,
+        MethodArg::MedianCut => S::MedianCut,
+        MethodArg::Homomorphic => S::Homomorphic,
+        MethodArg::Nd => S::Nd,
+        MethodArg::SvdJ => S::SvdJ,
+        MethodArg::Gshd => S::Gshd,
+        MethodArg::Cmf => S::Cmf,
+    });
+    let knobs = compress::target::Knobs {
         seed: args.seed,
         oversample: args.oversample,
         power_iters: args.power_iters,
-        ..Params::new(method, c)
-    };
-    let lpca = |k: usize| Method::LocalPca {
-        clusters: k,
         iters: args.iters,
         subspace: args.subspace,
         in_passes: args.in_passes,
+        balanced: args.balanced,
+        min_error_cut: args.min_error_cut,
+        half_bins: args.half_bins,
+        sweeps: args.sweeps,
     };
-    let pca: Vec<Params> = [4, 8, 16, 32, 64].map(|c| p(Method::Pca, c)).to_vec();
-    let local = |k: usize| -> Vec<Params> { [2, 4, 8, 16].map(|c| p(lpca(k), c)).to_vec() };
-    // Perceptual DFMF: luminance c, chroma c / 4 (chroma varies less over directions).
-    let lab: Vec<Params> = [8, 16, 32, 64]
-        .map(|c| {
-            p(
-                Method::Dfmf {
-                    color_model: ColorModel::Lab,
-                    chroma_components: (c / 4).max(1),
-                },
-                c,
-            )
-        })
-        .to_vec();
-    match method {
-        None => vec![pca, lab, local(8), local(32)],
-        Some(MethodArg::Pca) => vec![pca],
-        Some(MethodArg::LocalPca) => vec![local(8), local(32)],
-        Some(MethodArg::Pvmf) => vec![[1, 2, 4, 8, 16].map(|c| p(Method::Pvmf, c)).to_vec()],
-        Some(MethodArg::MedianCut) => vec![[64, 256, 1024, 4096]
-            .map(|b| {
-                p(
-                    Method::MedianCut {
-                        boxes: b,
-                        balanced: args.balanced,
-                        min_error_cut: args.min_error_cut,
-                    },
-                    1,
-                )
-            })
-            .to_vec()],
-        Some(MethodArg::Homomorphic) => vec![vec![p(
-            Method::Homomorphic {
-                half_bins: args.half_bins,
-                sweeps: args.sweeps.unwrap_or(20),
-            },
-            1,
-        )]],
-        Some(MethodArg::Dfmf) => vec![lab],
-        Some(MethodArg::Nd) => vec![vec![p(Method::Nd, 1)]],
-        Some(MethodArg::SvdJ) => vec![[1, 2, 4, 8].map(|c| p(Method::SvdJ, c)).to_vec()],
-        Some(MethodArg::Gshd) => vec![[4, 8, 16]
-            .map(|b| {
-                p(
-                    Method::Gshd {
-                        theta_bins: b,
-                        sweeps: args.sweeps.unwrap_or(200),
-                    },
-                    1,
-                )
-            })
-            .to_vec()],
-        Some(MethodArg::Cmf) => vec![[1, 2, 4]
-            .map(|c| {
-                p(
-                    Method::Cmf {
-                        theta_bins: args.half_bins.min(8),
-                        sweeps: args.sweeps.unwrap_or(200),
-                    },
-                    c,
-                )
-            })
-            .to_vec()],
-    }
+    compress::target::ladders(method, &knobs)
 }
 
 fn target_report(args: &CompressArgs, ds: &DatasetViews, goal: Goal, t0: Instant) -> Result<Report> {

@@ -68,8 +68,8 @@ fn check(a: CheckArgs) -> Result<ExitCode> {
         println!("family `{}`: {} of {} members complete", r.name, r.complete, r.members);
         if !r.missing.is_empty() {
             println!(
-                "missing or partial: {:?} (rerun `gonio dataset generate` with the same spec and --out)",
-                r.missing
+                "missing or partial: members {} (rerun `gonio dataset generate` with the same spec and --out)",
+                r.missing.iter().map(|m| m.to_string()).collect::<Vec<_>>().join(", ")
             );
         }
         for (m, why) in &r.stale {

@@ -178,7 +178,8 @@ fn print_verify(r: &store::VerifyReport) {
         );
     }
     if !r.duplicates.is_empty() {
-        println!("indices recorded more than once: {:?}", r.duplicates);
+        let d: Vec<String> = r.duplicates.iter().map(|i| i.to_string()).collect();
+        println!("indices recorded more than once: {}", d.join(", "));
     }
     if let Some((line, why)) = &r.torn_line {
         println!("the journal's last line ({line}) is torn: {why}");

@@ -65,11 +65,14 @@ pub fn run(args: GenerateArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
         println!(
-            "{}: index image of {} ({na} boxes) with the BRDFs of {} ({nb} boxes), {:?} map, {bytes} bytes",
+            "{}: index image of {} ({na} boxes) with the BRDFs of {} ({nb} boxes), {} map, {bytes} bytes",
             args.out.display(),
             args.index.display(),
             args.brdfs.display(),
-            map
+            match args.map {
+                MapArg::Rank => "rank",
+                MapArg::Modulo => "modulo",
+            }
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -67,8 +67,14 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     println!(
-        "rig {} · sweep {} · {} pairs · policy {:?}",
-        plan.rig, plan.sweep, plan.pairs, plan.policy
+        "rig {} · sweep {} · {} pairs · policy {}",
+        plan.rig,
+        plan.sweep,
+        plan.pairs,
+        match plan.policy {
+            gonio_acquire::plan::Policy::Skip => "skip",
+            gonio_acquire::plan::Policy::Substitute => "substitute",
+        }
     );
     println!(
         "  feasible {}  substituted {}  skipped {}",

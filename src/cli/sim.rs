@@ -72,6 +72,10 @@ pub struct RenderArgs {
     /// sample size; millimetres, sample frame) as JSON, for rendering it elsewhere.
     #[arg(long)]
     pub scene_json: Option<PathBuf>,
+    /// Print what was written as JSON on stdout (out, kind, width, height, radiance_unit,
+    /// scene_json) instead of the sentence on stderr.
+    #[arg(long)]
+    pub json: bool,
 }
 
 pub fn run(cmd: SimCommand) -> Result<ExitCode> {
@@ -153,7 +157,20 @@ fn render(a: RenderArgs) -> Result<ExitCode> {
     } else {
         ""
     };
-    eprintln!("wrote {} ({}×{}{unit})", a.out.display(), img.width, img.height);
+    if a.json {
+        let r = serde_json::json!({
+            "out": a.out.display().to_string(),
+            "kind": clap::ValueEnum::to_possible_value(&kind).map(|v| v.get_name().to_string()),
+            "width": img.width,
+            "height": img.height,
+            // radiance in W m⁻² sr⁻¹; every other kind in the dataset's linear unit
+            "radiance_unit": (kind == RenderKind::Radiance).then_some("W m^-2 sr^-1"),
+            "scene_json": a.scene_json.as_ref().map(|p| p.display().to_string()),
+        });
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        eprintln!("wrote {} ({}×{}{unit})", a.out.display(), img.width, img.height);
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -2,6 +2,7 @@
 //! Efros–Leung, Wei–Levoy or image quilting on ABRDF features; the output is a `.gbtf` of
 //! the input's kind (readable by `reconstruct`, `render`, `export`) plus its texel map.
 
+use super::common::parse_size;
 use anyhow::{bail, Context, Result};
 use gonio_btf::compress::interp::AnyModel;
 use gonio_btf::compress::CompressedBtf;
@@ -80,17 +81,6 @@ pub struct SynthesizeArgs {
     pub synth: SynthArgs,
     #[arg(long)]
     pub json: bool,
-}
-
-pub fn parse_size(s: &str) -> Result<(usize, usize)> {
-    let parse = || -> Option<(usize, usize)> {
-        let (w, h) = s.split_once(['x', 'X'])?;
-        Some((w.trim().parse().ok()?, h.trim().parse().ok()?))
-    };
-    match parse() {
-        Some((w, h)) if w > 0 && h > 0 => Ok((w, h)),
-        _ => bail!("--size {s:?}: expected WxH in texels, e.g. 1024x1024"),
-    }
 }
 
 /// Open a compressed BTF that synthesis can gather rows from (a `.gbtf`, or a UBO2014
@@ -195,7 +185,7 @@ fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::
 }
 
 pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
-    let (w, h) = parse_size(&a.size)?;
+    let (w, h) = parse_size(&a.size, 1..=usize::MAX).map_err(|e| anyhow::anyhow!("--size {e}"))?;
     let (model, from_dataset) = if a.input.is_dir() {
         let (m, note) = dataset_exemplar(&a.input, a.components)?;
         (Exemplar::Gbtf(m), Some(note))

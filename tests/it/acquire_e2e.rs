@@ -52,6 +52,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
         out: dir.clone(),
         force: false,
         rig: RigSpec::default_rig(),
+        hdr: None,
         sample: SampleSpec::resolve("wallpaper").unwrap(),
         sweep: reduced_sweep(),
         plan: PlanRequest {

@@ -1,7 +1,8 @@
 //! The acquisition session: what `gonio acquire` does around the engine, as a library, so
 //! the CLI, the tests, the web monitor and batch runners all acquire the same way.
 //!
-//! - [`Session::create`]: load the calibration (a rig-geometry result corrects the rig's
+//! - [`Session::create`]: apply and validate the exposure bracketing asked for (`--hdr`,
+//!   [`apply_hdr`]), load the calibration (a rig-geometry result corrects the rig's
 //!   kinematics before anything is planned), plan, create the dataset (manifest header with
 //!   the run settings, `plan.json`, copies of the applied calibration results);
 //! - [`Session::resume`]: reopen an interrupted dataset with its own rig, sample, plan and
@@ -25,6 +26,7 @@ use crate::rig::{Rig, RigBuildError};
 use gonio_dataset::shard::ShardInfo;
 use gonio_dataset::store::{self, Dataset, ManifestHeader, StoreError};
 use gonio_dataset::sweep::Sweep;
+use gonio_devices::hdr::{HdrMode, HdrSpec};
 use gonio_devices::rig::RigSpec;
 use gonio_devices::Direction;
 use gonio_simulator::{RenderQuality, SampleSpec, SimOptions};
@@ -68,6 +70,14 @@ pub enum SessionError {
     Calibration(Box<LoadError>),
     #[error("building the rig")]
     Rig(#[source] RigBuildError),
+    /// The rig's `[hdr]` (after [`NewSession::hdr`]) has a bad value.
+    #[error("rig `{rig}`: {key} = {value}: {message}")]
+    Hdr {
+        rig: String,
+        key: String,
+        value: String,
+        message: String,
+    },
     /// The engine stopped; the journal is consistent, so the dataset can be resumed.
     #[error("the journal is consistent; fix the cause and run `gonio acquire --resume {dir}`")]
     Engine { dir: String, source: Box<EngineError> },
@@ -106,8 +116,13 @@ pub struct NewSession {
     pub out: PathBuf,
     /// Replace an existing gonio dataset at `out`.
     pub force: bool,
-    /// The rig file as loaded (a rig-geometry calibration in `calibration` corrects it).
+    /// The rig file as loaded (`hdr` sets its bracketing, a rig-geometry calibration in
+    /// `calibration` corrects it).
     pub rig: RigSpec,
+    /// Exposure bracketing per measurement (`--hdr off|auto|N`); `None`: the rig file's
+    /// `[hdr] mode`, else off. Applied by [`apply_hdr`] and validated against the rig's
+    /// base exposure by [`Session::create`].
+    pub hdr: Option<HdrMode>,
     pub sample: SampleSpec,
     pub sweep: Sweep,
     pub plan: PlanRequest,
@@ -117,6 +132,22 @@ pub struct NewSession {
     /// Measure only this shard's views (the whole sweep is planned; `gonio merge` joins
     /// the parts). Recorded as `extra.shard` in the manifest.
     pub shard: Option<gonio_dataset::shard::Shard>,
+}
+
+/// The rig with a bracketing mode applied: `None`, or `off` on a rig without `[hdr]`, leaves
+/// it unchanged (so the manifest's rig snapshot is the rig file's); any other mode sets
+/// `[hdr] mode`, keeping the rig file's limits or the defaults.
+pub fn apply_hdr(rig: &mut RigSpec, mode: Option<HdrMode>) {
+    match (mode, &mut rig.hdr) {
+        (None, _) | (Some(HdrMode::Off), None) => {}
+        (Some(m), Some(h)) => h.mode = m.word(),
+        (Some(m), None) => {
+            rig.hdr = Some(HdrSpec {
+                mode: m.word(),
+                ..HdrSpec::default()
+            })
+        }
+    }
 }
 
 /// How one run of a session goes.
@@ -144,6 +175,16 @@ impl Session {
     /// Plan and create a new dataset (see the module docs).
     pub fn create(new: &NewSession) -> Result<Session, SessionError> {
         let mut rig = new.rig.clone();
+        apply_hdr(&mut rig, new.hdr);
+        if let Some(h) = &rig.hdr {
+            h.validate(rig.camera.exposure_s)
+                .map_err(|(key, value, message)| SessionError::Hdr {
+                    rig: rig.name.clone(),
+                    key,
+                    value,
+                    message,
+                })?;
+        }
         // A rig-geometry calibration corrects the kinematics before anything is planned.
         let calibration = match &new.calibration {
             Some(dir) => Some(load_dir(dir, &rig.name)?),
@@ -589,4 +630,55 @@ fn sweep_from_header(v: &serde_json::Value) -> Result<Sweep, serde_json::Error> 
         lights: list("lights_deg")?,
         views: list("views_deg")?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hdr_is_applied_and_validated_by_the_session() {
+        // off on a rig without [hdr] leaves it as the rig file says; a mode sets [hdr].
+        let mut rig = RigSpec::default_rig();
+        rig.hdr = None;
+        apply_hdr(&mut rig, Some(HdrMode::Off));
+        assert!(rig.hdr.is_none());
+        apply_hdr(&mut rig, None);
+        assert!(rig.hdr.is_none());
+        apply_hdr(&mut rig, Some(HdrMode::Auto));
+        assert_eq!(rig.hdr.as_ref().map(|h| h.mode()), Some(HdrMode::Auto));
+        // a bad limit of the rig file is refused before anything is planned or written
+        rig.hdr.as_mut().unwrap().step = 1.0;
+        let tmp = tempfile::tempdir().unwrap();
+        let new = NewSession {
+            out: tmp.path().join("ds"),
+            force: false,
+            rig,
+            hdr: Some(HdrMode::Fixed(3)),
+            sample: SampleSpec::resolve("wallpaper").unwrap(),
+            sweep: Sweep::resolve("fibonacci:2").unwrap(),
+            plan: PlanRequest {
+                options: PlanOptions::default(),
+                isotropic: false,
+            },
+            settings: RunSettings {
+                width: 16,
+                height: 16,
+                noise: false,
+                truth: false,
+                seed: None,
+                raw: false,
+                store_truth: false,
+            },
+            calibration: None,
+            shard: None,
+        };
+        let e = Session::create(&new).err().expect("a bad [hdr] is refused");
+        assert!(
+            matches!(e, SessionError::Hdr { ref key, .. } if key == "hdr.step"),
+            "{e}"
+        );
+        assert!(e.to_string().starts_with("rig `"), "{e}");
+        assert!(!tmp.path().join("ds").exists());
+    }
 }
