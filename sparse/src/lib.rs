@@ -112,30 +112,30 @@ pub fn sweep_hash(lights_deg: &[[f64; 2]], views_deg: &[[f64; 2]]) -> String {
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// A deterministic stream of standard normal numbers (SplitMix64 + Box–Muller).
-pub(crate) struct Normal {
+/// A deterministic stream of uniform and standard normal numbers (SplitMix64 + Box–Muller).
+pub struct Normal {
     state: u64,
     spare: Option<f64>,
 }
 
 impl Normal {
-    pub(crate) fn new(seed: u64) -> Self {
+    pub fn new(seed: u64) -> Self {
         Normal {
             state: seed ^ 0x9e37_79b9_7f4a_7c15,
             spare: None,
         }
     }
-    pub(crate) fn next_u64(&mut self) -> u64 {
+    pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(0x9e37_79b9_7f4a_7c15);
         let mut z = self.state;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         z ^ (z >> 31)
     }
-    pub(crate) fn uniform(&mut self) -> f64 {
+    pub fn uniform(&mut self) -> f64 {
         ((self.next_u64() >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     }
-    pub(crate) fn sample(&mut self) -> f64 {
+    pub fn sample(&mut self) -> f64 {
         if let Some(s) = self.spare.take() {
             return s;
         }

@@ -12,10 +12,12 @@ mod bench_decode;
 mod bench_fit;
 mod bench_hdr;
 mod bench_serial;
+mod bench_sparse;
 mod bench_synthesize;
 mod brdf;
 mod calibrate;
 mod common;
+mod complete;
 mod compress;
 mod dataset;
 mod devices;
@@ -25,6 +27,7 @@ mod generate;
 mod import;
 mod merge;
 mod plan;
+mod prior;
 mod render;
 mod serve_stage;
 mod sim;
@@ -103,6 +106,11 @@ pub enum Command {
     /// Families of synthetic datasets for testing other software.
     #[command(subcommand)]
     Dataset(dataset::DatasetCommand),
+    /// Sparse acquisition: learn the angular prior that completes sparsely measured datasets.
+    #[command(subcommand)]
+    Prior(prior::PriorCommand),
+    /// Complete a sparsely measured dataset to the full grid in a prior (status `predicted`).
+    Complete(complete::CompleteArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -145,5 +153,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Merge(a) => merge::run(a),
         Command::Batch(c) => batch::run(c),
         Command::Dataset(c) => dataset::run(c),
+        Command::Prior(c) => prior::run(c),
+        Command::Complete(a) => complete::run(a),
     }
 }
