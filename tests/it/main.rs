@@ -28,6 +28,7 @@ mod fuzz_resume;
 mod hdr;
 mod serial_drivers;
 mod shard_merge;
+mod sparse;
 mod synthesize_cli;
 mod view_server;
 #[cfg(feature = "zarr")]
