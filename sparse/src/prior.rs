@@ -31,7 +31,7 @@ pub const VERSION: u32 = 1;
 /// Where training samples came from (recorded so a bench can label a sample "seen").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainingSource {
-    /// Dataset directory name as given.
+    /// The dataset directory's name (its last path component).
     pub dataset: String,
     /// The sample's name (from the dataset manifest), if known.
     pub sample: Option<String>,

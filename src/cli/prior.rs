@@ -226,7 +226,11 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
         let texels = spread_texels(ds.texels(), a.texels);
         rows.extend(abrdf_rows(&ds, &texels)?);
         sources.push(TrainingSource {
-            dataset: dir.display().to_string(),
+            // The directory's own name only: the prior's bytes do not depend on where the
+            // training data sit.
+            dataset: dir
+                .file_name()
+                .map_or_else(|| dir.display().to_string(), |f| f.to_string_lossy().into_owned()),
             sample: sample_name(&ds),
             texels: texels.len(),
         });
