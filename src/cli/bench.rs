@@ -33,6 +33,9 @@ pub enum BenchCommand {
     Acquire(Box<super::bench_acquire::AcquireBenchArgs>),
     /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
     Hdr(super::bench_hdr::HdrBenchArgs),
+    /// Sparse acquisition: PSNR of the completed dataset against rig time, with baselines.
+    #[cfg(feature = "btf")]
+    Sparse(Box<super::bench_sparse::SparseBenchArgs>),
     /// Decode time of one image of a compressed BTF, on its own (median of rounds; EXR reads of the same images as the baseline).
     #[cfg(feature = "btf")]
     Decode(super::bench_decode::DecodeBenchArgs),
@@ -412,6 +415,8 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
         BenchCommand::Hdr(a) => super::bench_hdr::run(a),
+        #[cfg(feature = "btf")]
+        BenchCommand::Sparse(a) => super::bench_sparse::run(*a),
         #[cfg(feature = "btf")]
         BenchCommand::Decode(a) => super::bench_decode::run(a),
         #[cfg(feature = "btf")]

@@ -17,10 +17,14 @@ mod bench_fit;
 mod bench_hdr;
 mod bench_serial;
 #[cfg(feature = "btf")]
+mod bench_sparse;
+#[cfg(feature = "btf")]
 mod bench_synthesize;
 mod brdf;
 mod calibrate;
 mod common;
+#[cfg(feature = "btf")]
+mod complete;
 #[cfg(feature = "btf")]
 mod compress;
 mod dataset;
@@ -34,6 +38,8 @@ mod import;
 #[cfg(feature = "btf")]
 mod merge;
 mod plan;
+#[cfg(feature = "btf")]
+mod prior;
 #[cfg(feature = "monitor")]
 mod render;
 mod serve_stage;
@@ -124,6 +130,13 @@ pub enum Command {
     /// Families of synthetic datasets for testing other software.
     #[command(subcommand)]
     Dataset(dataset::DatasetCommand),
+    /// Sparse acquisition: learn the angular prior that completes sparsely measured datasets.
+    #[cfg(feature = "btf")]
+    #[command(subcommand)]
+    Prior(prior::PriorCommand),
+    /// Complete a sparsely measured dataset to the full grid in a prior (status `predicted`).
+    #[cfg(feature = "btf")]
+    Complete(complete::CompleteArgs),
 }
 
 pub fn init_logging(verbose: u8, quiet: bool) {
@@ -175,5 +188,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         #[cfg(feature = "btf")]
         Command::Batch(c) => batch::run(c),
         Command::Dataset(c) => dataset::run(c),
+        #[cfg(feature = "btf")]
+        Command::Prior(c) => prior::run(c),
+        #[cfg(feature = "btf")]
+        Command::Complete(a) => complete::run(a),
     }
 }

@@ -22,6 +22,19 @@ pub struct PlanArgs {
     /// `isotropic = true` is planned as with `--isotropic`, as `gonio acquire` does.
     #[arg(long)]
     pub sample: Option<String>,
+    /// Sparse acquisition: the prior that chooses the pairs (`default` or a .gprior file;
+    /// `default` when omitted). Used with --pairs, --fraction or --rig-budget.
+    #[arg(long)]
+    pub prior: Option<String>,
+    /// Sparse: measure this many pairs (chosen by optimal design in the prior).
+    #[arg(long, conflicts_with_all = ["fraction", "rig_budget"])]
+    pub pairs: Option<usize>,
+    /// Sparse: measure this share of the feasible pairs.
+    #[arg(long, conflicts_with = "rig_budget")]
+    pub fraction: Option<f64>,
+    /// Sparse: at most this planned rig time in seconds (motion counted).
+    #[arg(long)]
+    pub rig_budget: Option<f64>,
 }
 
 #[derive(Serialize)]
@@ -52,6 +65,17 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         ..args.sweep.clone()
     };
     let plan = sweep_args.plan(&rig, &sweep)?;
+    #[cfg(feature = "btf")]
+    if let Some(target) = super::prior::sparse_target(args.pairs, args.fraction, args.rig_budget) {
+        return super::prior::plan_sparse(&args, &rig, &sweep, &plan, target);
+    }
+    #[cfg(not(feature = "btf"))]
+    if args.prior.is_some() || args.pairs.is_some() || args.fraction.is_some() || args.rig_budget.is_some() {
+        anyhow::bail!(
+            "--prior/--pairs/--fraction/--rig-budget: this gonio was built without the cargo feature `btf` \
+             (on by default), which sparse planning still reads datasets through; rebuild without --no-default-features"
+        );
+    }
     let counts = plan.counts();
     let d = &plan.durations;
     let bound_over_canonical = d.lower_bound_s / d.canonical_s;

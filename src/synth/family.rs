@@ -672,6 +672,8 @@ fn check_type(old: &toml::Value, new: &toml::Value) -> Result<(), String> {
         (Integer(_), Integer(_)) | (Float(_), Integer(_)) => true,
         (String(_), String(_)) | (Boolean(_), Boolean(_)) => true,
         (Array(a), Array(b)) => a.len() == b.len(),
+        // A whole table (e.g. `choice` of reliefs); the simulator checks its fields.
+        (Table(_), Table(_)) => true,
         _ => false,
     };
     if ok {

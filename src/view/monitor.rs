@@ -104,6 +104,8 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
                 s.substituted += 1;
                 1
             }
+            // A completed dataset's predicted pairs were never on the rig: not a step.
+            MeasurementStatus::Predicted { .. } => continue,
             MeasurementStatus::Skipped { reason } => {
                 s.skipped += 1;
                 *s.skipped_reasons.entry(reason.clone()).or_default() += 1;

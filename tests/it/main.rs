@@ -29,6 +29,7 @@ mod golden;
 mod hdr;
 mod serial_drivers;
 mod shard_merge;
+mod sparse;
 mod synthesize_cli;
 mod view_server;
 #[cfg(feature = "zarr")]

@@ -300,8 +300,8 @@ impl Plan {
     }
 
     /// Plan the given pairs of `sweep` (all of them, or the representatives of an
-    /// isotropic reduction).
-    fn build_pairs(rig: &RigSpec, sweep: &Sweep, pairs: &[Pair], opts: &PlanOptions) -> Result<Plan, PlanError> {
+    /// isotropic reduction, or a sparse design: `gonio plan --prior`).
+    pub fn build_pairs(rig: &RigSpec, sweep: &Sweep, pairs: &[Pair], opts: &PlanOptions) -> Result<Plan, PlanError> {
         let t0 = Instant::now();
         let kin = kinematics::for_rig(rig);
         let motions: Vec<MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();

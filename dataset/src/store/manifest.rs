@@ -93,15 +93,20 @@ pub enum MeasurementStatus {
     },
     /// Not measured; such a record has no image and is never exported.
     Skipped { reason: String },
+    /// Not measured: predicted from the measured pairs in a prior by `gonio complete`
+    /// (format version 2). `predicted_rmse_8bit` is the prior's predicted RMS error of the
+    /// image on the 8-bit sRGB scale /255; `prior` names the prior file's payload hash.
+    Predicted { predicted_rmse_8bit: f64, prior: String },
 }
 
 impl MeasurementStatus {
-    /// Short name: "measured", "substituted" or "skipped".
+    /// Short name: "measured", "substituted", "skipped" or "predicted".
     pub fn kind(&self) -> &'static str {
         match self {
             MeasurementStatus::Measured => "measured",
             MeasurementStatus::Substituted { .. } => "substituted",
             MeasurementStatus::Skipped { .. } => "skipped",
+            MeasurementStatus::Predicted { .. } => "predicted",
         }
     }
 }

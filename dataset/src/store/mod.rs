@@ -96,8 +96,9 @@ use std::path::{Path, PathBuf};
 
 /// Value of the manifest's `format` field.
 pub const FORMAT: &str = "gonio-dataset";
-/// Version of the dataset layout this gonio writes (and the newest it reads).
-pub const FORMAT_VERSION: u32 = 1;
+/// Version of the dataset layout this gonio writes (and the newest it reads). Version 2
+/// adds the measurement status `predicted` (`gonio complete`); version 1 files are read.
+pub const FORMAT_VERSION: u32 = 2;
 /// File names inside a dataset directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
 pub const JOURNAL_FILE: &str = "journal.jsonl";

@@ -23,6 +23,8 @@ pub struct VerifyReport {
     pub measured: usize,
     pub substituted: usize,
     pub skipped: usize,
+    /// Pairs predicted by `gonio complete` (stored images, not measurements).
+    pub predicted: usize,
     /// Images and raw frames whose SHA-256 matched.
     pub images_ok: usize,
     pub raw_ok: usize,
@@ -116,6 +118,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, StoreError> {
             MeasurementStatus::Measured => rep.measured += 1,
             MeasurementStatus::Substituted { .. } => rep.substituted += 1,
             MeasurementStatus::Skipped { .. } => rep.skipped += 1,
+            MeasurementStatus::Predicted { .. } => rep.predicted += 1,
         }
     }
     let checks: Vec<(Option<String>, u64)> = records

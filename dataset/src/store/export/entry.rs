@@ -98,6 +98,7 @@ pub fn plan_export(
             }
             MeasurementStatus::Measured => "measured",
             MeasurementStatus::Substituted { .. } => "substituted",
+            MeasurementStatus::Predicted { .. } => "predicted",
         };
         let Some(image) = r.image.clone() else {
             return Err(StoreError::DamagedImage {

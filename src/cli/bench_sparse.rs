@@ -1,0 +1,641 @@
+//! `gonio bench sparse`: error against rig time for sparse acquisition.
+//!
+//! The truth is the simulator's complete BTF of the sample (`gonio sim btf`, rendered here
+//! or read with `--truth DIR`). A "measurement" of a pair is its truth image, with sensor
+//! noise drawn from the rig's sensor model when noise is on (shot noise in electrons, read
+//! noise, quantisation to the sensor's bit depth, clipping at full scale). For each budget
+//! (a fraction of the canonical rig time of the whole sweep) every method gets as many
+//! pairs as its plan fits in the budget (the existing planner orders and times them):
+//!
+//! * **ours**: greedy A-optimal design in the prior, per-texel MAP completion;
+//! * **(a) product**: m lights × m views spread by farthest-point sampling, completed by the
+//!   triangle interpolation of `compress::interp` (n/a where its gap limit refuses);
+//! * **(c) pca-ls**: random feasible pairs, least squares in the prior's basis (no
+//!   eigenvalues), K' = min(K, n/2) components;
+//! * **dense**: every feasible pair (blocked pairs completed by ours).
+//!
+//! PSNR is over every pair of the sweep against the truth on the 8-bit sRGB scale
+//! (`compress::metrics::ErrorStats`, as `compress` reports it). Measured pairs are kept as
+//! measured (with their noise).
+
+use super::common::{load_sample, RigArgs};
+use super::complete::{coefficients, noise_var, predict_image};
+use super::prior::{load_prior, psnr_of_mse, units_key};
+use super::svg_plot::{log_log, Series};
+use crate::compress::data::DatasetViews;
+use crate::compress::interp::direction_weights;
+use crate::compress::metrics::ErrorStats;
+use crate::plan::{Plan, PlanOptions};
+use crate::sweep::Sweep;
+use anyhow::{bail, Context, Result};
+use gonio_sparse::{Completion, Normal, Prior};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+#[derive(clap::Args, Debug)]
+pub struct SparseBenchArgs {
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// The sample (built-in name or TOML file).
+    #[arg(long, default_value = "wallpaper")]
+    pub sample: String,
+    /// The prior (.gprior or `default`).
+    #[arg(long)]
+    pub prior: Option<String>,
+    #[arg(long, default_value = "bonn81")]
+    pub sweep: String,
+    /// Budgets as fractions of the canonical rig time of the whole sweep.
+    #[arg(long, value_delimiter = ',', default_value = "0.02,0.05,0.1,0.2,0.5,1")]
+    pub fractions: Vec<f64>,
+    /// Texels per side of the truth.
+    #[arg(long, default_value_t = 32)]
+    pub size: usize,
+    /// Sensor noise: on, off or both.
+    #[arg(long, default_value = "both")]
+    pub noise: String,
+    /// A complete truth dataset to use instead of rendering (`gonio sim btf` output).
+    #[arg(long)]
+    pub truth: Option<PathBuf>,
+    /// Kicks of the order optimizer (per plan; the bisection on pair counts plans often).
+    #[arg(long, default_value_t = 2000)]
+    pub plan_kicks: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Only these methods (ours, product, pca-ls, dense).
+    #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
+    pub methods: Vec<String>,
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Row {
+    pub noise: bool,
+    pub method: String,
+    pub fraction: f64,
+    pub budget_s: f64,
+    pub pairs: usize,
+    pub planned_s: f64,
+    /// PSNR against the truth, 8-bit sRGB, over every pair of the sweep; None = n/a.
+    pub psnr_db: Option<f64>,
+    /// What the posterior predicts (ours only).
+    pub predicted_psnr_db: Option<f64>,
+    pub note: String,
+}
+
+#[derive(Serialize)]
+struct BenchJson {
+    sample: String,
+    seen_by_prior: bool,
+    label: &'static str,
+    prior: String,
+    size: usize,
+    canonical_s: f64,
+    full_optimized_s: f64,
+    feasible: usize,
+    rows: Vec<Row>,
+}
+
+/// The truth BTF: `truth[p]` is pair p's linear interleaved image.
+fn render_truth(a: &SparseBenchArgs, rig: &gonio_devices::rig::RigSpec, sweep: &Sweep) -> Result<Vec<Vec<f32>>> {
+    use gonio_simulator::{RenderQuality, Renderer, SimOptions};
+    let spec = load_sample(&a.sample)?;
+    let sample = spec.build().with_context(|| format!("building sample {}", a.sample))?;
+    let renderer = Arc::new(Renderer::new(Arc::new(sample), RenderQuality::default()));
+    let sim = gonio_simulator::build_sim_rig(rig, renderer.clone(), &SimOptions::default())?;
+    let radius = sim.world.lamp_radius_mm;
+    let scale = crate::synth::truth_scale(&sim.world.sensor.lock().expect("sensor lock"));
+    let mut out = vec![Vec::new(); sweep.len()];
+    let l = sweep.lights.len();
+    crate::synth::render_btf(&renderer, rig, radius, sweep, a.size, scale, |v, li, img| {
+        out[v * l + li] = img.data;
+        Ok::<(), anyhow::Error>(())
+    })?;
+    Ok(out)
+}
+
+fn read_truth(dir: &std::path::Path) -> Result<(DatasetViews, Vec<Vec<f32>>)> {
+    let ds = DatasetViews::open(dir)?;
+    let l = ds.n_lights();
+    let d = l * ds.n_views();
+    let imgs = (0..d)
+        .into_par_iter()
+        .map(|p| {
+            ds.read_image(p % l, p / l)?
+                .with_context(|| format!("{}: pair {p} missing; the truth must be complete", dir.display()))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok((ds, imgs))
+}
+
+/// Sensor noise on a normalised value (electrons: shot + read; DN quantisation; clip at 1).
+struct Noise {
+    e_per_unit: f64,
+    read_e: f64,
+    levels: f64,
+}
+
+impl Noise {
+    fn apply(&self, img: &[f32], seed: u64) -> Vec<f32> {
+        let mut rng = Normal::new(seed);
+        img.iter()
+            .map(|&s| {
+                let e = (s as f64).max(0.0) * self.e_per_unit;
+                let n = e + e.sqrt() * rng.sample() + self.read_e * rng.sample();
+                let v = (n / self.e_per_unit).clamp(0.0, 1.0);
+                ((v * self.levels).round() / self.levels) as f32
+            })
+            .collect()
+    }
+}
+
+/// Farthest-point order of directions, starting at the first (the pole for Bonn).
+fn farthest_points(dirs: &[[f64; 2]]) -> Vec<usize> {
+    let unit = |d: [f64; 2]| {
+        let (t, p) = (d[0].to_radians(), d[1].to_radians());
+        [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+    };
+    let u: Vec<[f64; 3]> = dirs.iter().map(|&d| unit(d)).collect();
+    let mut order = vec![0usize];
+    let mut near: Vec<f64> = u
+        .iter()
+        .map(|x| 1.0 - (x[0] * u[0][0] + x[1] * u[0][1] + x[2] * u[0][2]))
+        .collect();
+    while order.len() < u.len() {
+        let (mut best, mut arg) = (-1.0, 0);
+        for (i, &n) in near.iter().enumerate() {
+            if n > best {
+                best = n;
+                arg = i;
+            }
+        }
+        order.push(arg);
+        for (i, x) in u.iter().enumerate() {
+            let d = 1.0 - (x[0] * u[arg][0] + x[1] * u[arg][1] + x[2] * u[arg][2]);
+            near[i] = near[i].min(d);
+        }
+    }
+    order
+}
+
+struct Ctx<'a> {
+    rig: &'a gonio_devices::rig::RigSpec,
+    sweep: &'a Sweep,
+    opts: PlanOptions,
+    feasible: Vec<usize>,
+    full: &'a Plan,
+}
+
+impl Ctx<'_> {
+    fn plan(&self, idx: &[usize]) -> Result<Plan> {
+        let pairs = self.sweep.pairs();
+        let mut idx = idx.to_vec();
+        idx.sort_unstable();
+        let chosen: Vec<_> = idx.iter().map(|&i| pairs[i]).collect();
+        Ok(Plan::build_pairs(self.rig, self.sweep, &chosen, &self.opts)?)
+    }
+    /// The largest `n` in `1..=max` whose set `set(n)` plans within `budget`, and its plan.
+    fn fit(&self, max: usize, budget: f64, set: impl Fn(usize) -> Vec<usize>) -> Result<Option<(usize, Plan)>> {
+        if self.full.durations.optimized_s <= budget && max >= self.feasible.len() {
+            // Everything fits (the set of `max` is every feasible pair).
+            let p = self.plan(&set(max))?;
+            if p.durations.optimized_s <= budget {
+                return Ok(Some((max, p)));
+            }
+        }
+        let (mut lo, mut hi) = (0usize, max);
+        let mut best: Option<Plan> = None;
+        while lo < hi {
+            let mid = (lo + hi).div_ceil(2);
+            let p = self.plan(&set(mid))?;
+            if p.durations.optimized_s <= budget {
+                lo = mid;
+                best = Some(p);
+            } else {
+                hi = mid - 1;
+            }
+        }
+        if lo == 0 {
+            return Ok(None);
+        }
+        let p = match best {
+            Some(p) if p.steps.len() == set(lo).len() => p,
+            _ => self.plan(&set(lo))?,
+        };
+        Ok(Some((lo, p)))
+    }
+}
+
+fn psnr(truth: &[Vec<f32>], recon: &[Vec<f32>]) -> f64 {
+    let parts: Vec<ErrorStats> = truth
+        .par_iter()
+        .zip(recon)
+        .map(|(t, r)| {
+            let mut e = ErrorStats::default();
+            e.add(t, r);
+            e
+        })
+        .collect();
+    let mut e = ErrorStats::default();
+    for p in parts {
+        e.values += p.values;
+        e.sum_sq_8bit += p.sum_sq_8bit;
+    }
+    e.psnr_8bit()
+}
+
+/// Ours (or dense when `measured` is every feasible pair): MAP completion.
+fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -> Result<(Vec<Vec<f32>>, f64)> {
+    let k = prior.components().min(measured.len());
+    let p = prior.truncated(k);
+    let c = Completion::new(&p, measured, nv)?;
+    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let a = coefficients(&c, &refs);
+    let mut is_m = vec![false; prior.dims()];
+    measured.iter().for_each(|&i| is_m[i] = true);
+    let out: Vec<Vec<f32>> = (0..prior.dims())
+        .into_par_iter()
+        .map(|q| {
+            if is_m[q] {
+                meas[q].clone()
+            } else {
+                predict_image(&c, &a, q)
+            }
+        })
+        .collect();
+    Ok((out, psnr_of_mse(c.predicted_mse())))
+}
+
+/// Baseline (c): least squares in the prior's first min(K, n/2) basis vectors.
+fn complete_ls(prior: &Prior, measured: &[usize], meas: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
+    let k = prior.components().min(measured.len() / 2).max(1);
+    let p = prior.truncated(k);
+    let c = Completion::least_squares(&p, measured)?;
+    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let a = coefficients(&c, &refs);
+    let mut is_m = vec![false; prior.dims()];
+    measured.iter().for_each(|&i| is_m[i] = true);
+    Ok((0..prior.dims())
+        .into_par_iter()
+        .map(|q| {
+            if is_m[q] {
+                meas[q].clone()
+            } else {
+                predict_image(&c, &a, q)
+            }
+        })
+        .collect())
+}
+
+/// Baseline (a): product subset completed by triangle interpolation; None when the gap
+/// limit refuses some pair.
+fn complete_product(
+    lights_deg: &[[f64; 2]],
+    views_deg: &[[f64; 2]],
+    ls: &[usize],
+    vs: &[usize],
+    meas: &[Vec<f32>],
+    feasible: &[bool],
+) -> Option<Vec<Vec<f32>>> {
+    let l = lights_deg.len();
+    let sub_l: Vec<[f64; 2]> = ls.iter().map(|&i| lights_deg[i]).collect();
+    let sub_v: Vec<[f64; 2]> = vs.iter().map(|&i| views_deg[i]).collect();
+    // A blocked pair of the product is filled from the nearest measured light of its view.
+    let value = |li: usize, vi: usize| -> &Vec<f32> {
+        let p = vs[vi] * l + ls[li];
+        if feasible[p] {
+            return &meas[p];
+        }
+        let mut best = (f64::MAX, p);
+        for (j, &lj) in ls.iter().enumerate() {
+            let q = vs[vi] * l + lj;
+            if j != li && feasible[q] {
+                let (a, b) = (lights_deg[ls[li]], lights_deg[lj]);
+                let dd = (a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2);
+                if dd < best.0 {
+                    best = (dd, q);
+                }
+            }
+        }
+        &meas[best.1]
+    };
+    let wl: Vec<_> = lights_deg
+        .iter()
+        .map(|&d| direction_weights(&sub_l, d, "light").ok())
+        .collect::<Option<Vec<_>>>()?;
+    let wv: Vec<_> = views_deg
+        .iter()
+        .map(|&d| direction_weights(&sub_v, d, "view").ok())
+        .collect::<Option<Vec<_>>>()?;
+    let m = meas[0].len();
+    Some(
+        (0..l * views_deg.len())
+            .into_par_iter()
+            .map(|p| {
+                if feasible[p] && ls.contains(&(p % l)) && vs.contains(&(p / l)) {
+                    return meas[p].clone();
+                }
+                let mut out = vec![0f32; m];
+                for &(vi, a) in &wv[p / l] {
+                    for &(li, b) in &wl[p % l] {
+                        let w = (a * b) as f32;
+                        for (o, x) in out.iter_mut().zip(value(li, vi)) {
+                            *o += w * x;
+                        }
+                    }
+                }
+                out
+            })
+            .collect(),
+    )
+}
+
+pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
+    let rig = a.rig.load()?;
+    let sweep = Sweep::resolve(&a.sweep)?;
+    let (prior, prior_path) = load_prior(a.prior.as_deref())?;
+    let lights: Vec<[f64; 2]> = sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
+    let views: Vec<[f64; 2]> = sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
+    let (sample_name, truth) = match &a.truth {
+        Some(dir) => {
+            let (ds, t) = read_truth(dir)?;
+            prior.check_compatible(
+                &super::prior::sweep_name(&ds),
+                &ds.lights_deg,
+                &ds.views_deg,
+                &units_key(&ds.header.values),
+            )?;
+            (super::prior::sample_name(&ds).unwrap_or_else(|| a.sample.clone()), t)
+        }
+        None => {
+            prior.check_compatible(&sweep.name, &lights, &views, "normalized_signal")?;
+            (load_sample(&a.sample)?.name, render_truth(&a, &rig, &sweep)?)
+        }
+    };
+    if truth.len() != sweep.len() {
+        bail!("the truth has {} pairs, the sweep {}", truth.len(), sweep.len());
+    }
+    let seen = prior.has_seen(&sample_name);
+    let opts = PlanOptions {
+        kicks: a.plan_kicks,
+        ..PlanOptions::default()
+    };
+    let full = Plan::build(&rig, &sweep, &opts)?;
+    let mut feasible: Vec<usize> = full.steps.iter().map(|s| s.index).collect();
+    feasible.sort_unstable();
+    let mut is_feasible = vec![false; sweep.len()];
+    feasible.iter().for_each(|&p| is_feasible[p] = true);
+    let ctx = Ctx {
+        rig: &rig,
+        sweep: &sweep,
+        opts,
+        feasible: feasible.clone(),
+        full: &full,
+    };
+    let canonical = full.durations.canonical_s;
+    let nv = noise_var(&prior, 0.0);
+    let design: Vec<usize> = gonio_sparse::greedy_design(&prior, &feasible, &[], feasible.len(), nv)?
+        .iter()
+        .map(|s| s.pair)
+        .collect();
+    let random: Vec<usize> = {
+        // A seeded random order of the feasible pairs (each prefix is a random subset).
+        let mut r = Normal::new(a.seed ^ 0xc0ffee);
+        let mut v = feasible.clone();
+        for i in (1..v.len()).rev() {
+            let j = (r.next_u64() % (i as u64 + 1)) as usize;
+            v.swap(i, j);
+        }
+        v
+    };
+    let fp_l = farthest_points(&lights);
+    let fp_v = farthest_points(&views);
+    let product = |m: usize| -> (Vec<usize>, Vec<usize>) {
+        let mut ls: Vec<usize> = fp_l[..m].to_vec();
+        let mut vs: Vec<usize> = fp_v[..m].to_vec();
+        ls.sort_unstable();
+        vs.sort_unstable();
+        (ls, vs)
+    };
+    let product_pairs = |m: usize| -> Vec<usize> {
+        let (ls, vs) = product(m);
+        let l = lights.len();
+        vs.iter()
+            .flat_map(|&v| ls.iter().map(move |&li| v * l + li))
+            .filter(|&p| is_feasible[p])
+            .collect()
+    };
+    let noises: Vec<bool> = match a.noise.as_str() {
+        "on" => vec![true],
+        "off" => vec![false],
+        "both" => vec![true, false],
+        o => bail!("--noise {o}: use on, off or both"),
+    };
+    let sensor = {
+        use gonio_simulator::{RenderQuality, Renderer, SimOptions};
+        let s = Arc::new(load_sample("wallpaper")?.build()?);
+        let r = Arc::new(Renderer::new(s, RenderQuality::default()));
+        let sim = gonio_simulator::build_sim_rig(&rig, r, &SimOptions::default())?;
+        let s = sim.world.sensor.lock().expect("sensor lock").clone();
+        s
+    };
+    let noise = Noise {
+        e_per_unit: sensor.full_well_e / sensor.gain.max(1e-12),
+        read_e: sensor.read_noise_e,
+        levels: sensor.max_dn(),
+    };
+    let want = |m: &str| a.methods.iter().any(|x| x == m);
+    let mut rows = Vec::new();
+    for &noisy in &noises {
+        let meas: Vec<Vec<f32>> = if noisy {
+            truth
+                .par_iter()
+                .enumerate()
+                .map(|(p, t)| noise.apply(t, a.seed.wrapping_mul(1_000_003).wrapping_add(p as u64)))
+                .collect()
+        } else {
+            truth.clone()
+        };
+        if want("dense") {
+            let (rec, pred) = complete_map(&prior, &feasible, &meas, nv)?;
+            rows.push(Row {
+                noise: noisy,
+                method: "dense".into(),
+                fraction: full.durations.optimized_s / canonical,
+                budget_s: full.durations.optimized_s,
+                pairs: feasible.len(),
+                planned_s: full.durations.optimized_s,
+                psnr_db: Some(psnr(&truth, &rec)),
+                predicted_psnr_db: Some(pred),
+                note: "every feasible pair; blocked pairs completed by ours".into(),
+            });
+        }
+        for &f in &a.fractions {
+            let budget = f * canonical;
+            if want("ours") {
+                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) => {
+                        let m = &design[..n];
+                        let (rec, pred) = complete_map(&prior, m, &meas, nv)?;
+                        Row {
+                            noise: noisy,
+                            method: "ours".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: n,
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(pred),
+                            note: format!("K = {}", prior.components().min(n)),
+                        }
+                    }
+                    None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            if want("pca-ls") {
+                let fit = ctx.fit(random.len(), budget, |n| random[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) if n >= 2 => {
+                        let m: Vec<usize> = {
+                            let mut v = random[..n].to_vec();
+                            v.sort_unstable();
+                            v
+                        };
+                        match complete_ls(&prior, &m, &meas) {
+                            Ok(rec) => Row {
+                                noise: noisy,
+                                method: "pca-ls".into(),
+                                fraction: f,
+                                budget_s: budget,
+                                pairs: n,
+                                planned_s: plan.durations.optimized_s,
+                                psnr_db: Some(psnr(&truth, &rec)),
+                                predicted_psnr_db: None,
+                                note: format!("K' = {}", prior.components().min(n / 2).max(1)),
+                            },
+                            Err(e) => na(noisy, "pca-ls", f, budget, &e.to_string()),
+                        }
+                    }
+                    _ => na(noisy, "pca-ls", f, budget, "fewer than 2 pairs fit"),
+                });
+            }
+            if want("product") {
+                let fit = ctx.fit(lights.len().min(views.len()), budget, product_pairs)?;
+                rows.push(match fit {
+                    Some((m, plan)) => {
+                        let (ls, vs) = product(m);
+                        match complete_product(&lights, &views, &ls, &vs, &meas, &is_feasible) {
+                            Some(rec) => Row {
+                                noise: noisy,
+                                method: "product".into(),
+                                fraction: f,
+                                budget_s: budget,
+                                pairs: plan.steps.len(),
+                                planned_s: plan.durations.optimized_s,
+                                psnr_db: Some(psnr(&truth, &rec)),
+                                predicted_psnr_db: None,
+                                note: format!("{m} lights × {m} views"),
+                            },
+                            None => Row {
+                                pairs: plan.steps.len(),
+                                planned_s: plan.durations.optimized_s,
+                                ..na(
+                                    noisy,
+                                    "product",
+                                    f,
+                                    budget,
+                                    &format!("{m} × {m}: gap limit of compress::interp refuses"),
+                                )
+                            },
+                        }
+                    }
+                    None => na(noisy, "product", f, budget, "no product set fits"),
+                });
+            }
+        }
+    }
+    let label = if seen { "seen" } else { "held-out" };
+    if let Some(path) = &a.plot {
+        let mut series = Vec::new();
+        for &noisy in &noises {
+            for m in ["ours", "product", "pca-ls", "dense"] {
+                let points: Vec<(f64, f64, String)> = rows
+                    .iter()
+                    .filter(|r| r.noise == noisy && r.method == m)
+                    .filter_map(|r| r.psnr_db.map(|p| (r.planned_s, p, format!("{:.2}", r.fraction))))
+                    .collect();
+                if !points.is_empty() {
+                    series.push(Series {
+                        name: format!("{m} (noise {})", if noisy { "on" } else { "off" }),
+                        points,
+                    });
+                }
+            }
+        }
+        let svg = log_log(
+            &format!("sparse acquisition: {sample_name} ({label}), {}²", a.size),
+            "planned rig time (s)",
+            "PSNR vs truth (dB, 8-bit sRGB)",
+            &series,
+        );
+        std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
+    }
+    let out = BenchJson {
+        sample: sample_name.clone(),
+        seen_by_prior: seen,
+        label,
+        prior: prior_path.display().to_string(),
+        size: a.size,
+        canonical_s: canonical,
+        full_optimized_s: full.durations.optimized_s,
+        feasible: feasible.len(),
+        rows,
+    };
+    if a.json {
+        println!("{}", serde_json::to_string(&out)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "sample {} ({label}) · prior {} · {}² · canonical {:.0} s, dense optimized {:.0} s, {} feasible pairs",
+        out.sample, out.prior, a.size, canonical, out.full_optimized_s, out.feasible
+    );
+    println!(
+        "{:>5}  {:<8} {:>6} {:>9} {:>6} {:>9} {:>8} {:>9}  note",
+        "noise", "method", "frac", "budget s", "pairs", "planned s", "PSNR dB", "pred dB"
+    );
+    for r in &out.rows {
+        println!(
+            "{:>5}  {:<8} {:>6.3} {:>9.0} {:>6} {:>9.0} {:>8} {:>9}  {}",
+            if r.noise { "on" } else { "off" },
+            r.method,
+            r.fraction,
+            r.budget_s,
+            r.pairs,
+            r.planned_s,
+            r.psnr_db.map_or("n/a".into(), |p| format!("{p:.2}")),
+            r.predicted_psnr_db.map_or("".into(), |p| format!("{p:.2}")),
+            r.note
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn na(noise: bool, method: &str, f: f64, budget: f64, why: &str) -> Row {
+    Row {
+        noise,
+        method: method.into(),
+        fraction: f,
+        budget_s: budget,
+        pairs: 0,
+        planned_s: 0.0,
+        psnr_db: None,
+        predicted_psnr_db: None,
+        note: why.into(),
+    }
+}

@@ -1,0 +1,270 @@
+//! Sparse acquisition end to end at CI size (16², a 12-direction sweep): a prior learned
+//! from a small `gonio dataset generate` family (same bytes at 1 and 2 threads), a sparse
+//! plan, a sparse dataset completed by `gonio complete` (measured images bit for bit,
+//! every other pair `predicted`, no NaN, close to the truth of a sample the prior never
+//! saw), `gonio bench sparse` (ours beats the plain-PCA baseline), and the refusals.
+
+use gonio::store::{self, Dataset, MeasurementStatus};
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn gonio(args: &[&str], threads: Option<&str>) -> Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_gonio"));
+    c.args(args);
+    if let Some(t) = threads {
+        c.env("RAYON_NUM_THREADS", t);
+    }
+    c.output().unwrap()
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = gonio(args, None);
+    assert!(
+        o.status.success(),
+        "gonio {args:?} failed:\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn refused(args: &[&str], needles: &[&str]) {
+    let o = gonio(args, None);
+    assert!(!o.status.success(), "gonio {args:?} should fail");
+    let err = String::from_utf8_lossy(&o.stderr);
+    for n in needles {
+        assert!(err.contains(n), "gonio {args:?}: {n:?} not in\n{err}");
+    }
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+const SWEEP: &str = "fibonacci:12";
+
+fn family_spec(dir: &Path) -> std::path::PathBuf {
+    let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("simulator/families/prior-base.toml");
+    let spec = format!(
+        r#"name = "ci-prior"
+members = 4
+seed = 5
+sample = "{}"
+sweep = "{SWEEP}"
+size = 16
+
+[[vary]]
+key = "material.0.alpha"
+log_uniform = [0.05, 0.6]
+
+[[vary]]
+key = "material.0.diffuse_reflectance"
+uniform = [[0.02, 0.02, 0.02], [0.8, 0.8, 0.8]]
+
+[[vary]]
+key = "material.1.kd"
+uniform = [[0.0, 0.0, 0.0], [0.6, 0.6, 0.6]]
+
+[[vary]]
+key = "material.1.alpha_x"
+log_uniform = [0.05, 0.6]
+
+[[vary]]
+key = "height.amplitude_mm"
+uniform = [0.05, 0.6]
+"#,
+        base.display()
+    );
+    let p = dir.join("ci-prior.toml");
+    std::fs::write(&p, spec).unwrap();
+    p
+}
+
+#[test]
+fn prior_plan_complete_bench_and_refusals() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let fam = d.join("fam");
+    ok(&["dataset", "generate", s(&family_spec(d)), "--out", s(&fam)]);
+    let members: Vec<String> = (0..4)
+        .map(|m| fam.join(format!("members/{m:04}")).display().to_string())
+        .collect();
+    let prior = d.join("p.gprior");
+    let prior2 = d.join("p2.gprior");
+    let mut args: Vec<&str> = vec!["prior", "build"];
+    args.extend(members.iter().map(|m| m.as_str()));
+    let build = |out: &Path, threads: &str| {
+        let mut a = args.clone();
+        a.extend(["--components", "10", "--texels", "64", "--out", s(out)]);
+        let o = gonio(&a, Some(threads));
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    build(&prior, "1");
+    build(&prior2, "2");
+    assert_eq!(
+        std::fs::read(&prior).unwrap(),
+        std::fs::read(&prior2).unwrap(),
+        "prior bytes depend on the thread count"
+    );
+
+    // A held-out sample's truth; a sparse plan; the sparse dataset made from the truth.
+    let truth = d.join("truth");
+    ok(&[
+        "sim",
+        "btf",
+        "--sample",
+        "wallpaper",
+        "--sweep",
+        SWEEP,
+        "--size",
+        "16",
+        "--out",
+        s(&truth),
+    ]);
+    let plan: serde_json::Value = serde_json::from_str(&ok(&[
+        "plan",
+        "--sweep",
+        SWEEP,
+        "--prior",
+        s(&prior),
+        "--pairs",
+        "40",
+        "--plan-kicks",
+        "200",
+        "--json",
+    ]))
+    .unwrap();
+    let chosen: Vec<usize> = plan["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["index"].as_u64().unwrap() as usize)
+        .collect();
+    assert_eq!(chosen.len(), 40);
+    assert_eq!(plan["sparse"]["chosen"], 40);
+    assert!(plan["sparse"]["planned_s"].as_f64().unwrap() > 0.0);
+    assert!(plan["sparse"]["predicted_psnr_db"].as_f64().unwrap().is_finite());
+
+    let (header, records) = store::load(&truth).unwrap();
+    let sparse = d.join("sparse");
+    let mut ds = Dataset::create(&sparse, &header, false).unwrap();
+    for r in records.iter().filter(|r| chosen.contains(&r.index)) {
+        let img = store::read_exr(&truth.join(r.image.as_ref().unwrap())).unwrap();
+        ds.store(r.clone(), Some(&img), None).unwrap();
+    }
+    ds.finish(&serde_json::json!({})).unwrap();
+    drop(ds);
+
+    let full = d.join("full");
+    let rep: serde_json::Value = serde_json::from_str(&ok(&[
+        "complete",
+        s(&sparse),
+        "--prior",
+        s(&prior),
+        "--out",
+        s(&full),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(rep["measured"], 40);
+    assert_eq!(rep["predicted"], 144 - 40);
+    assert!(rep["conditioning"]["map_condition"].as_f64().unwrap().is_finite());
+    let (h2, recs2) = store::load(&full).unwrap();
+    assert_eq!(h2.version, store::FORMAT_VERSION);
+    assert_eq!(recs2.len(), 144);
+    let by_index: std::collections::HashMap<usize, &store::MeasurementRecord> =
+        records.iter().map(|r| (r.index, r)).collect();
+    let (mut sq, mut n) = (0.0f64, 0usize);
+    for r in &recs2 {
+        let img = store::read_exr(&full.join(r.image.as_ref().unwrap())).unwrap();
+        assert!(img.data.iter().all(|v| v.is_finite() && *v >= 0.0), "pair {}", r.index);
+        let t = by_index[&r.index];
+        if chosen.contains(&r.index) {
+            assert_eq!(r.status, MeasurementStatus::Measured);
+            assert_eq!(r.image_sha256, t.image_sha256, "measured pair {} changed", r.index);
+        } else {
+            assert!(
+                matches!(r.status, MeasurementStatus::Predicted { predicted_rmse_8bit, .. } if predicted_rmse_8bit.is_finite())
+            );
+            let ti = store::read_exr(&truth.join(t.image.as_ref().unwrap())).unwrap();
+            for (a, b) in img.data.iter().zip(&ti.data) {
+                let e = (store::linear_to_srgb8(*a) as f64 - store::linear_to_srgb8(*b) as f64) / 255.0;
+                sq += e * e;
+                n += 1;
+            }
+        }
+    }
+    let psnr = -10.0 * (sq / n as f64).log10();
+    assert!(psnr > 25.0, "predicted pairs of a held-out sample: {psnr:.2} dB");
+    ok(&["verify", s(&full)]);
+
+    // Bench: ours beats least squares in the plain basis at every budget, both finite.
+    let bench: serde_json::Value = serde_json::from_str(&ok(&[
+        "bench",
+        "sparse",
+        "--truth",
+        s(&truth),
+        "--sweep",
+        SWEEP,
+        "--prior",
+        s(&prior),
+        "--fractions",
+        "0.15,0.3",
+        "--noise",
+        "off",
+        "--methods",
+        "ours,pca-ls",
+        "--plan-kicks",
+        "200",
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(bench["label"], "held-out");
+    for f in [0.15, 0.3] {
+        let get = |m: &str| {
+            bench["rows"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|r| r["method"] == m && r["fraction"].as_f64() == Some(f))
+                .and_then(|r| r["psnr_db"].as_f64())
+                .unwrap_or_else(|| panic!("{m} at {f}: {bench}"))
+        };
+        assert!(
+            get("ours") > get("pca-ls"),
+            "fraction {f}: ours {} vs pca-ls {}",
+            get("ours"),
+            get("pca-ls")
+        );
+    }
+
+    // Refusals: another sweep, more components than pairs, a degenerate design.
+    refused(
+        &["plan", "--sweep", "fibonacci:10", "--prior", s(&prior), "--pairs", "20"],
+        &["prior mismatch", "fibonacci:12", "fibonacci:10"],
+    );
+    refused(
+        &[
+            "plan",
+            "--sweep",
+            SWEEP,
+            "--prior",
+            s(&prior),
+            "--pairs",
+            "6",
+            "--plan-kicks",
+            "100",
+        ],
+        &["10 components", "6 pairs"],
+    );
+    let one_view = d.join("one-view");
+    let mut ds = Dataset::create(&one_view, &header, false).unwrap();
+    for r in records.iter().filter(|r| r.index / 12 == 3) {
+        let img = store::read_exr(&truth.join(r.image.as_ref().unwrap())).unwrap();
+        ds.store(r.clone(), Some(&img), None).unwrap();
+    }
+    drop(ds);
+    refused(
+        &["complete", s(&one_view), "--prior", s(&prior), "--out", s(&d.join("x"))],
+        &["degenerate", "view"],
+    );
+}
