@@ -190,6 +190,13 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "bench_hdr",
             "bench_serial",
             "bench_synthesize",
+            // sparse acquisition's glue: `plan --prior` and `bench sparse` call into
+            // `prior` and `complete`, which take `plan`'s arguments (to move into a library
+            // room with the adaptive acquisition)
+            "prior",
+            "complete",
+            "plan",
+            "bench_sparse",
         ],
     ),
 ];
