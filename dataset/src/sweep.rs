@@ -91,19 +91,26 @@ struct SweepFile {
 }
 
 impl Sweep {
-    /// Every light × view pair, in canonical index order.
+    /// The light and view directions as (θ, φ) in degrees, the form datasets, compressed
+    /// files and priors record them in.
+    pub fn directions_deg(&self) -> (Vec<[f64; 2]>, Vec<[f64; 2]>) {
+        let deg = |v: &[Direction]| v.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>();
+        (deg(&self.lights), deg(&self.views))
+    }
+
     /// The sweep as a dataset manifest records it (`name`, `lights_deg`, `views_deg` in
     /// degrees, and the policy for pairs the rig cannot measure).
     pub fn manifest_json(&self, policy: impl Serialize) -> serde_json::Value {
-        let deg = |v: &[Direction]| v.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect::<Vec<_>>();
+        let (lights, views) = self.directions_deg();
         serde_json::json!({
             "name": self.name,
-            "lights_deg": deg(&self.lights),
-            "views_deg": deg(&self.views),
+            "lights_deg": lights,
+            "views_deg": views,
             "policy": policy,
         })
     }
 
+    /// Every light × view pair, in canonical index order.
     pub fn pairs(&self) -> Vec<Pair> {
         let l = self.lights.len();
         let mut out = Vec::with_capacity(l * self.views.len());

@@ -183,10 +183,11 @@ impl<'a> Completion<'a> {
         (u.transpose() * &self.post * &u)[(0, 0)].max(0.0) + self.prior.header.residual_var
     }
 
-    /// Mean predicted squared error over every pair of the sweep (model space).
+    /// Mean predicted squared error over every pair of the sweep (model space):
+    /// `Σ_p u_pᵀ Σ u_p / D + ρ = tr(Σ) / D + ρ` (U orthonormal), the quantity the design
+    /// minimizes (`design::Greedy::expected_mse`).
     pub fn predicted_mse(&self) -> f64 {
-        let d = self.prior.dims();
-        (0..d).map(|p| self.predicted_var(p)).sum::<f64>() / d as f64
+        self.post.trace().max(0.0) / self.prior.dims() as f64 + self.prior.header.residual_var
     }
 }
 
@@ -288,7 +289,7 @@ mod tests {
         // Black texels: finite.
         let zero = DMatrix::<f64>::zeros(design.len(), 1);
         assert!(c.predict_all(&c.coefficients(&zero)).iter().all(|v| v.is_finite()));
-        // Plain LS with the same pairs is no better, with random pairs worse.
+        // Plain least squares on as many random pairs is no better.
         let r = crate::random_subset(d, 12, 3);
         let ls = Completion::least_squares(&p, &r).unwrap();
         let full_ls = ls.predict_all(&ls.coefficients(&truth.select_rows(&r)));

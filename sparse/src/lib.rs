@@ -109,7 +109,16 @@ pub fn sweep_hash(lights_deg: &[[f64; 2]], views_deg: &[[f64; 2]]) -> String {
             }
         }
     }
-    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+    hex(&h.finalize())
+}
+
+/// SHA-256 of `bytes`, hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+fn hex(digest: &[u8]) -> String {
+    digest.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// A deterministic stream of uniform and standard normal numbers (SplitMix64 + Box–Muller).

@@ -18,10 +18,9 @@
 //! (D × K f32, row-major: one row per pair). The header ends with the SHA-256 of the
 //! payload, checked on load.
 
-use crate::{sweep_hash, Normal, SparseError, ValueSpace};
+use crate::{sha256_hex, sweep_hash, Normal, SparseError, ValueSpace};
 use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 use std::path::Path;
 
 pub const MAGIC: &[u8; 8] = b"GPRIOR\0\x01";
@@ -233,7 +232,7 @@ impl Prior {
     pub fn to_bytes(&self) -> Result<Vec<u8>, SparseError> {
         let payload = self.payload();
         let mut header = self.header.clone();
-        header.payload_sha256 = Sha256::digest(&payload).iter().map(|b| format!("{b:02x}")).collect();
+        header.payload_sha256 = sha256_hex(&payload);
         let json = serde_json::to_vec(&header).map_err(|e| SparseError::Invalid(e.to_string()))?;
         let mut out = Vec::with_capacity(16 + json.len() + payload.len());
         out.extend_from_slice(MAGIC);
@@ -272,8 +271,7 @@ impl Prior {
         if payload.len() != want {
             return Err(bad(format!("payload is {} bytes, expected {want}", payload.len())));
         }
-        let sha: String = Sha256::digest(payload).iter().map(|b| format!("{b:02x}")).collect();
-        if sha != header.payload_sha256 {
+        if sha256_hex(payload) != header.payload_sha256 {
             return Err(bad("payload checksum mismatch (file damaged)".into()));
         }
         let f32_at = |o: usize| f32::from_le_bytes(payload[o..o + 4].try_into().unwrap()) as f64;
@@ -326,6 +324,17 @@ impl Prior {
         views_deg: &[[f64; 2]],
         units: &str,
     ) -> Result<(), SparseError> {
+        self.check_sweep(sweep_name, lights_deg, views_deg)?;
+        self.check_units(units)
+    }
+
+    /// Refuse a prior built for another sweep (its directions, whatever its name).
+    pub fn check_sweep(
+        &self,
+        sweep_name: &str,
+        lights_deg: &[[f64; 2]],
+        views_deg: &[[f64; 2]],
+    ) -> Result<(), SparseError> {
         let h = sweep_hash(lights_deg, views_deg);
         if h != self.header.sweep_hash {
             return Err(SparseError::Mismatch(format!(
@@ -340,6 +349,11 @@ impl Prior {
                 &h[..12]
             )));
         }
+        Ok(())
+    }
+
+    /// Refuse data in other value units than the prior's.
+    pub fn check_units(&self, units: &str) -> Result<(), SparseError> {
         if units != self.header.units {
             return Err(SparseError::Mismatch(format!(
                 "the prior models values in `{}`, the data are in `{units}`",

@@ -23,7 +23,7 @@ use super::complete::{coefficients, noise_var, predict_image};
 use super::prior::{load_prior, psnr_of_mse, units_key};
 use super::svg_plot::{log_log, Series};
 use crate::compress::data::DatasetViews;
-use crate::compress::interp::direction_weights;
+use crate::compress::interp::{direction_weights, dot, unit};
 use crate::compress::metrics::ErrorStats;
 use crate::plan::{Plan, PlanOptions};
 use crate::sweep::Sweep;
@@ -156,16 +156,9 @@ impl Noise {
 
 /// Farthest-point order of directions, starting at the first (the pole for Bonn).
 fn farthest_points(dirs: &[[f64; 2]]) -> Vec<usize> {
-    let unit = |d: [f64; 2]| {
-        let (t, p) = (d[0].to_radians(), d[1].to_radians());
-        [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
-    };
     let u: Vec<[f64; 3]> = dirs.iter().map(|&d| unit(d)).collect();
     let mut order = vec![0usize];
-    let mut near: Vec<f64> = u
-        .iter()
-        .map(|x| 1.0 - (x[0] * u[0][0] + x[1] * u[0][1] + x[2] * u[0][2]))
-        .collect();
+    let mut near: Vec<f64> = u.iter().map(|&x| 1.0 - dot(x, u[0])).collect();
     while order.len() < u.len() {
         let (mut best, mut arg) = (-1.0, 0);
         for (i, &n) in near.iter().enumerate() {
@@ -175,9 +168,8 @@ fn farthest_points(dirs: &[[f64; 2]]) -> Vec<usize> {
             }
         }
         order.push(arg);
-        for (i, x) in u.iter().enumerate() {
-            let d = 1.0 - (x[0] * u[arg][0] + x[1] * u[arg][1] + x[2] * u[arg][2]);
-            near[i] = near[i].min(d);
+        for (i, &x) in u.iter().enumerate() {
+            near[i] = near[i].min(1.0 - dot(x, u[arg]));
         }
     }
     order
@@ -242,54 +234,42 @@ fn psnr(truth: &[Vec<f32>], recon: &[Vec<f32>]) -> f64 {
         })
         .collect();
     let mut e = ErrorStats::default();
-    for p in parts {
-        e.values += p.values;
-        e.sum_sq_8bit += p.sum_sq_8bit;
+    for p in &parts {
+        e.merge(p);
     }
     e.psnr_8bit()
 }
 
-/// Ours (or dense when `measured` is every feasible pair): MAP completion.
-fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -> Result<(Vec<Vec<f32>>, f64)> {
-    let k = prior.components().min(measured.len());
-    let p = prior.truncated(k);
-    let c = Completion::new(&p, measured, nv)?;
+/// Every pair of the sweep: the measured ones as measured, the others predicted by `c`.
+fn fill(c: &Completion, measured: &[usize], meas: &[Vec<f32>]) -> Vec<Vec<f32>> {
     let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let a = coefficients(&c, &refs);
-    let mut is_m = vec![false; prior.dims()];
+    let a = coefficients(c, &refs);
+    let mut is_m = vec![false; c.prior.dims()];
     measured.iter().for_each(|&i| is_m[i] = true);
-    let out: Vec<Vec<f32>> = (0..prior.dims())
+    (0..c.prior.dims())
         .into_par_iter()
         .map(|q| {
             if is_m[q] {
                 meas[q].clone()
             } else {
-                predict_image(&c, &a, q)
+                predict_image(c, &a, q)
             }
         })
-        .collect();
-    Ok((out, psnr_of_mse(c.predicted_mse())))
+        .collect()
+}
+
+/// Ours (or dense when `measured` is every feasible pair): MAP completion.
+fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -> Result<(Vec<Vec<f32>>, f64)> {
+    let p = prior.truncated(prior.components().min(measured.len()));
+    let c = Completion::new(&p, measured, nv)?;
+    Ok((fill(&c, measured, meas), psnr_of_mse(c.predicted_mse())))
 }
 
 /// Baseline (c): least squares in the prior's first min(K, n/2) basis vectors.
 fn complete_ls(prior: &Prior, measured: &[usize], meas: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
-    let k = prior.components().min(measured.len() / 2).max(1);
-    let p = prior.truncated(k);
+    let p = prior.truncated(prior.components().min(measured.len() / 2).max(1));
     let c = Completion::least_squares(&p, measured)?;
-    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let a = coefficients(&c, &refs);
-    let mut is_m = vec![false; prior.dims()];
-    measured.iter().for_each(|&i| is_m[i] = true);
-    Ok((0..prior.dims())
-        .into_par_iter()
-        .map(|q| {
-            if is_m[q] {
-                meas[q].clone()
-            } else {
-                predict_image(&c, &a, q)
-            }
-        })
-        .collect())
+    Ok(fill(&c, measured, meas))
 }
 
 /// Baseline (a): product subset completed by triangle interpolation; None when the gap
@@ -359,8 +339,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
     let rig = a.rig.load()?;
     let sweep = Sweep::resolve(&a.sweep)?;
     let (prior, prior_path) = load_prior(a.prior.as_deref())?;
-    let lights: Vec<[f64; 2]> = sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
-    let views: Vec<[f64; 2]> = sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
+    let (lights, views) = sweep.directions_deg();
     let (sample_name, truth) = match &a.truth {
         Some(dir) => {
             let (ds, t) = read_truth(dir)?;
@@ -436,18 +415,12 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         "both" => vec![true, false],
         o => bail!("--noise {o}: use on, off or both"),
     };
-    let sensor = {
-        use gonio_simulator::{RenderQuality, Renderer, SimOptions};
-        let s = Arc::new(load_sample("wallpaper")?.build()?);
-        let r = Arc::new(Renderer::new(s, RenderQuality::default()));
-        let sim = gonio_simulator::build_sim_rig(&rig, r, &SimOptions::default())?;
-        let s = sim.world.sensor.lock().expect("sensor lock").clone();
-        s
-    };
+    // The rig's sensor noise model from its rig file (the one the simulated camera uses).
+    let sensor = gonio_devices::hdr::HdrSpec::default().noise(&rig.camera, rig.camera.gain);
     let noise = Noise {
-        e_per_unit: sensor.full_well_e / sensor.gain.max(1e-12),
+        e_per_unit: sensor.full_well_e / sensor.gain,
         read_e: sensor.read_noise_e,
-        levels: sensor.max_dn(),
+        levels: sensor.max_dn,
     };
     let want = |m: &str| a.methods.iter().any(|x| x == m);
     let mut rows = Vec::new();

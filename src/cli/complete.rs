@@ -9,7 +9,7 @@
 //! its predicted RMS error. Substituted measurements are used at their grid position (as
 //! `compress` does); skipped pairs are predicted.
 
-use super::prior::{load_prior, sample_name, sweep_name, units_key};
+use super::prior::{load_prior, psnr_of_mse, sample_name, sweep_name, units_key};
 use crate::compress::data::DatasetViews;
 use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_VERSION};
 use anyhow::{bail, Context, Result};
@@ -98,7 +98,7 @@ pub fn noise_var(prior: &Prior, noise_codes: f64) -> f64 {
     prior.header.residual_var + (noise_codes / 255.0).powi(2)
 }
 
-/// Held-back residual on up to 3000 spread texels.
+/// Held-back residual on up to 1000 spread texels (3000 texel-channels).
 pub fn holdout(c: &Completion, images: &[&[f32]], texels: usize) -> Option<Holdout> {
     let space = c.prior.space();
     let pick = super::prior::spread_texels(texels, 1000);
@@ -225,15 +225,12 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
     let mut order = measured.len();
     let mut mse_sum = 0.0;
     for (p, rec) in by_index.iter().enumerate() {
-        let var = c.predicted_var(p);
-        mse_sum += if rec.is_some() {
-            (a.noise_codes / 255.0).powi(2)
-        } else {
-            var
-        };
         if rec.is_some() {
+            mse_sum += (a.noise_codes / 255.0).powi(2);
             continue;
         }
+        let var = c.predicted_var(p);
+        mse_sum += var;
         let img = RgbImage {
             width: w,
             height: h,
@@ -247,7 +244,7 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         out.store(rec, Some(&img), None)?;
         order += 1;
     }
-    let predicted_psnr_db = -10.0 * (mse_sum / d as f64).max(1e-20).log10();
+    let predicted_psnr_db = psnr_of_mse(mse_sum / d as f64);
     let report = CompleteJson {
         out: a.out.display().to_string(),
         prior: prior_id,

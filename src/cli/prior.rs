@@ -252,9 +252,7 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
     if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)?;
     }
-    let tmp = a.out.with_extension("gprior.tmp");
-    std::fs::write(&tmp, &bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &a.out)?;
+    crate::store::atomic::write_atomic(&a.out, &bytes, None).with_context(|| format!("writing {}", a.out.display()))?;
     if a.json {
         let j = BuildJson {
             out: a.out.display().to_string(),
@@ -427,10 +425,9 @@ pub fn plan_sparse(
         "--isotropic and a sparse design do not combine: the prior chooses among all pairs"
     );
     let (prior, path) = load_prior(args.prior.as_deref())?;
-    let lights: Vec<[f64; 2]> = sweep.lights.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
-    let views: Vec<[f64; 2]> = sweep.views.iter().map(|d| [d.theta_deg(), d.phi_deg()]).collect();
+    let (lights, views) = sweep.directions_deg();
     // A plan does not know the values' unit yet: check the sweep only.
-    prior.check_compatible(&sweep.name, &lights, &views, &prior.header.units.clone())?;
+    prior.check_sweep(&sweep.name, &lights, &views)?;
     let opts = args.sweep.plan_options()?;
     let (plan, info) = sparse_plan(
         &prior,

@@ -4,41 +4,9 @@
 //! every other pair `predicted`, no NaN, close to the truth of a sample the prior never
 //! saw), `gonio bench sparse` (ours beats the plain-PCA baseline), and the refusals.
 
+use crate::common::cli::{gonio, ok, refused, s};
 use gonio::store::{self, Dataset, MeasurementStatus};
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn gonio(args: &[&str], threads: Option<&str>) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_gonio"));
-    c.args(args);
-    if let Some(t) = threads {
-        c.env("RAYON_NUM_THREADS", t);
-    }
-    c.output().unwrap()
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = gonio(args, None);
-    assert!(
-        o.status.success(),
-        "gonio {args:?} failed:\n{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn refused(args: &[&str], needles: &[&str]) {
-    let o = gonio(args, None);
-    assert!(!o.status.success(), "gonio {args:?} should fail");
-    let err = String::from_utf8_lossy(&o.stderr);
-    for n in needles {
-        assert!(err.contains(n), "gonio {args:?}: {n:?} not in\n{err}");
-    }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 const SWEEP: &str = "fibonacci:12";
 

@@ -46,6 +46,14 @@ impl ErrorStats {
         }
         self.values += original.len().min(reconstructed.len()) as u64;
     }
+    /// Add the statistics of another part (e.g. computed in parallel).
+    pub fn merge(&mut self, other: &ErrorStats) {
+        self.values += other.values;
+        self.sum_sq_8bit += other.sum_sq_8bit;
+        self.sum_abs_8bit += other.sum_abs_8bit;
+        self.max_8bit = self.max_8bit.max(other.max_8bit);
+        self.sum_sq_linear += other.sum_sq_linear;
+    }
     fn n(&self) -> f64 {
         self.values.max(1) as f64
     }

@@ -2,6 +2,7 @@
 //! Each module uses a subset of them, hence the `dead_code` allowance.
 #![allow(dead_code)]
 
+pub mod cli;
 pub mod hashes;
 
 use std::path::{Path, PathBuf};
