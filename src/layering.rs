@@ -448,20 +448,19 @@ fn references(rel: &str, code: &str, crate_names: &[&str]) -> BTreeSet<(String, 
             continue;
         };
         for head in heads_after(after) {
-            let mut full = base.clone();
-            full.push(head.clone());
-            // a second segment names a file of a folder (room/x)
-            let second = if base.is_empty() {
-                let tail = after.strip_prefix(&head).and_then(|t| t.strip_prefix("::"));
-                tail.map(|t| heads_after(t).into_iter().next().unwrap_or_default())
-            } else {
-                None
-            };
-            let room = full[0].clone();
-            let inner = if base.is_empty() {
-                second.unwrap_or_default()
-            } else {
-                full[1..].join("/")
+            // (room, path inside it): `crate::room::x…` → (room, x); a climbing `super::`
+            // path from base [room, a, …] → (room, a/…/head).
+            let (room, inner) = match base.split_first() {
+                None => {
+                    let tail = after.strip_prefix(&head).and_then(|t| t.strip_prefix("::"));
+                    let second = tail.and_then(|t| heads_after(t).into_iter().next()).unwrap_or_default();
+                    (head, second)
+                }
+                Some((room, within)) => {
+                    let mut inner = within.to_vec();
+                    inner.push(head);
+                    (room.clone(), inner.join("/"))
+                }
             };
             out.insert((room, inner));
         }
