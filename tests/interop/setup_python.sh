@@ -17,7 +17,8 @@ if [ $# -ne 1 ]; then
     echo "usage: $0 VENV_DIR" >&2
     exit 2
 fi
-venv=$1
+# Absolute: the check below runs from / (see there).
+venv=$(realpath -m "$1")
 python=${PYTHON:-python3}
 
 build_pins=(
@@ -88,8 +89,12 @@ runtime_pins=(
     "greenlet==3.5.6"
 )
 
+# Run from /, not from the checkout: `python -` puts the working directory first on
+# sys.path, and a workspace folder named like a Python package (`sparse/`, the gonio-sparse
+# crate) then shadows it: dask imports `sparse` when it exists and fails on the empty
+# namespace package. On failure the reason is printed, not swallowed.
 check() {
-    "$venv/bin/python" - "$@" <<'PY' 2>/dev/null
+    (cd / && "$venv/bin/python" - "$@") <<'PY'
 import sys
 from importlib.metadata import version
 from btf_extractor import Ubo2003  # noqa: F401
@@ -103,11 +108,13 @@ import playwright.sync_api  # noqa: F401
 import zarr, xarray, dask.array, OpenEXR  # noqa: F401,E401
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
+if bad:
+    print("venv check: installed versions differ from the pins:", bad, file=sys.stderr)
 sys.exit(1 if bad else 0)
 PY
 }
 
-if [ -x "$venv/bin/python" ] && check "${build_pins[@]}" "${runtime_pins[@]}"; then
+if [ -x "$venv/bin/python" ] && check "${build_pins[@]}" "${runtime_pins[@]}" 2>/dev/null; then
     echo "$venv: btf-extractor 1.7.0, mitsuba 3.9.1, zarr 3.1.5 ready"
     exit 0
 fi
