@@ -84,4 +84,11 @@ pub trait Camera: Send + Sync {
     /// measurement gets the same noise whatever order, machine or resume it was taken in;
     /// real cameras have nothing to do with it, hence the empty default.
     fn begin_measurement(&self, _index: u64) {}
+    /// Wait until the last frame's readout has ended. A camera whose `capture` returns when
+    /// the exposure ends, its readout overlapping the next move
+    /// ([`crate::rig::CameraSpec::readout_overlaps_motion`]; the simulated one), finishes
+    /// it here; the others return at once (their `capture` returned after the readout),
+    /// hence the empty default. The engine calls it when a run ends, so the run's rig time
+    /// includes the last readout.
+    async fn readout_done(&self) {}
 }

@@ -252,6 +252,46 @@ impl CameraSpec {
                 message: "must be a whole number ≥ 0".into(),
             })
     }
+
+    /// Whether the readout may overlap the next move (`camera.options.overlap_readout`).
+    ///
+    /// The exposed image does not change while the sensor is read out, so the axes may start
+    /// as soon as the exposure ends; the next exposure waits for both the move and the
+    /// readout. Default: on for the simulated camera, which models a camera that buffers its
+    /// frame (`capture` returns when the exposure ends and the sensor stays busy for the
+    /// readout); off for every other backend: V4L2's `capture` returns only once the frame is
+    /// dequeued, after its readout, so nothing can overlap and the plan must not say it does.
+    /// `true` on a backend that cannot do it is refused.
+    pub fn readout_overlaps_motion(&self) -> Result<bool, OptionError> {
+        let can = self.backend == "sim";
+        let Some(v) = self.options.get("overlap_readout") else {
+            return Ok(can);
+        };
+        let err = |message: String| OptionError {
+            key: "camera.options.overlap_readout".into(),
+            value: v.to_string(),
+            message,
+        };
+        match v.as_bool() {
+            None => Err(err("must be true or false".into())),
+            Some(true) if !can => Err(err(format!(
+                "the `{}` camera returns a frame only after its readout, so the readout cannot overlap the next move; \
+                 remove the option or set it to false",
+                self.backend
+            ))),
+            Some(b) => Ok(b),
+        }
+    }
+
+    /// The part of [`CameraSpec::capture_time`] that overlaps the next move: the readout when
+    /// [`CameraSpec::readout_overlaps_motion`], else 0.
+    pub fn overlapped_readout_s(&self) -> Result<f64, OptionError> {
+        Ok(if self.readout_overlaps_motion()? {
+            self.readout_s.max(0.0)
+        } else {
+            0.0
+        })
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

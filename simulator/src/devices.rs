@@ -242,6 +242,14 @@ pub struct SimWorld {
     pub sensor: Mutex<SensorModel>,
     pub clock: Arc<SimClock>,
     pub readout_s: f64,
+    /// The readout overlaps what follows (rig file `camera.options.overlap_readout`, on by
+    /// default; [`gonio_devices::rig::CameraSpec::readout_overlaps_motion`]): `capture`
+    /// returns when the exposure ends, so the axes may move on, and the sensor stays busy
+    /// until [`SimWorld::sensor_free_at`].
+    pub overlap_readout: bool,
+    /// Rig-clock time the sensor finishes reading out the last frame: the next exposure
+    /// starts no earlier.
+    pub sensor_free_at: Mutex<f64>,
     pub width: usize,
     pub height: usize,
     pub roi: Roi,
@@ -500,6 +508,11 @@ impl Camera for SimCamera {
         })
     }
 
+    async fn readout_done(&self) {
+        let free_at = *self.world.sensor_free_at.lock().expect("sensor_free_at poisoned");
+        self.world.clock.wait_until(free_at).await;
+    }
+
     fn begin_measurement(&self, index: u64) {
         *self.measurement.lock().expect("measurement poisoned") = Some(CaptureIdentity { index, exposure: 0 });
     }
@@ -516,6 +529,10 @@ impl Camera for SimCamera {
             }
         }
         let world = self.world.clone();
+        // The sensor may still be reading out the previous frame (its readout overlapped the
+        // move that brought the rig here): the exposure starts once it is free.
+        let free_at = *world.sensor_free_at.lock().expect("sensor_free_at poisoned");
+        world.clock.wait_until(free_at).await;
         let seq = self.sequence.fetch_add(1, Ordering::SeqCst);
         let q = world.configuration();
         let (exposure, gain, bits) = {
@@ -556,7 +573,12 @@ impl Camera for SimCamera {
             command: "capture".into(),
             reason: e.to_string(),
         })?;
-        world.clock.wait(exposure + world.readout_s).await;
+        if world.overlap_readout {
+            world.clock.wait(exposure).await;
+            *world.sensor_free_at.lock().expect("sensor_free_at poisoned") = world.clock.now() + world.readout_s;
+        } else {
+            world.clock.wait(exposure + world.readout_s).await;
+        }
         let frame = Frame {
             width: world.width,
             height: world.height,
@@ -741,6 +763,11 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
         sensor: Mutex::new(sensor),
         clock: clock.clone(),
         readout_s: spec.camera.readout_s,
+        overlap_readout: spec
+            .camera
+            .readout_overlaps_motion()
+            .map_err(|e| option_error(spec, e))?,
+        sensor_free_at: Mutex::new(0.0),
         width: spec.camera.width,
         height: spec.camera.height,
         lens: crate::render::LensDistortion(spec.camera.distortion().map_err(|e| option_error(spec, e))?),

@@ -282,8 +282,12 @@ struct PlanRow {
     /// Kicks that ran.
     kicks: usize,
     canonical_s: f64,
+    /// Optimized order, stop and go (no readout overlap).
+    stop_and_go_s: f64,
+    /// Optimized order as the engine runs it (readout overlapping the next move).
     optimized_s: f64,
     lower_bound_s: f64,
+    readout_overlap_s: f64,
     optimized_over_canonical: f64,
     optimized_over_bound: f64,
     /// No order can beat this fraction of the canonical duration.
@@ -330,8 +334,10 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
             budget_s: b,
             kicks: p.budget.kicks_done,
             canonical_s: d.canonical_s,
+            stop_and_go_s: d.stop_and_go_s,
             optimized_s: d.optimized_s,
             lower_bound_s: d.lower_bound_s,
+            readout_overlap_s: d.readout_overlap_s,
             optimized_over_canonical: d.optimized_s / d.canonical_s,
             optimized_over_bound: d.optimized_s / d.lower_bound_s,
             bound_over_canonical: d.lower_bound_s / d.canonical_s,
@@ -343,12 +349,13 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
     } else {
         println!("sweep {}", sweep.name);
         println!(
-            "{:<20} {:>8} {:>8} {:>8} {:>12} {:>12} {:>12} {:>10} {:>9} {:>11} {:>10}",
+            "{:<20} {:>8} {:>8} {:>8} {:>12} {:>12} {:>12} {:>12} {:>10} {:>9} {:>11} {:>10}",
             "rig",
             "measured",
             "budget s",
             "kicks",
             "canonical s",
+            "stop+go s",
             "optimized s",
             "bound s",
             "opt/canon",
@@ -358,12 +365,13 @@ fn plan(a: PlanBenchArgs) -> Result<ExitCode> {
         );
         for r in &rows {
             println!(
-                "{:<20} {:>8} {:>8} {:>8} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>11.3} {:>10.2}",
+                "{:<20} {:>8} {:>8} {:>8} {:>12.0} {:>12.0} {:>12.0} {:>12.0} {:>10.3} {:>9.3} {:>11.3} {:>10.2}",
                 r.rig,
                 r.measured,
                 r.budget_s.map(|b| format!("{b:.2}")).unwrap_or_else(|| "-".into()),
                 r.kicks,
                 r.canonical_s,
+                r.stop_and_go_s,
                 r.optimized_s,
                 r.lower_bound_s,
                 r.optimized_over_canonical,

@@ -112,11 +112,24 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         d.canonical_s,
         d.canonical_s / 3600.0
     );
+    if d.readout_overlap_s > 0.0 {
+        println!(
+            "  optimized, stop and go    {:>9.0} s ({:.2} h, {:.3} × canonical)",
+            d.stop_and_go_s,
+            d.stop_and_go_s / 3600.0,
+            d.stop_and_go_s / d.canonical_s
+        );
+    }
     println!(
-        "  duration optimized order  {:>9.0} s ({:.2} h, {:.3} × canonical)",
+        "  duration optimized order  {:>9.0} s ({:.2} h, {:.3} × canonical{})",
         d.optimized_s,
         d.optimized_s / 3600.0,
-        d.optimized_s / d.canonical_s
+        d.optimized_s / d.canonical_s,
+        if d.readout_overlap_s > 0.0 {
+            format!("; the {:.2} s readout overlaps each move", d.readout_overlap_s)
+        } else {
+            String::new()
+        }
     );
     println!(
         "  lower bound               {:>9.0} s ({:.2} h; optimized = {:.3} × bound)",

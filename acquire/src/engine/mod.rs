@@ -240,6 +240,9 @@ pub async fn run(
             Err(e) => drive_err = Some(e),
         }
     }
+    if setup.is_some() {
+        rig.camera.readout_done().await;
+    }
     drop(tx);
     let stored = store.join();
     let (dataset, stats) = match stored {

@@ -26,6 +26,11 @@ pub enum PlanError {
         sweep: String,
         reasons: String,
     },
+    #[error("rig `{rig}`: {source}")]
+    RigOption {
+        rig: String,
+        source: gonio_devices::rig::OptionError,
+    },
 }
 
 /// What to do with a pair the rig cannot measure as asked.
@@ -87,17 +92,116 @@ pub struct Skipped {
     pub reason: Infeasibility,
 }
 
+/// Planned rig time. `optimized_s` is what the engine does: the optimized order with the
+/// readout overlapping the next move where the camera allows it ([`Overlap`]).
+/// `canonical_s` is the fixed reference every speed-up is stated against: canonical order,
+/// stop and go (expose, read out, then move), as before the overlap existed.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Durations {
-    /// Total time in canonical order (motion + capture), s.
+    /// Canonical order, stop and go (motion + full capture per pair), s: the reference.
     pub canonical_s: f64,
-    /// Total time in the optimized order, s.
+    /// Canonical order with the readout overlapping the move (equal to `canonical_s` when
+    /// the camera does not overlap), s.
+    #[serde(default)]
+    pub canonical_overlapped_s: f64,
+    /// Optimized order, stop and go, s.
+    #[serde(default)]
+    pub stop_and_go_s: f64,
+    /// Optimized order as the engine runs it (readout overlapping the move when
+    /// `readout_overlap_s` > 0), s.
     pub optimized_s: f64,
-    /// A lower bound on the total time of any order, s (capture + motion bound).
+    /// A lower bound on the total time of any order in the engine's mode, s.
     pub lower_bound_s: f64,
-    /// Capture time per measurement (exposure + readout), s.
+    /// Capture time per measurement (exposure + readout, the whole HDR bracket with HDR), s.
     pub capture_per_measurement_s: f64,
+    /// The part of each capture that overlaps the next move (the camera's readout; 0 when
+    /// it cannot overlap), s.
+    #[serde(default)]
+    pub readout_overlap_s: f64,
+    /// Motion time of the optimized order (its moves alone), s.
     pub optimized_motion_s: f64,
+}
+
+/// The timing of a capture whose last readout overlaps the next move.
+///
+/// A measurement exposes while the rig stands still; its readout `r` (the last one of an
+/// HDR bracket) then runs while the axes already move to the next pair, and that pair's
+/// exposure starts once both the move and the readout are done. So a transition of `d`
+/// seconds costs `max(d, r)` after a measurement, `d` from home, and the run ends with one
+/// readout. The order optimiser still minimises motion (`max(d, r)` is monotone in `d`, so
+/// its neighbour lists are unchanged); the plan's times are exact for the order it returns.
+/// With `r = 0` every figure is the stop-and-go one.
+pub struct Overlap {
+    readout: f64,
+    capture: f64,
+    first: bool,
+}
+
+impl Overlap {
+    pub fn new(readout: f64, capture: f64) -> Overlap {
+        Overlap {
+            readout,
+            capture,
+            first: true,
+        }
+    }
+    /// Time from the end of the last exposure (or from home) until the next exposure starts.
+    pub fn wait(&mut self, transition: f64) -> f64 {
+        if std::mem::replace(&mut self.first, false) {
+            transition
+        } else {
+            transition.max(self.readout)
+        }
+    }
+    /// Time the rig stands still for one measurement.
+    pub fn still(&self) -> f64 {
+        self.capture - self.readout
+    }
+    /// The readout after the last exposure (nothing follows it).
+    pub fn last_readout(&self) -> f64 {
+        if self.first {
+            0.0
+        } else {
+            self.readout
+        }
+    }
+    /// The total time of a route given its transitions in order.
+    pub fn total(readout: f64, capture: f64, transitions: &[f64]) -> f64 {
+        let mut o = Overlap::new(readout, capture);
+        let mut t = 0.0;
+        for &d in transitions {
+            t += o.wait(d) + o.still();
+        }
+        t + o.last_readout()
+    }
+    /// A lower bound of any route over `n` measurements whose motion is at least `motion`:
+    /// every transition after the first costs at least the readout.
+    pub fn lower_bound(readout: f64, capture: f64, motion: f64, n: usize) -> f64 {
+        if n == 0 {
+            return 0.0;
+        }
+        motion.max((n - 1) as f64 * readout) + n as f64 * (capture - readout) + readout
+    }
+}
+
+/// The transition times of a route, in its order (free axes resolved as the route runs).
+fn canonical_transitions(nodes: &[Node], motions: &[MotionModel], home: &[f64], route: &order::Route) -> Vec<f64> {
+    let mut prev = home.to_vec();
+    route
+        .order
+        .iter()
+        .zip(&route.choice)
+        .map(|(&ni, &ci)| {
+            let q: Vec<f64> = nodes[ni].candidates[ci]
+                .iter()
+                .zip(&prev)
+                .map(|(&x, &p)| if x.is_nan() { p } else { x })
+                .collect();
+            let dt = kinematics::transition_time(motions, &prev, &q);
+            prev = q;
+            dt
+        })
+        .collect()
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -306,6 +410,15 @@ impl Plan {
         let kin = kinematics::for_rig(rig);
         let motions: Vec<MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();
         let capture = rig.planned_capture_time();
+        // The last readout of a measurement overlaps the move to the next one when the
+        // camera allows it; the rig then stands still only for the rest of the capture.
+        let overlap = rig
+            .camera
+            .overlapped_readout_s()
+            .map_err(|source| PlanError::RigOption {
+                rig: rig.name.clone(),
+                source,
+            })?;
         let mut nodes: Vec<Node> = Vec::new();
         let mut info: Vec<(Pair, Direction, StepStatus)> = Vec::new();
         let mut skipped = Vec::new();
@@ -377,6 +490,7 @@ impl Plan {
         let mut steps = Vec::with_capacity(nodes.len());
         let mut prev = home.clone();
         let mut t = 0.0;
+        let mut overlapped = Overlap::new(overlap, capture);
         for (&ni, &ci) in opt.order.iter().zip(&opt.choice) {
             let q: Vec<f64> = nodes[ni].candidates[ci]
                 .iter()
@@ -384,7 +498,7 @@ impl Plan {
                 .map(|(&x, &p)| if x.is_nan() { p } else { x })
                 .collect();
             let dt = kinematics::transition_time(&motions, &prev, &q);
-            t += dt;
+            t += overlapped.wait(dt);
             let (pair, light, status) = &info[ni];
             steps.push(Step {
                 index: pair.index,
@@ -397,10 +511,12 @@ impl Plan {
                 transition_s: dt,
                 capture_start_s: t,
             });
-            t += capture;
+            t += overlapped.still();
             prev = q;
         }
+        t += overlapped.last_readout();
         let n = nodes.len() as f64;
+        let canonical_steps = canonical_transitions(&nodes, &motions, &home, &canonical);
         Ok(Plan {
             rig: rig.name.clone(),
             sweep: sweep.name.clone(),
@@ -410,9 +526,12 @@ impl Plan {
             skipped,
             durations: Durations {
                 canonical_s: canonical.motion_time + n * capture,
-                optimized_s: opt.motion_time + n * capture,
-                lower_bound_s: bound + n * capture,
+                canonical_overlapped_s: Overlap::total(overlap, capture, &canonical_steps),
+                stop_and_go_s: opt.motion_time + n * capture,
+                optimized_s: t,
+                lower_bound_s: Overlap::lower_bound(overlap, capture, bound, nodes.len()),
                 capture_per_measurement_s: capture,
+                readout_overlap_s: overlap,
                 optimized_motion_s: opt.motion_time,
             },
             budget: PlanBudget {
@@ -472,6 +591,30 @@ pub struct PlanCounts {
 
 #[cfg(test)]
 mod tests {
+    use super::Overlap;
+
+    /// The overlap's timing: stop and go without a readout to overlap, `max(d, r)` after a
+    /// measurement otherwise, one readout at the end, and a bound below every route.
+    #[test]
+    fn overlapped_readout_timing() {
+        let d = [3.0, 0.2, 2.0, 0.0, 1.5];
+        let (c, r) = (1.05, 1.0);
+        assert!((Overlap::total(0.0, c, &d) - (6.7 + 5.0 * c)).abs() < 1e-12);
+        // 3 (from home) + 1 + 2 + 1 + 1.5 moves, 5 × 0.05 exposures, the last readout.
+        let t = Overlap::total(r, c, &d);
+        assert!(
+            (t - (3.0 + 1.0 + 2.0 + 1.0 + 1.5 + 5.0 * 0.05 + 1.0)).abs() < 1e-12,
+            "{t}"
+        );
+        assert!(t < Overlap::total(0.0, c, &d));
+        assert!(Overlap::lower_bound(r, c, 6.7, d.len()) <= t + 1e-12);
+        assert!(Overlap::lower_bound(r, c, 0.0, d.len()) <= t + 1e-12);
+        assert_eq!(Overlap::total(r, c, &[]), 0.0);
+        assert_eq!(Overlap::lower_bound(r, c, 0.0, 0), 0.0);
+        // No motion at all (a dome): overlap saves nothing.
+        assert!((Overlap::total(r, c, &[0.0; 4]) - 4.0 * c).abs() < 1e-12);
+    }
+
     use super::*;
 
     fn small_sweep() -> Sweep {

@@ -105,9 +105,13 @@ impl Rig {
         if mixed && opts.realtime {
             // The shadow world's clock is virtual (see above), so its camera would expose
             // and read out instantly; with `--realtime` the rig must take its real time.
+            // (`overlapped_readout_s` was validated when the simulated rig above was built.)
+            let readout = spec.camera.overlapped_readout_s().unwrap_or(0.0);
             camera = Arc::new(WallPacedCamera {
                 inner: camera,
-                seconds: spec.camera.capture_time(),
+                seconds: spec.camera.capture_time() - readout,
+                readout,
+                free_at: std::sync::Mutex::new(None),
             });
         }
         #[cfg(feature = "v4l2")]
@@ -134,9 +138,23 @@ impl Rig {
 
 /// A simulated camera that takes its exposure and readout time on the wall clock (a mixed
 /// rig in `--realtime` mode: the serial axes move in real time, so must the captures).
+/// As the simulated camera does on its own clock, `capture` returns after `seconds` (the
+/// exposure) and the overlapped `readout` runs on while the axes move: the next capture
+/// starts no earlier than `free_at`.
 struct WallPacedCamera {
     inner: Arc<dyn Camera>,
     seconds: f64,
+    readout: f64,
+    free_at: std::sync::Mutex<Option<std::time::Instant>>,
+}
+
+impl WallPacedCamera {
+    async fn wait_free(&self) {
+        let free_at = *self.free_at.lock().expect("free_at poisoned");
+        if let Some(t) = free_at {
+            tokio::time::sleep_until(tokio::time::Instant::from_std(t)).await;
+        }
+    }
 }
 
 #[async_trait]
@@ -151,13 +169,19 @@ impl Camera for WallPacedCamera {
         self.inner.configure(config).await
     }
     async fn capture(&self) -> Result<gonio_devices::Frame, DeviceError> {
+        self.wait_free().await;
         let start = std::time::Instant::now();
         let frame = self.inner.capture().await?;
         let left = self.seconds - start.elapsed().as_secs_f64();
         if left > 0.0 {
             tokio::time::sleep(std::time::Duration::from_secs_f64(left)).await;
         }
+        *self.free_at.lock().expect("free_at poisoned") =
+            Some(std::time::Instant::now() + std::time::Duration::from_secs_f64(self.readout));
         Ok(frame)
+    }
+    async fn readout_done(&self) {
+        self.wait_free().await;
     }
     fn rig_still(&self) {
         self.inner.rig_still()

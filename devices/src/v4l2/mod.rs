@@ -158,6 +158,9 @@ impl V4l2Options {
                 }
                 // The engine's capture policy (gonio `engine::capture`), validated there.
                 "capture_timeout_s" | "capture_retries" | "saturation" | "saturation_fraction" => {}
+                // Whether the readout overlaps the next move: validated (and refused when
+                // true, which V4L2 cannot do) by `CameraSpec::readout_overlaps_motion`.
+                "overlap_readout" => {}
                 other => {
                     return Err(bad(
                         other,
