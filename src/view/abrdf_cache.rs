@@ -417,8 +417,17 @@ pub fn build(views: &DatasetViews, key: &CacheKey, progress: &Progress) -> Resul
     let t0 = std::time::Instant::now();
     let dir = &key.dir;
     std::fs::create_dir_all(dir).map_err(io(dir))?;
-    // An incomplete build of this state (ours, crashed): start over.
+    // An incomplete build of this state (ours, crashed): start over, and drop the scratch
+    // of builders that are gone (a killed server's).
     let _ = std::fs::remove_file(dir.join(META_FILE));
+    for e in std::fs::read_dir(dir).map_err(io(dir))?.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let Some(pid) = name.strip_prefix("scratch-").and_then(|p| p.parse::<u32>().ok()) {
+            if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
     let meta = match build_as(views, key, Dtype::F16, progress)? {
         Ok(m) => m,
         Err(NeedsF32) => {
