@@ -629,6 +629,8 @@ impl Caches {
             }
             let progress = Arc::new(Progress::default());
             progress.images_total.store(views.n_measured(), Ordering::Relaxed);
+            let tiles = views.width.div_ceil(TILE) * views.height.div_ceil(TILE);
+            progress.tiles_total.store(tiles, Ordering::Relaxed);
             st.building = Some((key.clone(), progress.clone()));
             let (me, views) = (self.clone(), views.clone());
             tracing::info!(dir = %key.dir.display(), images = views.n_measured(), "building the ABRDF cache");
@@ -832,11 +834,15 @@ mod tests {
         let k = key(&root, &views, n).unwrap();
         std::fs::create_dir_all(&k.dir).unwrap();
         std::fs::write(k.dir.join(tile_name(0, 0)), b"partial").unwrap();
+        // … and the scratch of a builder that is gone (no such pid: above Linux's pid_max).
+        let dead = k.dir.join("scratch-999999999");
+        std::fs::create_dir_all(&dead).unwrap();
+        std::fs::write(dead.join(tile_name(0, 0)), b"part").unwrap();
         let wait = |caches: &Arc<Caches>, n: u64| loop {
             match caches.lookup(&views, n).unwrap() {
                 Lookup::Ready(c) => return c,
                 Lookup::Building(p) | Lookup::Older { building: p, .. } => {
-                    assert_eq!(p.images_total, 13);
+                    assert_eq!((p.images_total, p.tiles_total), (13, 4));
                     std::thread::sleep(std::time::Duration::from_millis(20));
                 }
                 Lookup::Failed(e) => panic!("{e}"),
@@ -846,6 +852,9 @@ mod tests {
         let c = wait(&caches, n);
         assert_eq!(c.dir, k.dir);
         assert!(k.dir.join(META_FILE).is_file());
+        assert!(!dead.exists(), "a dead builder's scratch is removed");
+        let n_files = std::fs::read_dir(&k.dir).unwrap().count();
+        assert_eq!(n_files, 2 * 2 + 1, "4 tiles and the meta, nothing else");
         // Another state of the same dataset: the older cache answers while the new one builds.
         let mut f = std::fs::OpenOptions::new()
             .append(true)
