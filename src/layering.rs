@@ -166,7 +166,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
     ("synthesize", &["features", "fft", "output", "tsvq"]),
     ("synth", &["dataset"]),
     ("synth/family", &[]),
-    ("view", &["gpu", "monitor", "params", "render", "source"]),
+    ("view", &["abrdf_cache", "gpu", "monitor", "params", "render", "source"]),
     ("view/assets", &[]),
     (
         "cli",
@@ -186,6 +186,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "bench_acquire",
             "bench_compress",
             "bench_decode",
+            "bench_view",
             "bench_fit",
             "bench_hdr",
             "bench_serial",

@@ -162,6 +162,7 @@ async fn serve_view(dir: &std::path::Path, port: u16) -> Result<String> {
         port,
         allow_remote: false,
         token: None,
+        cache_dir: None,
     };
     let bound = crate::view::server::bind(&opts)
         .await

@@ -39,6 +39,9 @@ pub enum BenchCommand {
     /// Decode time of one image of a compressed BTF, on its own (median of rounds; EXR reads of the same images as the baseline).
     #[cfg(feature = "btf")]
     Decode(super::bench_decode::DecodeBenchArgs),
+    /// The inspect page's ABRDF of a raw dataset: texel-major cache build time and per-click time.
+    #[cfg(feature = "btf")]
+    ViewCache(super::bench_view::ViewCacheBenchArgs),
     /// BRDF fitting: starts × iterations against residual and time, on data of known models.
     #[cfg(feature = "btf")]
     Fit(super::bench_fit::FitBenchArgs),
@@ -427,6 +430,8 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Sparse(a) => super::bench_sparse::run(*a),
         #[cfg(feature = "btf")]
         BenchCommand::Decode(a) => super::bench_decode::run(a),
+        #[cfg(feature = "btf")]
+        BenchCommand::ViewCache(a) => super::bench_view::run(a),
         #[cfg(feature = "btf")]
         BenchCommand::Fit(a) => super::bench_fit::run(a),
     }

@@ -20,6 +20,8 @@ mod bench_serial;
 mod bench_sparse;
 #[cfg(feature = "btf")]
 mod bench_synthesize;
+#[cfg(feature = "btf")]
+mod bench_view;
 mod brdf;
 mod calibrate;
 mod common;

@@ -22,6 +22,11 @@ pub struct ViewArgs {
     /// Refused if its texture size or directions differ from the dataset's.
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
+    /// Directory of the ABRDF caches (the inspect page's ABRDF of a large raw dataset reads a
+    /// texel-major copy built once in the background). Default: `$XDG_CACHE_HOME/gonio/abrdf`,
+    /// else `~/.cache/gonio/abrdf`. Must not be inside the dataset. Safe to delete any time.
+    #[arg(long, value_name = "DIR")]
+    pub cache: Option<PathBuf>,
     /// Allow a non-loopback --bind (anyone who can reach it and has the URL sees the data).
     #[arg(long)]
     pub allow_remote: bool,
@@ -40,6 +45,7 @@ pub fn run(a: ViewArgs) -> Result<ExitCode> {
             port: a.port,
             allow_remote: a.allow_remote,
             token: None,
+            cache_dir: a.cache.clone(),
         };
         let bound = server::bind_with_model(&opts, a.model.as_deref())
             .await

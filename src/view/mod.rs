@@ -8,7 +8,9 @@
 //! * [`server`]: the HTTP server (axum) with its token, path and parameter checks.
 //! * [`gpu`]: the factor blocks of the DFMF, median-cut and homomorphic GPU decoders.
 //! * [`monitor`]: progress of a dataset being written, read from its journal.
+//! * [`abrdf_cache`]: the texel-major cache of a raw dataset behind the inspect page's ABRDF.
 
+pub mod abrdf_cache;
 pub mod gpu;
 pub mod monitor;
 pub mod params;

@@ -18,6 +18,7 @@
 //! * Malformed parameters get 400 with a message naming the parameter; work is done off
 //!   the async threads (`spawn_blocking`).
 
+use super::abrdf_cache::{self, Caches, Lookup};
 use super::monitor;
 use super::params::{self, ParamError};
 use super::render::{self, Scene, Shape};
@@ -70,6 +71,8 @@ pub enum ViewError {
         #[source]
         source: std::io::Error,
     },
+    #[error("--cache {path}: {why}")]
+    Cache { path: PathBuf, why: String },
     #[error("--model {path}: {why}")]
     Model { path: PathBuf, why: String },
     #[error("{path}: {source}")]
@@ -89,6 +92,9 @@ pub struct ViewOptions {
     pub allow_remote: bool,
     /// A fixed token (tests); `None`: 128 random bits.
     pub token: Option<String>,
+    /// Root of the ABRDF caches of raw datasets (`--cache DIR`); `None`:
+    /// [`abrdf_cache::default_root`]. Refused inside the served dataset.
+    pub cache_dir: Option<PathBuf>,
 }
 
 /// An API error: status and a plain-text message.
@@ -135,10 +141,17 @@ struct AppState {
     model: Option<Arc<AnyModel>>,
     permits: tokio::sync::Semaphore,
     streams: AtomicUsize,
+    /// The texel-major ABRDF caches of a raw dataset.
+    caches: Arc<Caches>,
 }
 
 impl AppState {
     fn source(&self) -> Result<Arc<Source>, ApiError> {
+        Ok(self.loaded()?.0)
+    }
+
+    /// The source and the journal length it was opened at.
+    fn loaded(&self) -> Result<(Arc<Source>, u64), ApiError> {
         let mut l = self.loaded.lock().unwrap_or_else(|e| e.into_inner());
         if self.kind == SourceKind::Dataset {
             let n = monitor::journal_len(&self.root);
@@ -150,7 +163,7 @@ impl AppState {
                 };
             }
         }
-        Ok(l.source.clone())
+        Ok((l.source.clone(), l.journal_bytes))
     }
 }
 
@@ -273,6 +286,10 @@ pub async fn bind_with_model(opts: &ViewOptions, model: Option<&Path>) -> Result
         Some(t) => t.clone(),
         None => random_token()?,
     };
+    let cache_root = match &opts.cache_dir {
+        Some(c) => Some(outside(c, &root)?),
+        None => abrdf_cache::default_root().filter(|c| outside(c, &root).is_ok()),
+    };
     let state = Arc::new(AppState {
         kind: source.kind(),
         loaded: Mutex::new(Loaded {
@@ -284,6 +301,7 @@ pub async fn bind_with_model(opts: &ViewOptions, model: Option<&Path>) -> Result
         token: token.clone(),
         permits: tokio::sync::Semaphore::new(MAX_CONCURRENT),
         streams: AtomicUsize::new(0),
+        caches: Caches::new(cache_root),
     });
     let app = router(state);
     let addr = SocketAddr::new(opts.bind, opts.port);
@@ -299,6 +317,40 @@ pub async fn bind_with_model(opts: &ViewOptions, model: Option<&Path>) -> Result
         listener,
         app,
     })
+}
+
+/// `cache` as an absolute path (its nearest existing ancestor canonicalized), refused if
+/// it lies inside the served dataset `root`: the dataset has one writer, and
+/// `gonio acquire --resume` removes files it does not know.
+fn outside(cache: &Path, root: &Path) -> Result<PathBuf, ViewError> {
+    let err = |why: String| ViewError::Cache {
+        path: cache.to_path_buf(),
+        why,
+    };
+    let abs = std::path::absolute(cache).map_err(|e| err(format!("not a usable path ({e})")))?;
+    let mut base = abs.as_path();
+    let mut rest = Vec::new();
+    let canon = loop {
+        if let Ok(c) = base.canonicalize() {
+            break c;
+        }
+        match (base.parent(), base.file_name()) {
+            (Some(p), Some(n)) => {
+                rest.push(n.to_os_string());
+                base = p;
+            }
+            _ => break abs.clone(),
+        }
+    };
+    let full = rest.iter().rev().fold(canon, |p, n| p.join(n));
+    if full.starts_with(root) && root.is_dir() {
+        return Err(err(format!(
+            "is inside the served dataset {}; the cache must live outside it (its files would be \
+             taken for the dataset's, and `gonio acquire --resume` removes them): pick a directory elsewhere",
+            root.display()
+        )));
+    }
+    Ok(full)
 }
 
 macro_rules! asset {
@@ -986,12 +1038,63 @@ fn heat(t: f32) -> [u8; 3] {
 }
 
 /// `/api/abrdf?x&y`: the ABRDF of texel (x, y) as a views × lights table of RGB.
+///
+/// A raw dataset larger than [`RawModel::abrdf_direct`] answers from its texel-major
+/// cache ([`abrdf_cache`]): `200` with `"cache": {…}` once it exists (from an earlier state
+/// of a growing dataset while the present one builds, saying how many pairs it covers), or
+/// `202 Accepted` with `{"building": {…}, "message": "…"}` while the first one builds (the
+/// page polls).
 async fn abrdf(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
-    let src = st.source()?;
+    let (src, journal_bytes) = st.loaded()?;
     let m = src.model();
     let x = params::index("x", get_param(&q, "x")?, m.width())?;
     let y = params::index("y", get_param(&q, "y")?, m.height())?;
     let (nl, nv) = (m.lights_deg().len(), m.views_deg().len());
+    if let Source::Dataset(d) = &*src {
+        if !d.abrdf_direct() {
+            let caches = st.caches.clone();
+            let src = src.clone();
+            return blocking(move || {
+                let Source::Dataset(d) = &*src else { unreachable!() };
+                let cached = |c: &abrdf_cache::AbrdfCache, building: Option<&abrdf_cache::ProgressSnapshot>| {
+                    let values = c.abrdf(x, y).map_err(internal)?;
+                    let measured = d.views.n_measured();
+                    let note = building.map(|b| {
+                        format!(
+                            "from the cache of an earlier state of the dataset: {} of its {measured} measured pairs; \
+                             the present state's cache is {b}",
+                            c.pairs()
+                        )
+                    });
+                    json_response(&serde_json::json!({
+                        "x": x, "y": y, "lights": nl, "views": nv, "values": values,
+                        "cache": {"pairs": c.pairs(), "measured": measured, "current": building.is_none(),
+                                  "building": building, "note": note},
+                    }))
+                };
+                match caches.lookup(&d.views, journal_bytes).map_err(internal)? {
+                    Lookup::Ready(c) => cached(&c, None),
+                    Lookup::Older { cache, building } => cached(&cache, Some(&building)),
+                    Lookup::Building(p) => {
+                        let body = serde_json::to_vec(&serde_json::json!({
+                            "x": x, "y": y,
+                            "building": p,
+                            "message": format!(
+                                "the ABRDF cache of this dataset ({} images) is {p}; this answer is repeated until it is ready",
+                                p.images_total
+                            ),
+                        }))
+                        .map_err(internal)?;
+                        Ok((StatusCode::ACCEPTED, [(header::CONTENT_TYPE, "application/json")], body).into_response())
+                    }
+                    Lookup::Failed(why) => Err(internal(format!(
+                        "the ABRDF cache of this dataset could not be built: {why}"
+                    ))),
+                }
+            })
+            .await;
+        }
+    }
     let fast = matches!(gpu_kind(&src), Some("pvmf") | Some("pca"));
     if !fast && nl * nv * m.width() * m.height() * 3 > MAX_ABRDF_WORK {
         return Err(bad(format!(

@@ -37,24 +37,23 @@ impl RawModel {
     /// The light whose image stands for pair (`light`, `view`), `None` if the view has no
     /// measured light at all.
     pub fn source_light(&self, light: usize, view: usize) -> Option<usize> {
-        if self.views.is_measured(light, view) {
-            return Some(light);
-        }
-        let u = |d: [f64; 2]| {
-            let (t, p) = (d[0].to_radians(), d[1].to_radians());
-            [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
-        };
-        let q = u(self.views.lights_deg[light]);
-        (0..self.views.n_lights())
-            .filter(|&l| self.views.is_measured(l, view))
-            .map(|l| {
-                let d = u(self.views.lights_deg[l]);
-                (l, q[0] * d[0] + q[1] * d[1] + q[2] * d[2])
-            })
-            .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))
-            .map(|(l, _)| l)
+        super::abrdf_cache::fill_light(&self.views.lights_deg, light, |l| self.views.is_measured(l, view))
+    }
+
+    /// Whether an ABRDF (every grid pair at one texel) is cheap enough to decode image by
+    /// image on a click: at most [`DIRECT_ABRDF_IMAGES`] images and
+    /// [`DIRECT_ABRDF_VALUES`] decoded values. Larger datasets answer from the texel-major
+    /// cache ([`super::abrdf_cache`]).
+    pub fn abrdf_direct(&self) -> bool {
+        let pairs = self.views.n_lights() * self.views.n_views();
+        pairs <= DIRECT_ABRDF_IMAGES && pairs * self.views.texels() * 3 <= DIRECT_ABRDF_VALUES
     }
 }
+
+/// See [`RawModel::abrdf_direct`].
+pub const DIRECT_ABRDF_IMAGES: usize = 1024;
+/// See [`RawModel::abrdf_direct`].
+pub const DIRECT_ABRDF_VALUES: usize = 1 << 20;
 
 impl BtfModel for RawModel {
     fn width(&self) -> usize {

@@ -56,12 +56,17 @@ fn write_dataset(dir: &Path) {
 
 /// Start a server on `path` (loopback, any port) in a background runtime.
 fn start(path: &Path) -> SocketAddr {
+    start_with_cache(path, None)
+}
+
+fn start_with_cache(path: &Path, cache_dir: Option<&Path>) -> SocketAddr {
     let opts = ViewOptions {
         path: path.to_path_buf(),
         bind: "127.0.0.1".parse().unwrap(),
         port: 0,
         allow_remote: false,
         token: Some(TOKEN.into()),
+        cache_dir: cache_dir.map(Path::to_path_buf),
     };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -299,6 +304,7 @@ fn a_path_that_is_neither_dataset_nor_known_file_is_refused() {
             port: 0,
             allow_remote: false,
             token: None,
+            cache_dir: None,
         };
         let e = rt
             .block_on(server::bind(&opts))
@@ -320,6 +326,7 @@ fn a_path_that_is_neither_dataset_nor_known_file_is_refused() {
         port: 0,
         allow_remote: false,
         token: None,
+        cache_dir: None,
     };
     let e = rt.block_on(server::bind(&opts)).err().expect("must be refused");
     assert!(matches!(e, ViewError::RemoteRefused { .. }), "{e}");
@@ -545,4 +552,81 @@ fn acquire_view_serves_the_monitor_of_the_running_acquisition() {
     unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
     let status = child.wait().unwrap();
     assert_eq!(status.code(), Some(3));
+}
+
+/// A raw dataset too large to decode image by image per click: the first `/api/abrdf`
+/// answers 202 with the cache build's progress, later ones 200 with the values of
+/// decoding the images directly; the cache lives in `--cache`, not in the dataset, and a
+/// `--cache` inside the dataset is refused.
+#[test]
+fn a_large_raw_dataset_answers_abrdfs_from_its_cache_after_202s_while_it_builds() {
+    use gonio::view::source::RawModel;
+    use gonio_btf::compress::interp::BtfModel;
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("ds");
+    let grid = |n: usize, th: f64| -> Vec<[f64; 2]> { (0..n).map(|k| [th, 360.0 * k as f64 / n as f64]).collect() };
+    let f = |l: usize, v: usize, t: usize, c: usize| 0.02 + 0.125 * ((l * 5 + v * 3 + t * 7 + c) % 19) as f32;
+    // 128² × 24 pairs × 3 = 1.18 M values, over the direct-decoding bound.
+    gonio_btf::compress::testdata::write_test_dataset(&ds, (128, 128), &grid(6, 40.0), &grid(4, 20.0), &[(2, 1)], f);
+    let raw = RawModel::open(&ds).unwrap();
+    assert!(!raw.abrdf_direct());
+    let files_before = std::fs::read_dir(&ds).unwrap().count();
+    let cache = tmp.path().join("cache");
+    let addr = start_with_cache(&ds, Some(&cache));
+    let (x, y) = (100, 37);
+    let target = format!("/api/abrdf?x={x}&y={y}");
+    let r = get(addr, &target, true);
+    assert_eq!(r.status, 202, "{}", r.body);
+    let j: serde_json::Value = serde_json::from_str(&r.body).unwrap();
+    assert_eq!(j["building"]["images_total"], 23, "{j}");
+    assert!(j["message"].as_str().unwrap().contains("building:"), "{j}");
+    // Poll (the page polls too); the bound is generous, nothing is timed.
+    let mut got = None;
+    for _ in 0..3000 {
+        let r = get(addr, &target, true);
+        match r.status {
+            202 => std::thread::sleep(Duration::from_millis(20)),
+            200 => {
+                got = Some(serde_json::from_str::<serde_json::Value>(&r.body).unwrap());
+                break;
+            }
+            s => panic!("status {s}: {}", r.body),
+        }
+    }
+    let j = got.expect("the cache was built");
+    assert_eq!(j["cache"]["pairs"], 23, "{}", j["cache"]);
+    assert_eq!(j["cache"]["current"], true);
+    let (nl, nv, t) = (6, 4, y * 128 + x);
+    let values = j["values"].as_array().unwrap();
+    assert_eq!(values.len(), nl * nv);
+    for v in 0..nv {
+        for l in 0..nl {
+            let img = raw.reconstruct(l, v).unwrap();
+            let want: Vec<f64> = (0..3).map(|c| img[t * 3 + c] as f64).collect();
+            let have: Vec<f64> = (0..3).map(|c| values[v * nl + l][c].as_f64().unwrap()).collect();
+            assert_eq!(have, want, "pair ({l}, {v})");
+        }
+    }
+    // The cache is outside the dataset, which did not change.
+    assert_eq!(std::fs::read_dir(&ds).unwrap().count(), files_before);
+    assert_eq!(std::fs::read_dir(&cache).unwrap().count(), 1);
+    // A cache directory inside the dataset is refused, naming why.
+    let opts = ViewOptions {
+        path: ds.clone(),
+        bind: "127.0.0.1".parse().unwrap(),
+        port: 0,
+        allow_remote: false,
+        token: None,
+        cache_dir: Some(ds.join("cache")),
+    };
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let e = rt
+        .block_on(server::bind(&opts))
+        .err()
+        .expect("must be refused")
+        .to_string();
+    assert!(e.contains("--cache") && e.contains("inside the served dataset"), "{e}");
 }

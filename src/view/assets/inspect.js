@@ -35,9 +35,25 @@ async function showPair() {
   document.body.dataset.frame = String(G.frames);
 }
 
+// The latest texel asked for: a poll of an earlier click stops when another texel is clicked.
+let abrdfAsked = 0;
+
 async function showAbrdf(x, y) {
-  const a = await api("/api/abrdf?x=" + x + "&y=" + y, "json");
+  const asked = ++abrdfAsked;
+  let a = await api("/api/abrdf?x=" + x + "&y=" + y, "json");
+  // A large raw dataset answers 202 with {building, message} while its texel-major cache
+  // is built in the background: show the progress and poll until the values come.
+  while (a.building && !a.values) {
+    if (asked !== abrdfAsked) return;
+    $("texel").textContent = x + ", " + y;
+    $("abrdfnote").textContent = a.message;
+    await new Promise((r) => setTimeout(r, 1000));
+    if (asked !== abrdfAsked) return;
+    a = await api("/api/abrdf?x=" + x + "&y=" + y, "json");
+  }
+  if (asked !== abrdfAsked) return;
   $("texel").textContent = x + ", " + y;
+  $("abrdfnote").textContent = a.cache && a.cache.note ? a.cache.note : "";
   const c = $("abrdf");
   c.width = a.lights; c.height = a.views;
   const g = c.getContext("2d"), im = g.createImageData(a.lights, a.views);
