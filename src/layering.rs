@@ -191,12 +191,14 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "bench_hdr",
             "bench_serial",
             "bench_synthesize",
-            // sparse acquisition's glue: `plan --prior` and `bench sparse` call into
-            // `prior` and `complete`, which take `plan`'s arguments (to move into a library
-            // room with the adaptive acquisition)
+            // sparse acquisition: `sparse` holds the flags, `--prior` resolution and the
+            // summary that `plan` and `acquire` share (the design itself is
+            // `gonio_acquire::plan::sparse`); `complete` and `bench sparse` read datasets
+            // through `prior`'s helpers, `bench sparse` completes through `complete`, and
+            // `bench` dispatches to `bench_sparse`
+            "sparse",
             "prior",
             "complete",
-            "plan",
             "bench_sparse",
         ],
     ),

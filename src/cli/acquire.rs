@@ -3,7 +3,7 @@
 use super::common::{load_sample, parse_size, RigArgs, SweepArgs, IMAGE_SIDES};
 use anyhow::{Context, Result};
 use gonio_acquire::engine::{Observer, RunEvent};
-use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, Summary};
+use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, SparsePlan, Summary};
 use gonio_devices::hdr::HdrMode;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -81,6 +81,11 @@ pub struct AcquireArgs {
     /// off. Limits and noise model come from the rig file's `[hdr]` (see docs/guide/hdr.md).
     #[arg(long, value_name = "off|auto|N", value_parser = parse_hdr, conflicts_with = "resume")]
     pub hdr: Option<HdrMode>,
+    /// Sparse acquisition (`--prior P --pairs N | --fraction F | --rig-budget S`): measure
+    /// the pairs an optimal design in the prior chooses, as `gonio plan` with the same
+    /// flags shows; `gonio complete` predicts the rest (docs/guide/sparse.md).
+    #[command(flatten)]
+    pub sparse: super::sparse::SparseArgs,
 }
 
 fn parse_hdr(s: &str) -> std::result::Result<HdrMode, String> {
@@ -98,9 +103,21 @@ pub fn run(args: AcquireArgs) -> Result<ExitCode> {
 
 async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     let session = match &args.resume {
-        Some(dir) => Session::resume(dir)?,
+        Some(dir) => {
+            if args.sparse.prior.is_some() || args.sparse.target()?.is_some() {
+                anyhow::bail!(
+                    "--resume {}: the sparse flags (--prior, --pairs, --fraction, --rig-budget) choose the pairs of a \
+                     new acquisition; a resumed one measures the pairs its plan.json chose: drop them",
+                    dir.display()
+                );
+            }
+            Session::resume(dir)?
+        }
         None => Session::create(&new_session(&args)?)?,
     };
+    if let (Some(info), false) = (&session.plan().sparse, args.json) {
+        super::sparse::print_summary(session.plan(), info);
+    }
     let viewer = match args.view {
         true => Some(serve_view(session.dir(), args.view_port).await?),
         false => None,
@@ -203,6 +220,11 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
         plan: PlanRequest {
             options: args.sweep.plan_options()?,
             isotropic: args.sweep.isotropic,
+            sparse: super::sparse::LoadedSparse::from_args(&args.sparse)?.map(|l| SparsePlan {
+                prior: Arc::new(l.prior),
+                prior_name: l.name,
+                target: l.target,
+            }),
         },
         settings: RunSettings {
             width: args.size.0,

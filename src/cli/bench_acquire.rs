@@ -149,6 +149,7 @@ fn bench(
         plan: PlanRequest {
             options: a.sweep.plan_options()?,
             isotropic: a.sweep.isotropic,
+            sparse: None,
         },
         settings: RunSettings {
             width: a.size,

@@ -111,6 +111,7 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
             plan: PlanRequest {
                 options: args.sweep.plan_options()?,
                 isotropic: args.sweep.isotropic,
+                sparse: None,
             },
             settings: RunSettings {
                 width: args.size.0,

@@ -20,11 +20,12 @@
 
 use super::common::{load_sample, RigArgs};
 use super::complete::{coefficients, noise_var, predict_image};
-use super::prior::{load_prior, psnr_of_mse, units_key};
+use super::sparse::load_prior;
 use super::svg_plot::{log_log, Series};
 use crate::compress::data::DatasetViews;
 use crate::compress::interp::{direction_weights, dot, unit};
 use crate::compress::metrics::ErrorStats;
+use crate::plan::sparse::{psnr_of_mse, units_key};
 use crate::plan::{Plan, PlanOptions};
 use crate::sweep::Sweep;
 use anyhow::{bail, Context, Result};

@@ -9,8 +9,10 @@
 //! its predicted RMS error. Substituted measurements are used at their grid position (as
 //! `compress` does); skipped pairs are predicted.
 
-use super::prior::{load_prior, psnr_of_mse, sample_name, sweep_name, units_key};
+use super::prior::{sample_name, sweep_name};
+use super::sparse::load_prior;
 use crate::compress::data::DatasetViews;
+use crate::plan::sparse::{psnr_of_mse, units_key};
 use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_VERSION};
 use anyhow::{bail, Context, Result};
 use gonio_devices::image::RgbImage;

@@ -47,6 +47,7 @@ mod render;
 mod serve_stage;
 mod sim;
 mod sim_btf;
+mod sparse;
 mod svg_plot;
 #[cfg(feature = "btf")]
 mod synthesize;

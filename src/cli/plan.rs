@@ -22,19 +22,16 @@ pub struct PlanArgs {
     /// `isotropic = true` is planned as with `--isotropic`, as `gonio acquire` does.
     #[arg(long)]
     pub sample: Option<String>,
-    /// Sparse acquisition: the prior that chooses the pairs (`default` or a .gprior file;
-    /// `default` when omitted). Used with --pairs, --fraction or --rig-budget.
-    #[arg(long)]
-    pub prior: Option<String>,
-    /// Sparse: measure this many pairs (chosen by optimal design in the prior).
-    #[arg(long, conflicts_with_all = ["fraction", "rig_budget"])]
-    pub pairs: Option<usize>,
-    /// Sparse: measure this share of the feasible pairs.
-    #[arg(long, conflicts_with = "rig_budget")]
-    pub fraction: Option<f64>,
-    /// Sparse: at most this planned rig time in seconds (motion counted).
-    #[arg(long)]
-    pub rig_budget: Option<f64>,
+    #[command(flatten)]
+    pub sparse: super::sparse::SparseArgs,
+}
+
+/// `gonio plan --json` of a sparse plan: the plan carries its `sparse` field.
+#[derive(Serialize)]
+struct SparsePlanJson<'a> {
+    counts: PlanCounts,
+    #[serde(flatten)]
+    plan: &'a Plan,
 }
 
 #[derive(Serialize)]
@@ -65,16 +62,20 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         ..args.sweep.clone()
     };
     let plan = sweep_args.plan(&rig, &sweep)?;
-    #[cfg(feature = "btf")]
-    if let Some(target) = super::prior::sparse_target(args.pairs, args.fraction, args.rig_budget) {
-        return super::prior::plan_sparse(&args, &rig, &sweep, &plan, target);
-    }
-    #[cfg(not(feature = "btf"))]
-    if args.prior.is_some() || args.pairs.is_some() || args.fraction.is_some() || args.rig_budget.is_some() {
-        anyhow::bail!(
-            "--prior/--pairs/--fraction/--rig-budget: this gonio was built without the cargo feature `btf` \
-             (on by default), which sparse planning still reads datasets through; rebuild without --no-default-features"
-        );
+    if let Some(sparse) = super::sparse::LoadedSparse::from_args(&args.sparse)? {
+        let opts = args.sweep.plan_options()?;
+        let plan = Plan::build_sparse(&rig, &sweep, &opts, &plan, sparse.request())?;
+        let info = plan.sparse.as_ref().expect("a sparse plan records its design");
+        if args.json {
+            let j = SparsePlanJson {
+                counts: plan.counts(),
+                plan: &plan,
+            };
+            println!("{}", serde_json::to_string(&j)?);
+        } else {
+            super::sparse::print_summary(&plan, info);
+        }
+        return Ok(ExitCode::SUCCESS);
     }
     let counts = plan.counts();
     let d = &plan.durations;

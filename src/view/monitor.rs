@@ -28,7 +28,8 @@ pub struct LastMeasurement {
 /// What the monitor page shows.
 #[derive(Serialize, Clone, Debug, PartialEq)]
 pub struct Snapshot {
-    /// Pairs of the sweep (lights × views).
+    /// Journal records the plan will write (its steps and skipped pairs; lights × views
+    /// without a plan): what progress and ETA count against.
     pub total: usize,
     /// Journal records (measured + substituted + skipped).
     pub done: usize,
@@ -61,12 +62,23 @@ pub fn journal_len(dir: &Path) -> u64 {
         .unwrap_or(0)
 }
 
+/// The journal records the plan will write (its steps and skipped pairs), from
+/// `plan.json`: a sparse or isotropic plan measures fewer pairs than the grid holds, and
+/// progress and ETA count against what is planned. `None` when there is no readable plan
+/// (an imported dataset): then the grid counts.
+fn planned_records(dir: &Path) -> Option<usize> {
+    let bytes = std::fs::read(dir.join(store::PLAN_FILE)).ok()?;
+    let plan: serde_json::Value = serde_json::from_slice(&bytes).ok()?;
+    let len = |k: &str| plan.get(k).and_then(|a| a.as_array()).map(Vec::len);
+    Some(len("steps")? + len("skipped").unwrap_or(0))
+}
+
 /// Read the dataset in `dir` as it is now.
 pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
     let journal_bytes = journal_len(dir);
     let (header, mut records) = store::load(dir)?;
     let n = |k: &str| header.sweep.get(k).and_then(|a| a.as_array()).map_or(0, |a| a.len());
-    let total = n("lights_deg") * n("views_deg");
+    let total = planned_records(dir).unwrap_or_else(|| n("lights_deg") * n("views_deg"));
     records.sort_by_key(|r| (r.order, r.index));
     let manifest: serde_json::Value = std::fs::read(dir.join(store::MANIFEST_FILE))
         .ok()
@@ -117,9 +129,16 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
             s.truth_rmse.push((r.order, e));
         }
     }
+    // Predicted pairs (a completed sparse dataset) were never planned steps.
+    s.done = s.measured + s.substituted + s.skipped;
     let stored: Vec<_> = records
         .iter()
-        .filter(|r| !matches!(r.status, MeasurementStatus::Skipped { .. }))
+        .filter(|r| {
+            matches!(
+                r.status,
+                MeasurementStatus::Measured | MeasurementStatus::Substituted { .. }
+            )
+        })
         .collect();
     if let Some(r) = stored
         .iter()

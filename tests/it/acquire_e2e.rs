@@ -61,6 +61,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
                 ..Default::default()
             },
             isotropic: false,
+            sparse: None,
         },
         settings: RunSettings {
             width: size,
@@ -172,6 +173,7 @@ async fn readout_overlapping_the_move_saves_what_the_plan_says_and_changes_no_im
                     ..Default::default()
                 },
                 isotropic: false,
+                sparse: None,
             },
             settings: RunSettings {
                 width: 16,

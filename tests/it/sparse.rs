@@ -2,7 +2,8 @@
 //! from a small `gonio dataset generate` family (same bytes at 1 and 2 threads), a sparse
 //! plan, a sparse dataset completed by `gonio complete` (measured images bit for bit,
 //! every other pair `predicted`, no NaN, close to the truth of a sample the prior never
-//! saw), `gonio bench sparse` (ours beats the plain-PCA baseline), and the refusals.
+//! saw), `gonio acquire` of the same sparse plan (interrupted and resumed, completed),
+//! `gonio bench sparse` (ours beats the plain-PCA baseline), and the refusals.
 
 use crate::common::cli::{gonio, ok, refused, s};
 use gonio::store::{self, Dataset, MeasurementStatus};
@@ -224,6 +225,106 @@ fn prior_plan_complete_bench_and_refusals() {
         ],
         &["10 components", "6 pairs"],
     );
+    // `gonio acquire` runs the same sparse plan: only the chosen pairs, plan.json records
+    // the design, an interrupted and resumed run stores the same images, the monitor counts
+    // against the chosen pairs, and `gonio complete` fills in the rest.
+    let acquire = |out: &Path, extra: &[&str]| {
+        let mut a = vec![
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--prior",
+            s(&prior),
+            "--pairs",
+            "40",
+            "--plan-kicks",
+            "200",
+            "--size",
+            "16x16",
+            "--no-truth",
+            "--out",
+            s(out),
+            "--json",
+        ];
+        a.extend_from_slice(extra);
+        gonio(&a, None)
+    };
+    let acq = d.join("acq");
+    let o = acquire(&acq, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["measured"], 40, "{summary}");
+    assert_eq!(summary["complete"], true);
+    let stored_plan: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(acq.join(store::PLAN_FILE)).unwrap()).unwrap();
+    assert_eq!(stored_plan["sparse"]["chosen"], 40);
+    assert_eq!(
+        stored_plan["sparse"]["picks"], plan["sparse"]["picks"],
+        "acquire and plan chose differently"
+    );
+    let (_, acq_records) = store::load(&acq).unwrap();
+    let mut measured: Vec<usize> = acq_records.iter().map(|r| r.index).collect();
+    measured.sort_unstable();
+    let mut want = chosen.clone();
+    want.sort_unstable();
+    assert_eq!(
+        measured, want,
+        "the acquisition measured other pairs than the plan chose"
+    );
+    let snap = gonio::view::monitor::snapshot(&acq).unwrap();
+    assert_eq!(
+        (snap.total, snap.done),
+        (40, 40),
+        "the monitor counts against the chosen pairs"
+    );
+
+    let acq2 = d.join("acq2");
+    let o = acquire(&acq2, &["--limit", "15"]);
+    assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
+    let snap = gonio::view::monitor::snapshot(&acq2).unwrap();
+    assert_eq!((snap.total, snap.done), (40, 15));
+    refused(
+        &["acquire", "--resume", s(&acq2), "--pairs", "10"],
+        &["--resume", "drop them"],
+    );
+    ok(&["acquire", "--resume", s(&acq2), "--json"]);
+    let (_, acq2_records) = store::load(&acq2).unwrap();
+    let sha = |recs: &[store::MeasurementRecord]| {
+        let mut v: Vec<(usize, String)> = recs
+            .iter()
+            .map(|r| (r.index, r.image_sha256.clone().unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(
+        sha(&acq_records),
+        sha(&acq2_records),
+        "interrupted and resumed: other images"
+    );
+
+    let acq_full = d.join("acq-full");
+    let rep: serde_json::Value = serde_json::from_str(&ok(&[
+        "complete",
+        s(&acq),
+        "--prior",
+        s(&prior),
+        "--out",
+        s(&acq_full),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(
+        (rep["measured"].as_u64(), rep["predicted"].as_u64()),
+        (Some(40), Some(104))
+    );
+    let snap = gonio::view::monitor::snapshot(&acq_full).unwrap();
+    assert_eq!(
+        (snap.total, snap.done),
+        (40, 40),
+        "predicted pairs are not planned steps"
+    );
+
     let one_view = d.join("one-view");
     let mut ds = Dataset::create(&one_view, &header, false).unwrap();
     for r in records.iter().filter(|r| r.index / 12 == 3) {

@@ -7,6 +7,7 @@
 
 pub mod isotropic;
 pub mod order;
+pub mod sparse;
 
 use gonio_dataset::sweep::{Pair, Sweep};
 use gonio_devices::kinematics::{self, Infeasibility, Kinematics};
@@ -31,6 +32,10 @@ pub enum PlanError {
         rig: String,
         source: gonio_devices::rig::OptionError,
     },
+    /// A sparse plan that cannot be made as asked (prior for another sweep, a target out of
+    /// range, a design that cannot determine the prior).
+    #[error("sparse plan: {message}")]
+    Sparse { message: String },
 }
 
 /// What to do with a pair the rig cannot measure as asked.
@@ -228,6 +233,10 @@ pub struct Plan {
     /// equivalent one is measured, and what that saves ([`Plan::build_isotropic`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub isotropic: Option<IsotropicPlan>,
+    /// Present for a sparse acquisition: the prior, the design's picks and the predicted
+    /// error ([`Plan::build_sparse`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sparse: Option<sparse::SparseInfo>,
 }
 
 /// The isotropic reduction of a plan (see [`isotropic`]).
@@ -542,6 +551,7 @@ impl Plan {
             plan_time_s: t0.elapsed().as_secs_f64(),
             light_count: sweep.lights.len(),
             isotropic: None,
+            sparse: None,
         })
     }
 

@@ -21,6 +21,7 @@ use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadErro
 use crate::develop::rectify::RectifyParams;
 use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
+use crate::plan::sparse::{units_key, SparseRequest, SparseTarget};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
 use gonio_dataset::shard::ShardInfo;
@@ -108,6 +109,27 @@ pub struct PlanRequest {
     pub options: PlanOptions,
     /// Plan one pair per isotropy class (also when the sample declares `isotropic = true`).
     pub isotropic: bool,
+    /// A sparse acquisition: measure only the pairs a design in a prior chooses.
+    pub sparse: Option<SparsePlan>,
+}
+
+/// A sparse acquisition's prior and how much to measure ([`Plan::build_sparse`]).
+#[derive(Clone)]
+pub struct SparsePlan {
+    pub prior: std::sync::Arc<gonio_sparse::Prior>,
+    /// How `plan.json` names the prior (its path).
+    pub prior_name: String,
+    pub target: SparseTarget,
+}
+
+impl std::fmt::Debug for SparsePlan {
+    // The prior's basis is megabytes of numbers: name it instead.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SparsePlan")
+            .field("prior", &self.prior_name)
+            .field("target", &self.target)
+            .finish()
+    }
 }
 
 /// A new acquisition: where, with what, how.
@@ -261,6 +283,25 @@ impl Session {
         if let Some(results) = &calibration {
             describe_calibration(results, &rig, &mut header)?;
         }
+        // A sparse acquisition measures what the design in the prior chooses among the
+        // feasible pairs; the prior must model this sweep and the values this run stores.
+        let plan = match &new.plan.sparse {
+            None => plan,
+            Some(sp) => {
+                sp.prior.check_units(&units_key(&header.values)).map_err(|e| {
+                    SessionError::Plan(PlanError::Sparse {
+                        message: format!("prior {}: {e}", sp.prior_name),
+                    })
+                })?;
+                let req = SparseRequest {
+                    prior: &sp.prior,
+                    prior_name: &sp.prior_name,
+                    target: sp.target,
+                    noise_var: sp.prior.header.residual_var,
+                };
+                Plan::build_sparse(&rig, &new.sweep, &new.plan.options, &plan, req).map_err(SessionError::Plan)?
+            }
+        };
         let dataset = Dataset::create(&new.out, &header, new.force).map_err(|source| SessionError::Create {
             dir: out.clone(),
             source: Box::new(source),
@@ -660,6 +701,7 @@ mod tests {
             plan: PlanRequest {
                 options: PlanOptions::default(),
                 isotropic: false,
+                sparse: None,
             },
             settings: RunSettings {
                 width: 16,

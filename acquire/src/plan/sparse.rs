@@ -1,0 +1,214 @@
+//! Sparse plans (issue 29): measure the pairs a greedy A-optimal design in an angular prior
+//! chooses, and predict the rest (`gonio complete`).
+//!
+//! Planning a sparse acquisition is planning: the design picks pairs among the full plan's
+//! feasible ones, and [`Plan::build_pairs`] orders them like any other plan. It lives here,
+//! not in the command line, so `gonio plan --prior` and `gonio acquire --prior` share one
+//! path and the lab build (no BTF processing) can run it: the prior's numerics are the
+//! `gonio-sparse` crate (nalgebra, no faer). The result is recorded in `plan.json`
+//! ([`Plan::sparse`]): the chosen pairs in design order with the expected PSNR after each,
+//! the planned rig time and the predicted error.
+
+use super::{Plan, PlanError, PlanOptions};
+use gonio_dataset::sweep::Sweep;
+use gonio_devices::rig::RigSpec;
+use gonio_sparse::Prior;
+use serde::{Deserialize, Serialize};
+
+/// What a sparse plan is asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum SparseTarget {
+    /// This many pairs.
+    Pairs(usize),
+    /// This share of the feasible pairs.
+    Fraction(f64),
+    /// At most this planned rig time (s), motion included.
+    RigBudget(f64),
+}
+
+impl SparseTarget {
+    /// The target of the `--pairs`, `--fraction` and `--rig-budget` flags (at most one is
+    /// given; clap enforces it), if any.
+    pub fn from_flags(pairs: Option<usize>, fraction: Option<f64>, budget: Option<f64>) -> Option<SparseTarget> {
+        pairs
+            .map(SparseTarget::Pairs)
+            .or(fraction.map(SparseTarget::Fraction))
+            .or(budget.map(SparseTarget::RigBudget))
+    }
+}
+
+/// The sparse part of a plan (`plan.json` field `sparse`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SparseInfo {
+    /// The prior the pairs were chosen in (as named on the command line: a path).
+    pub prior: String,
+    pub design: String,
+    pub target: String,
+    /// Pairs chosen, and the feasible pairs they were chosen from.
+    pub chosen: usize,
+    pub feasible: usize,
+    /// Planned rig time of the chosen pairs in the optimized order (s).
+    pub planned_s: f64,
+    /// The full sweep's planned times (s): optimized order, canonical order.
+    pub full_optimized_s: f64,
+    pub full_canonical_s: f64,
+    /// Expected PSNR of the completed dataset over the prior (8-bit sRGB scale, noiseless).
+    pub predicted_psnr_db: f64,
+    /// The chosen pairs in the order the design picked them, each with the expected PSNR
+    /// after it (every prefix is itself a design).
+    pub picks: Vec<(usize, f64)>,
+}
+
+/// PSNR (dB) of a model-space mean squared error (the gamma space is close to 8-bit sRGB).
+pub fn psnr_of_mse(mse: f64) -> f64 {
+    -10.0 * mse.max(1e-20).log10()
+}
+
+/// The value unit of a dataset's `values` text, as a prior records it: datasets that differ
+/// only in wording (truth vs. measurement of the same normalised signal) share a unit.
+pub fn units_key(values: &str) -> String {
+    let v = values.to_ascii_lowercase();
+    if v.contains("normalised sensor signal") || v.contains("normalized sensor signal") {
+        "normalized_signal".into()
+    } else if v.contains("brdf (1/sr)") {
+        "brdf_1_per_sr".into()
+    } else {
+        values.to_string()
+    }
+}
+
+/// A sparse plan's inputs besides the rig and the sweep.
+#[derive(Clone, Copy)]
+pub struct SparseRequest<'a> {
+    pub prior: &'a Prior,
+    /// How the prior is named in `plan.json` (its path).
+    pub prior_name: &'a str,
+    pub target: SparseTarget,
+    /// Noise variance per pair in the prior's value space (the design's regulariser; the
+    /// prior's own residual variance when nothing better is known).
+    pub noise_var: f64,
+}
+
+fn invalid(message: String) -> PlanError {
+    PlanError::Sparse { message }
+}
+
+impl Plan {
+    /// Choose pairs by greedy A-optimal design over the feasible pairs of `full` (the plan
+    /// of the whole sweep) and plan them. A rig budget is met by the longest greedy prefix
+    /// whose plan fits (bisection on quick plans, then the real plan). The prior must be
+    /// for this sweep; the chosen set must determine the prior's coefficients.
+    pub fn build_sparse(
+        rig: &RigSpec,
+        sweep: &Sweep,
+        opts: &PlanOptions,
+        full: &Plan,
+        req: SparseRequest,
+    ) -> Result<Plan, PlanError> {
+        if full.isotropic.is_some() {
+            return Err(invalid(
+                "an isotropic plan and a sparse design do not combine: the prior chooses among all pairs; \
+                 drop --isotropic (or the sample's `isotropic = true`) or the sparse flags"
+                    .into(),
+            ));
+        }
+        let prior = req.prior;
+        let (lights, views) = sweep.directions_deg();
+        prior
+            .check_sweep(&sweep.name, &lights, &views)
+            .map_err(|e| invalid(format!("prior {}: {e}", req.prior_name)))?;
+        let mut feasible: Vec<usize> = full.steps.iter().map(|s| s.index).collect();
+        feasible.sort_unstable();
+        let nf = feasible.len();
+        let capture = full.durations.capture_per_measurement_s.max(1e-6);
+        let n_max = match req.target {
+            SparseTarget::Pairs(n) => {
+                if n == 0 || n > nf {
+                    return Err(invalid(format!(
+                        "--pairs {n}: choose between 1 and the {nf} feasible pairs"
+                    )));
+                }
+                n
+            }
+            SparseTarget::Fraction(f) => {
+                if !(f > 0.0 && f <= 1.0) {
+                    return Err(invalid(format!("--fraction {f}: must be in (0, 1]")));
+                }
+                ((f * nf as f64).round() as usize).clamp(1, nf)
+            }
+            SparseTarget::RigBudget(b) => {
+                if !(b > 0.0 && b.is_finite()) {
+                    return Err(invalid(format!(
+                        "--rig-budget {b}: must be a positive number of seconds"
+                    )));
+                }
+                // Every pair costs at least one capture (with or without the readout
+                // overlapping the move), so no more than b / capture pairs fit.
+                ((b / capture).floor() as usize).min(nf)
+            }
+        };
+        if n_max == 0 {
+            return Err(invalid(format!(
+                "the budget does not cover one capture ({capture:.2} s)"
+            )));
+        }
+        let design = gonio_sparse::greedy_design(prior, &feasible, &[], n_max, req.noise_var)
+            .map_err(|e| invalid(format!("prior {}: {e}", req.prior_name)))?;
+        if design.is_empty() {
+            return Err(invalid("the design chose no pair".into()));
+        }
+        let pairs = sweep.pairs();
+        let plan_of = |n: usize, kicks: usize| -> Result<Plan, PlanError> {
+            let mut idx: Vec<usize> = design[..n].iter().map(|s| s.pair).collect();
+            idx.sort_unstable();
+            let chosen: Vec<_> = idx.iter().map(|&i| pairs[i]).collect();
+            let o = PlanOptions { kicks, ..opts.clone() };
+            Plan::build_pairs(rig, sweep, &chosen, &o)
+        };
+        let mut n = design.len();
+        if let SparseTarget::RigBudget(b) = req.target {
+            let quick = opts.kicks.min(2000);
+            let (mut lo, mut hi) = (0usize, design.len());
+            // Largest n with a quick plan within the budget.
+            while lo < hi {
+                let mid = (lo + hi).div_ceil(2);
+                if plan_of(mid, quick)?.durations.optimized_s <= b {
+                    lo = mid;
+                } else {
+                    hi = mid - 1;
+                }
+            }
+            if lo == 0 {
+                return Err(invalid(format!("--rig-budget {b} s: not even one pair fits")));
+            }
+            n = lo;
+        }
+        let mut plan = plan_of(n, opts.kicks)?;
+        if let SparseTarget::RigBudget(b) = req.target {
+            while plan.durations.optimized_s > b && n > 1 {
+                n -= 1;
+                plan = plan_of(n, opts.kicks)?;
+            }
+        }
+        let picks: Vec<usize> = design[..n].iter().map(|s| s.pair).collect();
+        gonio_sparse::complete::check_design(prior, &picks)
+            .map_err(|e| invalid(format!("{e} (prior {})", req.prior_name)))?;
+        plan.pairs = sweep.len();
+        plan.sparse = Some(SparseInfo {
+            prior: req.prior_name.to_string(),
+            design: "greedy Bayesian A-optimal (expected posterior error over every pair of the sweep)".into(),
+            target: format!("{:?}", req.target),
+            chosen: n,
+            feasible: nf,
+            planned_s: plan.durations.optimized_s,
+            full_optimized_s: full.durations.optimized_s,
+            full_canonical_s: full.durations.canonical_s,
+            predicted_psnr_db: psnr_of_mse(design[n - 1].expected_mse),
+            picks: design[..n]
+                .iter()
+                .map(|s| (s.pair, (psnr_of_mse(s.expected_mse) * 1000.0).round() / 1000.0))
+                .collect(),
+        });
+        Ok(plan)
+    }
+}

@@ -1,0 +1,127 @@
+//! The sparse-acquisition flags that `gonio plan` and `gonio acquire` share
+//! (`--prior`, `--pairs`, `--fraction`, `--rig-budget`), resolving `--prior`, and the
+//! summary both print. Not behind the `btf` feature: a lab build plans and acquires sparse
+//! datasets (the design is `gonio_acquire::plan::sparse`); completing them is `gonio
+//! complete`'s job.
+
+use anyhow::{bail, Context, Result};
+use gonio_acquire::plan::sparse::{SparseInfo, SparseRequest, SparseTarget};
+use gonio_acquire::plan::Plan;
+use gonio_sparse::Prior;
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct SparseArgs {
+    /// Sparse acquisition: the prior that chooses the pairs (`default` or a .gprior file;
+    /// `default` when omitted). Used with --pairs, --fraction or --rig-budget.
+    #[arg(long)]
+    pub prior: Option<String>,
+    /// Sparse: measure this many pairs (chosen by optimal design in the prior).
+    #[arg(long, conflicts_with_all = ["fraction", "rig_budget"])]
+    pub pairs: Option<usize>,
+    /// Sparse: measure this share of the feasible pairs.
+    #[arg(long, conflicts_with = "rig_budget")]
+    pub fraction: Option<f64>,
+    /// Sparse: at most this planned rig time in seconds (motion counted).
+    #[arg(long)]
+    pub rig_budget: Option<f64>,
+}
+
+impl SparseArgs {
+    /// The target, if a sparse plan is asked for. `--prior` alone is refused: it names the
+    /// prior but not how many pairs to measure.
+    pub fn target(&self) -> Result<Option<SparseTarget>> {
+        let t = SparseTarget::from_flags(self.pairs, self.fraction, self.rig_budget);
+        if t.is_none() {
+            if let Some(p) = &self.prior {
+                bail!("--prior {p}: say how much to measure with --pairs N, --fraction F or --rig-budget SECONDS");
+            }
+        }
+        Ok(t)
+    }
+}
+
+/// The default prior's path: next to the `gonio-sparse` crate in the source tree, or
+/// `$GONIO_PRIOR_DEFAULT`.
+pub fn default_prior_path() -> PathBuf {
+    if let Ok(p) = std::env::var("GONIO_PRIOR_DEFAULT") {
+        return PathBuf::from(p);
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("sparse/priors/default-bonn81.gprior")
+}
+
+/// Load `--prior` (None and `default` mean the default prior).
+pub fn load_prior(spec: Option<&str>) -> Result<(Prior, PathBuf)> {
+    let path = match spec {
+        None | Some("default") => default_prior_path(),
+        Some(p) => PathBuf::from(p),
+    };
+    if !path.is_file() && matches!(spec, None | Some("default")) {
+        bail!(
+            "the default prior {} is missing: build it with the command in \
+             simulator/families/prior-bonn81.toml (or set GONIO_PRIOR_DEFAULT)",
+            path.display()
+        );
+    }
+    let p = Prior::load(&path).with_context(|| format!("--prior {}", path.display()))?;
+    Ok((p, path))
+}
+
+/// A loaded prior and what to ask of it: the session's and the planner's input.
+pub struct LoadedSparse {
+    pub prior: Prior,
+    pub name: String,
+    pub target: SparseTarget,
+}
+
+impl LoadedSparse {
+    /// Load the prior the flags name, if the flags ask for a sparse plan.
+    pub fn from_args(a: &SparseArgs) -> Result<Option<LoadedSparse>> {
+        let Some(target) = a.target()? else {
+            return Ok(None);
+        };
+        let (prior, path) = load_prior(a.prior.as_deref())?;
+        Ok(Some(LoadedSparse {
+            prior,
+            name: path.display().to_string(),
+            target,
+        }))
+    }
+
+    /// The planner's request (the prior's residual variance regularises the design).
+    pub fn request(&self) -> SparseRequest<'_> {
+        SparseRequest {
+            prior: &self.prior,
+            prior_name: &self.name,
+            target: self.target,
+            noise_var: self.prior.header.residual_var,
+        }
+    }
+}
+
+/// The sparse plan's summary lines (`gonio plan`, `gonio acquire`).
+pub fn print_summary(plan: &Plan, info: &SparseInfo) {
+    println!(
+        "rig {} · sweep {} · prior {} · {}",
+        plan.rig, plan.sweep, info.prior, info.target
+    );
+    println!(
+        "  chosen {} of {} feasible pairs ({:.1} %) by {}",
+        info.chosen,
+        info.feasible,
+        100.0 * info.chosen as f64 / info.feasible.max(1) as f64,
+        info.design
+    );
+    println!(
+        "  planned rig time {:>9.0} s ({:.3} × full optimized {:.0} s, {:.3} × canonical {:.0} s)",
+        info.planned_s,
+        info.planned_s / info.full_optimized_s,
+        info.full_optimized_s,
+        info.planned_s / info.full_canonical_s,
+        info.full_canonical_s
+    );
+    println!(
+        "  predicted PSNR of the completed dataset {:.2} dB (8-bit sRGB, over the prior, noiseless)",
+        info.predicted_psnr_db
+    );
+}
