@@ -7,7 +7,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 py="${GONIO_PYTHON:-${GONIO_VENV:-$PWD/target/venv}/bin/python}"
-if [ ! -x /usr/bin/chromium ] || ! "$py" -c "import playwright, PIL, numpy" 2>/dev/null; then
+# Absolute, for the import check that runs from /.
+case $py in */*) py=$(realpath -ms "$py") ;; esac
+if [ ! -x /usr/bin/chromium ] || ! (cd / && "$py" -c "import playwright, PIL, numpy") 2>/dev/null; then
   if [ -n "${CI:-}" ]; then
     echo "browser: /usr/bin/chromium or Playwright ($py) missing under CI (.ci/run and tests/interop/setup_python.sh install them)" >&2
     exit 1

@@ -10,8 +10,13 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 py=${GONIO_PYTHON:-python3}
+# Absolute, for the import check that runs from /.
+case $py in */*) py=$(realpath -ms "$py") ;; esac
 
-if ! "$py" -c 'import zarr, xarray, dask.array, OpenEXR' 2>/dev/null; then
+# From /, not the checkout: `python -c` puts the working directory first on sys.path, and
+# the workspace folder `sparse/` (the gonio-sparse crate) then shadows the optional `sparse`
+# package that dask imports (see setup_python.sh).
+if ! (cd / && "$py" -c 'import zarr, xarray, dask.array, OpenEXR') 2>/dev/null; then
   if [ -n "${CI:-}" ]; then
     echo "interop zarr: zarr/xarray/dask/OpenEXR missing in $py under CI: run tests/interop/setup_python.sh" >&2
     exit 1
