@@ -224,6 +224,7 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
                 prior: Arc::new(l.prior),
                 prior_name: l.name,
                 target: l.target,
+                design: l.design,
             }),
         },
         settings: RunSettings {

@@ -8,6 +8,8 @@
 //! pairs as its plan fits in the budget (the existing planner orders and times them):
 //!
 //! * **ours**: greedy A-optimal design in the prior, per-texel MAP completion;
+//! * **ours-motion** (asked for by name): the motion-aware design (error drop per second
+//!   of rig time, `gonio plan --design motion-aware`), the same completion;
 //! * **(a) product**: m lights × m views spread by farthest-point sampling, completed by the
 //!   triangle interpolation of `compress::interp` (n/a where its gap limit refuses);
 //! * **(c) pca-ls**: random feasible pairs, least squares in the prior's basis (no
@@ -65,7 +67,7 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, product, pca-ls, dense).
+    /// Only these methods (ours, ours-motion, product, pca-ls, dense).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
     #[arg(long)]
@@ -470,6 +472,36 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         }
                     }
                     None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            if want("ours-motion") {
+                // The motion-aware design (gain per second of rig time), as
+                // `gonio plan --design motion-aware --rig-budget` makes it.
+                let req = crate::plan::sparse::SparseRequest {
+                    prior: &prior,
+                    prior_name: "bench",
+                    target: crate::plan::sparse::SparseTarget::RigBudget(budget),
+                    noise_var: nv,
+                    design: crate::plan::sparse::SparseDesign::MotionAware,
+                };
+                rows.push(match Plan::build_sparse(&rig, &sweep, &ctx.opts, &full, req) {
+                    Ok(plan) => {
+                        let mut m: Vec<usize> = plan.steps.iter().map(|s| s.index).collect();
+                        m.sort_unstable();
+                        let (rec, pred) = complete_map(&prior, &m, &meas, nv)?;
+                        Row {
+                            noise: noisy,
+                            method: "ours-motion".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: m.len(),
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(pred),
+                            note: format!("K = {}", prior.components().min(m.len())),
+                        }
+                    }
+                    Err(e) => na(noisy, "ours-motion", f, budget, &e.to_string()),
                 });
             }
             if want("pca-ls") {

@@ -5,7 +5,7 @@
 //! complete`'s job.
 
 use anyhow::{bail, Context, Result};
-use gonio_acquire::plan::sparse::{SparseInfo, SparseRequest, SparseTarget};
+use gonio_acquire::plan::sparse::{SparseDesign, SparseInfo, SparseRequest, SparseTarget};
 use gonio_acquire::plan::Plan;
 use gonio_sparse::Prior;
 use std::path::{Path, PathBuf};
@@ -25,6 +25,11 @@ pub struct SparseArgs {
     /// Sparse: at most this planned rig time in seconds (motion counted).
     #[arg(long)]
     pub rig_budget: Option<f64>,
+    /// Sparse: how the pairs are chosen: `a-optimal` (largest error drop per pair) or
+    /// `motion-aware` (per second of rig time: capture plus the move from the nearest
+    /// chosen pair).
+    #[arg(long, default_value = "a-optimal", value_parser = |s: &str| s.parse::<SparseDesign>())]
+    pub design: SparseDesign,
 }
 
 impl SparseArgs {
@@ -72,6 +77,7 @@ pub struct LoadedSparse {
     pub prior: Prior,
     pub name: String,
     pub target: SparseTarget,
+    pub design: SparseDesign,
 }
 
 impl LoadedSparse {
@@ -85,6 +91,7 @@ impl LoadedSparse {
             prior,
             name: path.display().to_string(),
             target,
+            design: a.design,
         }))
     }
 
@@ -95,6 +102,7 @@ impl LoadedSparse {
             prior_name: &self.name,
             target: self.target,
             noise_var: self.prior.header.residual_var,
+            design: self.design,
         }
     }
 }

@@ -77,6 +77,30 @@ pub fn units_key(values: &str) -> String {
     }
 }
 
+/// How the pairs are chosen.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SparseDesign {
+    /// Greedy A-optimal: the largest drop of the expected error per pair.
+    #[default]
+    AOptimal,
+    /// Greedy A-optimal per second of rig time: the drop of the expected error divided by
+    /// what the pair costs the rig (its capture plus the move from the nearest chosen pair,
+    /// with the readout overlapping the move where the camera does).
+    MotionAware,
+}
+
+impl std::str::FromStr for SparseDesign {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "a-optimal" => Ok(SparseDesign::AOptimal),
+            "motion-aware" => Ok(SparseDesign::MotionAware),
+            _ => Err(format!("`{s}`: the designs are `a-optimal` and `motion-aware`")),
+        }
+    }
+}
+
 /// A sparse plan's inputs besides the rig and the sweep.
 #[derive(Clone, Copy)]
 pub struct SparseRequest<'a> {
@@ -87,6 +111,7 @@ pub struct SparseRequest<'a> {
     /// Noise variance per pair in the prior's value space (the design's regulariser; the
     /// prior's own residual variance when nothing better is known).
     pub noise_var: f64,
+    pub design: SparseDesign,
 }
 
 fn invalid(message: String) -> PlanError {
@@ -152,8 +177,11 @@ impl Plan {
                 "the budget does not cover one capture ({capture:.2} s)"
             )));
         }
-        let design = gonio_sparse::greedy_design(prior, &feasible, &[], n_max, req.noise_var)
-            .map_err(|e| invalid(format!("prior {}: {e}", req.prior_name)))?;
+        let design = match req.design {
+            SparseDesign::AOptimal => gonio_sparse::greedy_design(prior, &feasible, &[], n_max, req.noise_var)
+                .map_err(|e| invalid(format!("prior {}: {e}", req.prior_name)))?,
+            SparseDesign::MotionAware => motion_aware(rig, full, prior, &feasible, n_max, req)?,
+        };
         if design.is_empty() {
             return Err(invalid("the design chose no pair".into()));
         }
@@ -196,7 +224,14 @@ impl Plan {
         plan.pairs = sweep.len();
         plan.sparse = Some(SparseInfo {
             prior: req.prior_name.to_string(),
-            design: "greedy Bayesian A-optimal (expected posterior error over every pair of the sweep)".into(),
+            design: match req.design {
+                SparseDesign::AOptimal => {
+                    "greedy Bayesian A-optimal (expected posterior error over every pair of the sweep)".into()
+                }
+                SparseDesign::MotionAware => "greedy Bayesian A-optimal per second of rig time (error drop ÷ capture \
+                                              and move from the nearest chosen pair)"
+                    .into(),
+            },
             target: format!("{:?}", req.target),
             chosen: n,
             feasible: nf,
@@ -211,4 +246,52 @@ impl Plan {
         });
         Ok(plan)
     }
+}
+
+/// The motion-aware greedy over the feasible pairs: each pair's pose is the full plan's, a
+/// pair costs `max(move, readout) + exposure` with the readout overlapping the move
+/// (`capture + move` stop and go), the move from the nearest chosen pair (from home before
+/// the first). The design runs to twice a rig budget's estimate (a nearest-neighbour sum is
+/// no tour) and the caller trims the prefix on real plans.
+fn motion_aware(
+    rig: &RigSpec,
+    full: &Plan,
+    prior: &Prior,
+    feasible: &[usize],
+    n_max: usize,
+    req: SparseRequest,
+) -> Result<Vec<gonio_sparse::DesignStep>, PlanError> {
+    use gonio_devices::kinematics;
+    let motions: Vec<gonio_devices::MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();
+    let home = kinematics::for_rig(rig).home();
+    let mut pose: Vec<Vec<f64>> = vec![Vec::new(); prior.dims()];
+    for s in &full.steps {
+        if let Some(p) = pose.get_mut(s.index) {
+            *p = s.axes_deg.iter().map(|x| x.to_radians()).collect();
+        }
+    }
+    let moves = |a: &[f64], b: &[f64]| {
+        // A free axis (NaN) stays where it is.
+        let b: Vec<f64> = b.iter().zip(a).map(|(&y, &x)| if y.is_nan() { x } else { y }).collect();
+        kinematics::transition_time(&motions, a, &b)
+    };
+    let (c, r) = (
+        full.durations.capture_per_measurement_s,
+        full.durations.readout_overlap_s,
+    );
+    let budget = match req.target {
+        SparseTarget::RigBudget(b) => 2.0 * b,
+        _ => f64::INFINITY,
+    };
+    let steps = gonio_sparse::design::design_by_time(
+        prior,
+        feasible,
+        req.noise_var,
+        |m| m.max(r) + (c - r),
+        |q| moves(&home, &pose[q]),
+        |a, b| moves(&pose[a], &pose[b]),
+        budget,
+        n_max,
+    );
+    Ok(steps)
 }

@@ -21,7 +21,7 @@ use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadErro
 use crate::develop::rectify::RectifyParams;
 use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
-use crate::plan::sparse::{units_key, SparseRequest, SparseTarget};
+use crate::plan::sparse::{units_key, SparseDesign, SparseRequest, SparseTarget};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
 use gonio_dataset::shard::ShardInfo;
@@ -120,6 +120,7 @@ pub struct SparsePlan {
     /// How `plan.json` names the prior (its path).
     pub prior_name: String,
     pub target: SparseTarget,
+    pub design: SparseDesign,
 }
 
 impl std::fmt::Debug for SparsePlan {
@@ -128,6 +129,7 @@ impl std::fmt::Debug for SparsePlan {
         f.debug_struct("SparsePlan")
             .field("prior", &self.prior_name)
             .field("target", &self.target)
+            .field("design", &self.design)
             .finish()
     }
 }
@@ -298,6 +300,7 @@ impl Session {
                     prior_name: &sp.prior_name,
                     target: sp.target,
                     noise_var: sp.prior.header.residual_var,
+                    design: sp.design,
                 };
                 Plan::build_sparse(&rig, &new.sweep, &new.plan.options, &plan, req).map_err(SessionError::Plan)?
             }
