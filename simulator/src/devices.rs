@@ -209,6 +209,9 @@ impl Axis for SimAxis {
 /// A simulated lamp.
 pub struct SimLight {
     state: Mutex<(bool, f64)>,
+    /// Nominal voltage and current at full intensity, reported as the read-back when the
+    /// rig file gives them (`light.options.voltage`, `current`); `None`: measures nothing.
+    nominal: Option<gonio_devices::LampReading>,
 }
 
 #[async_trait]
@@ -226,6 +229,15 @@ impl Light for SimLight {
         }
         *self.state.lock().expect("light poisoned") = (on, intensity);
         Ok(())
+    }
+    /// The nominal values scaled by the intensity (0 when off), if the rig file gave them.
+    async fn read_back(&self) -> Result<Option<gonio_devices::LampReading>, DeviceError> {
+        let (on, k) = *self.state.lock().expect("light poisoned");
+        let k = if on { k } else { 0.0 };
+        Ok(self.nominal.map(|n| gonio_devices::LampReading {
+            voltage_v: n.voltage_v * k,
+            current_a: n.current_a * k,
+        }))
     }
 }
 
@@ -725,8 +737,14 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
                 .unwrap_or(1),
         },
     };
+    let nominal = if spec.light.backend == "sim" {
+        spec.sim_lamp_nominal().map_err(|e| option_error(spec, e))?
+    } else {
+        None
+    };
     let light = Arc::new(SimLight {
         state: Mutex::new((false, 0.0)),
+        nominal,
     });
     let world = Arc::new(SimWorld {
         axes: axes.clone(),
