@@ -268,9 +268,20 @@ impl HmpDriver {
         &self.config
     }
 
+    /// One exchange, again after a transient failure (at most `retries` more times): a
+    /// retry repeats only the exchange that failed, so a sequence of commands is not
+    /// started over (and a fault that recurs every few replies cannot defeat it).
+    fn retried<T>(&self, f: impl FnMut() -> Result<T, DeviceError>) -> Result<T, DeviceError> {
+        retry(self.config.retries, f)
+    }
+
+    fn error(&self) -> Result<ScpiError, DeviceError> {
+        self.retried(|| self.port.error(&self.name))
+    }
+
     /// `*IDN?`: maker, model, serial number, firmware (the reply as it came).
     pub fn identify(&self) -> Result<String, DeviceError> {
-        let r = self.port.query(&self.name, "*IDN?")?;
+        let r = self.retried(|| self.port.query(&self.name, "*IDN?"))?;
         if r.split(',').count() < 2 {
             return Err(self
                 .port
@@ -283,7 +294,7 @@ impl HmpDriver {
     /// bounded: the queue holds a few entries.
     pub fn clear_errors(&self) -> Result<(), DeviceError> {
         for _ in 0..32 {
-            if self.port.error(&self.name)?.code == 0 {
+            if self.error()?.code == 0 {
                 break;
             }
         }
@@ -292,12 +303,12 @@ impl HmpDriver {
 
     /// Read the error queue after `command`: its first entry is the command's error.
     pub fn check(&self, command: &str) -> Result<(), DeviceError> {
-        let e = self.port.error(&self.name)?;
+        let e = self.error()?;
         if e.code == 0 {
             return Ok(());
         }
         for _ in 0..32 {
-            match self.port.error(&self.name) {
+            match self.error() {
                 Ok(ScpiError { code: 0, .. }) | Err(_) => break,
                 Ok(more) => tracing::warn!(light = %self.name, "further SCPI error {}: {}", more.code, more.message),
             }
@@ -321,7 +332,7 @@ impl HmpDriver {
     }
 
     fn write_checked(&self, command: &str) -> Result<(), DeviceError> {
-        self.port.write(&self.name, command)?;
+        self.retried(|| self.port.write(&self.name, command))?;
         self.check(command)
     }
 
@@ -352,13 +363,13 @@ impl HmpDriver {
     /// The channel's measured output.
     pub fn measure(&self) -> Result<LampReading, DeviceError> {
         self.select()?;
-        let voltage_v = self.port.query_number(&self.name, "MEAS:VOLT?")?;
-        let current_a = self.port.query_number(&self.name, "MEAS:CURR?")?;
+        let voltage_v = self.retried(|| self.port.query_number(&self.name, "MEAS:VOLT?"))?;
+        let current_a = self.retried(|| self.port.query_number(&self.name, "MEAS:CURR?"))?;
         Ok(LampReading { voltage_v, current_a })
     }
 }
 
-/// A [`Light`] on an HMP channel, with retries of transient failures and the settle time.
+/// A [`Light`] on an HMP channel: the driver on tokio's blocking pool, and the settle time.
 pub struct HmpLight {
     name: String,
     driver: Arc<HmpDriver>,
@@ -389,7 +400,7 @@ impl HmpLight {
                 driver.config.port, driver.config.baud
             ),
         };
-        let identity = retry(driver.config.retries, || driver.identify()).map_err(|e| fail("*IDN?", e))?;
+        let identity = driver.identify().map_err(|e| fail("*IDN?", e))?;
         let model = identity.split(',').nth(1).unwrap_or("").trim();
         match channels_of(model) {
             Some(n) if driver.config.channel > n => {
@@ -404,7 +415,7 @@ impl HmpLight {
                 "`{identity}` is not an HMP model this driver knows (HMP4040/4030/2030/2020); continuing"
             ),
         }
-        retry(driver.config.retries, || driver.clear_errors()).map_err(|e| fail("SYST:ERR?", e))?;
+        driver.clear_errors().map_err(|e| fail("SYST:ERR?", e))?;
         tracing::info!(light = %name, "lamp supply: {identity}");
         Ok(HmpLight {
             name,
@@ -423,16 +434,13 @@ impl HmpLight {
         f: impl Fn(&HmpDriver) -> Result<T, DeviceError> + Send + Sync + 'static,
     ) -> Result<T, DeviceError> {
         let d = self.driver.clone();
-        let retries = d.config.retries;
-        tokio::task::spawn_blocking(move || retry(retries, || f(&d)))
-            .await
-            .unwrap_or_else(|e| {
-                Err(DeviceError::Other {
-                    device: self.name.clone(),
-                    command: what.to_string(),
-                    reason: format!("driver task failed: {e}"),
-                })
+        tokio::task::spawn_blocking(move || f(&d)).await.unwrap_or_else(|e| {
+            Err(DeviceError::Other {
+                device: self.name.clone(),
+                command: what.to_string(),
+                reason: format!("driver task failed: {e}"),
             })
+        })
     }
 }
 
