@@ -835,6 +835,35 @@ mod tests {
         assert_ne!(noise_key(id(42, 0), &a, true, 0), noise_key(id(42, 0), &a, true, 1));
     }
 
+    /// A sim light measures nothing unless the rig file gives nominal values; then it
+    /// reports them times its intensity, and 0 when off.
+    #[tokio::test]
+    async fn sim_light_reports_nominal_values_only_when_asked() {
+        use gonio_devices::{LampReading, Light};
+        let light = |nominal| super::SimLight {
+            state: std::sync::Mutex::new((false, 0.0)),
+            nominal,
+        };
+        let plain = light(None);
+        plain.set(true, 1.0).await.unwrap();
+        assert_eq!(plain.read_back().await.unwrap(), None);
+        assert_eq!(plain.identity().await.unwrap(), "sim-light");
+        let n = light(Some(LampReading {
+            voltage_v: 12.0,
+            current_a: 8.0,
+        }));
+        n.set(true, 0.5).await.unwrap();
+        assert_eq!(
+            n.read_back().await.unwrap(),
+            Some(LampReading {
+                voltage_v: 6.0,
+                current_a: 4.0
+            })
+        );
+        n.set(false, 0.5).await.unwrap();
+        assert_eq!(n.read_back().await.unwrap().unwrap().current_a, 0.0);
+    }
+
     /// The world's traced-view caches give the bytes of a fresh trace for every pair, in a
     /// tour order that revisits poses, and keep no more views than their capacity.
     #[test]
