@@ -27,7 +27,7 @@ impl LampWatch {
 
     /// Set the reference: the first reading of the run, once the lamp is on and settled.
     pub fn set_reference(&mut self, r: LampReading) {
-        if !(r.current_a > 0.0) {
+        if r.current_a.is_nan() || r.current_a <= 0.0 {
             tracing::warn!(
                 "lamp: the reference reading is {:.3} V, {:.4} A: no current flows; drift is measured from it all the same",
                 r.voltage_v,
