@@ -181,6 +181,8 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "sim",
             "sim_btf",
             "serve_stage",
+            // `sim serve-light` (sim registers it; it shares serve-stage's serving loop)
+            "serve_light",
             // `batch slurm` matches on the parsed commands it shards
             "dataset",
             "bench_acquire",

@@ -16,7 +16,8 @@ pub mod kinematics;
 pub mod light;
 pub mod motion;
 pub mod rig;
-/// Serial motor controllers (Zaber ASCII, Newport ESP300); cargo feature `serial`.
+/// Serial motor controllers (Zaber ASCII, Newport ESP300) and the lamp supply (R&S HMP);
+/// cargo feature `serial`.
 #[cfg(feature = "serial")]
 pub mod serial;
 pub mod target;
@@ -27,5 +28,5 @@ pub use axis::{Axis, AxisStatus, SoftLimits};
 pub use camera::{Camera, CameraConfig, Frame, FrameMeta, Intrinsics};
 pub use error::DeviceError;
 pub use geometry::{Direction, Vec3};
-pub use light::Light;
+pub use light::{LampReading, Light};
 pub use motion::MotionModel;

@@ -378,7 +378,86 @@ impl AlignmentSpec {
     }
 }
 
+/// How a run watches the lamp's read-back (`light.options.drift_threshold`,
+/// `light.options.output_exponent`; any backend whose light measures, see
+/// [`crate::Light::read_back`]).
+///
+/// The reference is the run's first reading, taken after the lamp was switched on and
+/// settled. A measurement whose current or voltage differs from it by more than
+/// `drift_threshold` (relative) logs a warning and is counted. With `output_exponent` = k
+/// the stored values are divided by (I / I₀)^k: the lamp's output taken as ∝ I^k, a law a
+/// lamp follows only near its operating point and with its own k, hence only from a
+/// calibration; without it nothing is corrected (the reading is recorded always).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LampMonitor {
+    pub drift_threshold: f64,
+    pub output_exponent: Option<f64>,
+}
+
+/// The default relative drift that warns (2 %).
+pub const DEFAULT_LAMP_DRIFT: f64 = 0.02;
+
 impl RigSpec {
+    /// The lamp monitor's options (see [`LampMonitor`]): `drift_threshold` in (0, 1),
+    /// default 0.02; `output_exponent` in (0, 20], absent = no correction.
+    pub fn lamp_monitor(&self) -> Result<LampMonitor, OptionError> {
+        let o = &self.light.options;
+        let drift_threshold = match o.get("drift_threshold") {
+            None => DEFAULT_LAMP_DRIFT,
+            Some(v) => option_number(v)
+                .filter(|x| *x > 0.0 && *x < 1.0)
+                .ok_or_else(|| OptionError {
+                    key: "light.options.drift_threshold".into(),
+                    value: v.to_string(),
+                    message: "must be a relative change in (0, 1), e.g. 0.02 for 2 %".into(),
+                })?,
+        };
+        let output_exponent = match o.get("output_exponent") {
+            None => None,
+            Some(v) => Some(option_number(v).filter(|k| *k > 0.0 && *k <= 20.0).ok_or_else(|| {
+                OptionError {
+                    key: "light.options.output_exponent".into(),
+                    value: v.to_string(),
+                    message: "must be the calibrated exponent k of output ∝ current^k, in (0, 20]; \
+                              leave it out for no correction"
+                        .into(),
+                }
+            })?),
+        };
+        Ok(LampMonitor {
+            drift_threshold,
+            output_exponent,
+        })
+    }
+
+    /// A `sim` light's nominal electrical values, when the rig file asks for them
+    /// (`light.options.voltage` and `light.options.current`, both > 0): the simulated lamp
+    /// then reports them (scaled by its intensity) as its read-back, so a simulated run
+    /// records them like a real one. Absent: it measures nothing and records nothing.
+    pub fn sim_lamp_nominal(&self) -> Result<Option<crate::LampReading>, OptionError> {
+        let o = &self.light.options;
+        let read = |key: &str| -> Result<Option<f64>, OptionError> {
+            o.get(key)
+                .map(|v| {
+                    option_number(v).filter(|x| *x > 0.0).ok_or_else(|| OptionError {
+                        key: format!("light.options.{key}"),
+                        value: v.to_string(),
+                        message: "must be a number > 0 (the simulated lamp's nominal value)".into(),
+                    })
+                })
+                .transpose()
+        };
+        match (read("voltage")?, read("current")?) {
+            (Some(voltage_v), Some(current_a)) => Ok(Some(crate::LampReading { voltage_v, current_a })),
+            (None, None) => Ok(None),
+            (v, _) => Err(OptionError {
+                key: format!("light.options.{}", if v.is_some() { "current" } else { "voltage" }),
+                value: "(missing)".into(),
+                message: "give both voltage and current for the simulated lamp's read-back, or neither".into(),
+            }),
+        }
+    }
+
     /// The lamp's disc radius (`light.options.radius_mm`, mm; absent = 0, a point lamp), at
     /// most half the lamp's distance from the sample, so the disc stays a lamp.
     pub fn lamp_radius_mm(&self) -> Result<f64, OptionError> {
@@ -519,6 +598,16 @@ impl RigSpec {
             return Err(bad("camera.readout_s".into(), c.readout_s.to_string(), "must be ≥ 0"));
         }
         pos("light.intensity_w_sr", self.light.intensity_w_sr)?;
+        let option = |e: OptionError| RigError::Invalid {
+            file: file.to_string(),
+            key: e.key,
+            value: e.value,
+            message: e.message,
+        };
+        self.lamp_monitor().map_err(option)?;
+        if self.light.backend == "sim" {
+            self.sim_lamp_nominal().map_err(option)?;
+        }
         let mut names = std::collections::BTreeSet::new();
         for (i, a) in self.axes.iter().enumerate() {
             let k = |f: &str| format!("axis[{i}] ({}).{f}", a.name);
@@ -832,6 +921,38 @@ mod tests {
         assert!(e.contains("max_velocity_deg_s") && e.contains("valid range"), "{e}");
         let e = RigSpec::parse("name = 1", "x.toml").unwrap_err().to_string();
         assert!(e.contains("x.toml"), "{e}");
+    }
+
+    #[test]
+    fn lamp_options_are_checked_and_name_the_key() {
+        let r = RigSpec::default_rig();
+        assert_eq!(r.lamp_monitor().unwrap().drift_threshold, DEFAULT_LAMP_DRIFT);
+        assert_eq!(r.lamp_monitor().unwrap().output_exponent, None);
+        assert_eq!(r.sim_lamp_nominal().unwrap(), None);
+        let with = |extra: &str| DEFAULT_RIG_TOML.replace("[light]\n", &format!("[light]\n{extra}\n"));
+        let ok = RigSpec::parse(
+            &with("options = { drift_threshold = 0.05, output_exponent = 3.4, voltage = 12, current = 8.3 }"),
+            "r.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            ok.lamp_monitor().unwrap(),
+            LampMonitor {
+                drift_threshold: 0.05,
+                output_exponent: Some(3.4)
+            }
+        );
+        assert_eq!(ok.sim_lamp_nominal().unwrap().unwrap().current_a, 8.3);
+        for (opt, key) in [
+            ("drift_threshold = 2", "light.options.drift_threshold"),
+            ("output_exponent = -1", "light.options.output_exponent"),
+            ("voltage = 12", "light.options.current"),
+        ] {
+            let e = RigSpec::parse(&with(&format!("options = {{ {opt} }}")), "r.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("r.toml") && e.contains(key), "{e}");
+        }
     }
 
     #[test]

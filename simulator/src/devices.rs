@@ -209,6 +209,9 @@ impl Axis for SimAxis {
 /// A simulated lamp.
 pub struct SimLight {
     state: Mutex<(bool, f64)>,
+    /// Nominal voltage and current at full intensity, reported as the read-back when the
+    /// rig file gives them (`light.options.voltage`, `current`); `None`: measures nothing.
+    nominal: Option<gonio_devices::LampReading>,
 }
 
 #[async_trait]
@@ -226,6 +229,15 @@ impl Light for SimLight {
         }
         *self.state.lock().expect("light poisoned") = (on, intensity);
         Ok(())
+    }
+    /// The nominal values scaled by the intensity (0 when off), if the rig file gave them.
+    async fn read_back(&self) -> Result<Option<gonio_devices::LampReading>, DeviceError> {
+        let (on, k) = *self.state.lock().expect("light poisoned");
+        let k = if on { k } else { 0.0 };
+        Ok(self.nominal.map(|n| gonio_devices::LampReading {
+            voltage_v: n.voltage_v * k,
+            current_a: n.current_a * k,
+        }))
     }
 }
 
@@ -747,8 +759,14 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
                 .unwrap_or(1),
         },
     };
+    let nominal = if spec.light.backend == "sim" {
+        spec.sim_lamp_nominal().map_err(|e| option_error(spec, e))?
+    } else {
+        None
+    };
     let light = Arc::new(SimLight {
         state: Mutex::new((false, 0.0)),
+        nominal,
     });
     let world = Arc::new(SimWorld {
         axes: axes.clone(),
@@ -842,6 +860,35 @@ mod tests {
         assert_eq!(noise_key(None, &a, false, 0), noise_key(None, &a, false, 5));
         // frame_noise: the frame counter makes every frame independent.
         assert_ne!(noise_key(id(42, 0), &a, true, 0), noise_key(id(42, 0), &a, true, 1));
+    }
+
+    /// A sim light measures nothing unless the rig file gives nominal values; then it
+    /// reports them times its intensity, and 0 when off.
+    #[tokio::test]
+    async fn sim_light_reports_nominal_values_only_when_asked() {
+        use gonio_devices::{LampReading, Light};
+        let light = |nominal| super::SimLight {
+            state: std::sync::Mutex::new((false, 0.0)),
+            nominal,
+        };
+        let plain = light(None);
+        plain.set(true, 1.0).await.unwrap();
+        assert_eq!(plain.read_back().await.unwrap(), None);
+        assert_eq!(plain.identity().await.unwrap(), "sim-light");
+        let n = light(Some(LampReading {
+            voltage_v: 12.0,
+            current_a: 8.0,
+        }));
+        n.set(true, 0.5).await.unwrap();
+        assert_eq!(
+            n.read_back().await.unwrap(),
+            Some(LampReading {
+                voltage_v: 6.0,
+                current_a: 4.0
+            })
+        );
+        n.set(false, 0.5).await.unwrap();
+        assert_eq!(n.read_back().await.unwrap().unwrap().current_a, 0.0);
     }
 
     /// The world's traced-view caches give the bytes of a fresh trace for every pair, in a

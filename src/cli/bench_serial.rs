@@ -132,6 +132,7 @@ fn round_trips(protocol: Protocol, n: usize) -> Result<f64> {
                 port.query_number("bench", "1TP")?;
             }
         }
+        Protocol::Hmp4040 => anyhow::bail!("bench serial: the HMP4040 emulator is a power supply, not a stage"),
     }
     let s = t.elapsed().as_secs_f64();
     h.stop();
@@ -149,6 +150,7 @@ async fn overhead(protocol: Protocol, steps: &[[f64; AXES]], poll_ms: u64) -> Re
             Protocol::Zaber => ("zaber", h1.path(), i + 1),
             Protocol::Esp300 if i < 3 => ("esp300", h1.path(), i + 1),
             Protocol::Esp300 => ("esp300", h2.path(), 1),
+            Protocol::Hmp4040 => anyhow::bail!("bench serial: the HMP4040 emulator drives no axes"),
         };
         axes.push(ports.build_axis(&spec(&format!("a{i}"), backend, path, axis, poll_ms)?)?);
     }

@@ -1,7 +1,8 @@
 //! `gonio devices …`: find the hardware on this machine.
 //!
 //! `list` shows serial ports and video devices; `probe PORT` asks a port who is there
-//! (Zaber ASCII at 115200 and 9600 baud, then Newport ESP300 `VE?` at 19200).
+//! (Zaber ASCII at 115200 and 9600 baud, then Newport ESP300 `VE?` at 19200, then an R&S HMP
+//! supply's `*IDN?` at 9600).
 
 use anyhow::Result;
 use gonio_devices::serial::list;
@@ -86,6 +87,12 @@ pub fn run(cmd: DevicesCommand) -> Result<ExitCode> {
                     ),
                     "esp300" => println!(
                         "{}: Newport ESP at {} baud: {}",
+                        r.port,
+                        r.baud.unwrap_or(0),
+                        r.replies.first().map(String::as_str).unwrap_or("")
+                    ),
+                    "hmp" => println!(
+                        "{}: power supply at {} baud (light backend `hmp`): {}",
                         r.port,
                         r.baud.unwrap_or(0),
                         r.replies.first().map(String::as_str).unwrap_or("")

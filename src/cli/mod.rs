@@ -44,6 +44,7 @@ mod plan;
 mod prior;
 #[cfg(feature = "monitor")]
 mod render;
+mod serve_light;
 mod serve_stage;
 mod sim;
 mod sim_btf;

@@ -117,21 +117,27 @@ pub fn run(a: ServeStageArgs) -> Result<ExitCode> {
     let faults: Vec<String> = cfg.faults.faults.iter().map(|f| f.to_string()).collect();
     let units_per_deg = cfg.units_per_deg;
     let handle = emulate::spawn_pty(cfg).with_context(|| format!("starting the {protocol} emulator"))?;
+    let info = serde_json::json!({
+        "protocol": protocol,
+        "axes": a.axes,
+        "devices": a.devices,
+        "units_per_deg": units_per_deg,
+        "faults": faults,
+        "link": a.link,
+        "state": a.state,
+    });
+    serve(handle, a.json, info)
+}
+
+/// Print the pty path (or, with `json`, `{"path": …}` merged with `info`), then serve until
+/// Ctrl-C / SIGTERM or until the emulator ends by itself (an injected disconnect).
+pub(super) fn serve(handle: emulate::EmulatorHandle, json: bool, mut info: serde_json::Value) -> Result<ExitCode> {
     let path = handle.path().display().to_string();
     {
         let mut out = std::io::stdout().lock();
-        if a.json {
-            let v = serde_json::json!({
-                "path": path,
-                "protocol": protocol,
-                "axes": a.axes,
-                "devices": a.devices,
-                "units_per_deg": units_per_deg,
-                "faults": faults,
-                "link": a.link,
-                "state": a.state,
-            });
-            writeln!(out, "{v}")?;
+        if json {
+            info["path"] = serde_json::json!(path);
+            writeln!(out, "{info}")?;
         } else {
             writeln!(out, "{path}")?;
         }

@@ -21,6 +21,9 @@ pub enum SimCommand {
     Btf(super::sim_btf::BtfArgs),
     /// Emulate a motor controller (Zaber ASCII or Newport ESP300) on a pty until killed.
     ServeStage(super::serve_stage::ServeStageArgs),
+    /// Emulate the lamp's power supply (a Rohde & Schwarz HMP4040 with a halogen lamp on
+    /// each channel) on a pty until killed.
+    ServeLight(super::serve_light::ServeLightArgs),
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum, PartialEq)]
@@ -83,6 +86,7 @@ pub fn run(cmd: SimCommand) -> Result<ExitCode> {
         SimCommand::Render(a) => render(a),
         SimCommand::Btf(a) => super::sim_btf::run(a),
         SimCommand::ServeStage(a) => super::serve_stage::run(a),
+        SimCommand::ServeLight(a) => super::serve_light::run(a),
     }
 }
 

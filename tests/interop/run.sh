@@ -75,7 +75,7 @@ stop_stage() { # NAME: SIGTERM, wait, print the wire transcript
   wait "$(cat "$work/$name.pid")" || { echo "interop: $name emulator exited with $?" >&2; cat "$work/$name.log" >&2; exit 1; }
   rm -f "$work/$name.pid"
   echo "--- $name: wire transcript (emulator log; rx = what the client sent, tx = the reply) ---"
-  sed -n 's/.* \(zaber\|esp300\) \(rx #[0-9]*\|tx\): /\2: /p' "$work/$name.log"
+  sed -n 's/.* \(zaber\|esp300\|hmp4040\) \(rx #[0-9]*\|tx\): /\2: /p' "$work/$name.log"
 }
 serve_stage zaber zaber --axes 1
 "$GONIO_PYTHON" tests/interop/zaber_motion_session.py "$stage_path"
@@ -83,6 +83,18 @@ stop_stage zaber
 serve_stage esp300 esp300 --axes 3
 "$GONIO_PYTHON" tests/interop/pymeasure_esp300.py "$stage_path"
 stop_stage esp300
+# The lamp's power supply: `gonio sim serve-light` (a Rohde & Schwarz HMP4040 with a 12 V /
+# 100 W halogen lamp on each channel) driven by PyMeasure's HMP4040 class; measured V and I
+# are checked against the emulator's lamp model (tests/interop/pymeasure_hmp4040.py).
+RUST_LOG=gonio_simulator::emulate=debug "$gonio" sim serve-light --json > "$work/hmp4040.json" 2> "$work/hmp4040.log" &
+echo $! > "$work/hmp4040.pid"
+for _ in $(seq 100); do
+  [ -s "$work/hmp4040.json" ] && break
+  sleep 0.1
+done
+light_path=$("$GONIO_PYTHON" -c 'import json,sys; print(json.load(open(sys.argv[1]))["path"])' "$work/hmp4040.json")
+"$GONIO_PYTHON" tests/interop/pymeasure_hmp4040.py "$light_path"
+stop_stage hmp4040
 
 # ---- Bonn's UBO2014 DFMF .btf read by btf-extractor's Ubo2014 (issue 6) -----------------
 # The acquisition above compressed with DFMF in both colour models the reader decodes

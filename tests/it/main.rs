@@ -27,6 +27,7 @@ mod fuzz_protocols;
 mod fuzz_resume;
 mod golden;
 mod hdr;
+mod lamp_hmp;
 mod serial_drivers;
 mod shard_merge;
 mod sparse;

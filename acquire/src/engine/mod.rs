@@ -14,13 +14,14 @@
 //! store thread writes measurement k (EXR encoding, fsyncs, journal line: `commit`) on a
 //! scoped thread while it develops measurement k + 1.
 
+pub mod lamp;
 pub mod metrics;
 
 use crate::develop::rectify::HomographySource;
 use crate::develop::{DevelopError, Developer};
 use crate::plan::{Plan, Step, StepStatus};
 use crate::rig::{BracketNotes, CaptureNotes, CapturePolicy, Rig};
-use gonio_dataset::store::{Dataset, MeasurementRecord, MeasurementStatus, StoreError};
+use gonio_dataset::store::{Dataset, LampRecord, MeasurementRecord, MeasurementStatus, StoreError};
 use gonio_devices::hdr::{HdrMode, HdrSpec};
 use gonio_devices::image::RgbImage;
 use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
@@ -98,6 +99,13 @@ pub struct RunReport {
     pub homography_from_pose: usize,
     /// Wall seconds spent per stage (stages overlap: drive and store run concurrently).
     pub stage_seconds: StageSeconds,
+    /// Measurements whose lamp current or voltage drifted beyond the rig's threshold
+    /// (lights whose supply measures; see [`lamp`]).
+    #[serde(default)]
+    pub lamp_drift_warnings: usize,
+    /// The lamp supply's identity (`*IDN?`), for lights whose supply measures.
+    #[serde(default)]
+    pub lamp_identity: Option<String>,
 }
 
 /// Where the wall time goes, summed over all measurements of a run.
@@ -128,6 +136,8 @@ struct Job {
     notes: CaptureNotes,
     /// With HDR on: the bracket's further exposures (`frame` is its base).
     bracket: Option<Bracket>,
+    /// The lamp's reading after the capture (lights whose supply measures).
+    lamp: Option<LampRecord>,
 }
 
 /// The exposures of an HDR bracket beyond its base frame, and what bracketing noted.
@@ -205,6 +215,15 @@ pub async fn run(
     }
     .map_err(EngineError::Setup);
     let setup = setup.map_err(|e| drive_err = Some(e)).ok();
+    // The lamp monitor: its reference is the reading once the lamp is on and settled.
+    let mut lamp = lamp::LampWatch::new(rig.lamp_monitor);
+    let mut lamp_identity = None;
+    if setup.is_some() {
+        match lamp_reference(&rig, &mut lamp).await {
+            Ok(identity) => lamp_identity = identity,
+            Err(e) => drive_err = Some(EngineError::Setup(e)),
+        }
+    }
     // HDR bracketing (rig file `[hdr]` / `--hdr`); off: exactly the single-exposure path.
     let hdr = rig.spec.hdr.clone().filter(|h| h.mode() != HdrMode::Off);
     for (order, step) in todo.iter().copied() {
@@ -218,8 +237,12 @@ pub async fn run(
         let Some((policy, camera_config)) = &setup else {
             break;
         };
-        match drive_step(&rig, step, &mut drive_times, policy, camera_config, hdr.as_ref()).await {
-            Ok((frame, notes, bracket, q_cmd, q_read)) => {
+        let driven = match drive_step(&rig, step, &mut drive_times, policy, camera_config, hdr.as_ref()).await {
+            Ok(d) => read_lamp(&rig, step.index, &mut lamp).await.map(|l| (d, l)),
+            Err(e) => Err(e),
+        };
+        match driven {
+            Ok(((frame, notes, bracket, q_cmd, q_read), lamp_record)) => {
                 let job = Job {
                     order,
                     step: step.clone(),
@@ -230,6 +253,7 @@ pub async fn run(
                     wall_time: unix_now(),
                     notes,
                     bracket,
+                    lamp: lamp_record,
                 };
                 let index = job.step.index;
                 if tx.send(job).await.is_err() {
@@ -275,8 +299,39 @@ pub async fn run(
                 capture: drive_times.capture,
                 ..stats.times
             },
+            lamp_drift_warnings: lamp.warnings(),
+            lamp_identity,
         },
     ))
+}
+
+/// After the rig is prepared (lamp on, settled): the lamp's reference reading and its
+/// supply's identity, for a light that measures (`None` otherwise: nothing is recorded).
+async fn lamp_reference(rig: &Rig, watch: &mut lamp::LampWatch) -> Result<Option<String>, DeviceError> {
+    let Some(r) = rig.light.read_back().await? else {
+        return Ok(None);
+    };
+    let identity = rig.light.identity().await?;
+    tracing::info!(
+        "lamp {identity}: reference {:.3} V, {:.4} A (drift warns beyond {:.1} %{})",
+        r.voltage_v,
+        r.current_a,
+        rig.lamp_monitor.drift_threshold * 100.0,
+        rig.lamp_monitor
+            .output_exponent
+            .map_or(String::new(), |k| format!("; output corrected as (I/I0)^{k}"))
+    );
+    watch.set_reference(r);
+    Ok(Some(identity))
+}
+
+/// The lamp's reading for measurement `index`, taken right after its capture.
+async fn read_lamp(rig: &Rig, index: usize, watch: &mut lamp::LampWatch) -> Result<Option<LampRecord>, EngineError> {
+    match rig.light.read_back().await {
+        Ok(Some(r)) => Ok(Some(watch.observe(index, r))),
+        Ok(None) => Ok(None),
+        Err(source) => Err(EngineError::Device { index, source }),
+    }
 }
 
 /// What the drive loop hands on per step: frame, capture notes, the HDR bracket's other
@@ -426,7 +481,7 @@ fn store_loop(
         }
         stats.times.rectify += t_rect;
         stats.times.truth += t_truth;
-        let (rect, saturated, merge_report) = match developed {
+        let (mut rect, saturated, merge_report) = match developed {
             Ok((d, report)) => (d.rectified, d.saturated, report),
             Err(DevelopError::Rectify(message)) => return fail(dataset, EngineError::Rectify { index, message }),
             Err(source) => return fail(dataset, EngineError::Calibration { index, source }),
@@ -441,6 +496,11 @@ fn store_loop(
             if let Err(source) = developer.develop_truth(img, lamp, t, g) {
                 return fail(dataset, EngineError::Calibration { index, source });
             }
+        }
+        if let Some(f) = job.lamp.as_ref().and_then(|l| l.output_correction) {
+            // The lamp's output changed by f since the reference: back to the reference's.
+            let k = (1.0 / f) as f32;
+            rect.image.data.iter_mut().for_each(|v| *v *= k);
         }
         match rect.source {
             HomographySource::Markers => stats.markers += 1,
@@ -501,6 +561,7 @@ fn store_loop(
             });
         }
         rec.extra = extra;
+        rec.lamp = job.lamp;
         pending = Some(Pending {
             rec,
             image: rect.image,

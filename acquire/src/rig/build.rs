@@ -6,8 +6,8 @@ use super::{GroundTruth, Rig};
 use async_trait::async_trait;
 use gonio_devices::kinematics;
 use gonio_devices::rig::RigSpec;
-use gonio_devices::{Axis, AxisStatus, Camera, DeviceError, MotionModel, SoftLimits};
-use gonio_simulator::devices::SimAxis;
+use gonio_devices::{Axis, AxisStatus, Camera, DeviceError, LampReading, Light, MotionModel, SoftLimits};
+use gonio_simulator::devices::{SimAxis, SimLight};
 use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions};
 use std::sync::Arc;
 
@@ -30,6 +30,12 @@ pub enum RigBuildError {
     #[cfg(feature = "v4l2")]
     #[error("rig {rig}: {source}")]
     Camera { rig: String, source: DeviceError },
+    /// A rig-file option that is present but wrong (its key names it).
+    #[error("rig {rig}: {error}")]
+    Option {
+        rig: String,
+        error: gonio_devices::rig::OptionError,
+    },
     #[error(transparent)]
     Sim(#[from] gonio_simulator::devices::SimRigError),
     #[error(transparent)]
@@ -39,7 +45,10 @@ pub enum RigBuildError {
 impl Rig {
     /// Build the rig from the rig file's backends.
     ///
-    /// Camera and light are simulated (`sim`). Axes are `sim` or a serial controller
+    /// The camera is simulated (`sim`, or `v4l2` with that feature); the light is `sim` or
+    /// `hmp` (a lamp on a Rohde & Schwarz HMP supply, options in `[light] options`, see
+    /// `gonio_devices::serial::hmp`; the simulated camera still renders with a shadow
+    /// simulated lamp switched alongside, [`MirroredLight`]). Axes are `sim` or a serial controller
     /// (`zaber`, `esp300`; options in the axis' `options` table, see
     /// `gonio_devices::serial`). A rig with serial axes is a *mixed* rig: the serial axes
     /// move in wall time, and the simulated camera renders the pose they actually reached
@@ -57,10 +66,18 @@ impl Rig {
             if part == "camera" && backend == "v4l2" {
                 continue;
             }
+            if part == "light" && backend == "hmp" {
+                continue;
+            }
             if backend != "sim" {
-                return Err(unknown(part.to_string(), backend, "sim"));
+                let available = if part == "light" { "sim, hmp" } else { "sim" };
+                return Err(unknown(part.to_string(), backend, available));
             }
         }
+        let lamp_monitor = spec.lamp_monitor().map_err(|error| RigBuildError::Option {
+            rig: spec.name.clone(),
+            error,
+        })?;
         let axis_backends = std::iter::once("sim")
             .chain(gonio_devices::serial::BACKENDS.iter().copied())
             .collect::<Vec<_>>()
@@ -99,6 +116,7 @@ impl Rig {
                 });
             }
         }
+        let shadow_light = sim.world.light.clone();
         #[allow(unused_mut)]
         let (mut camera, mut truth): (Arc<dyn Camera>, Option<Arc<dyn GroundTruth>>) =
             (sim.camera, Some(sim.world as Arc<dyn GroundTruth>));
@@ -120,12 +138,28 @@ impl Rig {
             camera = real;
             truth = None;
         }
+        let light: Arc<dyn Light> = if spec.light.backend == "hmp" {
+            let serial = |error| RigBuildError::Serial {
+                rig: spec.name.clone(),
+                error,
+            };
+            let opts = gonio_devices::serial::Options::for_light(&spec.light.options);
+            let config = gonio_devices::serial::hmp::HmpConfig::from_options(&opts).map_err(serial)?;
+            let real = gonio_devices::serial::hmp::HmpLight::open(config).map_err(serial)?;
+            Arc::new(MirroredLight {
+                real: Arc::new(real),
+                shadow: shadow_light,
+            })
+        } else {
+            sim.light
+        };
         Ok(Rig {
             spec: spec.clone(),
             kinematics: kinematics::for_rig(spec),
             axes,
             camera,
-            light: sim.light,
+            light,
+            lamp_monitor,
             truth,
             clock: if mixed { None } else { Some(sim.clock) },
             border: sample.border.clone(),
@@ -248,6 +282,31 @@ impl Axis for MirroredAxis {
     }
     async fn status(&self) -> Result<AxisStatus, DeviceError> {
         self.real.status().await
+    }
+}
+
+/// A real lamp whose switching is copied to the simulated lamp, so the simulated camera of
+/// a mixed rig renders with the lamp on when the real one is on. Identity and read-back
+/// are the real lamp's.
+pub struct MirroredLight {
+    pub real: Arc<dyn Light>,
+    pub shadow: Arc<SimLight>,
+}
+
+#[async_trait]
+impl Light for MirroredLight {
+    fn name(&self) -> &str {
+        self.real.name()
+    }
+    async fn set(&self, on: bool, intensity: f64) -> Result<(), DeviceError> {
+        self.real.set(on, intensity).await?;
+        self.shadow.set(on, intensity).await
+    }
+    async fn identity(&self) -> Result<String, DeviceError> {
+        self.real.identity().await
+    }
+    async fn read_back(&self) -> Result<Option<LampReading>, DeviceError> {
+        self.real.read_back().await
     }
 }
 

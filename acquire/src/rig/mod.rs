@@ -23,7 +23,7 @@ pub mod capture;
 mod truth;
 
 pub use bracket::{BracketNotes, SampleRegion};
-pub use build::{MirroredAxis, RigBuildError};
+pub use build::{MirroredAxis, MirroredLight, RigBuildError};
 pub use capture::{CaptureFailed, CaptureNotes, CapturePolicy, SaturationPolicy};
 pub use truth::{GroundTruth, MechanicalErrors, SensorResponse, SensorTruth};
 
@@ -40,6 +40,8 @@ pub struct Rig {
     pub axes: Vec<Arc<dyn Axis>>,
     pub camera: Arc<dyn Camera>,
     pub light: Arc<dyn Light>,
+    /// How a run watches the lamp's read-back (rig file `light.options`).
+    pub lamp_monitor: gonio_devices::rig::LampMonitor,
     pub truth: Option<Arc<dyn GroundTruth>>,
     /// The simulated rig's clock (virtual time); `None` on real hardware (wall time).
     pub clock: Option<Arc<SimClock>>,

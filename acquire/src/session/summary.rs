@@ -50,6 +50,17 @@ pub struct Summary {
     /// (`extra.saturated_pixels` of its record).
     #[serde(default)]
     pub corrections: Vec<String>,
+    /// Measurements whose lamp current or voltage drifted beyond the rig's threshold
+    /// (`light.options.drift_threshold`; lights whose supply measures). Absent when 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lamp_drift_warnings: usize,
+    /// The lamp supply's identity (`*IDN?`), when the light measures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_identity: Option<String>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 impl Summary {
@@ -93,6 +104,8 @@ impl Summary {
             value_unit: calibration.map_or(VALUE_UNIT_DN, |c| c.value_unit()).to_string(),
             calibration: calibration.map(|c| c.ids.join(",")),
             corrections: calibration.map(|c| c.corrections()).unwrap_or_default(),
+            lamp_drift_warnings: report.lamp_drift_warnings,
+            lamp_identity: report.lamp_identity.clone(),
         }
     }
 }

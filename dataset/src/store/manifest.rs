@@ -154,6 +154,30 @@ pub struct MeasurementRecord {
     /// The engine's per-measurement metrics (e.g. `truth_rmse`).
     #[serde(default)]
     pub extra: serde_json::Value,
+    /// The lamp's measured voltage and current at this measurement, for lights whose
+    /// supply measures (absent otherwise, and in datasets written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp: Option<LampRecord>,
+}
+
+/// The lamp's electrical state at one measurement (see `gonio_devices::rig::LampMonitor`).
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+pub struct LampRecord {
+    /// Measured output voltage (V).
+    pub voltage_v: f64,
+    /// Measured output current (A).
+    pub current_a: f64,
+    /// Relative change from the run's reference reading (taken once the lamp was on and
+    /// settled): `I / I₀ − 1` and `V / V₀ − 1`.
+    pub current_drift: f64,
+    pub voltage_drift: f64,
+    /// The drift exceeded the rig's threshold (a warning was logged).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub drift_warning: bool,
+    /// With a calibrated output exponent k: the stored values were divided by this factor,
+    /// `(I / I₀)^k`. Absent: not corrected.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub output_correction: Option<f64>,
 }
 
 impl MeasurementRecord {
@@ -180,6 +204,7 @@ impl MeasurementRecord {
             raw: None,
             raw_sha256: None,
             extra: serde_json::Value::Null,
+            lamp: None,
         }
     }
 }

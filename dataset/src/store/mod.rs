@@ -80,7 +80,7 @@ pub use export::{
     JPEG_QUALITY,
 };
 pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
-pub use manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
+pub use manifest::{LampRecord, ManifestHeader, MeasurementRecord, MeasurementStatus};
 pub use verify::{verify, VerifyReport};
 
 use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};

@@ -53,7 +53,7 @@ pub fn video_devices() -> Vec<String> {
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ProbeResult {
     pub port: String,
-    /// `zaber`, `esp300` or `none`.
+    /// `zaber`, `esp300`, `hmp` or `none`.
     pub protocol: String,
     pub baud: Option<u32>,
     /// Zaber: the device numbers that answered; ESP: empty.
@@ -144,10 +144,34 @@ pub fn probe_with(
         }
         Err(e) => res.attempts.push(format!("esp300 @ {baud}: {e}")),
     }
+    if res.protocol != "none" {
+        return res;
+    }
+    // A Rohde & Schwarz HMP supply (the lamp): `*IDN?` names the model (`…,HMP4040,…`).
+    let baud = 9_600;
+    match open(baud)
+        .map_err(|e| e.to_string())
+        .and_then(|t| exchange(t, "*IDN?\n", wait))
+    {
+        Ok(lines) => {
+            res.attempts.push(format!("hmp @ {baud}: {} line(s)", lines.len()));
+            if lines.iter().any(|l| {
+                l.split(',')
+                    .nth(1)
+                    .is_some_and(|m| m.trim().to_ascii_uppercase().starts_with("HMP"))
+            }) {
+                res.protocol = "hmp".into();
+                res.baud = Some(baud);
+                res.replies = lines;
+            }
+        }
+        Err(e) => res.attempts.push(format!("hmp @ {baud}: {e}")),
+    }
     res
 }
 
-/// Probe a real port: Zaber ASCII at 115200 and 9600 baud, then ESP300 `VE?` at 19200.
+/// Probe a real port: Zaber ASCII at 115200 and 9600 baud, then ESP300 `VE?` at 19200,
+/// then an HMP supply's `*IDN?` at 9600.
 pub fn probe(port: &str) -> ProbeResult {
     probe_with(
         port,
@@ -201,6 +225,20 @@ mod tests {
             Duration::from_millis(10),
         );
         assert_eq!(n.protocol, "none");
-        assert_eq!(n.attempts.len(), 3);
+        assert_eq!(n.attempts.len(), 4);
+        let h = probe_with(
+            "fake",
+            |_| {
+                Ok(Box::new(ScriptedTransport::new(|l| {
+                    if l == "*IDN?" {
+                        vec![ScriptReply::line("ROHDE&SCHWARZ,HMP4040,101234,HW50020001/SW2.70")]
+                    } else {
+                        vec![]
+                    }
+                })))
+            },
+            Duration::from_millis(30),
+        );
+        assert_eq!((h.protocol.as_str(), h.baud), ("hmp", Some(9_600)));
     }
 }

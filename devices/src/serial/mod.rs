@@ -1,4 +1,5 @@
-//! Serial motor controllers: Zaber ASCII (protocol v2) and Newport ESP300/ESP301.
+//! Serial devices: motor controllers (Zaber ASCII protocol v2, Newport ESP300/ESP301) and
+//! the lamp's programmable power supply (Rohde & Schwarz HMP series, SCPI: [`hmp`]).
 //!
 //! Layers, bottom up:
 //! - [`Transport`]: raw bytes with a read timeout. [`SerialTransport`] is a real port (crate
@@ -18,6 +19,7 @@
 //! ports are file descriptors with termios timeouts, not async sources.
 
 pub mod esp300;
+pub mod hmp;
 pub mod list;
 pub mod policy;
 pub mod zaber;
@@ -257,6 +259,11 @@ pub enum SerialConfigError {
     },
     #[error("axis {axis}: backend `{backend}` is not a serial backend (zaber, esp300)")]
     Backend { axis: String, backend: String },
+    /// A `[light]` option of a serial lamp supply.
+    #[error("light.options.{key}: {message}")]
+    Light { key: String, message: String },
+    #[error("light: cannot open serial port {port}: {source}")]
+    LightOpen { port: String, source: io::Error },
 }
 
 /// Typed access to an axis' `options` table. String values may name environment variables
@@ -265,14 +272,36 @@ pub enum SerialConfigError {
 pub struct Options<'a> {
     axis: &'a str,
     map: &'a BTreeMap<String, toml::Value>,
+    /// The `[light]` table's options (errors then name `light.options.KEY`).
+    light: bool,
 }
 
 impl<'a> Options<'a> {
     pub fn new(axis: &'a str, map: &'a BTreeMap<String, toml::Value>) -> Self {
-        Options { axis, map }
+        Options {
+            axis,
+            map,
+            light: false,
+        }
     }
 
-    fn invalid(&self, key: &str, message: String) -> SerialConfigError {
+    /// The options of the rig file's `[light]` table.
+    pub fn for_light(map: &'a BTreeMap<String, toml::Value>) -> Self {
+        Options {
+            axis: "light",
+            map,
+            light: true,
+        }
+    }
+
+    /// The error for a wrong or missing `key`, naming it and what it must be.
+    pub fn invalid(&self, key: &str, message: String) -> SerialConfigError {
+        if self.light {
+            return SerialConfigError::Light {
+                key: key.to_string(),
+                message,
+            };
+        }
         SerialConfigError::Invalid {
             axis: self.axis.to_string(),
             key: key.to_string(),

@@ -1,4 +1,4 @@
-//! Motor-controller emulators served over pseudo-terminals.
+//! Motor-controller and lamp-supply emulators served over pseudo-terminals.
 //!
 //! Nobody here owns a Zaber or Newport controller, so gonio's serial drivers and the vendors'
 //! own client software (zaber-motion, PyMeasure) are proven against these emulators: each
@@ -9,6 +9,8 @@
 //!
 //! - [`zaber`]: the Zaber ASCII protocol (daisy chain, message ids, checksums, warning flags).
 //! - [`esp300`]: the Newport ESP300/ESP301 command set (error queue, `MD?`, `TP`, …).
+//! - [`hmp`]: a Rohde & Schwarz HMP4040 power supply (SCPI) with a halogen lamp load
+//!   (`gonio sim serve-light`).
 //! - [`faults`]: injected faults (garbled/dropped/slow replies, stall, limit switch,
 //!   disconnect) so drivers can be tested against every failure they must survive.
 //! - [`pty`]: the pty pair.
@@ -18,6 +20,7 @@
 
 pub mod esp300;
 pub mod faults;
+pub mod hmp;
 pub mod pty;
 pub mod zaber;
 
@@ -40,6 +43,8 @@ pub enum Protocol {
     Zaber,
     /// Newport ESP300 / ESP301 motion controller.
     Esp300,
+    /// Rohde & Schwarz HMP4040 power supply with a lamp on each channel (`axes` = channels).
+    Hmp4040,
 }
 
 impl std::fmt::Display for Protocol {
@@ -47,6 +52,7 @@ impl std::fmt::Display for Protocol {
         f.write_str(match self {
             Protocol::Zaber => "zaber",
             Protocol::Esp300 => "esp300",
+            Protocol::Hmp4040 => "hmp4040",
         })
     }
 }
@@ -84,6 +90,8 @@ pub struct EmulatorConfig {
     /// Axis `k` of the chain (0-based, in state-file order) uses seed `seed + k`, so the
     /// axes scatter independently.
     pub mechanical: Option<crate::mechanics::MechanicalErrors>,
+    /// The lamp on each channel of the power-supply emulator (HMP only).
+    pub lamp: hmp::LampLoad,
 }
 
 impl EmulatorConfig {
@@ -96,7 +104,7 @@ impl EmulatorConfig {
             faults: FaultPlan::none(),
             units_per_deg: match protocol {
                 Protocol::Zaber => 1000.0,
-                Protocol::Esp300 => 1.0,
+                Protocol::Esp300 | Protocol::Hmp4040 => 1.0,
             },
             motion: MotionModel {
                 max_velocity: 90.0,
@@ -111,6 +119,7 @@ impl EmulatorConfig {
             link: None,
             reconnect_after: None,
             mechanical: None,
+            lamp: hmp::LampLoad::default(),
         }
     }
 
@@ -125,7 +134,23 @@ impl EmulatorConfig {
         let max_axes = match self.protocol {
             Protocol::Zaber => 9,
             Protocol::Esp300 => 3,
+            Protocol::Hmp4040 => 4,
         };
+        if self.protocol == Protocol::Hmp4040 {
+            self.lamp
+                .validate()
+                .map_err(|m| io::Error::new(io::ErrorKind::InvalidInput, m))?;
+            if let Some(f) = self.faults.faults.iter().find(|f| {
+                !matches!(
+                    f,
+                    faults::Fault::Garble(_) | faults::Fault::Drop(_) | faults::Fault::Slow { .. }
+                )
+            }) {
+                return bad(format!(
+                    "hmp4040 emulator: fault `{f}` is a motion fault; a power supply takes garble, drop, slow"
+                ));
+            }
+        }
         if self.axes == 0 || self.axes > max_axes {
             return bad(format!(
                 "{} emulator: {} axes (valid 1 ..= {max_axes})",
@@ -441,6 +466,7 @@ pub fn controller(config: &EmulatorConfig, state: Option<EmulatorState>) -> io::
     Ok(match config.protocol {
         Protocol::Zaber => Box::new(zaber::Zaber::new(config, state)),
         Protocol::Esp300 => Box::new(esp300::Esp300::new(config, state)),
+        Protocol::Hmp4040 => Box::new(hmp::Hmp::new(config)),
     })
 }
 
@@ -539,7 +565,7 @@ pub fn spawn_pty(config: EmulatorConfig) -> io::Result<EmulatorHandle> {
         state: Mutex::new(ctrl.state(Instant::now())),
     });
     tracing::info!(
-        "{} emulator ({} axes) on {}",
+        "{} emulator ({} axes or channels) on {}",
         config.protocol,
         config.axes,
         path.display()

@@ -482,3 +482,37 @@ fn zaber_encoder_reads_the_load_side_of_the_error_model() {
     one(ideal.as_mut(), "/1 1 move abs 10000", t0);
     assert_eq!(value(one(ideal.as_mut(), "/1 1 get encoder.pos", t1)), 10_000);
 }
+
+#[test]
+fn pty_hmp_answers_scpi_and_garbles_on_request() {
+    let h = spawn(Protocol::Hmp4040, &["garble:at=3"]);
+    let mut c = Client::open(h.path());
+    assert_eq!(c.ask("*IDN?").as_deref(), Some(hmp::EMULATED_IDN));
+    assert_eq!(
+        c.ask("INST:NSEL 1;APPL 12,10;OUTP:SEL 1;OUTP:GEN 1;MEAS:VOLT?")
+            .as_deref(),
+        Some("12.000")
+    );
+    c.send("MEAS:CURR?");
+    assert_eq!(
+        c.line().unwrap(),
+        faults::garble(b"8.3333"),
+        "reply to command 3 garbled"
+    );
+    assert_eq!(c.ask("BOGUS?"), None, "an unknown header is not answered");
+    assert_eq!(c.ask("SYST:ERR?").as_deref(), Some("-113,\"Undefined header\""));
+    h.stop();
+}
+
+#[test]
+fn hmp_rejects_motion_faults_and_bad_lamps() {
+    let cfg = EmulatorConfig::new(Protocol::Hmp4040, 4).with_faults(FaultPlan::parse(&["stall:at-move=1"]).unwrap());
+    let e = controller(&cfg, None).err().unwrap().to_string();
+    assert!(e.contains("stall") && e.contains("garble"), "{e}");
+    let mut cfg = EmulatorConfig::new(Protocol::Hmp4040, 5);
+    assert!(controller(&cfg, None).is_err(), "an HMP4040 has 4 channels");
+    cfg.axes = 4;
+    cfg.lamp.cold_resistance_ohm = 2.0;
+    let e = controller(&cfg, None).err().unwrap().to_string();
+    assert!(e.contains("cold resistance"), "{e}");
+}
