@@ -18,10 +18,10 @@
 //! not enabled …); codes below 100 are general (6 unknown command, 7 parameter out of range …).
 
 use super::policy::{Driver, Poll, POLICY_KEYS};
-use super::{link_error, Link, Options, SerialConfigError, SerialTransport, Transport};
+use super::{LinePort, Options, SerialConfigError, SerialTransport, Transport};
 use crate::{DeviceError, SoftLimits};
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::time::Duration;
 
 /// Line terminator sent after each command.
 pub const TERMINATOR: &str = "\r\n";
@@ -63,9 +63,14 @@ pub fn general_error_text(code: u32) -> &'static str {
 
 /// One serial port with an ESP controller; shared by its axes.
 pub struct EspPort {
-    path: String,
-    reply_timeout: Duration,
-    link: Mutex<Link>,
+    line: LinePort,
+}
+
+impl std::ops::Deref for EspPort {
+    type Target = LinePort;
+    fn deref(&self) -> &LinePort {
+        &self.line
+    }
 }
 
 impl EspPort {
@@ -79,65 +84,8 @@ impl EspPort {
 
     pub fn with_transport(path: &str, transport: Box<dyn Transport>, reply_timeout: Duration) -> EspPort {
         EspPort {
-            path: path.to_string(),
-            reply_timeout,
-            link: Mutex::new(Link::new(transport)),
+            line: LinePort::new(path, transport, reply_timeout, TERMINATOR),
         }
-    }
-
-    pub fn path(&self) -> &str {
-        &self.path
-    }
-
-    /// Send a command that has no reply.
-    pub fn write(&self, who: &str, command: &str) -> Result<(), DeviceError> {
-        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
-        link.begin()
-            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
-        link.send(&format!("{command}{TERMINATOR}")).map_err(|e| {
-            link.mark_dirty();
-            link_error(who, command, self.reply_timeout, e)
-        })
-    }
-
-    /// Send a query and return its (trimmed, non-empty) reply line.
-    pub fn query(&self, who: &str, command: &str) -> Result<String, DeviceError> {
-        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
-        let fail = |link: &mut Link, e| {
-            link.mark_dirty();
-            link_error(who, command, self.reply_timeout, e)
-        };
-        link.begin()
-            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
-        if let Err(e) = link.send(&format!("{command}{TERMINATOR}")) {
-            return Err(fail(&mut link, e));
-        }
-        let deadline = Instant::now() + self.reply_timeout;
-        loop {
-            match link.read_line(deadline) {
-                Ok(l) if l.trim().is_empty() => continue,
-                Ok(l) => return Ok(l.trim().to_string()),
-                Err(e) => return Err(fail(&mut link, e)),
-            }
-        }
-    }
-
-    fn garbled(&self, who: &str, command: &str, reply: &str, why: &str) -> DeviceError {
-        self.link.lock().unwrap_or_else(|p| p.into_inner()).mark_dirty();
-        DeviceError::Garbled {
-            device: who.to_string(),
-            command: command.to_string(),
-            reply: format!("{reply} ({why})"),
-        }
-    }
-
-    /// A query whose reply is one number.
-    pub fn query_number(&self, who: &str, command: &str) -> Result<f64, DeviceError> {
-        let r = self.query(who, command)?;
-        r.parse::<f64>()
-            .ok()
-            .filter(|x| x.is_finite())
-            .ok_or_else(|| self.garbled(who, command, &r, "expected a number"))
     }
 
     /// Read one entry of the error queue (`TB?`): `(code, message)`, code 0 = no error.
@@ -377,6 +325,7 @@ mod tests {
     use super::super::testing::{ScriptReply, ScriptedTransport};
     use super::*;
     use crate::{Axis, MotionModel};
+    use std::sync::Mutex;
 
     #[test]
     fn numbers_are_plain_decimals() {

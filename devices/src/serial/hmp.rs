@@ -30,11 +30,11 @@
 //! is not linear in either, see `docs/guide/hardware.md`). Intensity 0 or `on = false`
 //! deactivates the channel.
 
-use super::{link_error, Link, Options, SerialConfigError, SerialTransport, Transport};
+use super::{LinePort, Options, SerialConfigError, SerialTransport, Transport};
 use crate::{DeviceError, LampReading, Light};
 use async_trait::async_trait;
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::time::Duration;
 
 /// Line terminator sent after each command.
 pub const TERMINATOR: &str = "\n";
@@ -164,9 +164,14 @@ fn fmt_num(x: f64, decimals: usize) -> String {
 
 /// The serial line to the supply.
 pub struct HmpPort {
-    path: String,
-    reply_timeout: Duration,
-    link: Mutex<Link>,
+    line: LinePort,
+}
+
+impl std::ops::Deref for HmpPort {
+    type Target = LinePort;
+    fn deref(&self) -> &LinePort {
+        &self.line
+    }
 }
 
 impl HmpPort {
@@ -180,65 +185,8 @@ impl HmpPort {
 
     pub fn with_transport(path: &str, transport: Box<dyn Transport>, reply_timeout: Duration) -> HmpPort {
         HmpPort {
-            path: path.to_string(),
-            reply_timeout,
-            link: Mutex::new(Link::new(transport)),
+            line: LinePort::new(path, transport, reply_timeout, TERMINATOR),
         }
-    }
-
-    pub fn path(&self) -> &str {
-        &self.path
-    }
-
-    /// Send a command that has no reply.
-    pub fn write(&self, who: &str, command: &str) -> Result<(), DeviceError> {
-        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
-        link.begin()
-            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
-        link.send(&format!("{command}{TERMINATOR}")).map_err(|e| {
-            link.mark_dirty();
-            link_error(who, command, self.reply_timeout, e)
-        })
-    }
-
-    /// Send a query and return its (trimmed, non-empty) reply line.
-    pub fn query(&self, who: &str, command: &str) -> Result<String, DeviceError> {
-        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
-        let fail = |link: &mut Link, e| {
-            link.mark_dirty();
-            link_error(who, command, self.reply_timeout, e)
-        };
-        link.begin()
-            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
-        if let Err(e) = link.send(&format!("{command}{TERMINATOR}")) {
-            return Err(fail(&mut link, e));
-        }
-        let deadline = Instant::now() + self.reply_timeout;
-        loop {
-            match link.read_line(deadline) {
-                Ok(l) if l.trim().is_empty() => continue,
-                Ok(l) => return Ok(l.trim().to_string()),
-                Err(e) => return Err(fail(&mut link, e)),
-            }
-        }
-    }
-
-    fn garbled(&self, who: &str, command: &str, reply: &str, why: &str) -> DeviceError {
-        self.link.lock().unwrap_or_else(|p| p.into_inner()).mark_dirty();
-        DeviceError::Garbled {
-            device: who.to_string(),
-            command: command.to_string(),
-            reply: format!("{reply} ({why})"),
-        }
-    }
-
-    /// A query whose reply is one number.
-    pub fn query_number(&self, who: &str, command: &str) -> Result<f64, DeviceError> {
-        let r = self.query(who, command)?;
-        r.parse::<f64>()
-            .ok()
-            .filter(|x| x.is_finite())
-            .ok_or_else(|| self.garbled(who, command, &r, "expected a number"))
     }
 
     /// Pop one entry of the error queue (`SYST:ERR?`); code 0 = empty.
@@ -487,6 +435,7 @@ mod tests {
     use super::super::testing::{ScriptReply, ScriptedTransport};
     use super::*;
     use std::collections::BTreeMap;
+    use std::sync::Mutex;
 
     fn opts(pairs: &[(&str, toml::Value)]) -> BTreeMap<String, toml::Value> {
         pairs.iter().map(|(k, v)| (k.to_string(), v.clone())).collect()

@@ -230,6 +230,90 @@ impl Link {
     }
 }
 
+/// A controller that speaks one command per line and answers a query with one line (the
+/// ESP300 command set, SCPI supplies): the exchange both drivers share. Each driver keeps
+/// its own parsing on top (`esp300::EspPort`, `hmp::HmpPort` dereference to it).
+pub struct LinePort {
+    path: String,
+    reply_timeout: Duration,
+    /// Appended to every command (`\r\n` for the ESP300, `\n` for SCPI).
+    terminator: &'static str,
+    link: std::sync::Mutex<Link>,
+}
+
+impl LinePort {
+    pub fn new(
+        path: &str,
+        transport: Box<dyn Transport>,
+        reply_timeout: Duration,
+        terminator: &'static str,
+    ) -> LinePort {
+        LinePort {
+            path: path.to_string(),
+            reply_timeout,
+            terminator,
+            link: std::sync::Mutex::new(Link::new(transport)),
+        }
+    }
+
+    pub fn path(&self) -> &str {
+        &self.path
+    }
+
+    /// Send a command that has no reply.
+    pub fn write(&self, who: &str, command: &str) -> Result<(), DeviceError> {
+        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
+        link.begin()
+            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
+        link.send(&format!("{command}{}", self.terminator)).map_err(|e| {
+            link.mark_dirty();
+            link_error(who, command, self.reply_timeout, e)
+        })
+    }
+
+    /// Send a query and return its (trimmed, non-empty) reply line.
+    pub fn query(&self, who: &str, command: &str) -> Result<String, DeviceError> {
+        let mut link = self.link.lock().unwrap_or_else(|p| p.into_inner());
+        let fail = |link: &mut Link, e| {
+            link.mark_dirty();
+            link_error(who, command, self.reply_timeout, e)
+        };
+        link.begin()
+            .map_err(|e| link_error(who, command, self.reply_timeout, e))?;
+        if let Err(e) = link.send(&format!("{command}{}", self.terminator)) {
+            return Err(fail(&mut link, e));
+        }
+        let deadline = Instant::now() + self.reply_timeout;
+        loop {
+            match link.read_line(deadline) {
+                Ok(l) if l.trim().is_empty() => continue,
+                Ok(l) => return Ok(l.trim().to_string()),
+                Err(e) => return Err(fail(&mut link, e)),
+            }
+        }
+    }
+
+    /// A reply that does not parse: the link is marked dirty (late bytes are dropped before
+    /// the next command) and the error names the reply and why.
+    pub fn garbled(&self, who: &str, command: &str, reply: &str, why: &str) -> DeviceError {
+        self.link.lock().unwrap_or_else(|p| p.into_inner()).mark_dirty();
+        DeviceError::Garbled {
+            device: who.to_string(),
+            command: command.to_string(),
+            reply: format!("{reply} ({why})"),
+        }
+    }
+
+    /// A query whose reply is one number.
+    pub fn query_number(&self, who: &str, command: &str) -> Result<f64, DeviceError> {
+        let r = self.query(who, command)?;
+        r.parse::<f64>()
+            .ok()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| self.garbled(who, command, &r, "expected a number"))
+    }
+}
+
 /// Convert a link failure into the typed error naming the axis and the command.
 pub fn link_error(device: &str, command: &str, timeout: Duration, e: LinkError) -> DeviceError {
     match e {
