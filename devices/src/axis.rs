@@ -58,6 +58,19 @@ pub trait Axis: Send + Sync {
         Ok(None)
     }
 
+    /// Start a move to `target` whose cruise velocity is at most `velocity` (units/s, > 0),
+    /// with the axis' own acceleration: what a fly-scan flies a light ring with (the
+    /// exposures are timed against this profile). Axes whose controller cannot take a
+    /// commanded velocity refuse (the default), and the planner flies nothing on them.
+    async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        let _ = (target, velocity);
+        Err(DeviceError::Rejected {
+            device: self.name().to_string(),
+            command: "start_move_at".into(),
+            reason: "this axis' backend has no constant-velocity moves; fly-scan needs them".into(),
+        })
+    }
+
     /// Move to `target` and wait until settled; returns the read-back position.
     async fn move_abs(&self, target: f64) -> Result<f64, DeviceError> {
         self.start_move(target).await?;

@@ -91,4 +91,10 @@ pub trait Camera: Send + Sync {
     /// hence the empty default. The engine calls it when a run ends, so the run's rig time
     /// includes the last readout.
     async fn readout_done(&self) {}
+    /// Whether the camera may expose while the rig moves (fly-scan): its frames then show
+    /// the motion of one exposure, and the engine stamps them with the stages' positions at
+    /// exposure start and end. Only the simulated camera, which renders that motion, does.
+    fn exposes_in_motion(&self) -> bool {
+        false
+    }
 }

@@ -23,6 +23,9 @@ struct AxisState {
     target: f64,
     t_start: f64,
     t_end: f64,
+    /// Cruise velocity of the current move: the axis' maximum, or what a fly-scan asked for
+    /// (`start_move_at`).
+    velocity: f64,
 }
 
 /// A simulated motor stage.
@@ -50,6 +53,7 @@ impl SimAxis {
                 target: 0.0,
                 t_start: 0.0,
                 t_end: 0.0,
+                velocity: motion.max_velocity,
             }),
             mech: None,
         }
@@ -79,7 +83,13 @@ impl SimAxis {
     /// Where the load really is now (radians): the read-back plus backlash, homing offset
     /// and positioning error. What the simulated camera sees and a load-side encoder reads.
     pub fn load_position_now(&self) -> f64 {
-        let p = self.position_now();
+        self.load_position_at(self.clock.now())
+    }
+
+    /// Where the load is at rig time `t` along the current move (the moment of a sub-frame
+    /// of a flown exposure); [`SimAxis::load_position_now`] at `t = now`.
+    pub fn load_position_at(&self, t: f64) -> f64 {
+        let p = self.position_at(t);
         match &self.mech {
             None => p,
             Some(m) => {
@@ -105,10 +115,19 @@ impl SimAxis {
     /// reached from two directions (a resumed run, a shard) would read back, and render,
     /// differently.
     pub fn position_now(&self) -> f64 {
+        self.position_at(self.clock.now())
+    }
+
+    /// The read-back at rig time `t` along the current move.
+    pub fn position_at(&self, t: f64) -> f64 {
         let s = self.state.lock().expect("axis state poisoned");
-        let t = self.clock.now() - s.t_start;
+        let t = t - s.t_start;
         let d = s.target - s.start;
-        let p = self.motion.position_at(d, t);
+        let motion = MotionModel {
+            max_velocity: s.velocity,
+            ..self.motion
+        };
+        let p = motion.position_at(d, t);
         if p == d {
             s.target
         } else {
@@ -140,6 +159,7 @@ impl Axis for SimAxis {
             target: 0.0,
             t_start: end,
             t_end: end,
+            velocity: self.motion.max_velocity,
         };
         drop(s);
         if let Some(m) = &self.mech {
@@ -148,7 +168,22 @@ impl Axis for SimAxis {
         Ok(())
     }
     async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
+        self.start_move_at(target, self.motion.max_velocity).await
+    }
+    async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
         check_limits(&self.name, self.limits, target, "move_abs")?;
+        if !(velocity.is_finite() && velocity > 0.0) {
+            return Err(DeviceError::Rejected {
+                device: self.name.clone(),
+                command: format!("start_move_at {target} {velocity}"),
+                reason: "the velocity must be > 0".into(),
+            });
+        }
+        let velocity = velocity.min(self.motion.max_velocity);
+        let motion = MotionModel {
+            max_velocity: velocity,
+            ..self.motion
+        };
         let from = self.position_now();
         self.mech_fold(from);
         let now = self.clock.now();
@@ -159,13 +194,14 @@ impl Axis for SimAxis {
                 command: "move_abs".into(),
             });
         }
-        let dt = self.motion.move_time(target - from);
+        let dt = motion.move_time(target - from);
         *s = AxisState {
             homed: true,
             start: from,
             target,
             t_start: now,
             t_end: now + dt,
+            velocity,
         };
         Ok(())
     }
@@ -183,6 +219,7 @@ impl Axis for SimAxis {
         s.target = p;
         s.t_start = now;
         s.t_end = now;
+        s.velocity = self.motion.max_velocity;
         Ok(())
     }
     async fn position(&self) -> Result<f64, DeviceError> {
@@ -298,6 +335,13 @@ pub const TRUTH_VIEW_BUDGET: usize = 64 << 20;
 /// when the tour first changes pose, which a memory soak reads as growth.
 pub const RAW_VIEW_CACHE: usize = 1;
 
+/// Largest axis travel between two sub-frames of a moving exposure (0.05°): far below any
+/// lobe the sample library renders, and the sweep of a default fly-scan exposure (0.5°)
+/// takes 10.
+pub const MOTION_STEP_RAD: f64 = 0.05 * std::f64::consts::PI / 180.0;
+/// At most this many sub-frames per exposure (a sweep beyond 3.2° is sampled coarser).
+pub const MAX_MOTION_SUBFRAMES: usize = 64;
+
 /// Which part of the sensor the simulated camera reads out.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Roi {
@@ -316,6 +360,39 @@ impl SimWorld {
             intensity: if on { k * self.light_intensity_w_sr } else { 0.0 },
             radius: self.lamp_radius_mm,
         }
+    }
+
+    /// Axis positions (load side) at rig time `t`.
+    pub fn configuration_at(&self, t: f64) -> Vec<f64> {
+        self.axes.iter().map(|a| a.load_position_at(t)).collect()
+    }
+
+    /// The raw radiance of one exposure from `t0` to `t1`: the frame at `q0` when the rig
+    /// stands still, else the mean over sub-frames spaced at most [`MOTION_STEP_RAD`] of
+    /// axis travel apart (midpoint rule), so motion blur is rendered, not assumed away.
+    pub fn exposure_radiance(&self, t0: f64, t1: f64) -> (Vec<f64>, RgbImage) {
+        let q0 = self.configuration_at(t0);
+        let q1 = self.configuration_at(t1);
+        let travel = q0.iter().zip(&q1).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let qm = self.configuration_at(0.5 * (t0 + t1));
+        if travel == 0.0 && qm == q0 {
+            let rad = self.raw_radiance(&q0);
+            return (q0, rad);
+        }
+        let k = ((travel / MOTION_STEP_RAD).ceil() as usize).clamp(2, MAX_MOTION_SUBFRAMES);
+        let mut acc: Option<RgbImage> = None;
+        for i in 0..k {
+            let t = t0 + (t1 - t0) * (i as f64 + 0.5) / k as f64;
+            let img = self.raw_radiance(&self.configuration_at(t));
+            match acc.as_mut() {
+                None => acc = Some(img),
+                Some(a) => a.data.iter_mut().zip(&img.data).for_each(|(x, y)| *x += y),
+            }
+        }
+        let mut img = acc.expect("k >= 2 sub-frames");
+        let inv = 1.0 / k as f32;
+        img.data.iter_mut().for_each(|x| *x *= inv);
+        (qm, img)
     }
 
     /// Current axis positions.
@@ -520,6 +597,10 @@ impl Camera for SimCamera {
         })
     }
 
+    fn exposes_in_motion(&self) -> bool {
+        true
+    }
+
     async fn readout_done(&self) {
         let free_at = *self.world.sensor_free_at.lock().expect("sensor_free_at poisoned");
         self.world.clock.wait_until(free_at).await;
@@ -557,7 +638,9 @@ impl Camera for SimCamera {
         let noise_key = noise_key(identity, &q, world.frame_noise, seq);
         let w2 = world.clone();
         let data = tokio::task::spawn_blocking(move || {
-            let rad = w2.raw_radiance(&q);
+            // Still rig: the frame at `q`. Moving rig (a fly-scan): the exposure's motion,
+            // integrated, and the mid-exposure pose for the read-out window.
+            let (q, rad) = w2.exposure_radiance(timestamp, timestamp + exposure);
             let sensor = w2.sensor.lock().expect("sensor poisoned").clone();
             if let Some(r) = &w2.response {
                 let roi = match w2.roi {

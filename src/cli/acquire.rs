@@ -86,6 +86,8 @@ pub struct AcquireArgs {
     /// flags shows; `gonio complete` predicts the rest (docs/guide/sparse.md).
     #[command(flatten)]
     pub sparse: super::sparse::SparseArgs,
+    #[command(flatten)]
+    pub fly: super::common::FlyArgs,
 }
 
 fn parse_hdr(s: &str) -> std::result::Result<HdrMode, String> {
@@ -104,6 +106,13 @@ pub fn run(args: AcquireArgs) -> Result<ExitCode> {
 async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     let session = match &args.resume {
         Some(dir) => {
+            if args.fly.fly || args.fly.blur_deg.is_some() {
+                anyhow::bail!(
+                    "--resume {}: --fly and --blur-deg shape a new acquisition's plan; a resumed one flies as its \
+                     plan.json says: drop them",
+                    dir.display()
+                );
+            }
             if args.sparse.prior.is_some() || args.sparse.target()?.is_some() {
                 anyhow::bail!(
                     "--resume {}: the sparse flags (--prior, --pairs, --fraction, --rig-budget) choose the pairs of a \
@@ -226,6 +235,7 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
                 target: l.target,
                 design: l.design,
             }),
+            fly: args.fly.options()?,
         },
         settings: RunSettings {
             width: args.size.0,

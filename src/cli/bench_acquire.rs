@@ -150,6 +150,7 @@ fn bench(
             options: a.sweep.plan_options()?,
             isotropic: a.sweep.isotropic,
             sparse: None,
+            fly: None,
         },
         settings: RunSettings {
             width: a.size,

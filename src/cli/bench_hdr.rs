@@ -112,6 +112,7 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
                 options: args.sweep.plan_options()?,
                 isotropic: args.sweep.isotropic,
                 sparse: None,
+                fly: None,
             },
             settings: RunSettings {
                 width: args.size.0,

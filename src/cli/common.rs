@@ -103,6 +103,32 @@ impl SweepArgs {
     }
 }
 
+/// `--fly [--blur-deg B]`, shared by `gonio plan`, `gonio acquire` and the benches.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct FlyArgs {
+    /// Fly-scan: expose while the lamp moves through each light ring at constant velocity
+    /// (camera and sample stand still), instead of stopping at every pair
+    /// (docs/results/rig-time.md).
+    #[arg(long)]
+    pub fly: bool,
+    /// With --fly: the light direction one exposure may sweep, in degrees (0, 10]; it sets
+    /// each ring's velocity. Default 0.5.
+    #[arg(long, value_name = "DEG")]
+    pub blur_deg: Option<f64>,
+}
+
+impl FlyArgs {
+    /// The fly options these flags ask for (`None` without `--fly`).
+    pub fn options(&self) -> Result<Option<gonio_acquire::plan::fly::FlyOptions>> {
+        use gonio_acquire::plan::fly::{FlyOptions, DEFAULT_BLUR_DEG};
+        match (self.fly, self.blur_deg) {
+            (false, None) => Ok(None),
+            (false, Some(b)) => anyhow::bail!("--blur-deg {b} applies to fly-scan: add --fly"),
+            (true, b) => Ok(Some(FlyOptions::new(b.unwrap_or(DEFAULT_BLUR_DEG))?)),
+        }
+    }
+}
+
 pub fn load_sample(name: &str) -> Result<SampleSpec> {
     SampleSpec::resolve(name).with_context(|| format!("loading sample `{name}`"))
 }

@@ -24,6 +24,8 @@ pub struct PlanArgs {
     pub sample: Option<String>,
     #[command(flatten)]
     pub sparse: super::sparse::SparseArgs,
+    #[command(flatten)]
+    pub fly: super::common::FlyArgs,
 }
 
 /// `gonio plan --json` of a sparse plan: the plan carries its `sparse` field.
@@ -61,10 +63,15 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         isotropic: args.sweep.isotropic || from_sample.is_some(),
         ..args.sweep.clone()
     };
+    let fly = args.fly.options()?;
     let plan = sweep_args.plan(&rig, &sweep)?;
     if let Some(sparse) = super::sparse::LoadedSparse::from_args(&args.sparse)? {
         let opts = args.sweep.plan_options()?;
         let plan = Plan::build_sparse(&rig, &sweep, &opts, &plan, sparse.request())?;
+        let plan = match fly {
+            Some(f) => plan.into_fly(&rig, &opts, f)?,
+            None => plan,
+        };
         let info = plan.sparse.as_ref().expect("a sparse plan records its design");
         if args.json {
             let j = SparsePlanJson {
@@ -77,6 +84,10 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
+    let plan = match fly {
+        Some(f) => plan.into_fly(&rig, &args.sweep.plan_options()?, f)?,
+        None => plan,
+    };
     let counts = plan.counts();
     let d = &plan.durations;
     let bound_over_canonical = d.lower_bound_s / d.canonical_s;
@@ -142,6 +153,9 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         "  bound / canonical         {bound_over_canonical:>9.3}   (no order beats this fraction of the canonical time)"
     );
     println!("  capture per measurement   {:>9.2} s", d.capture_per_measurement_s);
+    if let Some(f) = &plan.fly {
+        print_fly(f, d.canonical_s);
+    }
     if let Some(iso) = &plan.isotropic {
         if let Some(name) = &from_sample {
             println!("  isotropic because sample `{name}` declares it (isotropic = true)");
@@ -192,4 +206,37 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The fly-scan lines of `gonio plan --fly`.
+fn print_fly(f: &gonio_acquire::plan::fly::FlyInfo, canonical: f64) {
+    println!(
+        "  fly-scan (blur bound {} ° of light direction per exposure; axis {} moves, camera and sample stand still):",
+        f.blur_deg, f.axis
+    );
+    println!(
+        "    fly                     {:>9.0} s ({:.2} h, {:.3} × canonical)",
+        f.fly_s,
+        f.fly_s / 3600.0,
+        f.fly_s / canonical
+    );
+    println!(
+        "    stop and go, overlapped {:>9.0} s ({:.3} × canonical)",
+        f.stop_and_go_overlapped_s,
+        f.stop_and_go_overlapped_s / canonical
+    );
+    println!(
+        "    fly lower bound         {:>9.0} s ({:.3} × canonical; the camera alone needs {:.0} s = {:.3} ×)",
+        f.lower_bound_s,
+        f.lower_bound_s / canonical,
+        f.readout_bound_s,
+        f.readout_bound_s / canonical
+    );
+    println!(
+        "    {} of {} segments flown, {} pairs in flight, {} stop and go; largest sweep {:.3} °, image motion {:.2} px",
+        f.flown_segments, f.segments, f.flown_pairs, f.stop_and_go_pairs, f.max_light_sweep_deg, f.max_image_blur_px
+    );
+    for (why, n) in &f.stop_and_go_reasons {
+        println!("      stop and go {n:>5} × {why}");
+    }
 }

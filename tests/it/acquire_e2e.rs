@@ -62,6 +62,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
             },
             isotropic: false,
             sparse: None,
+            fly: None,
         },
         settings: RunSettings {
             width: size,
@@ -174,6 +175,7 @@ async fn readout_overlapping_the_move_saves_what_the_plan_says_and_changes_no_im
                 },
                 isotropic: false,
                 sparse: None,
+                fly: None,
             },
             settings: RunSettings {
                 width: 16,

@@ -21,6 +21,7 @@ mod campaign_faults;
 mod campaign_kill9;
 mod determinism;
 mod fit;
+mod fly;
 mod fuzz_import;
 mod fuzz_inputs;
 mod fuzz_protocols;

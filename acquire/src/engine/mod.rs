@@ -14,6 +14,7 @@
 //! store thread writes measurement k (EXR encoding, fsyncs, journal line: `commit`) on a
 //! scoped thread while it develops measurement k + 1.
 
+mod fly;
 pub mod lamp;
 pub mod metrics;
 
@@ -138,6 +139,8 @@ struct Job {
     bracket: Option<Bracket>,
     /// The lamp's reading after the capture (lights whose supply measures).
     lamp: Option<LampRecord>,
+    /// A flown frame's measured poses (`extra.flight`, see [`fly`]).
+    flight: Option<serde_json::Value>,
 }
 
 /// The exposures of an HDR bracket beyond its base frame, and what bracketing noted.
@@ -226,7 +229,10 @@ pub async fn run(
     }
     // HDR bracketing (rig file `[hdr]` / `--hdr`); off: exactly the single-exposure path.
     let hdr = rig.spec.hdr.clone().filter(|h| h.mode() != HdrMode::Off);
-    for (order, step) in todo.iter().copied() {
+    // Rig-clock end of the last exposure: a flight's first exposure waits for its readout.
+    let mut last_end: Option<f64> = None;
+    let mut k = 0;
+    while k < todo.len() {
         if drive_err.is_some() || failed.load(Ordering::SeqCst) {
             break;
         }
@@ -237,31 +243,89 @@ pub async fn run(
         let Some((policy, camera_config)) = &setup else {
             break;
         };
-        let driven = match drive_step(&rig, step, &mut drive_times, policy, camera_config, hdr.as_ref()).await {
-            Ok(d) => read_lamp(&rig, step.index, &mut lamp).await.map(|l| (d, l)),
-            Err(e) => Err(e),
-        };
-        match driven {
-            Ok(((frame, notes, bracket, q_cmd, q_read), lamp_record)) => {
-                let job = Job {
-                    order,
-                    step: step.clone(),
-                    frame,
-                    q_cmd,
-                    q_read,
-                    rig_time: rig.time(),
-                    wall_time: unix_now(),
-                    notes,
-                    bracket,
-                    lamp: lamp_record,
-                };
-                let index = job.step.index;
-                if tx.send(job).await.is_err() {
-                    break; // store thread ended (failed): its error is reported below
+        let (order, step) = todo[k];
+        // A flown segment is one step of the drive loop: its poses still to measure, flown
+        // together; a pause waits for the segment's end.
+        let flown: Vec<fly::Flown> = if let Some(f) = &step.flight {
+            let same = |s: &Step| s.flight.as_ref().is_some_and(|g| g.segment == f.segment);
+            let wanted: HashSet<usize> = todo[k..]
+                .iter()
+                .take_while(|(_, s)| same(s))
+                .map(|(_, s)| s.index)
+                .collect();
+            k += wanted.len();
+            let lo = (0..=order)
+                .rev()
+                .take_while(|&i| same(&plan.steps[i]))
+                .last()
+                .unwrap_or(order);
+            let seg: Vec<(usize, &Step)> = (lo..plan.steps.len())
+                .take_while(|&i| same(&plan.steps[i]))
+                .map(|i| (i, &plan.steps[i]))
+                .collect();
+            match fly::drive_segment(
+                &rig,
+                &seg,
+                &wanted,
+                &mut drive_times,
+                policy,
+                camera_config,
+                &mut last_end,
+            )
+            .await
+            {
+                Ok(v) => v,
+                Err(e) => {
+                    drive_err = Some(e);
+                    break;
                 }
-                observer(&RunEvent::Captured { index });
             }
-            Err(e) => drive_err = Some(e),
+        } else {
+            k += 1;
+            match drive_step(&rig, step, &mut drive_times, policy, camera_config, hdr.as_ref()).await {
+                Ok(driven) => {
+                    last_end = Some(rig.time());
+                    vec![fly::Flown {
+                        order,
+                        step: step.clone(),
+                        driven,
+                        flight: serde_json::Value::Null,
+                        rig_time: rig.time(),
+                    }]
+                }
+                Err(e) => {
+                    drive_err = Some(e);
+                    break;
+                }
+            }
+        };
+        for f in flown {
+            let lamp_record = match read_lamp(&rig, f.step.index, &mut lamp).await {
+                Ok(l) => l,
+                Err(e) => {
+                    drive_err = Some(e);
+                    break;
+                }
+            };
+            let (frame, notes, bracket, q_cmd, q_read) = f.driven;
+            let job = Job {
+                order: f.order,
+                step: f.step,
+                frame,
+                q_cmd,
+                q_read,
+                rig_time: f.rig_time,
+                wall_time: unix_now(),
+                notes,
+                bracket,
+                lamp: lamp_record,
+                flight: (!f.flight.is_null()).then_some(f.flight),
+            };
+            let index = job.step.index;
+            if tx.send(job).await.is_err() {
+                break; // store thread ended (failed): its error is reported below
+            }
+            observer(&RunEvent::Captured { index });
         }
     }
     if setup.is_some() {
@@ -548,6 +612,9 @@ fn store_loop(
                 reason: reason.to_string(),
             },
         };
+        if let Some(f) = &job.flight {
+            extra["flight"] = f.clone();
+        }
         job.notes.write_extra(&mut extra);
         if let (Some(b), Some(r)) = (&job.bracket, &merge_report) {
             extra["hdr"] = serde_json::json!({

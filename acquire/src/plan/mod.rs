@@ -5,6 +5,7 @@
 //! (`plan.json`) and executed step by step by the acquisition engine, which resumes it
 //! by skipping the steps the journal already holds.
 
+pub mod fly;
 pub mod isotropic;
 pub mod order;
 pub mod sparse;
@@ -36,6 +37,9 @@ pub enum PlanError {
     /// range, a design that cannot determine the prior).
     #[error("sparse plan: {message}")]
     Sparse { message: String },
+    /// A fly-scan plan that cannot be made (a rig that cannot fly, a bad blur bound).
+    #[error("fly-scan plan: {message}")]
+    Fly { message: String },
 }
 
 /// What to do with a pair the rig cannot measure as asked.
@@ -86,6 +90,9 @@ pub struct Step {
     /// Planned motion time into this step (s) and planned start of its capture (s).
     pub transition_s: f64,
     pub capture_start_s: f64,
+    /// Present when the step is exposed in flight (`gonio plan --fly`, [`fly`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flight: Option<fly::StepFlight>,
 }
 
 /// A pair left out, with the reason.
@@ -237,6 +244,10 @@ pub struct Plan {
     /// error ([`Plan::build_sparse`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sparse: Option<sparse::SparseInfo>,
+    /// Present for a fly-scan plan: the blur bound, the segments and the fly figures
+    /// ([`Plan::build_fly`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fly: Option<fly::FlyInfo>,
 }
 
 /// The isotropic reduction of a plan (see [`isotropic`]).
@@ -519,6 +530,7 @@ impl Plan {
                 axes_deg: q.iter().map(|x| (x.to_degrees() * 1e9).round() / 1e9).collect(),
                 transition_s: dt,
                 capture_start_s: t,
+                flight: None,
             });
             t += overlapped.still();
             prev = q;
@@ -552,6 +564,7 @@ impl Plan {
             light_count: sweep.lights.len(),
             isotropic: None,
             sparse: None,
+            fly: None,
         })
     }
 

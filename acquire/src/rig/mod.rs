@@ -63,6 +63,29 @@ impl Rig {
         }
     }
 
+    /// Wait until rig-clock time `t` (virtual on a simulated rig, a sleep otherwise): a
+    /// fly-scan times its kickoff and exposures on this clock.
+    pub async fn wait_until(&self, t: f64) {
+        match &self.clock {
+            Some(c) => c.wait_until(t).await,
+            None => {
+                let dt = t - self.time();
+                if dt > 0.0 {
+                    tokio::time::sleep(std::time::Duration::from_secs_f64(dt)).await;
+                }
+            }
+        }
+    }
+
+    /// Read back every axis now (radians, the rig's axis order).
+    pub async fn positions(&self) -> Result<Vec<f64>, DeviceError> {
+        let mut q = Vec::with_capacity(self.axes.len());
+        for a in &self.axes {
+            q.push(a.position().await?);
+        }
+        Ok(q)
+    }
+
     /// Home every axis, switch the light on and configure the camera from the rig file.
     /// Returns the configuration the camera applied.
     pub async fn prepare(&self) -> Result<CameraConfig, DeviceError> {

@@ -111,6 +111,8 @@ pub struct PlanRequest {
     pub isotropic: bool,
     /// A sparse acquisition: measure only the pairs a design in a prior chooses.
     pub sparse: Option<SparsePlan>,
+    /// Fly-scan: expose while the lamp moves, within this blur bound ([`Plan::into_fly`]).
+    pub fly: Option<crate::plan::fly::FlyOptions>,
 }
 
 /// A sparse acquisition's prior and how much to measure ([`Plan::build_sparse`]).
@@ -304,6 +306,12 @@ impl Session {
                 };
                 Plan::build_sparse(&rig, &new.sweep, &new.plan.options, &plan, req).map_err(SessionError::Plan)?
             }
+        };
+        let plan = match new.plan.fly {
+            None => plan,
+            Some(fly) => plan
+                .into_fly(&rig, &new.plan.options, fly)
+                .map_err(SessionError::Plan)?,
         };
         let dataset = Dataset::create(&new.out, &header, new.force).map_err(|source| SessionError::Create {
             dir: out.clone(),
@@ -705,6 +713,7 @@ mod tests {
                 options: PlanOptions::default(),
                 isotropic: false,
                 sparse: None,
+                fly: None,
             },
             settings: RunSettings {
                 width: 16,
