@@ -26,6 +26,9 @@ struct AxisState {
     /// Cruise velocity of the current move: the axis' maximum, or what a fly-scan asked for
     /// (`start_move_at`).
     velocity: f64,
+    /// How late the stage follows the current move's profile (s): the injected lag of a
+    /// velocity-commanded move ([`SimAxis::with_flight_lag`]), 0 otherwise.
+    lag: f64,
 }
 
 /// A simulated motor stage.
@@ -38,6 +41,10 @@ pub struct SimAxis {
     /// Opt-in mechanical error model (rig file `options.mechanical`): the load side then
     /// differs from the read-back. `None`: the load is exactly where the motor is.
     mech: Option<Mutex<crate::mechanics::MechanicalState>>,
+    /// Injected fault (rig file axis `options.flight_lag_s`): a velocity-commanded move
+    /// trails its profile by this many seconds, as a stage with a following error does, so
+    /// a flown frame is exposed behind its planned pose. Stop-and-go moves are unaffected.
+    flight_lag: f64,
 }
 
 impl SimAxis {
@@ -54,14 +61,22 @@ impl SimAxis {
                 t_start: 0.0,
                 t_end: 0.0,
                 velocity: motion.max_velocity,
+                lag: 0.0,
             }),
             mech: None,
+            flight_lag: 0.0,
         }
     }
 
     /// Give the axis a mechanical error model (see [`crate::mechanics`]); `None` keeps it ideal.
     pub fn with_mechanics(mut self, model: Option<crate::mechanics::MechanicalErrors>) -> Self {
         self.mech = model.map(|m| Mutex::new(crate::mechanics::MechanicalState::new(m)));
+        self
+    }
+
+    /// Give velocity-commanded moves a lag (see the field); 0 keeps the stage on its profile.
+    pub fn with_flight_lag(mut self, lag_s: f64) -> Self {
+        self.flight_lag = lag_s.max(0.0);
         self
     }
 
@@ -109,6 +124,45 @@ impl SimAxis {
         }
     }
 
+    /// Start a move along a trapezoid cruising at `velocity` (capped at the axis' maximum),
+    /// trailing it by `lag` seconds.
+    fn start_profile(&self, target: f64, velocity: f64, lag: f64) -> Result<(), DeviceError> {
+        check_limits(&self.name, self.limits, target, "move_abs")?;
+        if !(velocity.is_finite() && velocity > 0.0) {
+            return Err(DeviceError::Rejected {
+                device: self.name.clone(),
+                command: format!("start_move_at {target} {velocity}"),
+                reason: "the velocity must be > 0".into(),
+            });
+        }
+        let velocity = velocity.min(self.motion.max_velocity);
+        let motion = MotionModel {
+            max_velocity: velocity,
+            ..self.motion
+        };
+        let from = self.position_now();
+        self.mech_fold(from);
+        let now = self.clock.now();
+        let mut s = self.state.lock().expect("axis state poisoned");
+        if !s.homed {
+            return Err(DeviceError::NotHomed {
+                device: self.name.clone(),
+                command: "move_abs".into(),
+            });
+        }
+        let dt = motion.move_time(target - from);
+        *s = AxisState {
+            homed: true,
+            start: from,
+            target,
+            t_start: now,
+            t_end: now + dt + lag,
+            velocity,
+            lag,
+        };
+        Ok(())
+    }
+
     /// Position now (interpolated along the profile while moving). A finished move is at
     /// its target exactly: `start + (target − start)` can miss it in the last bit, and
     /// then where an axis ends would depend on where it came from, so the same pose
@@ -121,7 +175,7 @@ impl SimAxis {
     /// The read-back at rig time `t` along the current move.
     pub fn position_at(&self, t: f64) -> f64 {
         let s = self.state.lock().expect("axis state poisoned");
-        let t = t - s.t_start;
+        let t = t - s.t_start - s.lag;
         let d = s.target - s.start;
         let motion = MotionModel {
             max_velocity: s.velocity,
@@ -160,6 +214,7 @@ impl Axis for SimAxis {
             t_start: end,
             t_end: end,
             velocity: self.motion.max_velocity,
+            lag: 0.0,
         };
         drop(s);
         if let Some(m) = &self.mech {
@@ -168,42 +223,10 @@ impl Axis for SimAxis {
         Ok(())
     }
     async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
-        self.start_move_at(target, self.motion.max_velocity).await
+        self.start_profile(target, self.motion.max_velocity, 0.0)
     }
     async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
-        check_limits(&self.name, self.limits, target, "move_abs")?;
-        if !(velocity.is_finite() && velocity > 0.0) {
-            return Err(DeviceError::Rejected {
-                device: self.name.clone(),
-                command: format!("start_move_at {target} {velocity}"),
-                reason: "the velocity must be > 0".into(),
-            });
-        }
-        let velocity = velocity.min(self.motion.max_velocity);
-        let motion = MotionModel {
-            max_velocity: velocity,
-            ..self.motion
-        };
-        let from = self.position_now();
-        self.mech_fold(from);
-        let now = self.clock.now();
-        let mut s = self.state.lock().expect("axis state poisoned");
-        if !s.homed {
-            return Err(DeviceError::NotHomed {
-                device: self.name.clone(),
-                command: "move_abs".into(),
-            });
-        }
-        let dt = motion.move_time(target - from);
-        *s = AxisState {
-            homed: true,
-            start: from,
-            target,
-            t_start: now,
-            t_end: now + dt,
-            velocity,
-        };
-        Ok(())
+        self.start_profile(target, velocity, self.flight_lag)
     }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
         let end = self.state.lock().expect("axis state poisoned").t_end;
@@ -220,6 +243,7 @@ impl Axis for SimAxis {
         s.t_start = now;
         s.t_end = now;
         s.velocity = self.motion.max_velocity;
+        s.lag = 0.0;
         Ok(())
     }
     async fn position(&self) -> Result<f64, DeviceError> {
@@ -804,8 +828,22 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
                 key: format!("axis {}: {}", a.name, e.key),
                 message: e.message,
             })?;
+            let lag = match a.options.get("flight_lag_s") {
+                None => 0.0,
+                Some(v) => v
+                    .as_float()
+                    .or_else(|| v.as_integer().map(|i| i as f64))
+                    .filter(|x| x.is_finite() && (0.0..=10.0).contains(x))
+                    .ok_or_else(|| SimRigError {
+                        rig: spec.name.clone(),
+                        key: format!("axis {}: options.flight_lag_s", a.name),
+                        message: format!("{v}: must be seconds in [0, 10]"),
+                    })?,
+            };
             Ok(Arc::new(
-                SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone()).with_mechanics(mech),
+                SimAxis::new(&a.name, a.limits(), a.motion(), clock.clone())
+                    .with_mechanics(mech)
+                    .with_flight_lag(lag),
             ))
         })
         .collect::<Result<_, SimRigError>>()?;

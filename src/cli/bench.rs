@@ -33,6 +33,8 @@ pub enum BenchCommand {
     Acquire(Box<super::bench_acquire::AcquireBenchArgs>),
     /// HDR acquisition per mode (off, fixed brackets, auto): clipping, error vs. unclipped truth, rig and wall time (table + SVG).
     Hdr(super::bench_hdr::HdrBenchArgs),
+    /// Fly-scan per blur bound against stop and go: the sweep's rig time, and PSNR against the truth on a few views.
+    Fly(Box<super::bench_fly::FlyBenchArgs>),
     /// Sparse acquisition: PSNR of the completed dataset against rig time, with baselines.
     #[cfg(feature = "btf")]
     Sparse(Box<super::bench_sparse::SparseBenchArgs>),
@@ -426,6 +428,7 @@ pub fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Synthesize(a) => super::bench_synthesize::run(*a),
         BenchCommand::Acquire(a) => super::bench_acquire::run(*a),
         BenchCommand::Hdr(a) => super::bench_hdr::run(a),
+        BenchCommand::Fly(a) => super::bench_fly::run(*a),
         #[cfg(feature = "btf")]
         BenchCommand::Sparse(a) => super::bench_sparse::run(*a),
         #[cfg(feature = "btf")]

@@ -14,6 +14,7 @@ mod bench_compress;
 mod bench_decode;
 #[cfg(feature = "btf")]
 mod bench_fit;
+mod bench_fly;
 mod bench_hdr;
 mod bench_serial;
 #[cfg(feature = "btf")]

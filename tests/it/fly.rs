@@ -160,6 +160,45 @@ async fn fly_scan_runs_as_planned_resumes_to_the_same_bytes_and_keeps_the_error(
     assert!(sg.sweep_duration_s > sum.sweep_duration_s);
 }
 
+/// A stage that trails its commanded trajectory (the simulator's `flight_lag_s` fault):
+/// every flown frame is exposed behind its planned pose, so each is retaken stop and go,
+/// counted in its record, and no frame is stored with a pose it was not taken at.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lagging_stage_gets_its_frames_retaken_stop_and_go() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("lag");
+    let mut new = session(&dir, Some(0.5), "wallpaper");
+    new.sweep.lights.truncate(13); // the pole and the 45° ring
+    let axis = new.rig.axes.iter_mut().find(|a| a.role == "light_azimuth").unwrap();
+    axis.options.insert("flight_lag_s".into(), toml::Value::Float(0.05));
+    let s = Session::create(&new).unwrap();
+    let planned = s.plan().durations.optimized_s;
+    assert_eq!(s.plan().fly.as_ref().unwrap().flown_pairs, 12);
+    let sum = s
+        .run(&RunRequest::default(), Arc::new(AtomicBool::new(false)), quiet())
+        .await
+        .unwrap();
+    assert!(sum.complete);
+    assert!(sum.sweep_duration_s > planned, "retakes cost rig time");
+    let (_, records) = store::load(&dir).unwrap();
+    let retaken: Vec<_> = records
+        .iter()
+        .filter(|r| {
+            r.extra
+                .get("flight")
+                .is_some_and(|f| f.get("retaken_stop_and_go").is_some())
+        })
+        .collect();
+    assert_eq!(retaken.len(), 12, "every flown frame trailed its pose by ≈ 0.7°");
+    for r in retaken {
+        let why = r.extra["flight"]["retaken_stop_and_go"].as_str().unwrap();
+        assert!(why.contains("from the planned"), "{why}");
+        for (c, b) in r.axes_commanded_deg.iter().zip(&r.axes_read_back_deg) {
+            assert!((c - b).abs() < 1e-9, "index {}: stored at its pose", r.index);
+        }
+    }
+}
+
 #[test]
 fn fly_refuses_bad_bounds_and_rigs_that_cannot_fly() {
     for b in [0.0, -1.0, f64::NAN, 10.5] {

@@ -161,27 +161,34 @@ pub fn refusal(rig: &RigSpec) -> Option<String> {
             rig.name
         ));
     }
-    let Some(axis) = rig.axes.iter().find(|a| a.role == "light_azimuth") else {
+    if !rig.axes.iter().any(|a| a.role == "light_azimuth") {
         return Some(format!(
             "rig `{}` has no light-azimuth axis: fly-scan moves only the lamp (moving the camera or the sample would blur the image), so this rig is measured stop and go",
             rig.name
         ));
-    };
+    }
     if rig.camera.backend != "sim" {
         return Some(format!(
             "camera backend `{}` cannot expose while the rig moves (its frames are not stamped against the stages yet); fly-scan runs with the simulated camera",
             rig.camera.backend
         ));
     }
+    None
+}
+
+/// Why the light-azimuth axis cannot fly on this rig although the rig could (`None`: it
+/// can): the plan then stays stop and go as a whole and says why.
+fn axis_fallback(rig: &RigSpec) -> Option<String> {
+    let axis = rig.axes.iter().find(|a| a.role == "light_azimuth")?;
     if axis.backend != "sim" {
         return Some(format!(
-            "axis `{}` (backend `{}`) has no constant-velocity moves in gonio yet; fly-scan needs them on the light-azimuth axis",
+            "axis_backend: axis `{}` (backend `{}`) has no constant-velocity moves in gonio yet",
             axis.name, axis.backend
         ));
     }
     if axis.jerk_deg_s3.is_some() {
         return Some(format!(
-            "axis `{}` has a jerk limit: its position during a move is not the trapezoid the flight timing assumes",
+            "axis_jerk_limit: axis `{}` has a jerk limit, so its position in a move is not the trapezoid the flight timing assumes",
             axis.name
         ));
     }
@@ -228,7 +235,35 @@ impl Plan {
             .is_some_and(|h| h.mode() != gonio_devices::hdr::HdrMode::Off);
         let mut reasons: BTreeMap<String, usize> = BTreeMap::new();
         let mut segments = 0;
-        let items = s.items(&base, opts, hdr, &mut reasons, &mut segments)?;
+        let items = match axis_fallback(rig) {
+            None => s.items(&base, opts, hdr, &mut reasons, &mut segments)?,
+            Some(why) => {
+                reasons.insert(why, base.steps.len());
+                Vec::new()
+            }
+        };
+        if items.is_empty() {
+            // Nothing can fly: the stop-and-go plan, saying why.
+            let n = base.steps.len();
+            let mut plan = base;
+            plan.fly = Some(FlyInfo {
+                blur_deg: fly.blur_deg,
+                axis: rig.axes[s.axis].name.clone(),
+                segments,
+                flown_segments: 0,
+                flown_pairs: 0,
+                stop_and_go_pairs: n,
+                stop_and_go_reasons: reasons,
+                fly_s: plan.durations.optimized_s,
+                lower_bound_s: plan.durations.lower_bound_s,
+                readout_bound_s: n as f64 * (s.exposure + s.readout),
+                stop_and_go_overlapped_s: plan.durations.optimized_s,
+                max_light_sweep_deg: 0.0,
+                max_image_blur_px: 0.0,
+            });
+            plan.plan_time_s += t0.elapsed().as_secs_f64();
+            return Ok(plan);
+        }
         let (steps, fly_s, motion_s, _) = s.schedule(&base, &items);
         let n = steps.len();
         let flown_pairs = steps.iter().filter(|st| st.flight.is_some()).count();
