@@ -190,6 +190,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "bench_decode",
             "bench_view",
             "bench_fit",
+            "bench_fly",
             "bench_hdr",
             "bench_serial",
             "bench_synthesize",
