@@ -158,6 +158,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "nd",
             "pvmf",
             "svbrdf",
+            "gltf",
             "svd_j",
         ],
     ),

@@ -70,7 +70,13 @@ fn renders() -> &'static (tempfile::TempDir, PathBuf) {
             out
         };
         let white = render("white-standard", "white");
-        for s in ["lafortune", "cook-torrance", "rough-conductor", "lafortune-checker"] {
+        for s in [
+            "lafortune",
+            "cook-torrance",
+            "rough-conductor",
+            "lafortune-checker",
+            "gltf-checker",
+        ] {
             render(&sample(s), s);
         }
         (dir, white)
@@ -224,6 +230,8 @@ fn per_texel_fit_finds_both_materials_and_its_file_decodes() {
             })
             .collect(),
         geometry,
+        residual: vec![0.0; h.width * h.height],
+        failed: Vec::new(),
     };
     let decoder = CompressedBtf::new(g).unwrap();
     let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
