@@ -97,6 +97,26 @@ struct Output {
     per_texel: Option<TexelResult>,
 }
 
+/// The per-texel glTF fit of a dataset with the default options (`gonio export DATASET`
+/// fits first): the `.gbtf` that `gonio fit DATASET --model gltf --per-texel --out F.gbtf`
+/// writes, and the texels' summary.
+pub(super) fn fit_gltf(
+    dataset: &std::path::Path,
+    white: Option<&WhiteRef>,
+    texel_iterations: usize,
+) -> Result<(gonio_btf::compress::Gbtf, TexelSummary)> {
+    let input = dataset.display().to_string();
+    let loaded = load_dataset(dataset, white)?;
+    let report = fit(&loaded.averaged(), &FitOptions::new(ModelKind::Gltf), &input)?;
+    let (svbrdf, summary) = fit_texels(&loaded, &report, Space::Log, texel_iterations.max(1))?;
+    let ds = DatasetViews::open(dataset).with_context(|| format!("re-opening {input}"))?;
+    let mut gbtf = svbrdf
+        .to_gbtf(&ds)
+        .with_context(|| format!("storing the SVBRDF of {input}"))?;
+    gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
+    Ok((gbtf, summary))
+}
+
 /// `flag`'s value as a model, or an error naming the flag and the models there are.
 pub(super) fn parse_model(flag: &str, s: &str) -> Result<ModelKind> {
     ModelKind::parse(s).ok_or_else(|| {
