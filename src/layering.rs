@@ -68,6 +68,8 @@ const ALLOWED: &[(&str, &[&str])] = &[
     // measured as a compression method (`compress::evaluate`)
     ("fit", &["compress", "sweep"]),
     ("synthesize", &["compress", "store", "sweep"]),
+    // a fitted model written for renderers: reads `.gbtf` files and the fit's conventions
+    ("export", &["compress", "fit", "store", "sweep"]),
     // gonio (the binary's rooms): synthetic BTFs and families of them, written as datasets
     ("synth", &["sweep", "shard", "store"]),
     // the viewer reads datasets and compressed files (and renders them)
@@ -83,6 +85,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "calibrate",
             "compress",
             "fit",
+            "export",
             "plan",
             "rig",
             "develop",
@@ -158,11 +161,13 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "nd",
             "pvmf",
             "svbrdf",
+            "gltf",
             "svd_j",
         ],
     ),
     ("compress/local_pca", &[]),
     ("fit", &["data", "lm", "models"]),
+    ("export", &["texture"]),
     ("synthesize", &["features", "fft", "output", "tsvq"]),
     ("synth", &["dataset"]),
     ("synth/family", &[]),

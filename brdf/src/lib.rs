@@ -16,6 +16,7 @@
 //! | `oren-nayar` | [`oren_nayar`] | yes | approximately (≤ 1.015ρ / 1.051ρ at grazing) |
 //! | `rough-conductor` | [`rough_conductor`] | yes | yes |
 //! | `rough-plastic` | [`rough_plastic`] | yes | yes (up to table quadrature) |
+//! | `gltf` | [`gltf`] | yes (flat normal) | `F0 + (1 − m) c ≤ 1` roughly (no `(1 − F)` on the diffuse) |
 //!
 //! `eval` does not allocate (exception: the first call for a rough plastic material computes
 //! its Mitsuba-style tables, ~0.1 s, and caches them per process and thread) and returns
@@ -27,6 +28,7 @@
 
 pub mod cook_torrance;
 pub mod fresnel;
+pub mod gltf;
 pub mod lafortune;
 mod math;
 pub mod microfacet;
@@ -156,6 +158,16 @@ pub enum BrdfModel {
         #[serde(default)]
         nonlinear: bool,
     },
+    /// glTF 2.0's metallic-roughness material (see [`gltf`]): Lambert + GGX
+    /// (α = roughness²) with Schlick's Fresnel, `F0 = mix(0.04, base_color, metallic)`,
+    /// and an optional shading normal (tangent-plane components `[n_x, n_y]`).
+    Gltf {
+        base_color: Rgb,
+        metallic: f64,
+        roughness: f64,
+        #[serde(default)]
+        normal: [f64; 2],
+    },
 }
 
 /// `alpha`, or the (u, v) pair; a single given axis is used for both. Clamped to
@@ -186,6 +198,7 @@ impl BrdfModel {
             BrdfModel::OrenNayar { .. } => "oren-nayar",
             BrdfModel::RoughConductor { .. } => "rough-conductor",
             BrdfModel::RoughPlastic { .. } => "rough-plastic",
+            BrdfModel::Gltf { .. } => "gltf",
         }
     }
 
@@ -248,6 +261,12 @@ impl BrdfModel {
                 l,
                 v,
             ),
+            BrdfModel::Gltf {
+                base_color,
+                metallic,
+                roughness,
+                normal,
+            } => gltf::eval(base_color, *metallic, *roughness, *normal, l, v),
         }
     }
 
@@ -265,7 +284,7 @@ impl BrdfModel {
             | BrdfModel::CookTorrance { ks, .. } => zero(ks),
             BrdfModel::Lafortune { lobes, .. } => lobes.iter().all(|lb| zero(&lb.ks)),
             BrdfModel::OrenNayar { sigma_deg, .. } => *sigma_deg == 0.0,
-            BrdfModel::RoughConductor { .. } | BrdfModel::RoughPlastic { .. } => false,
+            BrdfModel::RoughConductor { .. } | BrdfModel::RoughPlastic { .. } | BrdfModel::Gltf { .. } => false,
         }
     }
 
@@ -477,6 +496,33 @@ impl BrdfModel {
                 unit("diffuse_reflectance", diffuse_reflectance)?;
                 unit("specular_reflectance", specular_reflectance)
             }
+            BrdfModel::Gltf {
+                base_color,
+                metallic,
+                roughness,
+                normal,
+            } => {
+                unit("base_color", base_color)?;
+                if !(metallic.is_finite() && (0.0..=1.0).contains(metallic)) {
+                    return Err(bad("metallic", metallic.to_string(), "valid range is 0 ..= 1".into()));
+                }
+                if !(roughness.is_finite() && (0.01..=1.0).contains(roughness)) {
+                    return Err(bad(
+                        "roughness",
+                        roughness.to_string(),
+                        "valid range is 0.01 ..= 1 (α = roughness² ≥ 1e-4)".into(),
+                    ));
+                }
+                let r = (normal[0] * normal[0] + normal[1] * normal[1]).sqrt();
+                if !(r.is_finite() && r <= gltf::MAX_NORMAL_XY) {
+                    return Err(bad(
+                        "normal",
+                        format!("{normal:?}"),
+                        format!("|[n_x, n_y]| ≤ {} (a tilt of at most 72°)", gltf::MAX_NORMAL_XY),
+                    ));
+                }
+                Ok(())
+            }
         }
     }
 }
@@ -627,6 +673,17 @@ pub fn list_models() -> Vec<ModelInfo> {
                 p("diffuse_reflectance", "albedo of the base", UNIT),
                 p("specular_reflectance", "multiplier of the specular layer (default [1, 1, 1])", UNIT),
                 p("nonlinear", "Mitsuba's `nonlinear` (colour shift by internal scattering)", "true | false (default)"),
+            ],
+        },
+        ModelInfo {
+            name: "gltf",
+            summary: "glTF 2.0 metallic-roughness: f = (1 − m) c/π + F D G1 G1/(4 cos cos), GGX with α = roughness², \
+                      Schlick F with F0 = mix(0.04, c, m), optional shading normal. Reciprocal.",
+            params: vec![
+                p("base_color", "base colour (linear)", UNIT),
+                p("metallic", "metalness", "0..=1"),
+                p("roughness", "perceptual roughness (α = roughness²)", "0.01..=1"),
+                p("normal", "shading normal's tangent-plane components [n_x, n_y] (default [0, 0])", "|n| ≤ 0.95"),
             ],
         },
     ]

@@ -274,6 +274,11 @@ fn lobes_for(m: &BrdfModel, l: Vec3) -> Vec<Lobe> {
             facet_chain(a, a, &mut out);
             out.push(Lobe::Vndf { au: a, av: a });
         }
+        BrdfModel::Gltf { roughness, .. } => {
+            let a = (roughness * roughness).max(MIN_ROUGHNESS);
+            facet_chain(a, a, &mut out);
+            out.push(Lobe::Vndf { au: a, av: a });
+        }
     }
     out
 }
@@ -1596,7 +1601,7 @@ fn list_models_covers_every_variant() {
     for n in &names {
         assert!(list.iter().any(|m| m.name == *n), "{n} missing from list_models");
     }
-    assert_eq!(list.len(), 10);
+    assert_eq!(list.len(), 11);
     for m in &list {
         assert!(!m.params.is_empty() && !m.summary.is_empty());
         for p in &m.params {

@@ -5,9 +5,11 @@
 //! * [`fit`]: analytic BRDF models (the `gonio-brdf` library) fitted to measured data,
 //!   averaged or per texel.
 //! * [`synthesize`]: growing a compressed BTF to any size.
+//! * [`export`]: a fitted glTF SVBRDF written for renderers (glTF, MaterialX, USD, Mitsuba).
 //!
 //! Reads datasets through `gonio-dataset`; knows nothing of rigs or acquisition.
 
 pub mod compress;
+pub mod export;
 pub mod fit;
 pub mod synthesize;

@@ -1,4 +1,7 @@
-//! `gonio export` and `gonio verify`.
+//! `gonio export` and `gonio verify`. A dataset's images go to UBO2003, NumPy or Zarr; a
+//! fitted glTF SVBRDF (`gonio fit --per-texel --model gltf --out F.gbtf`, or a dataset,
+//! fitted first) to the renderers' formats (`gonio_btf::export`: glTF, MaterialX, USD,
+//! Mitsuba; docs/guide/export.md).
 
 use anyhow::{Context, Result};
 use gonio_dataset::store;
@@ -14,16 +17,53 @@ pub enum ExportFormat {
     /// Zarr v3 store: float16 [view, light, y, x, channel], one view per shard, one image
     /// per inner chunk, NaN where a pair is missing (needs the cargo feature `zarr`).
     Zarr,
+    /// glTF 2.0 metallic-roughness + normal map: OUT.glb (one file) or a folder (needs the
+    /// cargo feature `btf`, like the three below).
+    Gltf,
+    /// MaterialX standard_surface with image nodes: a folder.
+    Materialx,
+    /// OpenUSD UsdPreviewSurface (.usda and textures): a folder.
+    Usd,
+    /// Mitsuba 3 scene (principled in a normalmap, bitmap textures): a folder.
+    Mitsuba,
+}
+
+impl ExportFormat {
+    /// The formats of a fitted material (the others export a dataset's images).
+    fn is_material(self) -> bool {
+        matches!(
+            self,
+            ExportFormat::Gltf | ExportFormat::Materialx | ExportFormat::Usd | ExportFormat::Mitsuba
+        )
+    }
 }
 
 #[derive(clap::Args, Debug)]
 pub struct ExportArgs {
-    /// The dataset directory.
+    /// The dataset directory; for gltf, materialx, usd and mitsuba also a glTF fit
+    /// (`gonio fit --per-texel --model gltf --out F.gbtf`).
     pub dir: PathBuf,
     #[arg(long, value_enum)]
     pub format: ExportFormat,
-    /// Output file (a directory for --format zarr).
+    /// Output file (a directory for --format zarr, materialx, usd, mitsuba; a .glb or a
+    /// directory for gltf).
     pub out: PathBuf,
+    /// Material formats: texture side in texels (default: the fit's resolution).
+    #[arg(long)]
+    pub size: Option<usize>,
+    /// Material formats: export values that are not radiometrically calibrated, labelled so.
+    #[arg(long)]
+    pub allow_uncalibrated: bool,
+    /// Material formats with a DATASET: the white-standard dataset that calibrates it
+    /// (as `gonio fit --white`).
+    #[arg(long)]
+    pub white: Option<PathBuf>,
+    /// The white standard's albedo (as `gonio fit --white-albedo`).
+    #[arg(long, default_value_t = 0.9)]
+    pub white_albedo: f64,
+    /// Material formats with a DATASET: LM iteration cap per texel of the fit.
+    #[arg(long, default_value_t = 30)]
+    pub texel_iterations: usize,
     /// Zarr only: write the shards of views of part I of N (1-based) into OUT; N such
     /// processes fill one store, equal byte for byte to a single-process export.
     #[arg(long)]
@@ -47,6 +87,20 @@ pub struct VerifyArgs {
 }
 
 pub fn run(args: ExportArgs) -> Result<ExitCode> {
+    if args.format.is_material() {
+        if args.shard.is_some() || args.force || args.mean_image.is_some() {
+            anyhow::bail!(
+                "--shard, --force and --mean-image apply to --format zarr only; a material export is one \
+                 process and replaces nothing (remove OUT first)"
+            );
+        }
+        return run_material(args);
+    }
+    if args.size.is_some() || args.allow_uncalibrated || args.white.is_some() {
+        anyhow::bail!(
+            "--size, --allow-uncalibrated and --white apply to the material formats (gltf, materialx, usd, mitsuba)"
+        );
+    }
     if let ExportFormat::Zarr = args.format {
         return run_zarr(args);
     }
@@ -56,7 +110,13 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
     let report = match args.format {
         ExportFormat::Ubo2003 => store::export_ubo2003(&args.dir, &args.out),
         ExportFormat::Npy => store::export_npy(&args.dir, &args.out),
-        ExportFormat::Zarr => unreachable!("handled above"),
+        ExportFormat::Zarr
+        | ExportFormat::Gltf
+        | ExportFormat::Materialx
+        | ExportFormat::Usd
+        | ExportFormat::Mitsuba => {
+            unreachable!("handled above")
+        }
     }
     .with_context(|| format!("exporting {} to {}", args.dir.display(), args.out.display()))?;
     if args.json {
@@ -75,6 +135,81 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A fitted glTF SVBRDF (or a dataset, fitted first) to a renderer's format.
+#[cfg(feature = "btf")]
+fn run_material(args: ExportArgs) -> Result<ExitCode> {
+    use gonio_btf::compress::Gbtf;
+    use gonio_btf::export::{write, ExportOptions, Format, Material};
+    let format = match args.format {
+        ExportFormat::Gltf => Format::Gltf,
+        ExportFormat::Materialx => Format::Materialx,
+        ExportFormat::Usd => Format::Usd,
+        ExportFormat::Mitsuba => Format::Mitsuba,
+        _ => unreachable!("material formats only"),
+    };
+    // Refuse a wrong output name before reading or fitting anything.
+    format.check_out(&args.out)?;
+    let input = args.dir.display().to_string();
+    let mut fitted = None;
+    let gbtf = if args.dir.is_dir() {
+        let white = args.white.as_ref().map(|d| gonio_btf::fit::data::WhiteRef {
+            dir: d.clone(),
+            albedo: args.white_albedo,
+        });
+        let (g, summary) = super::fit::fit_gltf(&args.dir, white.as_ref(), args.texel_iterations)
+            .with_context(|| format!("fitting {input} (glTF model, per texel) before the export"))?;
+        fitted = Some(summary);
+        g
+    } else if args.dir.is_file() {
+        if args.white.is_some() {
+            anyhow::bail!("{input}: --white calibrates a dataset before its fit; this file is fitted already");
+        }
+        Gbtf::read(&args.dir).with_context(|| format!("reading {input}"))?
+    } else {
+        anyhow::bail!("{input}: no such dataset directory or .gbtf file");
+    };
+    let opts = ExportOptions {
+        size: args.size,
+        allow_uncalibrated: args.allow_uncalibrated,
+    };
+    let material = Material::from_gbtf(&gbtf, &args.dir, &opts)?;
+    for w in &material.warnings {
+        tracing::warn!("{input}: {w}");
+    }
+    let report =
+        write(&material, format, &args.out).with_context(|| format!("exporting {input} to {}", args.out.display()))?;
+    if args.json {
+        let mut v = serde_json::to_value(&report)?;
+        if let Some(s) = fitted {
+            v["fit"] = serde_json::to_value(s)?;
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{}: {} ({} files, {} bytes), textures {}×{} over {} mm",
+            report.out.display(),
+            format.name(),
+            report.files.len(),
+            report.bytes,
+            report.texture_texels[0],
+            report.texture_texels[1],
+            report.size_mm
+        );
+        for w in &report.warnings {
+            println!("warning: {w}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(not(feature = "btf"))]
+fn run_material(_args: ExportArgs) -> Result<ExitCode> {
+    anyhow::bail!(
+        "this gonio was built without the processing of stored BTFs (cargo feature `btf`, on by default): the \
+         material formats need it; rebuild without --no-default-features"
+    )
 }
 
 #[cfg(feature = "zarr")]

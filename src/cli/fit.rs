@@ -19,14 +19,15 @@ pub struct FitArgs {
     /// A gonio dataset directory, or a CSV table `theta_l,phi_l,theta_v,phi_v,r,g,b`
     /// (degrees, BRDF in 1/sr).
     pub input: PathBuf,
-    /// lafortune | ward | cook-torrance | rough-conductor.
+    /// lafortune | ward | cook-torrance | rough-conductor | gltf (metallic-roughness + normal;
+    /// with --per-texel, what `gonio export` writes for renderers).
     #[arg(long)]
     pub model: String,
     /// Lobes (lafortune: cosine lobes; cook-torrance: Beckmann lobes).
     #[arg(long, default_value_t = 1)]
     pub lobes: usize,
-    /// Fit every texel (McAllister 2002's scaled Lafortune SBRDF) after the average; reports
-    /// it as a compression method (ratio, PSNR).
+    /// Fit every texel after the average (McAllister 2002's scaled Lafortune SBRDF, or
+    /// glTF's model with --model gltf); reports it as a compression method (ratio, PSNR).
     #[arg(long)]
     pub per_texel: bool,
     /// A dataset of the white standard over the same sweep and size: calibrates values that
@@ -96,6 +97,26 @@ struct Output {
     per_texel: Option<TexelResult>,
 }
 
+/// The per-texel glTF fit of a dataset with the default options (`gonio export DATASET`
+/// fits first): the `.gbtf` that `gonio fit DATASET --model gltf --per-texel --out F.gbtf`
+/// writes, and the texels' summary.
+pub(super) fn fit_gltf(
+    dataset: &std::path::Path,
+    white: Option<&WhiteRef>,
+    texel_iterations: usize,
+) -> Result<(gonio_btf::compress::Gbtf, TexelSummary)> {
+    let input = dataset.display().to_string();
+    let loaded = load_dataset(dataset, white)?;
+    let report = fit(&loaded.averaged(), &FitOptions::new(ModelKind::Gltf), &input)?;
+    let (svbrdf, summary) = fit_texels(&loaded, &report, Space::Log, texel_iterations.max(1))?;
+    let ds = DatasetViews::open(dataset).with_context(|| format!("re-opening {input}"))?;
+    let mut gbtf = svbrdf
+        .to_gbtf(&ds)
+        .with_context(|| format!("storing the SVBRDF of {input}"))?;
+    gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
+    Ok((gbtf, summary))
+}
+
 /// `flag`'s value as a model, or an error naming the flag and the models there are.
 pub(super) fn parse_model(flag: &str, s: &str) -> Result<ModelKind> {
     ModelKind::parse(s).ok_or_else(|| {
@@ -120,9 +141,10 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
         },
     };
     opts.check()?;
-    if a.per_texel && kind != ModelKind::Lafortune {
+    if a.per_texel && !matches!(kind, ModelKind::Lafortune | ModelKind::Gltf) {
         return Err(anyhow!(
-            "--per-texel with --model {}: the per-texel fit is McAllister's scaled Lafortune SBRDF; use --model lafortune",
+            "--per-texel with --model {}: the per-texel fit is McAllister's scaled Lafortune SBRDF (--model \
+             lafortune) or glTF's metallic-roughness model with a normal per texel (--model gltf)",
             kind.name()
         ));
     }
@@ -174,9 +196,10 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
             let (svbrdf, summary) = fit_texels(loaded, &report, space, a.texel_iterations)?;
             let secs = t1.elapsed().as_secs_f64();
             let ds = DatasetViews::open(&a.input).with_context(|| format!("re-opening {input}"))?;
-            let gbtf = svbrdf
+            let mut gbtf = svbrdf
                 .to_gbtf(&ds)
                 .with_context(|| format!("storing the SVBRDF of {input}"))?;
+            gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
             let stored = gbtf.to_bytes().context("encoding the SVBRDF's .gbtf")?.len();
             let decoder = CompressedBtf::new(gbtf.clone()).context("decoding the SVBRDF's .gbtf")?;
             let ev = gonio_btf::compress::evaluate(&ds, &decoder)
@@ -318,6 +341,13 @@ fn print_text(o: &Output) {
         );
         for (reason, n) in &t.summary.stops {
             println!("    {n} texels: {reason}");
+        }
+        if t.summary.not_converged > 0 {
+            println!(
+                "    {} texels not converged, filled from their neighbours and flagged (first: {:?})",
+                t.summary.not_converged,
+                &t.summary.not_converged_texels[..t.summary.not_converged_texels.len().min(10)]
+            );
         }
         if t.summary.texels_without_data > 0 {
             println!(

@@ -29,6 +29,11 @@ pub struct RenderArgs {
     /// Output PNG (8-bit sRGB).
     #[arg(long)]
     pub out: PathBuf,
+    /// A glTF fit (`gonio fit --model gltf --per-texel`) as the exported material: unit
+    /// irradiance, nominal directions, no rig gain (what `gonio export --format mitsuba`
+    /// renders to in Mitsuba with a unit `directional` emitter).
+    #[arg(long)]
+    pub material: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -45,6 +50,12 @@ struct Report<'a> {
 pub fn run(a: RenderArgs) -> Result<ExitCode> {
     let t0 = std::time::Instant::now();
     let src = Source::open(&a.file).with_context(|| format!("opening {}", a.file.display()))?;
+    let material = if a.material {
+        let g = gonio_btf::compress::Gbtf::read(&a.file).with_context(|| format!("reading {}", a.file.display()))?;
+        Some(gonio_btf::export::UnitIrradiance::new(g).with_context(|| format!("--material: {}", a.file.display()))?)
+    } else {
+        None
+    };
     let scene = Scene {
         light_deg: a.light,
         view_deg: a.view,
@@ -53,7 +64,11 @@ pub fn run(a: RenderArgs) -> Result<ExitCode> {
         height: a.size.1,
         exposure: a.exposure,
     };
-    let pic = render::render(src.model(), &scene).with_context(|| format!("rendering {}", a.file.display()))?;
+    let model: &dyn gonio_btf::compress::interp::BtfModel = match &material {
+        Some(m) => m,
+        None => src.model(),
+    };
+    let pic = render::render(model, &scene).with_context(|| format!("rendering {}", a.file.display()))?;
     let png = render::png(pic.width, pic.height, &pic.srgb8)?;
     gonio_dataset::store::atomic::write_atomic(&a.out, &png, None)
         .with_context(|| format!("writing {}", a.out.display()))?;

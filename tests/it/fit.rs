@@ -70,7 +70,13 @@ fn renders() -> &'static (tempfile::TempDir, PathBuf) {
             out
         };
         let white = render("white-standard", "white");
-        for s in ["lafortune", "cook-torrance", "rough-conductor", "lafortune-checker"] {
+        for s in [
+            "lafortune",
+            "cook-torrance",
+            "rough-conductor",
+            "lafortune-checker",
+            "gltf-checker",
+        ] {
             render(&sample(s), s);
         }
         (dir, white)
@@ -224,6 +230,8 @@ fn per_texel_fit_finds_both_materials_and_its_file_decodes() {
             })
             .collect(),
         geometry,
+        residual: vec![0.0; h.width * h.height],
+        failed: Vec::new(),
     };
     let decoder = CompressedBtf::new(g).unwrap();
     let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
@@ -316,5 +324,123 @@ fn bad_inputs_are_refused_naming_the_input() {
     refused(
         &["fit", ds, "--model", "lafortune", "--white", white, "--out", "avg.gbtf"],
         &["--out avg.gbtf", "--per-texel"],
+    );
+}
+
+/// The glTF model per texel: each texel of the glTF checker gets its own material's
+/// metallic, roughness and base colour back, a flat normal and no texel left unconverged;
+/// the `.gbtf` decodes (`gonio render`, and `--material`), and `gonio export` writes every
+/// format from it, refusing a wrong output name before any work.
+#[test]
+fn per_texel_gltf_fit_finds_both_materials_and_exports() {
+    use gonio::compress::{CompressedBtf, Gbtf};
+    let (dir, _) = renders();
+    let out = dir.path().join("gltf-fit.gbtf");
+    let v = fit("gltf-checker", "gltf", &["--per-texel", "--out", out.to_str().unwrap()]);
+    let t = &v["per_texel"];
+    assert_eq!(t["texels"], 64);
+    assert_eq!(t["not_converged"], 0, "{t}");
+    let g = Gbtf::read(&out).unwrap();
+    assert_eq!(g.header.method, "gltf");
+    assert!(g.header.source["calibrated_by"].is_string());
+    let truth = [([0.50, 0.30, 0.20], 0.0, 0.6), ([0.90, 0.70, 0.40], 1.0, 0.5)];
+    let mut found = [false; 2];
+    for tx in 0..64 {
+        let p = &g.blocks[0][tx * 7..tx * 7 + 7];
+        let hit = truth.iter().position(|(base, metallic, rough)| {
+            (p[3] as f64 - metallic).abs() < 0.1
+                && (p[4] as f64 - rough).abs() < 0.05 * rough
+                && (0..3).all(|c| (p[c] as f64 - base[c]).abs() < 0.05)
+        });
+        let Some(i) = hit else {
+            panic!("texel {tx}: parameters {p:?} are neither material's")
+        };
+        found[i] = true;
+        assert!(
+            p[5].abs() < 0.02 && p[6].abs() < 0.02,
+            "texel {tx}: normal {p:?} of a flat sample"
+        );
+    }
+    assert_eq!(found, [true, true]);
+    assert!(CompressedBtf::new(g).is_ok());
+    let png = dir.path().join("gltf.png");
+    for extra in [&[][..], &["--material"][..]] {
+        let mut args = vec![
+            "render",
+            out.to_str().unwrap(),
+            "--light",
+            "45,0",
+            "--view",
+            "30,180",
+            "--size",
+            "32x32",
+            "--out",
+            png.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        ok(&args);
+    }
+    for (format, name, doc) in [
+        ("gltf", "m.glb", ""),
+        ("gltf", "gltf", "material.gltf"),
+        ("materialx", "mtlx", "material.mtlx"),
+        ("usd", "usd", "material.usda"),
+        ("mitsuba", "mitsuba", "scene.xml"),
+    ] {
+        let o = dir.path().join("export").join(name);
+        let r: Value = serde_json::from_str(&ok(&[
+            "export",
+            out.to_str().unwrap(),
+            "--format",
+            format,
+            o.to_str().unwrap(),
+            "--size",
+            "16",
+            "--json",
+        ]))
+        .unwrap();
+        assert_eq!(r["texture_texels"], serde_json::json!([16, 16]));
+        let doc = if doc.is_empty() { o.clone() } else { o.join(doc) };
+        assert!(doc.is_file(), "{format}: {}", doc.display());
+    }
+    // A dataset is fitted first (calibrated by its white standard), then exported.
+    let (_, white) = renders();
+    let glb = dir.path().join("export").join("from-dataset.glb");
+    let r: Value = serde_json::from_str(&ok(&[
+        "export",
+        dir.path().join("gltf-checker").to_str().unwrap(),
+        "--white",
+        white.to_str().unwrap(),
+        "--format",
+        "gltf",
+        glb.to_str().unwrap(),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(r["fit"]["texels"], 64);
+    assert!(glb.is_file());
+    let wrong = dir.path().join("export").join("wrong.mtlx");
+    refused(
+        &[
+            "export",
+            out.to_str().unwrap(),
+            "--format",
+            "materialx",
+            wrong.to_str().unwrap(),
+        ],
+        &["wrong.mtlx", "folder"],
+    );
+    assert!(!wrong.exists());
+    refused(
+        &[
+            "export",
+            out.to_str().unwrap(),
+            "--format",
+            "gltf",
+            "x.glb",
+            "--shard",
+            "1/2",
+        ],
+        &["--shard"],
     );
 }

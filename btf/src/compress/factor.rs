@@ -7,7 +7,7 @@ use super::container::{Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::params::{EncodeInfo, Method, Params};
-use super::{abrdf, cmf, dfmf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svbrdf, svd_j};
+use super::{abrdf, cmf, dfmf, gltf, homomorphic, local_pca, median_cut, nd, pca, pvmf, svbrdf, svd_j};
 
 /// One shard of a PVMF compression (`gonio compress --shard`): the factors of the shard's
 /// views only, exactly as [`compress`] computes them (each view is factorized on its own),
@@ -51,6 +51,11 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         Method::Svbrdf { .. } => Err(CompressError::Invalid(
             "svbrdf: the per-texel Lafortune SVBRDF is fitted by `gonio fit DATASET --model lafortune \
              --per-texel --out F.gbtf`, not by gonio compress"
+                .into(),
+        )),
+        Method::Gltf => Err(CompressError::Invalid(
+            "gltf: the per-texel glTF SVBRDF is fitted by `gonio fit DATASET --model gltf --per-texel --out \
+             F.gbtf`, not by gonio compress"
                 .into(),
         )),
     }
@@ -180,6 +185,16 @@ impl CompressedBtf {
                     dfmf: None,
                 });
             }
+            "gltf" => {
+                gltf::validate(&gbtf)?;
+                return Ok(CompressedBtf {
+                    gbtf,
+                    method: Method::Gltf,
+                    c: gltf::PARAMS,
+                    homomorphic: None,
+                    dfmf: None,
+                });
+            }
             "dfmf" => {
                 let d = dfmf::from_gbtf(&gbtf)?;
                 let params: Params = serde_json::from_value(gbtf.header.params.clone())
@@ -250,6 +265,10 @@ impl CompressedBtf {
         if let Method::Svbrdf { lobes } = self.method {
             let (_, geometry) = svbrdf::validate(&self.gbtf)?;
             return Ok(svbrdf::reconstruct(&self.gbtf, lobes, geometry, light, view));
+        }
+        if let Method::Gltf = self.method {
+            let geometry = gltf::validate(&self.gbtf)?;
+            return Ok(gltf::reconstruct(&self.gbtf, geometry, light, view));
         }
         if let Method::Nd | Method::SvdJ = self.method {
             return Ok(abrdf::reconstruct_products(&self.gbtf, c, light, view));

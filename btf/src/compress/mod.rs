@@ -89,6 +89,7 @@ pub mod dfmf;
 pub mod error;
 pub mod exact;
 pub mod factor;
+pub mod gltf;
 pub mod homomorphic;
 pub mod interp;
 pub mod linalg;

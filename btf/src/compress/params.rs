@@ -63,6 +63,9 @@ pub enum Method {
     /// Per-texel scaled Lafortune SVBRDF (`svbrdf`): written by `gonio fit --per-texel
     /// --out F.gbtf` (the fit lives in `fit/`), decoded like every other method.
     Svbrdf { lobes: usize },
+    /// Per-texel glTF metallic-roughness SVBRDF (`gltf`): written by `gonio fit --per-texel
+    /// --model gltf --out F.gbtf`, decoded like every other method, exported by `gonio export`.
+    Gltf,
 }
 
 impl Method {
@@ -79,6 +82,7 @@ impl Method {
             Method::Gshd { .. } => "gshd",
             Method::Cmf { .. } => "cmf",
             Method::Svbrdf { .. } => "svbrdf",
+            Method::Gltf => "gltf",
         }
     }
 }

@@ -654,6 +654,21 @@ fn method_files_import_only_the_ground_floor() {
         ("svd_j", include_str!("svd_j.rs"), GROUND),
         ("cmf", include_str!("cmf.rs"), GROUND),
         ("svbrdf", include_str!("svbrdf.rs"), GROUND),
+        // the glTF SVBRDF shares the SVBRDF's texel geometry (`svbrdf::Geometry`)
+        (
+            "gltf",
+            include_str!("gltf.rs"),
+            &[
+                "params",
+                "linalg",
+                "abrdf",
+                "data",
+                "container",
+                "error",
+                "rsvd",
+                "svbrdf",
+            ],
+        ),
         ("params", include_str!("params.rs"), &["data", "container"]),
         ("linalg", include_str!("linalg.rs"), &["error"]),
         ("exact", include_str!("exact.rs"), &["error", "linalg"]),

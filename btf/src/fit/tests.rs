@@ -366,3 +366,40 @@ proptest! {
         }
     }
 }
+
+/// Not-converged texels take the mean of their nearest converged ring (never a failed
+/// neighbour's values), and the fallback when no texel converged.
+#[test]
+fn failed_texels_are_filled_from_their_converged_neighbours() {
+    use super::texel::fill_from_neighbours;
+    // 3 × 3 texels, 1 parameter: value = index; the centre and a corner failed (NaN).
+    let mut p: Vec<f32> = (0..9).map(|i| i as f32).collect();
+    p[4] = f32::NAN;
+    p[0] = f32::NAN;
+    fill_from_neighbours(&mut p, 1, 3, 3, &[0, 4], &[100.0]);
+    // centre: mean of the 7 converged ring texels 1,2,3,5,6,7,8
+    assert!((p[4] - 32.0 / 7.0).abs() < 1e-6, "{p:?}");
+    // corner 0: ring 1 holds 1 and 3 (4 failed)
+    assert!((p[0] - 2.0).abs() < 1e-6, "{p:?}");
+    let mut all = vec![f32::NAN; 4];
+    fill_from_neighbours(&mut all, 1, 2, 2, &[0, 1, 2, 3], &[7.0]);
+    assert_eq!(all, vec![7.0; 4]);
+}
+
+/// The glTF family: its starts are finite and inside the bounds, and a fit recovers an
+/// in-family material (the library's own model) from its exact values.
+#[test]
+fn gltf_family_recovers_its_own_material() {
+    let truth = BrdfModel::Gltf {
+        base_color: [0.6, 0.4, 0.2],
+        metallic: 0.0,
+        roughness: 0.4,
+        normal: [0.0, 0.0],
+    };
+    let obs = Observations::of_model(&truth, &pairs(16));
+    let r = fit(&obs, &opts(ModelKind::Gltf), "test").unwrap();
+    let p: std::collections::BTreeMap<_, _> = r.params.iter().cloned().collect();
+    assert!((p["roughness"] - 0.4).abs() < 0.01 * 0.4, "{p:?}");
+    assert!(p["metallic"] < 0.01, "{p:?}");
+    assert!((p["base_color.r"] - 0.6).abs() < 0.01, "{p:?}");
+}

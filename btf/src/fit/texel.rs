@@ -1,6 +1,15 @@
 //! The per-texel fit (`gonio fit --per-texel`): McAllister et al. 2002's SBRDF, a scaled
 //! Lafortune model per texel (diffuse RGB, and per lobe the direction angle γ of
-//! `C = √2 (cos γ, cos γ, sin γ)`, the exponent and RGB `ks`).
+//! `C = √2 (cos γ, cos γ, sin γ)`, the exponent and RGB `ks`), or glTF's metallic-roughness
+//! model with a shading normal per texel (`--model gltf`: what renderers read).
+//!
+//! **Texels that fail.** A texel without usable data, whose start or result is not finite,
+//! or whose LM ran into its iteration cap with a residual that stands out (over twice the
+//! texels' median and over 5 %) is *not converged*: it is listed ([`SvbrdfFit::failed`]),
+//! its parameters are filled from its converged neighbours (the mean of the 8-neighbours,
+//! growing rings until some are found; the average's fit when none is), and it is flagged
+//! in the file. No parameter is ever NaN. Every texel's residual (cosine-weighted relative
+//! RMS against its own data) is kept: the map of where the SVBRDF fails.
 //!
 //! As in McAllister's fitting, the average BRDF is fitted first (several starts); every
 //! texel then starts from that solution, so a homogeneous region converges in a few
@@ -39,6 +48,11 @@ pub struct SvbrdfFit {
     pub gain: Vec<Option<[[f32; 3]; 3]>>,
     /// Each texel's own directions (as the fit used them), if the dataset gives them.
     pub geometry: Option<super::data::Geometry>,
+    /// Per texel the cosine-weighted relative RMS of its fit against its data (0 where it
+    /// had none).
+    pub residual: Vec<f32>,
+    /// Texels that did not converge (ascending), filled from their neighbours.
+    pub failed: Vec<usize>,
 }
 
 /// Summary of a per-texel fit.
@@ -55,6 +69,10 @@ pub struct TexelSummary {
     /// Worst texel's relative RMS, and which.
     pub max_rel_rms: f64,
     pub worst_texel: usize,
+    /// Texels not converged (no data, non-finite start or iteration cap), filled from
+    /// their neighbours and flagged; the first 100 are listed.
+    pub not_converged: usize,
+    pub not_converged_texels: Vec<usize>,
     /// Bytes of the SVBRDF as f32 (parameters + per-pair gains).
     pub bytes: usize,
 }
@@ -67,10 +85,12 @@ pub fn fit_texels(
     space: Space,
     iterations: usize,
 ) -> Result<(SvbrdfFit, TexelSummary), FitError> {
-    if average.model != ModelKind::Lafortune {
+    if !matches!(average.model, ModelKind::Lafortune | ModelKind::Gltf) {
         return Err(FitError::Options {
             what: format!("--per-texel with --model {}", average.model.name()),
-            reason: "the per-texel fit is McAllister's scaled Lafortune SBRDF: use --model lafortune".into(),
+            reason: "the per-texel fit is McAllister's scaled Lafortune SBRDF (--model lafortune) or glTF's \
+                     metallic-roughness model (--model gltf)"
+                .into(),
         });
     }
     let family = Family::new(average.model, average.lobes);
@@ -106,18 +126,36 @@ pub fn fit_texels(
     let mut params = Vec::with_capacity(loaded.texels() * np);
     let mut stops = BTreeMap::new();
     let (mut empty, mut sum, mut worst, mut worst_t) = (0, 0.0, 0.0f64, 0);
+    let mut failed = Vec::new();
+    let mut residual = Vec::with_capacity(loaded.texels());
+    // A capped LM whose residual is in line with the others has found its texel's material
+    // (exact data converge slower than the relative cost tolerance); an outlier has not.
+    let mut rels: Vec<f64> = results.iter().map(|r| r.2).filter(|r| r.is_finite()).collect();
+    rels.sort_by(f64::total_cmp);
+    let median = rels.get(rels.len() / 2).copied().unwrap_or(0.0);
+    let outlier = |rel: f64| rel > 2.0 * median && rel > 0.05;
     for (t, (x, stop, rel)) in results.iter().enumerate() {
-        params.extend(family.values(x).iter().map(|v| *v as f32));
+        let values = family.values(x);
+        params.extend(values.iter().map(|v| *v as f32));
         match stop {
             None => empty += 1,
             Some(s) => *stops.entry(s.reason().to_string()).or_insert(0) += 1,
         }
+        let finite = values.iter().all(|v| v.is_finite()) && rel.is_finite();
+        let capped = matches!(stop, Some(Stop::MaxIterations)) && outlier(*rel);
+        if !finite || capped || matches!(stop, None | Some(Stop::NonFiniteStart)) {
+            failed.push(t);
+        }
+        let rel = if rel.is_finite() { *rel } else { 0.0 };
+        residual.push(rel as f32);
         sum += rel;
-        if *rel > worst {
-            worst = *rel;
+        if rel > worst {
+            worst = rel;
             worst_t = t;
         }
     }
+    let fallback: Vec<f32> = average.params.iter().map(|(_, v)| *v as f32).collect();
+    fill_from_neighbours(&mut params, np, loaded.width, loaded.height, &failed, &fallback);
     let nl = loaded.lights_deg.len();
     let mut gain = vec![None; nl * loaded.views_deg.len()];
     for (p, g) in loaded.pairs.iter().zip(loaded.gain_planes()) {
@@ -132,6 +170,8 @@ pub fn fit_texels(
         params,
         gain,
         geometry: loaded.geometry,
+        residual,
+        failed,
     };
     let summary = TexelSummary {
         texels: loaded.texels(),
@@ -141,20 +181,71 @@ pub fn fit_texels(
         mean_rel_rms: sum / (loaded.texels() - empty).max(1) as f64,
         max_rel_rms: worst,
         worst_texel: worst_t,
+        not_converged: fit.failed.len(),
+        not_converged_texels: fit.failed.iter().take(100).copied().collect(),
         bytes: fit.bytes(),
     };
     Ok((fit, summary))
+}
+
+/// Replace the parameters of the `failed` texels (ascending) by the mean of their nearest
+/// non-failed neighbours: the ring at Chebyshev distance 1, 2, … up to the image's size,
+/// the first ring that holds any; `fallback` (the average's fit) when no texel converged.
+/// Reads only non-failed texels, so the result does not depend on the order.
+pub fn fill_from_neighbours(params: &mut [f32], np: usize, w: usize, h: usize, failed: &[usize], fallback: &[f32]) {
+    if failed.is_empty() {
+        return;
+    }
+    let bad: std::collections::BTreeSet<usize> = failed.iter().copied().collect();
+    let fills: Vec<(usize, Vec<f32>)> = failed
+        .par_iter()
+        .map(|&t| {
+            let (x, y) = ((t % w) as i64, (t / w) as i64);
+            for r in 1..=(w.max(h) as i64) {
+                let mut sum = vec![0f64; np];
+                let mut n = 0usize;
+                for yy in (y - r)..=(y + r) {
+                    for xx in (x - r)..=(x + r) {
+                        let ring = (xx - x).abs() == r || (yy - y).abs() == r;
+                        if !ring || xx < 0 || yy < 0 || xx >= w as i64 || yy >= h as i64 {
+                            continue;
+                        }
+                        let u = yy as usize * w + xx as usize;
+                        if bad.contains(&u) {
+                            continue;
+                        }
+                        for (s, p) in sum.iter_mut().zip(&params[u * np..(u + 1) * np]) {
+                            *s += *p as f64;
+                        }
+                        n += 1;
+                    }
+                }
+                if n > 0 {
+                    return (t, sum.iter().map(|s| (s / n as f64) as f32).collect());
+                }
+            }
+            (t, fallback.to_vec())
+        })
+        .collect();
+    for (t, p) in fills {
+        params[t * np..(t + 1) * np].copy_from_slice(&p);
+    }
 }
 
 impl SvbrdfFit {
     /// Size as stored: f32 parameters per texel, a f32 gain plane per pair and channel,
     /// and the geometry (3 f32).
     pub fn bytes(&self) -> usize {
-        4 * self.params.len() + 4 * 9 * self.gain.len() + 12
+        let quality = if self.family.kind == ModelKind::Gltf {
+            8 * self.width * self.height
+        } else {
+            0
+        };
+        4 * self.params.len() + 4 * 9 * self.gain.len() + 12 + quality
     }
 
-    /// The fit as a `.gbtf` (`compress::svbrdf`, method `svbrdf`): what `gonio fit
-    /// --per-texel --out F.gbtf` writes and `gonio reconstruct`/`render`/`view` decode. Pairs
+    /// The fit as a `.gbtf` (`compress::svbrdf`, method `svbrdf`, or `compress::gltf` for
+    /// the glTF model): what `gonio fit --per-texel --out F.gbtf` writes and `gonio reconstruct`/`render`/`view` decode. Pairs
     /// without a fit get an all-zero gain plane, which decodes to 0 as here.
     pub fn to_gbtf(&self, ds: &crate::compress::DatasetViews) -> Result<crate::compress::Gbtf, CompressError> {
         if (ds.width, ds.height, ds.n_lights(), ds.n_views())
@@ -170,6 +261,13 @@ impl SvbrdfFit {
             .iter()
             .flat_map(|g| g.unwrap_or([[0.0; 3]; 3]).into_iter().flatten())
             .collect();
+        if self.family.kind == ModelKind::Gltf {
+            let flagged: std::collections::BTreeSet<usize> = self.failed.iter().copied().collect();
+            let quality = (0..self.width * self.height)
+                .flat_map(|t| [self.residual[t], if flagged.contains(&t) { 1.0 } else { 0.0 }])
+                .collect();
+            return crate::compress::gltf::encode(ds, self.params.clone(), gain, quality, self.geometry);
+        }
         crate::compress::svbrdf::encode(ds, self.family.lobes, self.params.clone(), gain, self.geometry)
     }
 

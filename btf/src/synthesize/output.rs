@@ -41,7 +41,7 @@ pub fn texel_blocks(model: &CompressedBtf) -> Result<Vec<bool>, SynthError> {
         }
         // Per channel `u{ch}` (measurements) then `sxv{ch}` (texels).
         Method::Dfmf { .. } => (0..nb).map(|i| i % 2 == 1).collect(),
-        Method::Svbrdf { .. } => {
+        Method::Svbrdf { .. } | Method::Gltf => {
             return Err(SynthError::Invalid(
                 "an SVBRDF file (gonio fit --per-texel) holds gain planes over the sample's extent and the \
                  rig's geometry, which a grown texture does not have; synthesize from the dataset or a \

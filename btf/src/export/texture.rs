@@ -1,0 +1,78 @@
+//! The textures of an export: resampling the fitted parameters to the asked resolution and
+//! encoding them as 8-bit PNG (base colour sRGB-encoded, every other map linear).
+
+use super::{ExportError, Material};
+use gonio_dataset::store::linear_to_srgb8;
+use image::ImageEncoder;
+
+/// Parameters of output texel (`i`, `j`) of an `ow × oh` texture resampled from `params`
+/// (`w × h` texels × `np`): bilinear between texel centres, edges clamped (the nearest
+/// texel itself when the size is unchanged).
+#[allow(clippy::too_many_arguments)]
+pub fn bilinear(params: &[f32], np: usize, w: usize, h: usize, i: usize, j: usize, ow: usize, oh: usize) -> Vec<f64> {
+    let at = |x: usize, y: usize, k: usize| params[(y * w + x) * np + k] as f64;
+    if (ow, oh) == (w, h) {
+        return (0..np).map(|k| at(i, j, k)).collect();
+    }
+    let sx = ((i as f64 + 0.5) * w as f64 / ow as f64 - 0.5).clamp(0.0, (w - 1) as f64);
+    let sy = ((j as f64 + 0.5) * h as f64 / oh as f64 - 0.5).clamp(0.0, (h - 1) as f64);
+    let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (fx, fy) = (sx - x0 as f64, sy - y0 as f64);
+    (0..np)
+        .map(|k| {
+            let top = at(x0, y0, k) * (1.0 - fx) + at(x1, y0, k) * fx;
+            let bottom = at(x0, y1, k) * (1.0 - fx) + at(x1, y1, k) * fx;
+            top * (1.0 - fy) + bottom * fy
+        })
+        .collect()
+}
+
+fn encode(width: usize, height: usize, data: &[u8], color: image::ExtendedColorType) -> Result<Vec<u8>, ExportError> {
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(data, width as u32, height as u32, color)
+        .map_err(|e| ExportError::Output {
+            path: "texture".into(),
+            reason: format!("PNG encoding: {e}"),
+        })?;
+    Ok(out)
+}
+
+/// Linear [0, 1] → 8-bit code value (no transfer curve).
+pub fn linear8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// The base colour, sRGB-encoded RGB8.
+pub fn base_color_png(m: &Material) -> Result<Vec<u8>, ExportError> {
+    let data: Vec<u8> = m.base_color.iter().flat_map(|c| c.map(linear_to_srgb8)).collect();
+    encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
+}
+
+/// A linear single-channel map (metallic, roughness), L8.
+pub fn gray_png(width: usize, height: usize, v: &[f32]) -> Result<Vec<u8>, ExportError> {
+    let data: Vec<u8> = v.iter().map(|x| linear8(*x)).collect();
+    encode(width, height, &data, image::ExtendedColorType::L8)
+}
+
+/// glTF's packed metallic-roughness texture: G = roughness, B = metallic (linear), R unused (0).
+pub fn metallic_roughness_png(m: &Material) -> Result<Vec<u8>, ExportError> {
+    let data: Vec<u8> = m
+        .roughness
+        .iter()
+        .zip(&m.metallic)
+        .flat_map(|(r, mt)| [0, linear8(*r), linear8(*mt)])
+        .collect();
+    encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
+}
+
+/// The tangent-space normal map: `n · ½ + ½` per component, linear RGB8 (+Y up).
+pub fn normal_png(m: &Material) -> Result<Vec<u8>, ExportError> {
+    let data: Vec<u8> = m
+        .normal
+        .iter()
+        .flat_map(|n| n.map(|c| linear8(0.5 * c + 0.5)))
+        .collect();
+    encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
+}
