@@ -50,6 +50,44 @@ tests/interop/zarr.sh "$gonio"
 mkdir -p "$work/frames"
 "$GONIO_PYTHON" tests/interop/mitsuba_frame.py "$gonio" "$work/frames"
 
+# ---- Leaving the lab: a glTF fit exported for renderers (issue 33) ------------------------
+# A wallpaper (mesostructure) and a checker of two known glTF materials on a 12-direction
+# sweep that holds the comparison's directions, calibrated by the white standard; the
+# per-texel glTF fit (`gonio fit --model gltf --per-texel`) exported to every format and read
+# by the formats' own readers: Khronos gltf-validator (0 errors), MaterialX validate(),
+# usd-core (stage, bound UsdPreviewSurface, resolved textures), and Mitsuba 3 rendering the
+# exported scene against `gonio render --material` (≤ 2/255 mean inside texels).
+mkdir -p "$work/export"
+cat > "$work/export/sweep.toml" <<'TOML'
+directions = [[0, 0], [15, 180], [30, 60], [30, 240], [45, 0], [45, 100], [45, 200], [45, 340], [60, 0], [60, 18], [60, 130], [75, 270]]
+TOML
+for s in white-standard wallpaper tests/data/fit/gltf-checker.toml; do
+  "$gonio" sim btf --quiet --sample "$s" --sweep "$work/export/sweep.toml" --size 32 --out "$work/export/$(basename "$s" .toml)" > /dev/null
+done
+for n in wallpaper gltf-checker; do
+  e="$work/export/$n"
+  "$gonio" fit "$e" --white "$work/export/white-standard" --model gltf --per-texel --out "$e.gbtf" > /dev/null
+  "$gonio" export "$e.gbtf" --format gltf "$e.glb" > /dev/null
+  for f in gltf materialx usd mitsuba; do
+    "$gonio" export "$e.gbtf" --format "$f" "$e-$f" > /dev/null
+  done
+  if [ -n "${GONIO_NODE_MODULES:-}" ] && [ -d "$GONIO_NODE_MODULES/gltf-validator" ]; then
+    NODE_PATH="$GONIO_NODE_MODULES" node tests/interop/gltf_validate.js "$e.glb" "$e-gltf/material.gltf"
+  elif [ -n "${CI:-}" ]; then
+    echo "interop: gltf-validator is not installed under CI: .ci/run runs tests/interop/setup_node.sh" >&2
+    exit 1
+  else
+    echo "interop: gltf-validator SKIPPED (tests/interop/setup_node.sh DIR; GONIO_NODE_MODULES=DIR/node_modules)"
+  fi
+  # From / (a script's own folder, not the checkout, is first on sys.path there anyway; the
+  # interpreter and the script absolute), as the other import checks.
+  py=$(realpath -ms "$GONIO_PYTHON")
+  checker=$(realpath -m tests/interop/check_material_export.py)
+  (cd / && "$py" "$checker" "$e-materialx" "$e-usd")
+  mkdir -p "$e-renders"
+  "$GONIO_PYTHON" tests/interop/mitsuba_export.py "$gonio" "$e.gbtf" "$e-mitsuba" "$e-renders"
+done
+
 # ---- Motor-controller emulators vs. the vendors' own client software (issue 5) ----------
 # `gonio sim serve-stage` opens a pty, prints {"path": …} and emulates the controller until
 # SIGTERM. Zaber's official library zaber-motion and PyMeasure's ESP300 driver (over pyvisa-py)

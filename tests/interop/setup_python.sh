@@ -2,7 +2,8 @@
 # Create (or re-use) a Python virtual environment with the public btf-extractor 1.7.0
 # reader used by tests/interop/check_ubo2003.py and the Mitsuba 3 renderer (PyPI `mitsuba`
 # 3.9.1 with `drjit` 1.5.0, binary wheels) used as an oracle by tests/interop/mitsuba_*.py,
-# zarr-python, xarray and dask (tests/interop/check_zarr.py), with every package pinned.
+# zarr-python, xarray and dask (tests/interop/check_zarr.py), MaterialX and usd-core
+# (tests/interop/check_material_export.py), with every package pinned.
 #
 # Usage: tests/interop/setup_python.sh VENV_DIR
 # Then:  GONIO_PYTHON=VENV_DIR/bin/python cargo test -p gonio --lib store
@@ -87,6 +88,10 @@ runtime_pins=(
     # (executable_path; its own browser download is never used).
     "playwright==1.65.2"
     "greenlet==3.5.6"
+    # Readers of `gonio export --format materialx|usd` (tests/interop/check_material_export.py):
+    # MaterialX's validate() and OpenUSD's stage (usd-core, no numpy needed).
+    "MaterialX==1.39.5"
+    "usd-core==26.11"
 )
 
 # Run from /, not from the checkout: `python -` puts the working directory first on
@@ -106,6 +111,8 @@ import pymeasure.instruments.newport  # noqa: F401
 import pyvisa_py  # noqa: F401
 import playwright.sync_api  # noqa: F401
 import zarr, xarray, dask.array, OpenEXR  # noqa: F401,E401
+import MaterialX  # noqa: F401
+from pxr import Usd  # noqa: F401
 pins = dict(p.split("==") for p in sys.argv[1:])
 bad = {k: version(k) for k, v in pins.items() if version(k) != v}
 if bad:
