@@ -37,6 +37,8 @@ pub struct Completion<'a> {
     w: DMatrix<f64>,
     /// K × K posterior covariance.
     post: DMatrix<f64>,
+    /// K: added to every texel's coefficients (`m − W U_S m` for a prior mean m ≠ 0).
+    offset: DVector<f64>,
     pub conditioning: Conditioning,
 }
 
@@ -99,7 +101,64 @@ impl<'a> Completion<'a> {
         Self::build(prior, measured, 0.0, true)
     }
 
+    /// MAP completion under a Gaussian `a ~ N(mean, cov)` in the prior's coefficient space
+    /// instead of `N(0, Λ)` (the material's own Gaussian from [`crate::joint::fit`]).
+    pub fn with_gaussian(
+        prior: &'a Prior,
+        measured: &[usize],
+        mean: &DVector<f64>,
+        cov: &DMatrix<f64>,
+        noise_var: f64,
+    ) -> Result<Self, SparseError> {
+        let k = prior.components();
+        if mean.len() != k || cov.nrows() != k || cov.ncols() != k {
+            return Err(SparseError::Invalid(format!(
+                "a Gaussian of {} coefficients for a prior of {k} components",
+                mean.len()
+            )));
+        }
+        let cinv = cov
+            .clone()
+            .cholesky()
+            .ok_or_else(|| SparseError::Refused("the coefficient covariance is not positive definite".into()))?
+            .inverse();
+        let mut c = Self::build_with(prior, measured, noise_var, |p, s2| *p += cinv * s2)?;
+        let us = DMatrix::<f64>::from_fn(measured.len(), k, |i, j| prior.basis[(measured[i], j)]);
+        c.offset = mean - &c.w * (us * mean);
+        Ok(c)
+    }
+
     fn build(prior: &'a Prior, measured: &[usize], noise_var: f64, plain: bool) -> Result<Self, SparseError> {
+        if plain {
+            return Self::build_plain(prior, measured);
+        }
+        Self::build_with(prior, measured, noise_var, |p, s2| {
+            for j in 0..prior.components() {
+                p[(j, j)] += s2 / prior.variances[j];
+            }
+        })
+    }
+
+    fn build_plain(prior: &'a Prior, measured: &[usize]) -> Result<Self, SparseError> {
+        check_design(prior, measured)?;
+        let k = prior.components();
+        let s = measured.len();
+        let us = DMatrix::<f64>::from_fn(s, k, |i, j| prior.basis[(measured[i], j)]);
+        let ls_cond = condition(&(us.transpose() * &us));
+        let svd = us.svd(true, true);
+        let w = svd
+            .pseudo_inverse(1e-10)
+            .map_err(|e| SparseError::Invalid(e.to_string()))?;
+        Self::finish(prior, measured, 0.0, w, DMatrix::zeros(k, k), ls_cond, ls_cond)
+    }
+
+    /// MAP: `(U_SᵀU_S + σ² C⁻¹)`, where `regularize(p, σ²)` adds `σ² C⁻¹` to `p`.
+    fn build_with(
+        prior: &'a Prior,
+        measured: &[usize],
+        noise_var: f64,
+        regularize: impl FnOnce(&mut DMatrix<f64>, f64),
+    ) -> Result<Self, SparseError> {
         check_design(prior, measured)?;
         let k = prior.components();
         let s = measured.len();
@@ -107,38 +166,41 @@ impl<'a> Completion<'a> {
         let gram = us.transpose() * &us;
         let ls_cond = condition(&gram);
         let sigma2 = noise_var.max(1e-12);
-        let (w, post, map_cond) = if plain {
-            let svd = us.clone().svd(true, true);
-            let pinv = svd
-                .pseudo_inverse(1e-10)
-                .map_err(|e| SparseError::Invalid(e.to_string()))?;
-            (pinv, DMatrix::zeros(k, k), ls_cond)
-        } else {
-            let mut p = gram.clone();
-            for j in 0..k {
-                p[(j, j)] += sigma2 / prior.variances[j];
-            }
-            let cond = condition(&p);
-            let chol = p.clone().cholesky().ok_or_else(|| {
-                SparseError::Refused(format!(
-                    "the MAP system is not positive definite (condition {cond:.3e})"
-                ))
-            })?;
-            let w = chol.solve(&us.transpose());
-            let post = chol.inverse() * sigma2;
-            (w, post, cond)
-        };
+        let mut p = gram;
+        regularize(&mut p, sigma2);
+        let cond = condition(&p);
+        let chol = p.cholesky().ok_or_else(|| {
+            SparseError::Refused(format!(
+                "the MAP system is not positive definite (condition {cond:.3e})"
+            ))
+        })?;
+        let w = chol.solve(&us.transpose());
+        let post = chol.inverse() * sigma2;
+        Self::finish(prior, measured, sigma2, w, post, cond, ls_cond)
+    }
+
+    fn finish(
+        prior: &'a Prior,
+        measured: &[usize],
+        sigma2: f64,
+        w: DMatrix<f64>,
+        post: DMatrix<f64>,
+        map_cond: f64,
+        ls_cond: f64,
+    ) -> Result<Self, SparseError> {
         if w.iter().any(|v| !v.is_finite()) {
             return Err(SparseError::Refused("the reconstruction operator is not finite".into()));
         }
+        let k = prior.components();
         Ok(Completion {
             prior,
             measured: measured.to_vec(),
-            noise_var: sigma2,
+            noise_var: sigma2.max(1e-12),
             w,
             post,
+            offset: DVector::zeros(k),
             conditioning: Conditioning {
-                measured_pairs: s,
+                measured_pairs: measured.len(),
                 components: k,
                 map_condition: map_cond,
                 least_squares_condition: ls_cond,
@@ -156,7 +218,11 @@ impl<'a> Completion<'a> {
                 *v = if v.is_finite() { *v - m } else { 0.0 };
             });
         }
-        &self.w * c
+        let mut a = &self.w * c;
+        for mut col in a.column_iter_mut() {
+            col += &self.offset;
+        }
+        a
     }
 
     /// Predicted model-space values of pair `p` for every column of `a` (K × M).

@@ -12,6 +12,9 @@
 //! * [`complete`]: per-texel MAP (ridge with the prior's eigenvalues) from the measured
 //!   pairs; predicted values, predicted error per pair, conditioning, held-back residual
 //!   check for materials outside the prior.
+//! * [`joint`]: the alternative across texels — EM for the material's own Gaussian in the
+//!   prior's coefficient space; measured against the per-texel MAP (no better: the prior's
+//!   span, not the estimate, limits the completion; docs/guide/sparse.md).
 //!
 //! Values are modelled in a variance-stabilising space ([`ValueSpace::Gamma`]:
 //! `max(x, 0)^(1/2.2)`, close to the sRGB curve the 8-bit error metric uses), so a squared
@@ -25,6 +28,7 @@
 
 pub mod complete;
 pub mod design;
+pub mod joint;
 pub mod prior;
 
 pub use complete::{Completion, Conditioning};

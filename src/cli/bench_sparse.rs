@@ -8,6 +8,10 @@
 //! pairs as its plan fits in the budget (the existing planner orders and times them):
 //!
 //! * **ours**: greedy A-optimal design in the prior, per-texel MAP completion;
+//! * **ours-joint** (asked for by name): the same design, completed jointly across texels
+//!   (`gonio_sparse::joint`: the material's Gaussian by EM); measured, not better;
+//! * **project** (asked for by name, a diagnosis): the truth projected onto the prior's
+//!   span with every pair known — the floor of any estimate in that prior;
 //! * **ours-motion** (asked for by name): the motion-aware design (error drop per second
 //!   of rig time, `gonio plan --design motion-aware`), the same completion;
 //! * **(a) product**: m lights × m views spread by farthest-point sampling, completed by the
@@ -21,7 +25,7 @@
 //! measured (with their noise).
 
 use super::common::{load_sample, RigArgs};
-use super::complete::{coefficients, noise_var, predict_image};
+use super::complete::{coefficients, joint_completion, noise_var, predict_image};
 use super::sparse::load_prior;
 use super::svg_plot::{log_log, Series};
 use crate::compress::data::DatasetViews;
@@ -67,7 +71,8 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-motion, product, pca-ls, dense).
+    /// Only these methods (ours, ours-joint, ours-motion, project, product, pca-ls, dense;
+    /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
     #[arg(long)]
@@ -268,6 +273,35 @@ fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -
     Ok((fill(&c, measured, meas), psnr_of_mse(c.predicted_mse())))
 }
 
+/// Ours, joint across texels: the material's Gaussian fitted by EM from every texel's
+/// measured pairs, then each texel's posterior mean.
+fn complete_joint(prior: &Prior, measured: &[usize], meas: &[Vec<f32>]) -> Result<(Vec<Vec<f32>>, f64, String)> {
+    let p = prior.truncated(prior.components().min(measured.len()));
+    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let (c, rep) = joint_completion(&p, measured, &refs, 0.0)?;
+    let note = format!(
+        "K = {}, EM {} it, eff. dims {:.1}, σ² {:.2e}",
+        p.components(),
+        rep.iterations,
+        rep.effective_dims,
+        rep.noise_var
+    );
+    Ok((fill(&c, measured, meas), psnr_of_mse(c.predicted_mse()), note))
+}
+
+/// Diagnosis: the truth projected onto the prior's span (mean + basis, every pair known):
+/// the best any coefficient estimate can do.
+fn project(prior: &Prior, truth: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
+    let all: Vec<usize> = (0..prior.dims()).collect();
+    let c = Completion::least_squares(prior, &all)?;
+    let refs: Vec<&[f32]> = truth.iter().map(|v| v.as_slice()).collect();
+    let a = coefficients(&c, &refs);
+    Ok((0..prior.dims())
+        .into_par_iter()
+        .map(|q| predict_image(&c, &a, q))
+        .collect())
+}
+
 /// Baseline (c): least squares in the prior's first min(K, n/2) basis vectors.
 fn complete_ls(prior: &Prior, measured: &[usize], meas: &[Vec<f32>]) -> Result<Vec<Vec<f32>>> {
     let p = prior.truncated(prior.components().min(measured.len() / 2).max(1));
@@ -437,6 +471,23 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         } else {
             truth.clone()
         };
+        if want("project") {
+            let rec = project(&prior, &truth)?;
+            rows.push(Row {
+                noise: noisy,
+                method: "project".into(),
+                fraction: 0.0,
+                budget_s: 0.0,
+                pairs: sweep.len(),
+                planned_s: 0.0,
+                psnr_db: Some(psnr(&truth, &rec)),
+                predicted_psnr_db: Some(psnr_of_mse(prior.header.residual_var)),
+                note: format!(
+                    "diagnosis: the truth projected onto the prior's span (K = {})",
+                    prior.components()
+                ),
+            });
+        }
         if want("dense") {
             let (rec, pred) = complete_map(&prior, &feasible, &meas, nv)?;
             rows.push(Row {
@@ -472,6 +523,27 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         }
                     }
                     None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            if want("ours-joint") {
+                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) => {
+                        let m = &design[..n];
+                        let (rec, pred, note) = complete_joint(&prior, m, &meas)?;
+                        Row {
+                            noise: noisy,
+                            method: "ours-joint".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: n,
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(pred),
+                            note,
+                        }
+                    }
+                    None => na(noisy, "ours-joint", f, budget, "no pair fits"),
                 });
             }
             if want("ours-motion") {

@@ -17,6 +17,7 @@ use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_V
 use anyhow::{bail, Context, Result};
 use gonio_devices::image::RgbImage;
 use gonio_sparse::complete::{holdout_check, Holdout};
+use gonio_sparse::joint::{self, JointOptions, JointReport};
 use gonio_sparse::{Completion, Conditioning, Prior};
 use nalgebra::DMatrix;
 use rayon::prelude::*;
@@ -31,6 +32,9 @@ pub struct CompleteArgs {
     /// The prior (.gprior file or `default`).
     #[arg(long)]
     pub prior: Option<String>,
+    /// Use only the prior's leading C components (at most the number of measured pairs).
+    #[arg(long)]
+    pub components: Option<usize>,
     /// The completed dataset (full grid).
     #[arg(long)]
     pub out: PathBuf,
@@ -100,6 +104,31 @@ pub fn noise_var(prior: &Prior, noise_codes: f64) -> f64 {
     prior.header.residual_var + (noise_codes / 255.0).powi(2)
 }
 
+/// Texels the joint fit learns the material's Gaussian from (evenly spread; 3 channels each).
+pub const JOINT_FIT_TEXELS: usize = 4096;
+
+/// The joint completion (`gonio_sparse::joint`): the material's Gaussian in the prior's
+/// coefficient space, fitted by EM on up to [`JOINT_FIT_TEXELS`] spread texels of the
+/// measured images, then applied to every texel.
+pub fn joint_completion<'a>(
+    prior: &'a Prior,
+    measured: &[usize],
+    images: &[&[f32]],
+    noise_floor: f64,
+) -> Result<(Completion<'a>, JointReport)> {
+    let space = prior.space();
+    let texels = images.first().map_or(0, |i| i.len() / 3);
+    let pick = super::prior::spread_texels(texels, JOINT_FIT_TEXELS);
+    let y = DMatrix::<f64>::from_fn(images.len(), pick.len() * 3, |i, j| {
+        space.forward(images[i][3 * pick[j / 3] + j % 3] as f64)
+    });
+    let opts = JointOptions {
+        fit_columns: y.ncols(),
+        ..JointOptions::default()
+    };
+    Ok(joint::fit(prior, measured, &y, noise_floor, &opts)?)
+}
+
 /// Held-back residual on up to 1000 spread texels (3000 texel-channels).
 pub fn holdout(c: &Completion, images: &[&[f32]], texels: usize) -> Option<Holdout> {
     let space = c.prior.space();
@@ -127,6 +156,7 @@ struct CompleteJson {
 
 pub fn run(a: CompleteArgs) -> Result<ExitCode> {
     let (prior, prior_path) = load_prior(a.prior.as_deref())?;
+    let prior = super::sparse::with_components(prior, a.components)?;
     let ds = DatasetViews::open(&a.dataset).with_context(|| format!("opening {}", a.dataset.display()))?;
     prior
         .check_compatible(

@@ -16,6 +16,10 @@ pub struct SparseArgs {
     /// `default` when omitted). Used with --pairs, --fraction or --rig-budget.
     #[arg(long)]
     pub prior: Option<String>,
+    /// Sparse: use only the prior's leading C components (a design or completion needs at
+    /// least as many pairs as components; the default prior has 512).
+    #[arg(long)]
+    pub components: Option<usize>,
     /// Sparse: measure this many pairs (chosen by optimal design in the prior).
     #[arg(long, conflicts_with_all = ["fraction", "rig_budget"])]
     pub pairs: Option<usize>,
@@ -72,6 +76,19 @@ pub fn load_prior(spec: Option<&str>) -> Result<(Prior, PathBuf)> {
     Ok((p, path))
 }
 
+/// The prior with only its leading `components` (`--components`), checked.
+pub fn with_components(prior: Prior, components: Option<usize>) -> Result<Prior> {
+    match components {
+        None => Ok(prior),
+        Some(c) if c == 0 || c > prior.components() => bail!(
+            "--components {c}: the prior has {} components; use 1 to {}",
+            prior.components(),
+            prior.components()
+        ),
+        Some(c) => Ok(prior.truncated(c)),
+    }
+}
+
 /// A loaded prior and what to ask of it: the session's and the planner's input.
 pub struct LoadedSparse {
     pub prior: Prior,
@@ -87,6 +104,7 @@ impl LoadedSparse {
             return Ok(None);
         };
         let (prior, path) = load_prior(a.prior.as_deref())?;
+        let prior = with_components(prior, a.components)?;
         Ok(Some(LoadedSparse {
             prior,
             name: path.display().to_string(),

@@ -225,6 +225,24 @@ fn prior_plan_complete_bench_and_refusals() {
         ],
         &["10 components", "6 pairs"],
     );
+    // The remedy the refusal names: the prior's leading components only.
+    let plan6 = |c: &'static str| -> Vec<&str> {
+        vec![
+            "plan",
+            "--sweep",
+            SWEEP,
+            "--prior",
+            s(&prior),
+            "--pairs",
+            "6",
+            "--plan-kicks",
+            "100",
+            "--components",
+            c,
+        ]
+    };
+    ok(&plan6("6"));
+    refused(&plan6("11"), &["--components 11", "10 components"]);
     // `gonio acquire` runs the same sparse plan: only the chosen pairs, plan.json records
     // the design, an interrupted and resumed run stores the same images, the monitor counts
     // against the chosen pairs, and `gonio complete` fills in the rest.
