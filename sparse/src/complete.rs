@@ -225,6 +225,18 @@ impl<'a> Completion<'a> {
         a
     }
 
+    /// The leverage of each measured pair (diagonal of the hat matrix `U_S W`, in the order
+    /// of `measured`): how much of its own value a pair's fit reproduces. With ridge it is
+    /// below 1, so leave-one-out residuals `r / (1 − h)` stay finite.
+    pub fn leverage(&self) -> Vec<f64> {
+        let k = self.prior.components();
+        self.measured
+            .iter()
+            .enumerate()
+            .map(|(i, &p)| (0..k).map(|j| self.prior.basis[(p, j)] * self.w[(j, i)]).sum::<f64>())
+            .collect()
+    }
+
     /// Predicted model-space values of pair `p` for every column of `a` (K × M).
     pub fn predict_pair(&self, p: usize, a: &DMatrix<f64>) -> DVector<f64> {
         let u = self.prior.basis.row(p);

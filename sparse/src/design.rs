@@ -59,6 +59,12 @@ impl<'a> Greedy<'a> {
 
     /// The trace reduction of adding pair q.
     pub fn gain(&self, q: usize) -> f64 {
+        self.gain_and_var(q).0
+    }
+
+    /// The trace reduction of adding pair q and q's own posterior variance `u_qᵀ Σ u_q`
+    /// (what q's prediction still misses inside the basis).
+    pub fn gain_and_var(&self, q: usize) -> (f64, f64) {
         let k = self.prior.components();
         let row = &self.b[q * k..q * k + k];
         let mut nn = 0.0;
@@ -67,7 +73,7 @@ impl<'a> Greedy<'a> {
             nn += row[j] * row[j];
             qu += row[j] * self.prior.basis[(q, j)];
         }
-        nn / (self.noise_var + qu)
+        (nn / (self.noise_var + qu), qu.max(0.0))
     }
 
     pub fn is_chosen(&self, q: usize) -> bool {

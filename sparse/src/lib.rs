@@ -12,6 +12,9 @@
 //! * [`complete`]: per-texel MAP (ridge with the prior's eigenvalues) from the measured
 //!   pairs; predicted values, predicted error per pair, conditioning, held-back residual
 //!   check for materials outside the prior.
+//! * [`adaptive`]: rounds of measurement — leave-one-out residuals of the measured pairs,
+//!   interpolated over the pair geometry, say where the prior fails; the next pairs are
+//!   chosen by the design's gain plus that residual, and the predicted error includes it.
 //! * [`joint`]: the alternative across texels — EM for the material's own Gaussian in the
 //!   prior's coefficient space; measured against the per-texel MAP (no better: the prior's
 //!   span, not the estimate, limits the completion; docs/guide/sparse.md).
@@ -26,6 +29,7 @@
 // Index loops mirror the formulas of the module docs.
 #![allow(clippy::needless_range_loop)]
 
+pub mod adaptive;
 pub mod complete;
 pub mod design;
 pub mod joint;

@@ -14,6 +14,11 @@
 //!   span with every pair known — the floor of any estimate in that prior;
 //! * **ours-motion** (asked for by name): the motion-aware design (error drop per second
 //!   of rig time, `gonio plan --design motion-aware`), the same completion;
+//! * **adaptive** (asked for by name): rounds, as `gonio acquire --adaptive` runs them —
+//!   half the budget on the A-optimal design, then each round spends half of what is left
+//!   (the last one all of it) on the pairs `gonio_sparse::adaptive` chooses from the
+//!   measured values' residuals; each round is planned on its own (from home), and the
+//!   analysis' compute time counts as rig time. The predicted PSNR is the residual-aware one;
 //! * **(a) product**: m lights × m views spread by farthest-point sampling, completed by the
 //!   triangle interpolation of `compress::interp` (n/a where its gap limit refuses);
 //! * **(c) pca-ls**: random feasible pairs, least squares in the prior's basis (no
@@ -71,7 +76,7 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-joint, ours-motion, project, product, pca-ls, dense;
+    /// Only these methods (ours, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
@@ -415,6 +420,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
     };
     let canonical = full.durations.canonical_s;
     let nv = noise_var(&prior, 0.0);
+    let geom = gonio_sparse::adaptive::PairGeometry::new(&lights, &views);
     let design: Vec<usize> = gonio_sparse::greedy_design(&prior, &feasible, &[], feasible.len(), nv)?
         .iter()
         .map(|s| s.pair)
@@ -576,6 +582,25 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                     Err(e) => na(noisy, "ours-motion", f, budget, &e.to_string()),
                 });
             }
+            if want("adaptive") {
+                rows.push(match adaptive(&ctx, &prior, &geom, &design, &meas, budget, nv)? {
+                    Some(run) => {
+                        let (rec, _) = complete_map(&prior, &run.measured, &meas, nv)?;
+                        Row {
+                            noise: noisy,
+                            method: "adaptive".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: run.measured.len(),
+                            planned_s: run.rig_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(psnr_of_mse(run.predicted_mse)),
+                            note: run.note,
+                        }
+                    }
+                    None => na(noisy, "adaptive", f, budget, "no pair fits"),
+                });
+            }
             if want("pca-ls") {
                 let fit = ctx.fit(random.len(), budget, |n| random[..n].to_vec())?;
                 rows.push(match fit {
@@ -702,6 +727,88 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One adaptive run's outcome.
+struct AdaptiveRun {
+    measured: Vec<usize>,
+    /// Planned rig time of every round plus the analyses' compute time (s).
+    rig_s: f64,
+    /// The residual-aware prediction after the last round (model space).
+    predicted_mse: f64,
+    note: String,
+}
+
+/// Share of the budget the first (A-optimal) round spends.
+const ADAPTIVE_FIRST_SHARE: f64 = 0.5;
+/// Texels whose values the analysis between rounds reads (3 channels each).
+const ADAPTIVE_TEXELS: usize = 1000;
+const ADAPTIVE_MAX_ROUNDS: usize = 6;
+
+/// The adaptive rounds against the noisy truth (see the module docs).
+fn adaptive(
+    ctx: &Ctx,
+    prior: &Prior,
+    geom: &gonio_sparse::adaptive::PairGeometry,
+    design: &[usize],
+    meas: &[Vec<f32>],
+    budget: f64,
+    nv: f64,
+) -> Result<Option<AdaptiveRun>> {
+    let Some((n0, plan0)) = ctx.fit(design.len(), ADAPTIVE_FIRST_SHARE * budget, |n| design[..n].to_vec())? else {
+        return Ok(None);
+    };
+    let mut measured: Vec<usize> = design[..n0].to_vec();
+    let mut spent = plan0.durations.optimized_s;
+    let mut compute = 0.0;
+    let space = prior.space();
+    let texels = meas.first().map_or(0, |m| m.len() / 3);
+    let pick = super::prior::spread_texels(texels, ADAPTIVE_TEXELS);
+    let values = |measured: &[usize]| {
+        nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
+            space.forward(meas[measured[i]][3 * pick[j / 3] + j % 3] as f64)
+        })
+    };
+    let capture = ctx.full.durations.capture_per_measurement_s.max(1e-6);
+    let mut rounds = vec![n0];
+    let mut last = None;
+    for r in 1..=ADAPTIVE_MAX_ROUNDS {
+        let left = budget - spent - compute;
+        let t = std::time::Instant::now();
+        let round_budget = if r == ADAPTIVE_MAX_ROUNDS || left < 0.25 * budget { left } else { left / 2.0 };
+        let n_max = ((round_budget / capture).floor() as usize).min(ctx.feasible.len() - measured.len());
+        let choice =
+            gonio_sparse::adaptive::next_round(prior, geom, &ctx.feasible, &measured, &values(&measured), nv, n_max)?;
+        compute += t.elapsed().as_secs_f64();
+        last = Some(choice.predicted_mse);
+        if n_max == 0 || choice.picks.is_empty() {
+            break;
+        }
+        let picks: Vec<usize> = choice.picks.iter().map(|s| s.pair).collect();
+        let Some((n, plan)) = ctx.fit(picks.len(), round_budget - compute.min(round_budget), |n| picks[..n].to_vec())? else {
+            break;
+        };
+        spent += plan.durations.optimized_s;
+        measured.extend_from_slice(&picks[..n]);
+        rounds.push(n);
+        last = Some(choice.picks[n - 1].expected_mse);
+    }
+    // The prediction for the final set (an analysis with nothing more to choose).
+    let t = std::time::Instant::now();
+    let fin = gonio_sparse::adaptive::next_round(prior, geom, &ctx.feasible, &measured, &values(&measured), nv, 0)?;
+    compute += t.elapsed().as_secs_f64();
+    let _ = last;
+    measured.sort_unstable();
+    Ok(Some(AdaptiveRun {
+        note: format!(
+            "rounds {rounds:?}, K = {}, compute {compute:.1} s{}",
+            fin.components,
+            if fin.outside_prior { ", outside the prior" } else { "" }
+        ),
+        measured,
+        rig_s: spent + compute,
+        predicted_mse: fin.predicted_mse,
+    }))
 }
 
 fn na(noise: bool, method: &str, f: f64, budget: f64, why: &str) -> Row {
