@@ -115,7 +115,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
             }
             if args.sparse.prior.is_some() || args.sparse.target()?.is_some() {
                 anyhow::bail!(
-                    "--resume {}: the sparse flags (--prior, --pairs, --fraction, --rig-budget) choose the pairs of a \
+                    "--resume {}: the sparse flags (--prior, --pairs, --fraction, --rig-budget, --adaptive) choose the pairs of a \
                      new acquisition; a resumed one measures the pairs its plan.json chose: drop them",
                     dir.display()
                 );
@@ -234,6 +234,7 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
                 prior_name: l.name,
                 target: l.target,
                 design: l.design,
+                adaptive: l.adaptive,
             }),
             fly: args.fly.options()?,
         },

@@ -14,11 +14,12 @@
 //!   span with every pair known — the floor of any estimate in that prior;
 //! * **ours-motion** (asked for by name): the motion-aware design (error drop per second
 //!   of rig time, `gonio plan --design motion-aware`), the same completion;
-//! * **adaptive** (asked for by name): rounds, as `gonio acquire --adaptive` runs them —
-//!   half the budget on the A-optimal design, then each round spends half of what is left
-//!   (the last one all of it) on the pairs `gonio_sparse::adaptive` chooses from the
-//!   measured values' residuals; each round is planned on its own (from home), and the
-//!   analysis' compute time counts as rig time. The predicted PSNR is the residual-aware one;
+//! * **adaptive** (asked for by name): rounds, by the plan steps `gonio acquire --adaptive`
+//!   takes (`gonio_acquire::plan::adaptive`) — half the budget on the A-optimal design,
+//!   then each round spends half of what is left (the last one all of it) on the pairs
+//!   `gonio_sparse::adaptive` chooses from the measured values' residuals; each round is
+//!   planned on its own (from home), and each analysis is charged its declared allowance of
+//!   rig time (the wall time is in the note). The predicted PSNR is the residual-aware one;
 //! * **(a) product**: m lights × m views spread by farthest-point sampling, completed by the
 //!   triangle interpolation of `compress::interp` (n/a where its gap limit refuses);
 //! * **(c) pca-ls**: random feasible pairs, least squares in the prior's basis (no
@@ -420,7 +421,6 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
     };
     let canonical = full.durations.canonical_s;
     let nv = noise_var(&prior, 0.0);
-    let geom = gonio_sparse::adaptive::PairGeometry::new(&lights, &views);
     let design: Vec<usize> = gonio_sparse::greedy_design(&prior, &feasible, &[], feasible.len(), nv)?
         .iter()
         .map(|s| s.pair)
@@ -583,7 +583,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 });
             }
             if want("adaptive") {
-                rows.push(match adaptive(&ctx, &prior, &geom, &design, &meas, budget, nv)? {
+                rows.push(match adaptive(&ctx, &prior, &meas, budget, nv)? {
                     Some(run) => {
                         let (rec, _) = complete_map(&prior, &run.measured, &meas, nv)?;
                         Row {
@@ -594,7 +594,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                             pairs: run.measured.len(),
                             planned_s: run.rig_s,
                             psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: Some(psnr_of_mse(run.predicted_mse)),
+                            predicted_psnr_db: Some(run.predicted_psnr_db),
                             note: run.note,
                         }
                     }
@@ -732,82 +732,68 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
 /// One adaptive run's outcome.
 struct AdaptiveRun {
     measured: Vec<usize>,
-    /// Planned rig time of every round plus the analyses' compute time (s).
+    /// Planned rig time of every round plus the analysis allowances (s).
     rig_s: f64,
-    /// The residual-aware prediction after the last round (model space).
-    predicted_mse: f64,
+    /// The residual-aware prediction after the last round (dB).
+    predicted_psnr_db: f64,
     note: String,
 }
 
-/// Share of the budget the first (A-optimal) round spends.
-const ADAPTIVE_FIRST_SHARE: f64 = 0.5;
-/// Texels whose values the analysis between rounds reads (3 channels each).
-const ADAPTIVE_TEXELS: usize = 1000;
-const ADAPTIVE_MAX_ROUNDS: usize = 6;
-
-/// The adaptive rounds against the noisy truth (see the module docs).
-fn adaptive(
-    ctx: &Ctx,
-    prior: &Prior,
-    geom: &gonio_sparse::adaptive::PairGeometry,
-    design: &[usize],
-    meas: &[Vec<f32>],
-    budget: f64,
-    nv: f64,
-) -> Result<Option<AdaptiveRun>> {
-    let Some((n0, plan0)) = ctx.fit(design.len(), ADAPTIVE_FIRST_SHARE * budget, |n| design[..n].to_vec())? else {
-        return Ok(None);
+/// The adaptive rounds against the noisy truth, by the very plan steps `gonio acquire
+/// --adaptive` takes ([`Plan::build_adaptive`], [`Plan::adaptive_next`]): a measurement is
+/// the noisy truth image, read at the same analysis texels.
+fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -> Result<Option<AdaptiveRun>> {
+    use gonio_acquire::plan::adaptive::{analysis_texels, AdaptiveRequest, AdaptiveStop};
+    let stop = AdaptiveStop::new(None, Some(budget))?;
+    let req = AdaptiveRequest {
+        prior,
+        prior_name: "bench",
+        stop,
+        noise_var: nv,
     };
-    let mut measured: Vec<usize> = design[..n0].to_vec();
-    let mut spent = plan0.durations.optimized_s;
-    let mut compute = 0.0;
+    let mut plan = match Plan::build_adaptive(ctx.rig, ctx.sweep, &ctx.opts, ctx.full, req) {
+        Ok(p) => p,
+        Err(e) => {
+            tracing::info!(error = %e, "adaptive: no first round");
+            return Ok(None);
+        }
+    };
     let space = prior.space();
     let texels = meas.first().map_or(0, |m| m.len() / 3);
-    let pick = super::prior::spread_texels(texels, ADAPTIVE_TEXELS);
-    let values = |measured: &[usize]| {
-        nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
+    let ad_texels = plan
+        .sparse
+        .as_ref()
+        .and_then(|s| s.adaptive.as_ref())
+        .map_or(0, |a| a.analysis_texels);
+    let pick = analysis_texels(texels, ad_texels);
+    let mut compute = 0.0;
+    loop {
+        let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("adaptive plan");
+        let mut measured = ad.chosen();
+        measured.sort_unstable();
+        let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
             space.forward(meas[measured[i]][3 * pick[j / 3] + j % 3] as f64)
-        })
-    };
-    let capture = ctx.full.durations.capture_per_measurement_s.max(1e-6);
-    let mut rounds = vec![n0];
-    let mut last = None;
-    for r in 1..=ADAPTIVE_MAX_ROUNDS {
-        let left = budget - spent - compute;
+        });
         let t = std::time::Instant::now();
-        let round_budget = if r == ADAPTIVE_MAX_ROUNDS || left < 0.25 * budget { left } else { left / 2.0 };
-        let n_max = ((round_budget / capture).floor() as usize).min(ctx.feasible.len() - measured.len());
-        let choice =
-            gonio_sparse::adaptive::next_round(prior, geom, &ctx.feasible, &measured, &values(&measured), nv, n_max)?;
+        let added = plan.adaptive_next(ctx.rig, ctx.sweep, &ctx.opts, prior, &measured, &values)?;
         compute += t.elapsed().as_secs_f64();
-        last = Some(choice.predicted_mse);
-        if n_max == 0 || choice.picks.is_empty() {
+        if !added {
             break;
         }
-        let picks: Vec<usize> = choice.picks.iter().map(|s| s.pair).collect();
-        let Some((n, plan)) = ctx.fit(picks.len(), round_budget - compute.min(round_budget), |n| picks[..n].to_vec())? else {
-            break;
-        };
-        spent += plan.durations.optimized_s;
-        measured.extend_from_slice(&picks[..n]);
-        rounds.push(n);
-        last = Some(choice.picks[n - 1].expected_mse);
     }
-    // The prediction for the final set (an analysis with nothing more to choose).
-    let t = std::time::Instant::now();
-    let fin = gonio_sparse::adaptive::next_round(prior, geom, &ctx.feasible, &measured, &values(&measured), nv, 0)?;
-    compute += t.elapsed().as_secs_f64();
-    let _ = last;
+    let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("adaptive plan");
+    let mut measured = ad.chosen();
     measured.sort_unstable();
+    let rounds: Vec<usize> = ad.rounds.iter().map(|r| r.pairs.len()).collect();
     Ok(Some(AdaptiveRun {
         note: format!(
-            "rounds {rounds:?}, K = {}, compute {compute:.1} s{}",
-            fin.components,
-            if fin.outside_prior { ", outside the prior" } else { "" }
+            "rounds {rounds:?}, analyses {compute:.1} s wall (charged {:.0} s){}",
+            ad.round_allowance_s * (ad.rounds.len().saturating_sub(1)) as f64,
+            if ad.outside_prior { ", outside the prior" } else { "" }
         ),
         measured,
-        rig_s: spent + compute,
-        predicted_mse: fin.predicted_mse,
+        rig_s: ad.spent_s(),
+        predicted_psnr_db: ad.predicted_psnr_db.unwrap_or(f64::NAN),
     }))
 }
 

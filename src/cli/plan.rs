@@ -67,7 +67,22 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
     let plan = sweep_args.plan(&rig, &sweep)?;
     if let Some(sparse) = super::sparse::LoadedSparse::from_args(&args.sparse)? {
         let opts = args.sweep.plan_options()?;
-        let plan = Plan::build_sparse(&rig, &sweep, &opts, &plan, sparse.request())?;
+        // An adaptive plan shows its first round: the later ones depend on measured values.
+        let plan = match sparse.adaptive {
+            Some(stop) => {
+                if fly.is_some() {
+                    anyhow::bail!("--adaptive with --fly: adaptive rounds are measured stop and go");
+                }
+                let req = gonio_acquire::plan::adaptive::AdaptiveRequest {
+                    prior: &sparse.prior,
+                    prior_name: &sparse.name,
+                    stop,
+                    noise_var: sparse.prior.header.residual_var,
+                };
+                Plan::build_adaptive(&rig, &sweep, &opts, &plan, req)?
+            }
+            None => Plan::build_sparse(&rig, &sweep, &opts, &plan, sparse.request())?,
+        };
         let plan = match fly {
             Some(f) => plan.into_fly(&rig, &opts, f)?,
             None => plan,

@@ -5,6 +5,7 @@
 //! complete`'s job.
 
 use anyhow::{bail, Context, Result};
+use gonio_acquire::plan::adaptive::AdaptiveStop;
 use gonio_acquire::plan::sparse::{SparseDesign, SparseInfo, SparseRequest, SparseTarget};
 use gonio_acquire::plan::Plan;
 use gonio_sparse::Prior;
@@ -34,6 +35,15 @@ pub struct SparseArgs {
     /// chosen pair).
     #[arg(long, default_value = "a-optimal", value_parser = |s: &str| s.parse::<SparseDesign>())]
     pub design: SparseDesign,
+    /// Adaptive acquisition (`gonio acquire` only): measure in rounds, each chosen from the
+    /// values measured so far, until the predicted PSNR reaches --target-psnr or the
+    /// --rig-budget is spent (docs/guide/sparse.md).
+    #[arg(long, conflicts_with_all = ["pairs", "fraction"])]
+    pub adaptive: bool,
+    /// Adaptive: stop when the predicted PSNR of the completed dataset reaches this (dB,
+    /// 8-bit sRGB). A real rig has no truth, so the target is the prediction.
+    #[arg(long, requires = "adaptive")]
+    pub target_psnr: Option<f64>,
 }
 
 impl SparseArgs {
@@ -41,6 +51,10 @@ impl SparseArgs {
     /// prior but not how many pairs to measure.
     pub fn target(&self) -> Result<Option<SparseTarget>> {
         let t = SparseTarget::from_flags(self.pairs, self.fraction, self.rig_budget);
+        if self.adaptive {
+            // The stop is checked by `adaptive_stop`; the budget (if any) is the target.
+            return Ok(Some(t.unwrap_or(SparseTarget::RigBudget(f64::INFINITY))));
+        }
         if t.is_none() {
             if let Some(p) = &self.prior {
                 bail!("--prior {p}: say how much to measure with --pairs N, --fraction F or --rig-budget SECONDS");
@@ -95,6 +109,8 @@ pub struct LoadedSparse {
     pub name: String,
     pub target: SparseTarget,
     pub design: SparseDesign,
+    /// `--adaptive`: the stop (then `target` is unused).
+    pub adaptive: Option<AdaptiveStop>,
 }
 
 impl LoadedSparse {
@@ -105,11 +121,17 @@ impl LoadedSparse {
         };
         let (prior, path) = load_prior(a.prior.as_deref())?;
         let prior = with_components(prior, a.components)?;
+        let adaptive = if a.adaptive {
+            Some(AdaptiveStop::new(a.target_psnr, a.rig_budget).map_err(anyhow::Error::msg)?)
+        } else {
+            None
+        };
         Ok(Some(LoadedSparse {
             prior,
             name: path.display().to_string(),
             target,
             design: a.design,
+            adaptive,
         }))
     }
 
@@ -146,8 +168,27 @@ pub fn print_summary(plan: &Plan, info: &SparseInfo) {
         info.planned_s / info.full_canonical_s,
         info.full_canonical_s
     );
-    println!(
-        "  predicted PSNR of the completed dataset {:.2} dB (8-bit sRGB, over the prior, noiseless)",
-        info.predicted_psnr_db
-    );
+    match &info.adaptive {
+        None => println!(
+            "  predicted PSNR of the completed dataset {:.2} dB (8-bit sRGB, over the prior, noiseless)",
+            info.predicted_psnr_db
+        ),
+        Some(ad) => {
+            for r in &ad.rounds {
+                println!(
+                    "  round {}: {} pairs, {:.0} s planned (+{:.0} s analysis), predicted PSNR {:.2} → {:.2} dB{}",
+                    r.round,
+                    r.pairs.len(),
+                    r.planned_s,
+                    r.allowance_s,
+                    r.predicted_psnr_before_db,
+                    r.predicted_psnr_after_db,
+                    if r.outside_prior { " (outside the prior)" } else { "" }
+                );
+            }
+            if let Some(why) = &ad.finished {
+                println!("  finished: {why}");
+            }
+        }
+    }
 }

@@ -53,6 +53,58 @@ pub struct Snapshot {
     pub stage_seconds: serde_json::Value,
     /// Bytes of the journal read (the page's "something changed" marker).
     pub journal_bytes: u64,
+    /// An adaptive acquisition's rounds so far (empty for any other plan): the total above
+    /// grows as rounds are recorded, so progress and ETA count the chosen pairs.
+    pub rounds: Vec<RoundProgress>,
+    /// Why an adaptive acquisition stopped choosing rounds, once it has.
+    pub adaptive_finished: Option<String>,
+}
+
+/// One adaptive round as the monitor shows it.
+#[derive(Serialize, Clone, Debug, PartialEq)]
+pub struct RoundProgress {
+    pub round: usize,
+    pub pairs: usize,
+    /// Of them, stored in the journal.
+    pub done: usize,
+    /// Predicted PSNR before and after the round (dB).
+    pub predicted_psnr_before_db: f64,
+    pub predicted_psnr_after_db: f64,
+    pub outside_prior: bool,
+}
+
+/// The rounds of an adaptive plan (`plan.json` `sparse.adaptive`), with how many of each
+/// round's pairs the journal holds.
+fn rounds(plan: &serde_json::Value, stored: &std::collections::HashSet<usize>) -> (Vec<RoundProgress>, Option<String>) {
+    let Some(ad) = plan.get("sparse").and_then(|s| s.get("adaptive")) else {
+        return (Vec::new(), None);
+    };
+    let f = |r: &serde_json::Value, k: &str| r.get(k).and_then(|v| v.as_f64()).unwrap_or(f64::NAN);
+    let list = ad
+        .get("rounds")
+        .and_then(|r| r.as_array())
+        .map(|rs| {
+            rs.iter()
+                .map(|r| {
+                    let pairs: Vec<usize> = r
+                        .get("pairs")
+                        .and_then(|p| p.as_array())
+                        .map(|a| a.iter().filter_map(|x| x.as_u64()).map(|x| x as usize).collect())
+                        .unwrap_or_default();
+                    RoundProgress {
+                        round: r.get("round").and_then(|v| v.as_u64()).unwrap_or(0) as usize,
+                        pairs: pairs.len(),
+                        done: pairs.iter().filter(|p| stored.contains(p)).count(),
+                        predicted_psnr_before_db: f(r, "predicted_psnr_before_db"),
+                        predicted_psnr_after_db: f(r, "predicted_psnr_after_db"),
+                        outside_prior: r.get("outside_prior").and_then(|v| v.as_bool()).unwrap_or(false),
+                    }
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let finished = ad.get("finished").and_then(|v| v.as_str()).map(str::to_string);
+    (list, finished)
 }
 
 /// Size of the journal file (0 when it does not exist yet).
@@ -66,11 +118,14 @@ pub fn journal_len(dir: &Path) -> u64 {
 /// `plan.json`: a sparse or isotropic plan measures fewer pairs than the grid holds, and
 /// progress and ETA count against what is planned. `None` when there is no readable plan
 /// (an imported dataset): then the grid counts.
-fn planned_records(dir: &Path) -> Option<usize> {
-    let bytes = std::fs::read(dir.join(store::PLAN_FILE)).ok()?;
-    let plan: serde_json::Value = serde_json::from_slice(&bytes).ok()?;
+fn planned_records(plan: &serde_json::Value) -> Option<usize> {
     let len = |k: &str| plan.get(k).and_then(|a| a.as_array()).map(Vec::len);
     Some(len("steps")? + len("skipped").unwrap_or(0))
+}
+
+fn read_plan(dir: &Path) -> Option<serde_json::Value> {
+    let bytes = std::fs::read(dir.join(store::PLAN_FILE)).ok()?;
+    serde_json::from_slice(&bytes).ok()
 }
 
 /// Read the dataset in `dir` as it is now.
@@ -78,7 +133,13 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
     let journal_bytes = journal_len(dir);
     let (header, mut records) = store::load(dir)?;
     let n = |k: &str| header.sweep.get(k).and_then(|a| a.as_array()).map_or(0, |a| a.len());
-    let total = planned_records(dir).unwrap_or_else(|| n("lights_deg") * n("views_deg"));
+    let plan = read_plan(dir);
+    let total = plan
+        .as_ref()
+        .and_then(planned_records)
+        .unwrap_or_else(|| n("lights_deg") * n("views_deg"));
+    let stored: std::collections::HashSet<usize> = records.iter().map(|r| r.index).collect();
+    let (rounds, adaptive_finished) = plan.as_ref().map(|p| rounds(p, &stored)).unwrap_or_default();
     records.sort_by_key(|r| (r.order, r.index));
     let manifest: serde_json::Value = std::fs::read(dir.join(store::MANIFEST_FILE))
         .ok()
@@ -105,6 +166,8 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
         truth_rmse: Vec::new(),
         stage_seconds,
         journal_bytes,
+        rounds,
+        adaptive_finished,
     };
     for r in &records {
         let kind = match &r.status {

@@ -354,4 +354,157 @@ fn prior_plan_complete_bench_and_refusals() {
         &["complete", s(&one_view), "--prior", s(&prior), "--out", s(&d.join("x"))],
         &["degenerate", "view"],
     );
+
+    adaptive_acquisition(d, &prior, plan["sparse"]["full_optimized_s"].as_f64().unwrap());
+}
+
+/// `gonio acquire --adaptive`: rounds recorded in plan.json before they are measured, the
+/// pairs measured are exactly the rounds' pairs, the planned rig time stays within the
+/// budget, an interrupted run (stopped inside round 2) resumes to the same plan.json and
+/// images byte for byte, the monitor shows the rounds, a PSNR target stops the run, and
+/// the bad combinations are refused by name.
+fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
+    let budget = format!("{:.0}", 0.45 * full_s);
+    let acquire = |out: &Path, stop: &[&str], extra: &[&str]| {
+        let mut a = vec![
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--plan-kicks",
+            "200",
+            "--size",
+            "16x16",
+            "--no-truth",
+            "--out",
+            s(out),
+            "--json",
+        ];
+        a.extend_from_slice(stop);
+        a.extend_from_slice(extra);
+        gonio(&a, None)
+    };
+    let plan_of = |dir: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(dir.join(store::PLAN_FILE)).unwrap()).unwrap()
+    };
+    let ad1 = d.join("adaptive");
+    let o = acquire(&ad1, &["--rig-budget", &budget], &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["complete"], true, "{summary}");
+    let plan = plan_of(&ad1);
+    let ad = &plan["sparse"]["adaptive"];
+    let rounds = ad["rounds"].as_array().unwrap();
+    assert!(rounds.len() >= 2, "one round only: {ad}");
+    assert!(ad["finished"].as_str().is_some(), "{ad}");
+    assert_eq!(summary["adaptive"]["rounds"].as_array().unwrap().len(), rounds.len());
+    let mut chosen: Vec<usize> = rounds
+        .iter()
+        .flat_map(|r| r["pairs"].as_array().unwrap().iter().map(|p| p.as_u64().unwrap() as usize))
+        .collect();
+    let n = chosen.len();
+    chosen.sort_unstable();
+    chosen.dedup();
+    assert_eq!(chosen.len(), n, "a pair chosen twice");
+    assert_eq!(plan["steps"].as_array().unwrap().len(), n);
+    for (i, r) in rounds.iter().enumerate() {
+        assert_eq!(r["round"], i + 1);
+        assert!(r["predicted_psnr_after_db"].as_f64().unwrap().is_finite());
+        if i > 0 {
+            assert!(r["observed_residual"].as_f64().unwrap().is_finite(), "{r}");
+            assert_eq!(r["allowance_s"].as_f64(), Some(10.0));
+        }
+    }
+    let spent: f64 = rounds
+        .iter()
+        .map(|r| r["planned_s"].as_f64().unwrap() + r["allowance_s"].as_f64().unwrap())
+        .sum();
+    assert!(spent <= budget.parse::<f64>().unwrap() + 1e-6, "{spent} > {budget}");
+    let (_, recs) = store::load(&ad1).unwrap();
+    let mut measured: Vec<usize> = recs.iter().map(|r| r.index).collect();
+    measured.sort_unstable();
+    assert_eq!(measured, chosen, "measured pairs are not the rounds' pairs");
+    let snap = gonio::view::monitor::snapshot(&ad1).unwrap();
+    assert_eq!((snap.total, snap.done), (n, n));
+    assert_eq!(snap.rounds.len(), rounds.len());
+    assert!(snap.rounds.iter().all(|r| r.done == r.pairs));
+    assert!(snap.adaptive_finished.is_some());
+
+    // Interrupted inside round 2 (kill-safe journal: --limit stops like a pause), resumed:
+    // the same rounds, the same bytes.
+    let first = rounds[0]["pairs"].as_array().unwrap().len();
+    let ad2 = d.join("adaptive2");
+    let limit = (first + 2).to_string();
+    let o = acquire(&ad2, &["--rig-budget", &budget], &["--limit", &limit]);
+    assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
+    let mid = plan_of(&ad2);
+    assert_eq!(
+        mid["sparse"]["adaptive"]["rounds"].as_array().unwrap().len(),
+        2,
+        "round 2 is recorded before its first move"
+    );
+    let snap = gonio::view::monitor::snapshot(&ad2).unwrap();
+    assert_eq!(snap.rounds[1].done, 2);
+    assert!(snap.adaptive_finished.is_none());
+    refused(
+        &["acquire", "--resume", s(&ad2), "--adaptive", "--rig-budget", "100"],
+        &["--resume", "drop them"],
+    );
+    ok(&["acquire", "--resume", s(&ad2), "--json"]);
+    assert_eq!(
+        std::fs::read(ad1.join(store::PLAN_FILE)).unwrap(),
+        std::fs::read(ad2.join(store::PLAN_FILE)).unwrap(),
+        "an interrupted adaptive run chose other rounds"
+    );
+    let sha = |dir: &Path| {
+        let (_, recs) = store::load(dir).unwrap();
+        let mut v: Vec<(usize, String)> = recs
+            .iter()
+            .map(|r| (r.index, r.image_sha256.clone().unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(sha(&ad1), sha(&ad2), "interrupted and resumed: other images");
+
+    // A PSNR target alone: the run stops when the prediction reaches it, or says why not.
+    let ad3 = d.join("adaptive3");
+    let o = acquire(&ad3, &["--target-psnr", "30"], &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let fin = summary["adaptive"]["finished"].as_str().unwrap().to_string();
+    let pred = summary["adaptive"]["predicted_psnr_db"].as_f64().unwrap();
+    assert!(
+        (fin.contains("reached the target") && pred >= 30.0) || fin.contains("rounds") || fin.contains("every"),
+        "{fin} at {pred}"
+    );
+
+    // Refusals.
+    refused(
+        &["acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--out", s(&d.join("x1"))],
+        &["--adaptive needs a stop", "--target-psnr", "--rig-budget"],
+    );
+    refused(
+        &[
+            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--pairs", "20", "--out",
+            s(&d.join("x2")),
+        ],
+        &["--pairs"],
+    );
+    refused(
+        &[
+            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--rig-budget", &budget, "--fly",
+            "--out", s(&d.join("x3")),
+        ],
+        &["--adaptive with --fly"],
+    );
+    refused(
+        &[
+            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--target-psnr", "200", "--out",
+            s(&d.join("x4")),
+        ],
+        &["--target-psnr 200"],
+    );
 }

@@ -5,6 +5,7 @@
 //! (`plan.json`) and executed step by step by the acquisition engine, which resumes it
 //! by skipping the steps the journal already holds.
 
+pub mod adaptive;
 pub mod fly;
 pub mod isotropic;
 pub mod order;

@@ -57,6 +57,9 @@ pub struct SparseInfo {
     /// The chosen pairs in the order the design picked them, each with the expected PSNR
     /// after it (every prefix is itself a design).
     pub picks: Vec<(usize, f64)>,
+    /// Present for an adaptive acquisition: its stop, rounds and analyses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<super::adaptive::AdaptiveInfo>,
 }
 
 /// PSNR (dB) of a model-space mean squared error (the gamma space is close to 8-bit sRGB).
@@ -130,6 +133,20 @@ impl Plan {
         full: &Plan,
         req: SparseRequest,
     ) -> Result<Plan, PlanError> {
+        Plan::build_sparse_with(rig, sweep, opts, full, req, true)
+    }
+
+    /// [`Plan::build_sparse`]; `all_components`: refuse a design with fewer pairs than the
+    /// prior has components (an adaptive first round completes with at most as many
+    /// components as it has pairs, and checks that itself).
+    pub(crate) fn build_sparse_with(
+        rig: &RigSpec,
+        sweep: &Sweep,
+        opts: &PlanOptions,
+        full: &Plan,
+        req: SparseRequest,
+        all_components: bool,
+    ) -> Result<Plan, PlanError> {
         if full.isotropic.is_some() {
             return Err(invalid(
                 "an isotropic plan and a sparse design do not combine: the prior chooses among all pairs; \
@@ -193,34 +210,18 @@ impl Plan {
             let o = PlanOptions { kicks, ..opts.clone() };
             Plan::build_pairs(rig, sweep, &chosen, &o)
         };
-        let mut n = design.len();
-        if let SparseTarget::RigBudget(b) = req.target {
-            let quick = opts.kicks.min(2000);
-            let (mut lo, mut hi) = (0usize, design.len());
-            // Largest n with a quick plan within the budget.
-            while lo < hi {
-                let mid = (lo + hi).div_ceil(2);
-                if plan_of(mid, quick)?.durations.optimized_s <= b {
-                    lo = mid;
-                } else {
-                    hi = mid - 1;
-                }
-            }
-            if lo == 0 {
-                return Err(invalid(format!("--rig-budget {b} s: not even one pair fits")));
-            }
-            n = lo;
-        }
-        let mut plan = plan_of(n, opts.kicks)?;
-        if let SparseTarget::RigBudget(b) = req.target {
-            while plan.durations.optimized_s > b && n > 1 {
-                n -= 1;
-                plan = plan_of(n, opts.kicks)?;
-            }
-        }
+        let (n, mut plan) = match req.target {
+            SparseTarget::RigBudget(b) => super::adaptive::fit_prefix(design.len(), b, opts.kicks, plan_of)?
+                .ok_or_else(|| invalid(format!("--rig-budget {b} s: not even one pair fits")))?,
+            _ => (design.len(), plan_of(design.len(), opts.kicks)?),
+        };
         let picks: Vec<usize> = design[..n].iter().map(|s| s.pair).collect();
-        gonio_sparse::complete::check_design(prior, &picks)
-            .map_err(|e| invalid(format!("{e} (prior {})", req.prior_name)))?;
+        let checked = if all_components {
+            gonio_sparse::complete::check_design(prior, &picks)
+        } else {
+            gonio_sparse::complete::check_design(&prior.truncated(prior.components().min(n)), &picks)
+        };
+        checked.map_err(|e| invalid(format!("{e} (prior {})", req.prior_name)))?;
         plan.pairs = sweep.len();
         plan.sparse = Some(SparseInfo {
             prior: req.prior_name.to_string(),
@@ -243,6 +244,7 @@ impl Plan {
                 .iter()
                 .map(|s| (s.pair, (psnr_of_mse(s.expected_mse) * 1000.0).round() / 1000.0))
                 .collect(),
+            adaptive: None,
         });
         Ok(plan)
     }

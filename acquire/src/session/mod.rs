@@ -15,12 +15,13 @@
 
 mod summary;
 
-pub use summary::{peak_rss_mib, Summary};
+pub use summary::{peak_rss_mib, AdaptiveSummary, Summary};
 
 use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadError, LoadedResult};
 use crate::develop::rectify::RectifyParams;
 use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
+use crate::plan::adaptive::{analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop};
 use crate::plan::sparse::{units_key, SparseDesign, SparseRequest, SparseTarget};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
@@ -123,6 +124,9 @@ pub struct SparsePlan {
     pub prior_name: String,
     pub target: SparseTarget,
     pub design: SparseDesign,
+    /// `--adaptive`: measure in rounds until this stop ([`crate::plan::adaptive`]); the
+    /// target and design above are then unused.
+    pub adaptive: Option<AdaptiveStop>,
 }
 
 impl std::fmt::Debug for SparsePlan {
@@ -132,6 +136,7 @@ impl std::fmt::Debug for SparsePlan {
             .field("prior", &self.prior_name)
             .field("target", &self.target)
             .field("design", &self.design)
+            .field("adaptive", &self.adaptive)
             .finish()
     }
 }
@@ -195,6 +200,8 @@ pub struct Session {
     done: HashSet<usize>,
     /// The views this session measures (all without a shard).
     shard: Option<ShardInfo>,
+    /// An adaptive acquisition's prior (its later rounds are chosen in it).
+    prior: Option<Arc<gonio_sparse::Prior>>,
 }
 
 impl Session {
@@ -297,14 +304,44 @@ impl Session {
                         message: format!("prior {}: {e}", sp.prior_name),
                     })
                 })?;
-                let req = SparseRequest {
-                    prior: &sp.prior,
-                    prior_name: &sp.prior_name,
-                    target: sp.target,
-                    noise_var: sp.prior.header.residual_var,
-                    design: sp.design,
-                };
-                Plan::build_sparse(&rig, &new.sweep, &new.plan.options, &plan, req).map_err(SessionError::Plan)?
+                match sp.adaptive {
+                    Some(stop) => {
+                        let refuse = |what: &str| {
+                            Err(SessionError::Invalid {
+                                dir: out.clone(),
+                                message: format!(
+                                    "--adaptive with {what}: an adaptive run chooses each round from all the \
+                                     values measured before it, in one process and in stop-and-go order"
+                                ),
+                            })
+                        };
+                        if new.shard.is_some() {
+                            return refuse("--shard");
+                        }
+                        if new.plan.fly.is_some() {
+                            return refuse("--fly");
+                        }
+                        let req = AdaptiveRequest {
+                            prior: &sp.prior,
+                            prior_name: &sp.prior_name,
+                            stop,
+                            noise_var: sp.prior.header.residual_var,
+                        };
+                        Plan::build_adaptive(&rig, &new.sweep, &new.plan.options, &plan, req)
+                            .map_err(SessionError::Plan)?
+                    }
+                    None => {
+                        let req = SparseRequest {
+                            prior: &sp.prior,
+                            prior_name: &sp.prior_name,
+                            target: sp.target,
+                            noise_var: sp.prior.header.residual_var,
+                            design: sp.design,
+                        };
+                        Plan::build_sparse(&rig, &new.sweep, &new.plan.options, &plan, req)
+                            .map_err(SessionError::Plan)?
+                    }
+                }
             }
         };
         let plan = match new.plan.fly {
@@ -339,6 +376,12 @@ impl Session {
             dataset,
             done: HashSet::new(),
             shard,
+            prior: new
+                .plan
+                .sparse
+                .as_ref()
+                .filter(|sp| sp.adaptive.is_some())
+                .map(|sp| sp.prior.clone()),
         })
     }
 
@@ -409,6 +452,20 @@ impl Session {
             None => None,
             Some(v) => Some(serde_json::from_value(v.clone()).map_err(|e| json("reading extra.shard", e))?),
         };
+        let prior = match plan.sparse.as_ref().filter(|sp| sp.adaptive.is_some()) {
+            None => None,
+            Some(sp) => {
+                let p = gonio_sparse::Prior::load(Path::new(&sp.prior)).map_err(|e| SessionError::Invalid {
+                    dir: name.clone(),
+                    message: format!(
+                        "its adaptive plan chose its rounds in prior {}, which cannot be read ({e}); \
+                         restore that file to resume",
+                        sp.prior
+                    ),
+                })?;
+                Some(Arc::new(p))
+            }
+        };
         if done.len() > plan.pairs {
             return Err(SessionError::Invalid {
                 dir: name,
@@ -423,6 +480,7 @@ impl Session {
             dataset,
             done,
             shard,
+            prior,
         })
     }
 
@@ -452,11 +510,12 @@ impl Session {
         let Session {
             rig: rig_spec,
             sample,
-            plan,
+            mut plan,
             settings,
-            mut dataset,
+            dataset,
             done,
             shard,
+            prior,
         } = self;
         let dir = dataset.dir().to_path_buf();
         let name = dir.display().to_string();
@@ -468,42 +527,6 @@ impl Session {
         };
         let rig = Arc::new(Rig::build(&rig_spec, &sample, &sim).map_err(SessionError::Rig)?);
         let calibration = dataset_calibration(dataset.header(), &dir, &rig_spec)?;
-        // A shard runs the steps of its views only. The others count as done for the
-        // engine, so every step keeps its position in the whole plan (`order`) and the
-        // single-process journal order is what `gonio merge` restores.
-        let in_shard = |index: usize| {
-            shard.is_none_or(|sh| (sh.first_view..sh.end_view).contains(&(index / plan.light_count.max(1))))
-        };
-        let mut plan_shard = plan.clone();
-        plan_shard.steps.retain(|s| in_shard(s.index));
-        plan_shard.skipped.retain(|s| in_shard(s.index));
-        let others: HashSet<usize> = plan.steps.iter().map(|s| s.index).filter(|&i| !in_shard(i)).collect();
-        let done_run: HashSet<usize> = done.union(&others).copied().collect();
-        // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
-        for s in &plan_shard.skipped {
-            if !done.contains(&s.index) {
-                let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
-                dataset.store(rec, None, None).map_err(|source| SessionError::Store {
-                    dir: name.clone(),
-                    what: format!("recording skipped pair {}", s.index),
-                    source: Box::new(source),
-                })?;
-            }
-        }
-        let mut plan_run = plan.clone();
-        if let Some(limit) = req.limit {
-            let mut left = limit;
-            plan_run.steps.retain(|s| {
-                if done_run.contains(&s.index) {
-                    return true;
-                }
-                if left == 0 {
-                    return false;
-                }
-                left -= 1;
-                true
-            });
-        }
         let params = RectifyParams {
             width: settings.width,
             height: settings.height,
@@ -528,23 +551,125 @@ impl Session {
             truth: settings.truth,
             store_truth: settings.store_truth,
         };
-        let result = engine::run(
-            rig.clone(),
-            Arc::new(plan_run),
-            dataset,
-            done_run,
-            opts,
-            pause,
-            observer,
-        )
-        .await;
-        let (mut dataset, report) = result.map_err(|(_, source)| SessionError::Engine {
+        let store_err = |what: String, source: StoreError| SessionError::Store {
             dir: name.clone(),
+            what,
             source: Box::new(source),
-        })?;
-        let mut report = report;
-        report.already_done -= others.len().min(report.already_done);
-        let summary = Summary::new(
+        };
+        // One engine run per adaptive round (one run for any other plan): the rig stays
+        // connected, and each round's record is in plan.json before its first move.
+        let mut dataset = dataset;
+        let mut total: Option<engine::RunReport> = None;
+        let mut limit_left = req.limit;
+        let mut analysis_wall_s = 0.0;
+        let plan_shard = loop {
+            let done_now: HashSet<usize> = done
+                .iter()
+                .copied()
+                .chain(dataset.records().iter().map(|r| r.index))
+                .collect();
+            // A shard runs the steps of its views only. The others count as done for the
+            // engine, so every step keeps its position in the whole plan (`order`) and the
+            // single-process journal order is what `gonio merge` restores.
+            let in_shard = |index: usize| {
+                shard.is_none_or(|sh| (sh.first_view..sh.end_view).contains(&(index / plan.light_count.max(1))))
+            };
+            let mut plan_shard = plan.clone();
+            plan_shard.steps.retain(|s| in_shard(s.index));
+            plan_shard.skipped.retain(|s| in_shard(s.index));
+            let others: HashSet<usize> = plan.steps.iter().map(|s| s.index).filter(|&i| !in_shard(i)).collect();
+            let done_run: HashSet<usize> = done_now.union(&others).copied().collect();
+            // Skipped pairs are recorded once, so the dataset says what it did not measure and why.
+            for s in &plan_shard.skipped {
+                if !done_now.contains(&s.index) {
+                    let rec = engine::skipped_record(s.index, s.light_deg, s.view_deg, s.reason.to_string());
+                    dataset
+                        .store(rec, None, None)
+                        .map_err(|source| store_err(format!("recording skipped pair {}", s.index), source))?;
+                }
+            }
+            let mut plan_run = plan.clone();
+            if let Some(limit) = limit_left {
+                let mut left = limit;
+                plan_run.steps.retain(|s| {
+                    if done_run.contains(&s.index) {
+                        return true;
+                    }
+                    if left == 0 {
+                        return false;
+                    }
+                    left -= 1;
+                    true
+                });
+            }
+            let result = engine::run(
+                rig.clone(),
+                Arc::new(plan_run),
+                dataset,
+                done_run,
+                opts.clone(),
+                pause.clone(),
+                observer.clone(),
+            )
+            .await;
+            let (ds, mut report) = result.map_err(|(_, source)| SessionError::Engine {
+                dir: name.clone(),
+                source: Box::new(source),
+            })?;
+            dataset = ds;
+            report.already_done -= others.len().min(report.already_done);
+            if let Some(l) = limit_left.as_mut() {
+                *l = l.saturating_sub(report.stored_this_run);
+            }
+            let go_on = report.complete && !report.paused && limit_left != Some(0);
+            total = Some(match total.take() {
+                None => report,
+                Some(t) => add_reports(t, report),
+            });
+            let open = plan
+                .sparse
+                .as_ref()
+                .and_then(|s| s.adaptive.as_ref())
+                .is_some_and(|a| a.finished.is_none());
+            if !(open && go_on) {
+                break plan_shard;
+            }
+            // Between rounds: analyse what is measured, record the next round (or the
+            // stop), and only then move.
+            let prior = prior.as_ref().ok_or_else(|| SessionError::Invalid {
+                dir: name.clone(),
+                message: "an adaptive plan without its prior".into(),
+            })?;
+            let t = std::time::Instant::now();
+            let (measured, values) = adaptive_values(&dataset, &plan, prior).map_err(|e| SessionError::Invalid {
+                dir: name.clone(),
+                message: format!("reading the measured values for the next round: {e}"),
+            })?;
+            let sweep = sweep_from_header(&dataset.header().sweep)
+                .map_err(|e| json_err(&name, "reading the sweep snapshot", e))?;
+            let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("open adaptive plan");
+            let popts = PlanOptions {
+                policy: plan.policy,
+                kicks: ad.plan_kicks,
+                time_cap: None,
+                seed: ad.plan_seed,
+            };
+            let added = plan
+                .adaptive_next(&rig_spec, &sweep, &popts, prior, &measured, &values)
+                .map_err(SessionError::Plan)?;
+            analysis_wall_s += t.elapsed().as_secs_f64();
+            tracing::info!(
+                seconds = t.elapsed().as_secs_f64(),
+                added,
+                "adaptive analysis between rounds"
+            );
+            let bytes = serde_json::to_vec(&plan).map_err(|e| json_err(&name, "the plan", e))?;
+            dataset
+                .write_plan(&bytes)
+                .map_err(|e| store_err("writing plan.json".into(), e))?;
+        };
+        let report = total.expect("the engine ran at least once");
+        let mut summary = Summary::new(
             &name,
             &rig_spec,
             &sample,
@@ -553,20 +678,95 @@ impl Session {
             &report,
             calibration.as_deref(),
         );
+        if let Some(ad) = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()) {
+            summary.complete &= ad.finished.is_some();
+            summary.adaptive = Some(summary::AdaptiveSummary::new(ad, analysis_wall_s));
+        }
         if summary.complete {
-            let value = serde_json::to_value(&summary).map_err(|e| SessionError::Json {
-                dir: name.clone(),
-                what: "the summary".into(),
-                source: e,
-            })?;
-            dataset.finish(&value).map_err(|source| SessionError::Store {
-                dir: name.clone(),
-                what: "writing the final manifest".into(),
-                source: Box::new(source),
-            })?;
+            let value = serde_json::to_value(&summary).map_err(|e| json_err(&name, "the summary", e))?;
+            dataset
+                .finish(&value)
+                .map_err(|source| store_err("writing the final manifest".into(), source))?;
         }
         Ok(summary)
     }
+}
+
+fn json_err(dir: &str, what: &str, source: serde_json::Error) -> SessionError {
+    SessionError::Json {
+        dir: dir.to_string(),
+        what: what.into(),
+        source,
+    }
+}
+
+/// Two engine runs as one (adaptive rounds): counts and times add up, the last run says
+/// whether it paused or completed.
+fn add_reports(mut a: engine::RunReport, b: engine::RunReport) -> engine::RunReport {
+    a.stored_this_run += b.stored_this_run;
+    a.remaining = b.remaining;
+    a.paused = b.paused;
+    a.complete = b.complete;
+    a.rig_time_s += b.rig_time_s;
+    a.wall_time_s += b.wall_time_s;
+    a.truth_error.merge(&b.truth_error);
+    a.homography_from_markers += b.homography_from_markers;
+    a.homography_from_pose += b.homography_from_pose;
+    let (s, t) = (&mut a.stage_seconds, &b.stage_seconds);
+    s.motion += t.motion;
+    s.capture += t.capture;
+    s.rectify += t.rectify;
+    s.truth += t.truth;
+    s.store += t.store;
+    a.lamp_drift_warnings += b.lamp_drift_warnings;
+    if b.lamp_identity.is_some() {
+        a.lamp_identity = b.lamp_identity;
+    }
+    a
+}
+
+/// The measured pairs of an adaptive plan's rounds and their values at the analysis texels
+/// (rows in the order of the returned pairs, columns texel-major then channel, in the
+/// prior's value space). Pairs without an image (failed, skipped) are left out.
+fn adaptive_values(
+    dataset: &Dataset,
+    plan: &Plan,
+    prior: &gonio_sparse::Prior,
+) -> Result<(Vec<usize>, nalgebra::DMatrix<f64>), String> {
+    use rayon::prelude::*;
+    let ad: &AdaptiveInfo = plan
+        .sparse
+        .as_ref()
+        .and_then(|s| s.adaptive.as_ref())
+        .ok_or("not an adaptive plan")?;
+    let mut image_of = std::collections::HashMap::new();
+    for r in dataset.records() {
+        if let Some(img) = &r.image {
+            image_of.insert(r.index, img.clone());
+        }
+    }
+    let mut measured: Vec<usize> = ad.chosen().into_iter().filter(|p| image_of.contains_key(p)).collect();
+    measured.sort_unstable();
+    let dir = dataset.dir();
+    let images: Vec<Vec<f32>> = measured
+        .par_iter()
+        .map(|p| {
+            let path = dir.join(&image_of[p]);
+            store::exr_io::read_exr(&path)
+                .map(|i| i.data)
+                .map_err(|e| format!("{}: {e}", path.display()))
+        })
+        .collect::<Result<_, _>>()?;
+    let texels = images.first().map_or(0, |i| i.len() / 3);
+    if images.iter().any(|i| i.len() != 3 * texels) {
+        return Err("the measured images differ in size".into());
+    }
+    let pick = analysis_texels(texels, ad.analysis_texels);
+    let space = prior.space();
+    let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
+        space.forward(images[i][3 * pick[j / 3] + j % 3] as f64)
+    });
+    Ok((measured, values))
 }
 
 /// Load the results for rig `rig` and describe them in the header: `calibration` = the

@@ -57,6 +57,44 @@ pub struct Summary {
     /// The lamp supply's identity (`*IDN?`), when the light measures.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lamp_identity: Option<String>,
+    /// An adaptive acquisition's rounds and stop (`gonio acquire --adaptive`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<AdaptiveSummary>,
+}
+
+/// What an adaptive acquisition did: its rounds, its prediction and why it stopped.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AdaptiveSummary {
+    /// Pairs per round, in order.
+    pub rounds: Vec<usize>,
+    /// Predicted PSNR of the completed dataset after the last analysis (dB, 8-bit sRGB;
+    /// residual-aware), or the first round's prior prediction before any analysis.
+    pub predicted_psnr_db: f64,
+    /// The last analysis found the material outside the prior.
+    pub outside_prior: bool,
+    /// Why the run stopped choosing (absent while rounds may follow).
+    pub finished: Option<String>,
+    /// Planned rig time of the rounds plus the analysis allowances (s).
+    pub planned_s: f64,
+    /// Wall seconds the analyses between rounds took in this run (charged to the plan as
+    /// the declared allowance per round).
+    pub analysis_wall_s: f64,
+}
+
+impl AdaptiveSummary {
+    pub fn new(ad: &crate::plan::adaptive::AdaptiveInfo, analysis_wall_s: f64) -> AdaptiveSummary {
+        AdaptiveSummary {
+            rounds: ad.rounds.iter().map(|r| r.pairs.len()).collect(),
+            predicted_psnr_db: ad
+                .predicted_psnr_db
+                .or_else(|| ad.rounds.last().map(|r| r.predicted_psnr_after_db))
+                .unwrap_or(0.0),
+            outside_prior: ad.outside_prior,
+            finished: ad.finished.clone(),
+            planned_s: ad.spent_s(),
+            analysis_wall_s,
+        }
+    }
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -106,6 +144,7 @@ impl Summary {
             corrections: calibration.map(|c| c.corrections()).unwrap_or_default(),
             lamp_drift_warnings: report.lamp_drift_warnings,
             lamp_identity: report.lamp_identity.clone(),
+            adaptive: None,
         }
     }
 }

@@ -20,6 +20,10 @@ function update(s) {
     g.fillRect(Math.floor((order / n) * tl.width), 0, Math.max(1, Math.ceil(tl.width / n)), tl.height);
   }
   $("skipped").textContent = Object.entries(s.skipped_reasons).map(([r, k]) => "skipped ×" + k + ": " + r).join("\n");
+  $("rounds").textContent = s.rounds.map((r) => "round " + r.round + ": " + r.done + " / " + r.pairs +
+    " pairs · predicted PSNR " + r.predicted_psnr_before_db.toFixed(2) + " → " + r.predicted_psnr_after_db.toFixed(2) +
+    " dB" + (r.outside_prior ? " · outside the prior" : "")).join("\n") +
+    (s.adaptive_finished ? "\nfinished: " + s.adaptive_finished : (s.rounds.length ? "\n(more rounds may follow)" : ""));
   const tc = $("truth"), h = tc.getContext("2d");
   h.fillStyle = "#101215"; h.fillRect(0, 0, tc.width, tc.height);
   if (s.truth_rmse.length) {

@@ -1,0 +1,494 @@
+//! Adaptive acquisition (issue 29, `gonio acquire --adaptive`): measure in rounds, and
+//! let what the first rounds measured decide where the next ones go.
+//!
+//! A fixed sparse plan ([`super::sparse`]) trusts the prior: its predicted error is the
+//! posterior's, which knows nothing of the material's own departure from the prior's
+//! span. An adaptive run measures a first design, then before each further round
+//! analyses the values it has ([`gonio_sparse::adaptive::next_round`]: leave-one-out
+//! residuals of the completion, spread over the pair geometry) and gets an honest
+//! predicted error and the pairs that lower it most. It stops at the target PSNR (a real
+//! rig has no truth: the target is the *predicted* PSNR) or when the rig budget is spent.
+//!
+//! Invariants, each relied on by resume:
+//! - **A round is recorded before its first move.** [`Plan::adaptive_next`] appends the
+//!   round's steps and its record to the plan; the session writes `plan.json` before the
+//!   engine runs the round. A resumed run reads the rounds and never recomputes one.
+//! - **Choices depend on the data and declared costs only.** The analysis between rounds
+//!   is charged as a declared allowance of rig time ([`ROUND_ALLOWANCE_S`]), not as the
+//!   wall clock, so the same measured values choose the same pairs on any machine at any
+//!   load. What the analysis really took is logged and reported by the bench beside it.
+//! - Every round is planned by the existing planner (from home, so its planned time is an
+//!   upper bound of what the engine spends moving there from the last pose).
+
+use super::sparse::{psnr_of_mse, SparseDesign, SparseRequest, SparseTarget};
+use super::{Plan, PlanError, PlanOptions};
+use gonio_dataset::sweep::Sweep;
+use gonio_devices::rig::RigSpec;
+use gonio_sparse::adaptive::{next_round, PairGeometry};
+use gonio_sparse::Prior;
+use nalgebra::DMatrix;
+use serde::{Deserialize, Serialize};
+
+/// Share of a rig budget that the first (A-optimal) round spends; each later round spends
+/// half of what is left, the last one all of it.
+pub const FIRST_SHARE: f64 = 0.5;
+/// Rig time charged for the analysis before each later round (s). Measured in release
+/// builds at 512 texels and K = 512 on two cores: 1–4 s per round (docs/guide/sparse.md);
+/// the allowance covers a slower machine.
+pub const ROUND_ALLOWANCE_S: f64 = 10.0;
+/// Texels whose values the analysis reads (spread over the image, three channels each):
+/// enough for a stable mean residual per pair, and a fixed cost whatever the texel count.
+pub const ANALYSIS_TEXELS: usize = 512;
+/// At most this many rounds.
+pub const MAX_ROUNDS: usize = 8;
+/// Without a rig budget, a later round adds at most as many pairs as are measured (the
+/// set at most doubles per round), and at least this many.
+pub const MIN_ROUND_PAIRS: usize = 8;
+
+/// When an adaptive run stops (at least one is given; with both, at whichever comes first).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdaptiveStop {
+    /// Stop when the predicted PSNR of the completed dataset reaches this (dB, 8-bit sRGB).
+    pub target_psnr_db: Option<f64>,
+    /// Stop when the planned rig time (rounds plus analysis allowances) would exceed this (s).
+    pub rig_budget_s: Option<f64>,
+}
+
+impl AdaptiveStop {
+    /// Check the flags: at least one, each a finite positive number.
+    pub fn new(target_psnr_db: Option<f64>, rig_budget_s: Option<f64>) -> Result<AdaptiveStop, PlanError> {
+        if target_psnr_db.is_none() && rig_budget_s.is_none() {
+            return Err(invalid(
+                "--adaptive needs a stop: --target-psnr DB (predicted PSNR of the completed dataset) \
+                 and/or --rig-budget SECONDS"
+                    .into(),
+            ));
+        }
+        if let Some(t) = target_psnr_db {
+            if !(t.is_finite() && t > 0.0 && t < 100.0) {
+                return Err(invalid(format!("--target-psnr {t}: use a PSNR in dB between 0 and 100")));
+            }
+        }
+        if let Some(b) = rig_budget_s {
+            if !(b.is_finite() && b > 0.0) {
+                return Err(invalid(format!(
+                    "--rig-budget {b}: must be a positive number of seconds"
+                )));
+            }
+        }
+        Ok(AdaptiveStop {
+            target_psnr_db,
+            rig_budget_s,
+        })
+    }
+}
+
+/// One round as `plan.json` records it (`sparse.adaptive.rounds`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AdaptiveRound {
+    /// 1, 2, …
+    pub round: usize,
+    /// Pairs measured before the round.
+    pub measured_before: usize,
+    /// The round's pairs in the order the analysis chose them.
+    pub pairs: Vec<usize>,
+    /// The round's steps: `plan.steps[first_step..first_step + pairs.len()]`.
+    pub first_step: usize,
+    /// Planned rig time of the round alone (s), and the analysis allowance charged before it.
+    pub planned_s: f64,
+    pub allowance_s: f64,
+    /// Components of the prior the analysis used (at most the pairs measured).
+    pub components: usize,
+    /// Predicted PSNR of the completed dataset before and after the round (dB). Round 1's
+    /// is the prior's own (no data yet); later rounds' include the residual the data showed.
+    pub predicted_psnr_before_db: f64,
+    pub predicted_psnr_after_db: f64,
+    /// Mean leave-one-out residual on the measured pairs, and what the prior expects there
+    /// (model space); `None` for round 1.
+    pub observed_residual: Option<f64>,
+    pub expected_residual: Option<f64>,
+    /// The residual is far above what the prior expects: the material is outside it, and
+    /// the round's pairs go where the residual is.
+    pub outside_prior: bool,
+}
+
+/// The adaptive part of a sparse plan (`plan.json` field `sparse.adaptive`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AdaptiveInfo {
+    pub stop: AdaptiveStop,
+    /// The prior's payload hash and the components used: a resumed run must analyse with
+    /// the very prior the earlier rounds were chosen in.
+    pub prior_sha256: String,
+    pub components: usize,
+    pub noise_var: f64,
+    pub first_share: f64,
+    pub round_allowance_s: f64,
+    pub analysis_texels: usize,
+    pub max_rounds: usize,
+    /// The order optimiser's kicks and seed: later rounds (also after a resume) are
+    /// planned with the first round's.
+    pub plan_kicks: usize,
+    pub plan_seed: u64,
+    /// Pairs of the sweep the rig cannot measure (never candidates).
+    pub infeasible: Vec<usize>,
+    pub rounds: Vec<AdaptiveRound>,
+    /// Why the run stopped choosing (absent while rounds may follow).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub finished: Option<String>,
+    /// The last analysis' predicted PSNR (dB) and whether it found the material outside
+    /// the prior (absent until a round after the first was analysed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predicted_psnr_db: Option<f64>,
+    #[serde(default)]
+    pub outside_prior: bool,
+}
+
+impl AdaptiveInfo {
+    /// Every pair chosen so far, in the order chosen.
+    pub fn chosen(&self) -> Vec<usize> {
+        self.rounds.iter().flat_map(|r| r.pairs.iter().copied()).collect()
+    }
+
+    /// Planned rig time so far: rounds plus analysis allowances (s).
+    pub fn spent_s(&self) -> f64 {
+        self.rounds.iter().map(|r| r.planned_s + r.allowance_s).sum()
+    }
+}
+
+/// An adaptive plan's inputs besides the rig and the sweep.
+#[derive(Clone, Copy)]
+pub struct AdaptiveRequest<'a> {
+    pub prior: &'a Prior,
+    pub prior_name: &'a str,
+    pub stop: AdaptiveStop,
+    pub noise_var: f64,
+}
+
+fn invalid(message: String) -> PlanError {
+    PlanError::Sparse { message }
+}
+
+/// The texels (of `total`) the analysis reads: `n` spread evenly over the image.
+pub fn analysis_texels(total: usize, n: usize) -> Vec<usize> {
+    let n = n.min(total).max(1);
+    (0..n).map(|i| ((2 * i + 1) * total) / (2 * n)).collect()
+}
+
+impl Plan {
+    /// Plan an adaptive acquisition's first round: the greedy A-optimal design, as much of
+    /// it as [`FIRST_SHARE`] of the rig budget holds, or (target only) the shortest prefix
+    /// the prior predicts to reach the target. The prior is used with at most as many
+    /// components as the round has pairs; later rounds use more as pairs accrue.
+    pub fn build_adaptive(
+        rig: &RigSpec,
+        sweep: &Sweep,
+        opts: &PlanOptions,
+        full: &Plan,
+        req: AdaptiveRequest,
+    ) -> Result<Plan, PlanError> {
+        let prior = req.prior;
+        let feasible = full.steps.len();
+        let capture = full.durations.capture_per_measurement_s.max(1e-6);
+        let target = match (req.stop.rig_budget_s, req.stop.target_psnr_db) {
+            (Some(b), _) => {
+                let first = FIRST_SHARE * b;
+                if first < capture {
+                    return Err(invalid(format!(
+                        "--rig-budget {b}: the first round ({FIRST_SHARE} of it) does not cover one capture \
+                         ({capture:.2} s)"
+                    )));
+                }
+                SparseTarget::RigBudget(first)
+            }
+            (None, Some(t)) => {
+                // The prior's own prediction is optimistic (it knows no departure from its
+                // span), so its prefix is a lower bound of what the target needs.
+                let mut ids: Vec<usize> = full.steps.iter().map(|s| s.index).collect();
+                ids.sort_unstable();
+                let cap = (4 * prior.components()).min(ids.len());
+                let design = gonio_sparse::greedy_design(prior, &ids, &[], cap, req.noise_var)
+                    .map_err(|e| invalid(format!("prior {}: {e}", req.prior_name)))?;
+                let n = design
+                    .iter()
+                    .position(|s| psnr_of_mse(s.expected_mse) >= t)
+                    .map_or(design.len(), |i| i + 1);
+                SparseTarget::Pairs(n.max(MIN_ROUND_PAIRS.min(feasible)).min(feasible))
+            }
+            (None, None) => unreachable!("AdaptiveStop::new requires a stop"),
+        };
+        // The design uses every component (a Bayesian design is well posed with more
+        // components than pairs); the analysis completes with at most as many as measured.
+        let r = SparseRequest {
+            prior,
+            prior_name: req.prior_name,
+            target,
+            noise_var: req.noise_var,
+            design: SparseDesign::AOptimal,
+        };
+        let plan = Plan::build_sparse_with(rig, sweep, opts, full, r, false)?;
+        let mut plan = plan;
+        let sp = plan.sparse.as_mut().expect("build_sparse sets sparse");
+        let pairs: Vec<usize> = sp.picks.iter().map(|p| p.0).collect();
+        let pairs_len = pairs.len();
+        let infeasible: Vec<usize> = {
+            let mut f = vec![true; sweep.len()];
+            for s in &full.steps {
+                f[s.index] = false;
+            }
+            (0..sweep.len()).filter(|&i| f[i]).collect()
+        };
+        sp.design = "adaptive: greedy Bayesian A-optimal first round, then rounds chosen from the measured \
+                     values' leave-one-out residuals (gonio_sparse::adaptive)"
+            .into();
+        sp.target = describe(req.stop);
+        sp.adaptive = Some(AdaptiveInfo {
+            stop: req.stop,
+            prior_sha256: prior.header.payload_sha256.clone(),
+            components: prior.components(),
+            noise_var: req.noise_var,
+            first_share: FIRST_SHARE,
+            round_allowance_s: ROUND_ALLOWANCE_S,
+            analysis_texels: ANALYSIS_TEXELS,
+            max_rounds: MAX_ROUNDS,
+            plan_kicks: opts.kicks,
+            plan_seed: opts.seed,
+            infeasible,
+            rounds: vec![AdaptiveRound {
+                round: 1,
+                measured_before: 0,
+                pairs,
+                first_step: 0,
+                planned_s: plan.durations.optimized_s,
+                allowance_s: 0.0,
+                components: prior.components().min(pairs_len),
+                predicted_psnr_before_db: 0.0,
+                predicted_psnr_after_db: sp.predicted_psnr_db,
+                observed_residual: None,
+                expected_residual: None,
+                outside_prior: false,
+            }],
+            finished: None,
+            predicted_psnr_db: None,
+            outside_prior: false,
+        });
+        Ok(plan)
+    }
+
+    /// After every chosen pair is measured: analyse and append the next round, or mark the
+    /// run finished. `measured` are the pairs with values (in any order) and `values` their
+    /// values at the analysis texels (rows in the order of `measured`, model space).
+    /// Returns `true` when a round was added (write `plan.json`, then run it).
+    pub fn adaptive_next(
+        &mut self,
+        rig: &RigSpec,
+        sweep: &Sweep,
+        opts: &PlanOptions,
+        prior: &Prior,
+        measured: &[usize],
+        values: &DMatrix<f64>,
+    ) -> Result<bool, PlanError> {
+        let offset = self.durations.optimized_s;
+        let first_step = self.steps.len();
+        let sp = self
+            .sparse
+            .as_mut()
+            .ok_or_else(|| invalid("not a sparse plan".into()))?;
+        let ad = sp
+            .adaptive
+            .as_mut()
+            .ok_or_else(|| invalid("not an adaptive plan".into()))?;
+        if ad.finished.is_some() {
+            return Ok(false);
+        }
+        if prior.header.payload_sha256 != ad.prior_sha256 {
+            return Err(invalid(format!(
+                "the prior's payload hash is {}, the plan's rounds were chosen in {}: resume with the same prior",
+                &prior.header.payload_sha256[..16.min(prior.header.payload_sha256.len())],
+                &ad.prior_sha256[..16.min(ad.prior_sha256.len())]
+            )));
+        }
+        let prior = if prior.components() > ad.components {
+            prior.truncated(ad.components)
+        } else {
+            prior.clone()
+        };
+        let (lights, views) = sweep.directions_deg();
+        let geom = PairGeometry::new(&lights, &views);
+        let chosen = ad.chosen();
+        let mut taken = vec![false; sweep.len()];
+        for &i in chosen.iter().chain(&ad.infeasible) {
+            taken[i] = true;
+        }
+        let candidates: Vec<usize> = (0..sweep.len()).filter(|&i| !taken[i]).collect();
+        let capture = self.durations.capture_per_measurement_s.max(1e-6);
+        // How many pairs the round may take.
+        let spent = ad.spent_s() + ad.round_allowance_s;
+        let round_budget = ad.stop.rig_budget_s.map(|b| {
+            let left = b - spent;
+            let last = ad.rounds.len() + 1 == ad.max_rounds;
+            if last || left < 0.25 * b {
+                left
+            } else {
+                left / 2.0
+            }
+        });
+        let n_max = match round_budget {
+            Some(rb) => ((rb / capture).max(0.0).floor() as usize).min(candidates.len()),
+            None => measured.len().max(MIN_ROUND_PAIRS).min(candidates.len()),
+        };
+        let choice = next_round(&prior, &geom, &candidates, measured, values, ad.noise_var, n_max)
+            .map_err(|e| invalid(format!("adaptive analysis: {e}")))?;
+        let now = psnr_of_mse(choice.predicted_mse);
+        ad.predicted_psnr_db = Some(round3(now));
+        ad.outside_prior = choice.outside_prior;
+        if choice.outside_prior {
+            tracing::warn!(
+                observed = choice.observed_residual,
+                expected = choice.expected_residual,
+                "the measured values depart from the prior far more than it expects: the material is outside \
+                 the prior; the next rounds go where the residual is"
+            );
+        }
+        let stop = |ad: &mut AdaptiveInfo, why: String| {
+            tracing::info!(reason = %why, "adaptive acquisition finished");
+            ad.finished = Some(why);
+            Ok(false)
+        };
+        if let Some(t) = ad.stop.target_psnr_db {
+            if now >= t {
+                return stop(ad, format!("predicted PSNR {now:.2} dB reached the target {t} dB"));
+            }
+        }
+        if ad.rounds.len() >= ad.max_rounds {
+            return stop(ad, format!("{} rounds measured (the most a run takes)", ad.rounds.len()));
+        }
+        if candidates.is_empty() {
+            return stop(ad, "every feasible pair is measured".into());
+        }
+        if n_max == 0 || choice.picks.is_empty() {
+            return stop(
+                ad,
+                format!(
+                    "the rig budget is spent ({:.0} s planned of {:.0} s)",
+                    ad.spent_s(),
+                    ad.stop.rig_budget_s.unwrap_or(f64::NAN)
+                ),
+            );
+        }
+        // With a target: as many picks as the prediction says it needs (at least a few).
+        let mut n = choice.picks.len();
+        if let Some(t) = ad.stop.target_psnr_db {
+            if let Some(i) = choice.picks.iter().position(|s| psnr_of_mse(s.expected_mse) >= t) {
+                n = (i + 1).max(MIN_ROUND_PAIRS).min(choice.picks.len());
+            }
+        }
+        let picks: Vec<usize> = choice.picks[..n].iter().map(|s| s.pair).collect();
+        let all = sweep.pairs();
+        let plan_of = |n: usize, kicks: usize| -> Result<Plan, PlanError> {
+            let mut idx = picks[..n].to_vec();
+            idx.sort_unstable();
+            let chosen: Vec<_> = idx.iter().map(|&i| all[i]).collect();
+            Plan::build_pairs(rig, sweep, &chosen, &PlanOptions { kicks, ..opts.clone() })
+        };
+        let (n, round) = match round_budget {
+            None => (n, plan_of(n, opts.kicks)?),
+            Some(rb) => match fit_prefix(n, rb, opts.kicks, plan_of)? {
+                Some(x) => x,
+                None => {
+                    return stop(
+                        ad,
+                        format!(
+                            "the rig budget is spent ({:.0} s planned of {:.0} s)",
+                            ad.spent_s(),
+                            ad.stop.rig_budget_s.unwrap_or(f64::NAN)
+                        ),
+                    )
+                }
+            },
+        };
+        let allowance = ad.round_allowance_s;
+        let record = AdaptiveRound {
+            round: ad.rounds.len() + 1,
+            measured_before: measured.len(),
+            pairs: picks[..n].to_vec(),
+            first_step,
+            planned_s: round.durations.optimized_s,
+            allowance_s: allowance,
+            components: choice.components,
+            predicted_psnr_before_db: round3(now),
+            predicted_psnr_after_db: round3(psnr_of_mse(choice.picks[n - 1].expected_mse)),
+            observed_residual: Some(choice.observed_residual),
+            expected_residual: Some(choice.expected_residual),
+            outside_prior: choice.outside_prior,
+        };
+        ad.rounds.push(record);
+        sp.chosen += n;
+        sp.planned_s += round.durations.optimized_s + allowance;
+        sp.predicted_psnr_db = round3(psnr_of_mse(choice.picks[n - 1].expected_mse));
+        for s in &choice.picks[..n] {
+            sp.picks.push((s.pair, round3(psnr_of_mse(s.expected_mse))));
+        }
+        let shift = offset + allowance;
+        for mut s in round.steps {
+            s.capture_start_s += shift;
+            self.steps.push(s);
+        }
+        self.skipped.extend(round.skipped);
+        let d = &mut self.durations;
+        let r = &round.durations;
+        d.optimized_s += r.optimized_s + allowance;
+        d.stop_and_go_s += r.stop_and_go_s + allowance;
+        d.canonical_s += r.canonical_s;
+        d.canonical_overlapped_s += r.canonical_overlapped_s;
+        d.lower_bound_s += r.lower_bound_s;
+        d.optimized_motion_s += r.optimized_motion_s;
+        Ok(true)
+    }
+}
+
+/// The longest prefix (of `n` picks) whose plan fits `budget`: bisection on quick plans,
+/// then the real plan, shortened while it does not fit. `None` when not even one fits.
+pub(crate) fn fit_prefix(
+    n: usize,
+    budget: f64,
+    kicks: usize,
+    plan_of: impl Fn(usize, usize) -> Result<Plan, PlanError>,
+) -> Result<Option<(usize, Plan)>, PlanError> {
+    let quick = kicks.min(2000);
+    let (mut lo, mut hi) = (0usize, n);
+    while lo < hi {
+        let mid = (lo + hi).div_ceil(2);
+        if plan_of(mid, quick)?.durations.optimized_s <= budget {
+            lo = mid;
+        } else {
+            hi = mid - 1;
+        }
+    }
+    if lo == 0 {
+        return Ok(None);
+    }
+    let mut n = lo;
+    let mut plan = plan_of(n, kicks)?;
+    while plan.durations.optimized_s > budget && n > 1 {
+        n -= 1;
+        plan = plan_of(n, kicks)?;
+    }
+    if plan.durations.optimized_s > budget {
+        return Ok(None);
+    }
+    Ok(Some((n, plan)))
+}
+
+fn round3(x: f64) -> f64 {
+    (x * 1000.0).round() / 1000.0
+}
+
+/// How `plan.json`'s `sparse.target` names an adaptive stop.
+fn describe(stop: AdaptiveStop) -> String {
+    match (stop.target_psnr_db, stop.rig_budget_s) {
+        (Some(t), Some(b)) => format!("adaptive: predicted PSNR {t} dB or rig budget {b} s"),
+        (Some(t), None) => format!("adaptive: predicted PSNR {t} dB"),
+        (None, Some(b)) => format!("adaptive: rig budget {b} s"),
+        (None, None) => "adaptive".into(),
+    }
+}
