@@ -70,7 +70,11 @@ impl PairGeometry {
                 let n = (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt();
                 // Light opposite the camera (retro-mirror through the sample): no half
                 // vector; the normal stands in.
-                let h = if n > 1e-9 { [s[0] / n, s[1] / n, s[2] / n] } else { [0.0, 0.0, 1.0] };
+                let h = if n > 1e-9 {
+                    [s[0] / n, s[1] / n, s[2] / n]
+                } else {
+                    [0.0, 0.0, 1.0]
+                };
                 let c = (h[0] * wl[0] + h[1] * wl[1] + h[2] * wl[2]).clamp(-1.0, 1.0);
                 half.push(h);
                 theta_d.push(c.acos());
@@ -154,6 +158,15 @@ pub fn residual_field(geom: &PairGeometry, measured: &[usize], loo: &[f64]) -> V
         .collect()
 }
 
+/// Components of the completion whose leave-one-out residuals the analysis reads: at most
+/// half the pairs measured. With as many components as pairs every pair is fitted exactly
+/// (leverage 1), and `r / (1 − h)` says nothing but noise: measured on brushed metal at
+/// K = min(512, pairs), the observed residual was 500 × what the prior expects on every
+/// round. Half leaves each pair a leverage near ½.
+pub fn loo_components(prior_components: usize, measured: usize) -> usize {
+    prior_components.min(measured / 2).max(1)
+}
+
 /// What one round's analysis found and chose.
 #[derive(Clone, Debug, Serialize)]
 pub struct RoundChoice {
@@ -203,19 +216,28 @@ pub fn next_round(
             measured.len()
         )));
     }
-    let k = prior.components().min(measured.len());
+    // The residuals come from the completion the data supports (at most as many components
+    // as pairs); the design uses the whole prior, as the fixed design does, since the final
+    // completion will have the pairs for more components than this round's analysis.
+    let k = loo_components(prior.components(), measured.len());
     let p = prior.truncated(k);
     let c = Completion::new(&p, measured, noise_var)?;
     let loo = loo_residuals(&c, y);
     let field = residual_field(geom, measured, &loo);
-    let mut g = Greedy::new(&p, noise_var);
+    let mut g = Greedy::new(prior, noise_var);
     for &q in measured {
         g.add(q);
     }
     // ρ̂: what each unmeasured pair's prediction misses beyond the posterior's in-basis share.
     let extra: Vec<f64> = (0..d)
         .into_par_iter()
-        .map(|q| if g.is_chosen(q) { 0.0 } else { (field[q] - g.gain_and_var(q).1).max(0.0) })
+        .map(|q| {
+            if g.is_chosen(q) {
+                0.0
+            } else {
+                (field[q] - g.gain_and_var(q).1).max(0.0)
+            }
+        })
         .collect();
     let total = |g: &Greedy| -> f64 {
         (0..d)
@@ -264,7 +286,9 @@ mod tests {
     use crate::ValueSpace;
 
     fn grid(n: usize) -> Vec<[f64; 2]> {
-        (0..n).map(|i| [10.0 + 60.0 * i as f64 / n as f64, 37.0 * i as f64]).collect()
+        (0..n)
+            .map(|i| [10.0 + 60.0 * i as f64 / n as f64, 37.0 * i as f64])
+            .collect()
     }
 
     /// Data with a feature the prior never saw at a few pairs: the round's residual field
@@ -328,11 +352,20 @@ mod tests {
             "predicted {} true {true_mse}",
             r.predicted_mse
         );
-        assert!(c.predicted_mse() < 0.01 * true_mse, "the prior alone is not honest here");
+        assert!(
+            c.predicted_mse() < 0.01 * true_mse,
+            "the prior alone is not honest here"
+        );
         // The prediction after each pick never rises, and picks are distinct and unmeasured.
-        assert!(r.picks.windows(2).all(|w| w[1].expected_mse <= w[0].expected_mse + 1e-15));
+        assert!(r
+            .picks
+            .windows(2)
+            .all(|w| w[1].expected_mse <= w[0].expected_mse + 1e-15));
         let mut seen = std::collections::BTreeSet::new();
-        assert!(r.picks.iter().all(|s| seen.insert(s.pair) && !measured.contains(&s.pair)));
+        assert!(r
+            .picks
+            .iter()
+            .all(|s| seen.insert(s.pair) && !measured.contains(&s.pair)));
     }
 
     /// Data the prior describes: not flagged, and the prediction stays close to the truth.
@@ -347,7 +380,11 @@ mod tests {
         let truth = DMatrix::from_fn(d, 30, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
         let nv = p.header.residual_var + 1e-6;
         let cand: Vec<usize> = (0..d).collect();
-        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 24, nv).unwrap().iter().map(|s| s.pair).collect();
+        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 24, nv)
+            .unwrap()
+            .iter()
+            .map(|s| s.pair)
+            .collect();
         let r = next_round(&p, &geom, &cand, &measured, &truth.select_rows(&measured), nv, 5).unwrap();
         assert!(!r.outside_prior, "{r:?}");
         assert!(r.predicted_mse.is_finite() && r.predicted_mse > 0.0);

@@ -768,7 +768,11 @@ fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -
     let pick = analysis_texels(texels, ad_texels);
     let mut compute = 0.0;
     loop {
-        let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("adaptive plan");
+        let ad = plan
+            .sparse
+            .as_ref()
+            .and_then(|s| s.adaptive.as_ref())
+            .expect("adaptive plan");
         let mut measured = ad.chosen();
         measured.sort_unstable();
         let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
@@ -781,7 +785,11 @@ fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -
             break;
         }
     }
-    let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("adaptive plan");
+    let ad = plan
+        .sparse
+        .as_ref()
+        .and_then(|s| s.adaptive.as_ref())
+        .expect("adaptive plan");
     let mut measured = ad.chosen();
     measured.sort_unstable();
     let rounds: Vec<usize> = ad.rounds.iter().map(|r| r.pairs.len()).collect();

@@ -175,13 +175,15 @@ pub fn print_summary(plan: &Plan, info: &SparseInfo) {
         ),
         Some(ad) => {
             for r in &ad.rounds {
+                let before = r
+                    .predicted_psnr_before_db
+                    .map_or("the prior predicts".to_string(), |b| format!("predicted PSNR {b:.2} →"));
                 println!(
-                    "  round {}: {} pairs, {:.0} s planned (+{:.0} s analysis), predicted PSNR {:.2} → {:.2} dB{}",
+                    "  round {}: {} pairs, {:.0} s planned (+{:.0} s analysis), {before} {:.2} dB{}",
                     r.round,
                     r.pairs.len(),
                     r.planned_s,
                     r.allowance_s,
-                    r.predicted_psnr_before_db,
                     r.predicted_psnr_after_db,
                     if r.outside_prior { " (outside the prior)" } else { "" }
                 );

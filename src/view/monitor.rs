@@ -67,8 +67,8 @@ pub struct RoundProgress {
     pub pairs: usize,
     /// Of them, stored in the journal.
     pub done: usize,
-    /// Predicted PSNR before and after the round (dB).
-    pub predicted_psnr_before_db: f64,
+    /// Predicted PSNR before (none before round 1) and after the round (dB).
+    pub predicted_psnr_before_db: Option<f64>,
     pub predicted_psnr_after_db: f64,
     pub outside_prior: bool,
 }
@@ -95,7 +95,7 @@ fn rounds(plan: &serde_json::Value, stored: &std::collections::HashSet<usize>) -
                         round: r.get("round").and_then(|v| v.as_u64()).unwrap_or(0) as usize,
                         pairs: pairs.len(),
                         done: pairs.iter().filter(|p| stored.contains(p)).count(),
-                        predicted_psnr_before_db: f(r, "predicted_psnr_before_db"),
+                        predicted_psnr_before_db: r.get("predicted_psnr_before_db").and_then(|v| v.as_f64()),
                         predicted_psnr_after_db: f(r, "predicted_psnr_after_db"),
                         outside_prior: r.get("outside_prior").and_then(|v| v.as_bool()).unwrap_or(false),
                     }

@@ -402,7 +402,13 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
     assert_eq!(summary["adaptive"]["rounds"].as_array().unwrap().len(), rounds.len());
     let mut chosen: Vec<usize> = rounds
         .iter()
-        .flat_map(|r| r["pairs"].as_array().unwrap().iter().map(|p| p.as_u64().unwrap() as usize))
+        .flat_map(|r| {
+            r["pairs"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|p| p.as_u64().unwrap() as usize)
+        })
         .collect();
     let n = chosen.len();
     chosen.sort_unstable();
@@ -483,26 +489,60 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
 
     // Refusals.
     refused(
-        &["acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--out", s(&d.join("x1"))],
+        &[
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--out",
+            s(&d.join("x1")),
+        ],
         &["--adaptive needs a stop", "--target-psnr", "--rig-budget"],
     );
     refused(
         &[
-            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--pairs", "20", "--out",
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--pairs",
+            "20",
+            "--out",
             s(&d.join("x2")),
         ],
         &["--pairs"],
     );
     refused(
         &[
-            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--rig-budget", &budget, "--fly",
-            "--out", s(&d.join("x3")),
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--rig-budget",
+            &budget,
+            "--fly",
+            "--out",
+            s(&d.join("x3")),
         ],
         &["--adaptive with --fly"],
     );
     refused(
         &[
-            "acquire", "--sweep", SWEEP, "--adaptive", "--prior", s(prior), "--target-psnr", "200", "--out",
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--target-psnr",
+            "200",
+            "--out",
             s(&d.join("x4")),
         ],
         &["--target-psnr 200"],

@@ -66,7 +66,9 @@ impl AdaptiveStop {
         }
         if let Some(t) = target_psnr_db {
             if !(t.is_finite() && t > 0.0 && t < 100.0) {
-                return Err(invalid(format!("--target-psnr {t}: use a PSNR in dB between 0 and 100")));
+                return Err(invalid(format!(
+                    "--target-psnr {t}: use a PSNR in dB between 0 and 100"
+                )));
             }
         }
         if let Some(b) = rig_budget_s {
@@ -99,9 +101,10 @@ pub struct AdaptiveRound {
     pub allowance_s: f64,
     /// Components of the prior the analysis used (at most the pairs measured).
     pub components: usize,
-    /// Predicted PSNR of the completed dataset before and after the round (dB). Round 1's
-    /// is the prior's own (no data yet); later rounds' include the residual the data showed.
-    pub predicted_psnr_before_db: f64,
+    /// Predicted PSNR of the completed dataset before the round (dB; none before round 1,
+    /// nothing is measured) and after it: round 1's is the prior's own, later rounds'
+    /// include the residual the data showed.
+    pub predicted_psnr_before_db: Option<f64>,
     pub predicted_psnr_after_db: f64,
     /// Mean leave-one-out residual on the measured pairs, and what the prior expects there
     /// (model space); `None` for round 1.
@@ -261,7 +264,7 @@ impl Plan {
                 planned_s: plan.durations.optimized_s,
                 allowance_s: 0.0,
                 components: prior.components().min(pairs_len),
-                predicted_psnr_before_db: 0.0,
+                predicted_psnr_before_db: None,
                 predicted_psnr_after_db: sp.predicted_psnr_db,
                 observed_residual: None,
                 expected_residual: None,
@@ -360,7 +363,10 @@ impl Plan {
             }
         }
         if ad.rounds.len() >= ad.max_rounds {
-            return stop(ad, format!("{} rounds measured (the most a run takes)", ad.rounds.len()));
+            return stop(
+                ad,
+                format!("{} rounds measured (the most a run takes)", ad.rounds.len()),
+            );
         }
         if candidates.is_empty() {
             return stop(ad, "every feasible pair is measured".into());
@@ -415,7 +421,7 @@ impl Plan {
             planned_s: round.durations.optimized_s,
             allowance_s: allowance,
             components: choice.components,
-            predicted_psnr_before_db: round3(now),
+            predicted_psnr_before_db: Some(round3(now)),
             predicted_psnr_after_db: round3(psnr_of_mse(choice.picks[n - 1].expected_mse)),
             observed_residual: Some(choice.observed_residual),
             expected_residual: Some(choice.expected_residual),

@@ -647,7 +647,11 @@ impl Session {
             })?;
             let sweep = sweep_from_header(&dataset.header().sweep)
                 .map_err(|e| json_err(&name, "reading the sweep snapshot", e))?;
-            let ad = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()).expect("open adaptive plan");
+            let ad = plan
+                .sparse
+                .as_ref()
+                .and_then(|s| s.adaptive.as_ref())
+                .expect("open adaptive plan");
             let popts = PlanOptions {
                 policy: plan.policy,
                 kicks: ad.plan_kicks,

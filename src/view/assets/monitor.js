@@ -21,7 +21,7 @@ function update(s) {
   }
   $("skipped").textContent = Object.entries(s.skipped_reasons).map(([r, k]) => "skipped ×" + k + ": " + r).join("\n");
   $("rounds").textContent = s.rounds.map((r) => "round " + r.round + ": " + r.done + " / " + r.pairs +
-    " pairs · predicted PSNR " + r.predicted_psnr_before_db.toFixed(2) + " → " + r.predicted_psnr_after_db.toFixed(2) +
+    " pairs · predicted PSNR " + (r.predicted_psnr_before_db == null ? "(prior) " : r.predicted_psnr_before_db.toFixed(2) + " → ") + r.predicted_psnr_after_db.toFixed(2) +
     " dB" + (r.outside_prior ? " · outside the prior" : "")).join("\n") +
     (s.adaptive_finished ? "\nfinished: " + s.adaptive_finished : (s.rounds.length ? "\n(more rounds may follow)" : ""));
   const tc = $("truth"), h = tc.getContext("2d");
