@@ -250,6 +250,37 @@ async fn esp_reply_faults_are_retried() {
     h.stop();
 }
 
+/// An ESP300 flight over the pty: `VA`, `AC`, `PA` in that order, the axis busy and on
+/// its way during the flight, and the previous `VA`/`AC` (the rig's 90 °/s, 720 °/s² as
+/// the emulator was configured) read before and restored after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn esp_flight_sets_and_restores_velocity_and_acceleration() {
+    let h = emulator(Protocol::Esp300, 1, &[]);
+    let mut ports = PortRegistry::new();
+    let a = esp_axis(&mut ports, &h, 1, "");
+    a.home().await.unwrap();
+    a.start_move_at(60.0 * DEG, 30.0 * DEG).await.unwrap();
+    let st = a.status().await.unwrap();
+    assert!(
+        st.moving && st.position / DEG > -1e-9 && st.position / DEG < 60.0,
+        "{st:?}"
+    );
+    let rb = a.wait_idle().await.unwrap();
+    assert!((rb / DEG - 60.0).abs() < 1e-3, "{rb}");
+    let rx = h.received();
+    let settings: Vec<&str> = rx
+        .iter()
+        .map(String::as_str)
+        .filter(|l| l.contains("VA") || l.contains("AC") || l.contains("PA"))
+        .collect();
+    assert_eq!(
+        settings,
+        ["1VA?", "1AC?", "1VA30", "1AC720", "1PA60", "1VA90", "1AC720"],
+        "{rx:?}"
+    );
+    h.stop();
+}
+
 /// The emulated-zaber rig file with its camera reduced like `common::write_scene`'s.
 fn small_emulated_rig(dir: &Path) -> std::path::PathBuf {
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("devices/rigs/emulated-zaber.toml");
