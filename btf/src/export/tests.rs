@@ -398,3 +398,55 @@ fn merl_binary_layout_and_values() {
     assert_eq!(side["provenance"]["fit"]["roughness"], 0.4);
     assert_eq!(side["scale"][1], 1.15 / 1500.0);
 }
+
+/// `--bit-depth 16` writes 16-bit PNGs that decode to the maps' values within 1/65535
+/// (sRGB-encoded base colour, linear others); 8 bits within 1/255.
+#[test]
+fn sixteen_bit_textures_decode_to_the_maps() {
+    let tmp = tempfile::tempdir().unwrap();
+    let g = file(tmp.path(), true);
+    for bits in [8u8, 16] {
+        let m = Material::from_gbtf(
+            &g,
+            Path::new("f.gbtf"),
+            &ExportOptions {
+                size: None,
+                allow_uncalibrated: false,
+                bit_depth: bits,
+            },
+        )
+        .unwrap();
+        let step = if bits == 16 { 1.0 / 65535.0 } else { 1.0 / 255.0 };
+        let png = texture::gray_png(m.width, m.height, &m.roughness, bits).unwrap();
+        let img = image::load_from_memory(&png).unwrap().into_luma16();
+        for (p, r) in img.pixels().zip(&m.roughness) {
+            assert!(
+                (p[0] as f64 / 65535.0 - *r as f64).abs() <= 0.51 * step + 1e-9,
+                "{bits} bits: {} vs {r}",
+                p[0]
+            );
+        }
+        let png = texture::base_color_png(&m).unwrap();
+        let img = image::load_from_memory(&png).unwrap().into_rgb16();
+        for (p, c) in img.pixels().zip(&m.base_color) {
+            let want = texture::srgb_encode(c[0]) as f64;
+            assert!(
+                (p[0] as f64 / 65535.0 - want).abs() <= 0.51 * step + 1e-6,
+                "{bits} bits: {} vs {want}",
+                p[0]
+            );
+        }
+    }
+    let e = Material::from_gbtf(
+        &g,
+        Path::new("f.gbtf"),
+        &ExportOptions {
+            size: None,
+            allow_uncalibrated: false,
+            bit_depth: 12,
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("--bit-depth 12"), "{e}");
+}

@@ -43,11 +43,12 @@ fn encode(width: usize, height: usize, data: &[u8], color: image::ExtendedColorT
 }
 
 /// Code values in [0, 1] (already transfer-encoded), `channels` per texel, as an 8- or
-/// 16-bit PNG (16-bit samples big-endian, as PNG stores them).
+/// 16-bit PNG (16-bit samples handed to the encoder in native byte order, which it
+/// writes big-endian as PNG stores them).
 fn encode_bits(width: usize, height: usize, values: &[f32], channels: usize, bits: u8) -> Result<Vec<u8>, ExportError> {
     use image::ExtendedColorType as C;
     if bits == 16 {
-        let data: Vec<u8> = values.iter().flat_map(|v| quantize16(*v).to_be_bytes()).collect();
+        let data: Vec<u8> = values.iter().flat_map(|v| quantize16(*v).to_ne_bytes()).collect();
         let color = if channels == 1 { C::L16 } else { C::Rgb16 };
         return encode(width, height, &data, color);
     }
