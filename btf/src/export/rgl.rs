@@ -373,8 +373,8 @@ pub fn encode(avg: &AverageBrdf, size: usize) -> Result<(Vec<u8>, RglSummary), E
                     let f = avg.eval(wi, wo);
                     // Mitsuba's `eval` returns f · cos θ_o and `measured` returns the table.
                     let scale = wo.z * 4.0 * sigma_i / d;
-                    for c in 0..3 {
-                        rgb[(c * n + j) * n + i] = f[c] * scale;
+                    for (c, v) in f.iter().enumerate() {
+                        rgb[(c * n + j) * n + i] = v * scale;
                     }
                     lum[j * n + i] = luminance(f) * scale;
                     valid[j * n + i] = 1;

@@ -316,12 +316,11 @@ fn rgl_file_has_the_measured_plugins_layout() {
                 let wo = wo.normalized();
                 let want = avg.eval(wi, wo).map(|x| x * wo.z);
                 let jac = bil(&ndf, u[0], u[1]) / (4.0 * bil(&sigma, (ti / std::f64::consts::FRAC_PI_2).sqrt(), 0.5));
-                for c in 0..3 {
+                for (c, want) in want.iter().enumerate() {
                     let got = rgb[((k * 3 + c) * n + j) * n + i] * jac;
                     assert!(
-                        (got - want[c]).abs() <= 1e-5 * want[c].max(1e-6),
-                        "slice {k} node ({i}, {j}) c{c}: {got} vs {}",
-                        want[c]
+                        (got - want).abs() <= 1e-5 * want.max(1e-6),
+                        "slice {k} node ({i}, {j}) c{c}: {got} vs {want}"
                     );
                 }
                 checked += 1;
@@ -383,13 +382,12 @@ fn merl_binary_layout_and_values() {
             [0.0; 3]
         };
         let idx = k + merl::PHI_D * (j + merl::THETA_D * i);
-        for c in 0..3 {
+        for (c, (want, scale)) in want.iter().zip(merl::SCALE).enumerate() {
             let p = 12 + 8 * (c * cells + idx);
-            let got = f64::from_le_bytes(b[p..p + 8].try_into().unwrap()) * merl::SCALE[c];
+            let got = f64::from_le_bytes(b[p..p + 8].try_into().unwrap()) * scale;
             assert!(
-                (got - want[c]).abs() <= 1e-12 * want[c].abs().max(1e-12),
-                "({i},{j},{k}) c{c}: {got} {}",
-                want[c]
+                (got - want).abs() <= 1e-12 * want.abs().max(1e-12),
+                "({i},{j},{k}) c{c}: {got} {want}"
             );
         }
     }
