@@ -167,7 +167,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
     ),
     ("compress/local_pca", &[]),
     ("fit", &["data", "lm", "models"]),
-    ("export", &["texture"]),
+    ("export", &["average", "texture"]),
     ("synthesize", &["features", "fft", "output", "tsvq"]),
     ("synth", &["dataset"]),
     ("synth/family", &[]),

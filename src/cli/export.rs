@@ -26,6 +26,11 @@ pub enum ExportFormat {
     Usd,
     /// Mitsuba 3 scene (principled in a normalmap, bitmap textures): a folder.
     Mitsuba,
+    /// The averaged, isotropic BRDF as an RGL tensor file for Mitsuba 3's `measured`
+    /// plugin: OUT.bsdf (--size N: grid side, default 64).
+    RglBsdf,
+    /// The averaged, isotropic BRDF as a MERL binary: OUT.binary and OUT.binary.json.
+    Merl,
 }
 
 impl ExportFormat {
@@ -33,7 +38,12 @@ impl ExportFormat {
     fn is_material(self) -> bool {
         matches!(
             self,
-            ExportFormat::Gltf | ExportFormat::Materialx | ExportFormat::Usd | ExportFormat::Mitsuba
+            ExportFormat::Gltf
+                | ExportFormat::Materialx
+                | ExportFormat::Usd
+                | ExportFormat::Mitsuba
+                | ExportFormat::RglBsdf
+                | ExportFormat::Merl
         )
     }
 }
@@ -48,9 +58,13 @@ pub struct ExportArgs {
     /// Output file (a directory for --format zarr, materialx, usd, mitsuba; a .glb or a
     /// directory for gltf).
     pub out: PathBuf,
-    /// Material formats: texture side in texels (default: the fit's resolution).
+    /// Material formats: texture side in texels (default: the fit's resolution); rgl-bsdf:
+    /// the side of its grids (default 64).
     #[arg(long)]
     pub size: Option<usize>,
+    /// Texture formats (gltf, materialx, usd, mitsuba): bits per PNG sample, 8 or 16.
+    #[arg(long, default_value_t = 8, value_parser = parse_bit_depth)]
+    pub bit_depth: u8,
     /// Material formats: export values that are not radiometrically calibrated, labelled so.
     #[arg(long)]
     pub allow_uncalibrated: bool,
@@ -79,6 +93,15 @@ pub struct ExportArgs {
     pub json: bool,
 }
 
+/// `--bit-depth`: 8 or 16.
+fn parse_bit_depth(s: &str) -> std::result::Result<u8, String> {
+    match s {
+        "8" => Ok(8),
+        "16" => Ok(16),
+        _ => Err(format!("{s}: PNG textures have 8 or 16 bits per sample")),
+    }
+}
+
 #[derive(clap::Args, Debug)]
 pub struct VerifyArgs {
     pub dir: PathBuf,
@@ -96,9 +119,10 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
         }
         return run_material(args);
     }
-    if args.size.is_some() || args.allow_uncalibrated || args.white.is_some() {
+    if args.size.is_some() || args.allow_uncalibrated || args.white.is_some() || args.bit_depth != 8 {
         anyhow::bail!(
-            "--size, --allow-uncalibrated and --white apply to the material formats (gltf, materialx, usd, mitsuba)"
+            "--size, --allow-uncalibrated, --white and --bit-depth apply to the material formats (gltf, materialx, \
+             usd, mitsuba, rgl-bsdf, merl)"
         );
     }
     if let ExportFormat::Zarr = args.format {
@@ -114,7 +138,9 @@ pub fn run(args: ExportArgs) -> Result<ExitCode> {
         | ExportFormat::Gltf
         | ExportFormat::Materialx
         | ExportFormat::Usd
-        | ExportFormat::Mitsuba => {
+        | ExportFormat::Mitsuba
+        | ExportFormat::RglBsdf
+        | ExportFormat::Merl => {
             unreachable!("handled above")
         }
     }
@@ -147,6 +173,8 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
         ExportFormat::Materialx => Format::Materialx,
         ExportFormat::Usd => Format::Usd,
         ExportFormat::Mitsuba => Format::Mitsuba,
+        ExportFormat::RglBsdf => Format::RglBsdf,
+        ExportFormat::Merl => Format::Merl,
         _ => unreachable!("material formats only"),
     };
     // Refuse a wrong output name before reading or fitting anything.
@@ -170,9 +198,19 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
     } else {
         anyhow::bail!("{input}: no such dataset directory or .gbtf file");
     };
+    if format.is_average() {
+        if args.bit_depth != 8 {
+            anyhow::bail!(
+                "--bit-depth applies to the texture formats (gltf, materialx, usd, mitsuba); {} writes float tables",
+                format.name()
+            );
+        }
+        return write_average_cli(&args, format, &gbtf, fitted);
+    }
     let opts = ExportOptions {
         size: args.size,
         allow_uncalibrated: args.allow_uncalibrated,
+        bit_depth: args.bit_depth,
     };
     let material = Material::from_gbtf(&gbtf, &args.dir, &opts)?;
     for w in &material.warnings {
@@ -196,6 +234,53 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
             report.texture_texels[0],
             report.texture_texels[1],
             report.size_mm
+        );
+        for w in &report.warnings {
+            println!("warning: {w}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--format rgl-bsdf | merl`: the averaged fit of a `.gbtf` (or of the dataset fitted
+/// first) as one isotropic BRDF.
+#[cfg(feature = "btf")]
+fn write_average_cli(
+    args: &ExportArgs,
+    format: gonio_btf::export::Format,
+    gbtf: &gonio_btf::compress::Gbtf,
+    fitted: Option<gonio_btf::fit::texel::TexelSummary>,
+) -> Result<ExitCode> {
+    use gonio_btf::export::{average::AverageBrdf, write_average};
+    let input = args.dir.display().to_string();
+    if format == gonio_btf::export::Format::RglBsdf {
+        if let Some(n) = args.size {
+            gonio_btf::export::rgl::check_size(n).map_err(|e| anyhow::anyhow!("{input}: {e}"))?;
+        }
+    }
+    let avg = AverageBrdf::from_gbtf(gbtf, &args.dir, args.allow_uncalibrated)?;
+    for w in &avg.warnings {
+        tracing::warn!("{input}: {w}");
+    }
+    let report = write_average(&avg, format, args.size, &args.out)
+        .with_context(|| format!("exporting the averaged BRDF of {input} to {}", args.out.display()))?;
+    if args.json {
+        let mut v = serde_json::to_value(&report)?;
+        if let Some(s) = fitted {
+            v["fit"] = serde_json::to_value(s)?;
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{}: {} ({} files, {} bytes), averaged isotropic BRDF{}",
+            report.out.display(),
+            format.name(),
+            report.files.len(),
+            report.bytes,
+            report
+                .size
+                .map(|n| format!(", {n}×{n} grids × 23 θ_i slices"))
+                .unwrap_or_default()
         );
         for w in &report.warnings {
             println!("warning: {w}");

@@ -114,7 +114,49 @@ pub(super) fn fit_gltf(
         .to_gbtf(&ds)
         .with_context(|| format!("storing the SVBRDF of {input}"))?;
     gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
+    store_average_fit(&mut gbtf, &report, dataset)?;
     Ok((gbtf, summary))
+}
+
+/// Store the averaged fit (the one the per-texel fit starts from) in a glTF `.gbtf`'s
+/// header as `source.average_fit`, with the SHA-256 of the dataset's journal: the
+/// averaged-BRDF exports (`gonio export --format rgl-bsdf | merl`) read it instead of
+/// fitting again. Other models store nothing.
+fn store_average_fit(
+    gbtf: &mut gonio_btf::compress::Gbtf,
+    report: &FitReport,
+    dataset: &std::path::Path,
+) -> Result<()> {
+    use gonio_btf::export::average::AverageFit;
+    let gonio_brdf::BrdfModel::Gltf {
+        base_color,
+        metallic,
+        roughness,
+        normal,
+    } = report.brdf
+    else {
+        return Ok(());
+    };
+    let journal = dataset.join(gonio_dataset::store::JOURNAL_FILE);
+    let sha = match std::fs::read(&journal) {
+        Ok(bytes) => {
+            use sha2::Digest;
+            Some(format!("{:x}", sha2::Sha256::digest(&bytes)))
+        }
+        Err(_) => None,
+    };
+    let fit = AverageFit {
+        model: "gltf".into(),
+        base_color,
+        metallic,
+        roughness,
+        normal,
+        rel_rms: report.rel_rms,
+        observations: report.observations,
+        dataset_journal_sha256: sha,
+    };
+    gbtf.header.source["average_fit"] = serde_json::to_value(fit)?;
+    Ok(())
 }
 
 /// `flag`'s value as a model, or an error naming the flag and the models there are.
@@ -200,6 +242,7 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
                 .to_gbtf(&ds)
                 .with_context(|| format!("storing the SVBRDF of {input}"))?;
             gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
+            store_average_fit(&mut gbtf, &report, &a.input)?;
             let stored = gbtf.to_bytes().context("encoding the SVBRDF's .gbtf")?.len();
             let decoder = CompressedBtf::new(gbtf.clone()).context("decoding the SVBRDF's .gbtf")?;
             let ev = gonio_btf::compress::evaluate(&ds, &decoder)

@@ -87,6 +87,11 @@ for n in wallpaper gltf-checker; do
   mkdir -p "$e-renders"
   "$GONIO_PYTHON" tests/interop/mitsuba_export.py "$gonio" "$e.gbtf" "$e-mitsuba" "$e-renders"
 done
+# The averaged, isotropic BRDF (issue 33): `--format rgl-bsdf` at grid sides 16, 32, 64 loaded by
+# Mitsuba 3's `measured` plugin and evaluated against gonio's isotropic fit (mean/max relative
+# error, tolerances in the script), and `--format merl` read back by a reader after the MERL
+# public reader's layout (float precision).
+"$GONIO_PYTHON" tests/interop/check_average_export.py "$gonio" "$work/export/wallpaper.gbtf" "$work/export/average"
 
 # ---- Motor-controller emulators vs. the vendors' own client software (issue 5) ----------
 # `gonio sim serve-stage` opens a pty, prints {"path": …} and emulates the controller until

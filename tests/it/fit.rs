@@ -443,4 +443,86 @@ fn per_texel_gltf_fit_finds_both_materials_and_exports() {
         ],
         &["--shard"],
     );
+    averaged_brdf_exports(&out, &dir.path().join("export"));
+}
+
+/// `--format rgl-bsdf | merl` (the averaged, isotropic BRDF, issue 33): the fit stored
+/// `source.average_fit`, the files are written, bad sizes, a size for merl, an unknown format
+/// and a `.gbtf` without the averaged fit are refused; a tilted averaged fit warns.
+fn averaged_brdf_exports(gbtf: &Path, dir: &Path) {
+    use gonio::compress::Gbtf;
+    let g = Gbtf::read(gbtf).unwrap();
+    let avg = &g.header.source["average_fit"];
+    assert_eq!(avg["model"], "gltf", "{avg}");
+    assert_eq!(avg["dataset_journal_sha256"].as_str().map(str::len), Some(64), "{avg}");
+    let (bsdf, merl) = (dir.join("avg.bsdf"), dir.join("avg.binary"));
+    let r: Value = serde_json::from_str(&ok(&[
+        "export",
+        gbtf.to_str().unwrap(),
+        "--format",
+        "rgl-bsdf",
+        "--size",
+        "8",
+        bsdf.to_str().unwrap(),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(r["size"], 8);
+    assert_eq!(&std::fs::read(&bsdf).unwrap()[..12], b"tensor_file\0");
+    ok(&[
+        "export",
+        gbtf.to_str().unwrap(),
+        "--format",
+        "merl",
+        merl.to_str().unwrap(),
+    ]);
+    assert_eq!(std::fs::metadata(&merl).unwrap().len(), 12 + 3 * 90 * 90 * 180 * 8);
+    assert!(dir.join("avg.binary.json").is_file());
+    let g_s = gbtf.to_str().unwrap();
+    let x = dir.join("x.bsdf");
+    refused(
+        &[
+            "export",
+            g_s,
+            "--format",
+            "rgl-bsdf",
+            "--size",
+            "3",
+            x.to_str().unwrap(),
+        ],
+        &["--size 3"],
+    );
+    refused(
+        &["export", g_s, "--format", "merl", "--size", "8", "x.binary"],
+        &["--size 8", "fixed bins"],
+    );
+    refused(&["export", g_s, "--format", "brdf", "x.bsdf"], &["brdf", "rgl-bsdf"]);
+    refused(&["export", g_s, "--format", "rgl-bsdf", "x.binary"], &[".bsdf"]);
+    assert!(!x.exists());
+    // A file written before the averaged fit was stored, and a tilted averaged fit.
+    let mut old = g.clone();
+    old.header.source.as_object_mut().unwrap().remove("average_fit");
+    let old_path = dir.join("old.gbtf");
+    old.write(&old_path).unwrap();
+    refused(
+        &["export", old_path.to_str().unwrap(), "--format", "merl", "y.binary"],
+        &["old.gbtf", "gonio fit", "--model gltf --per-texel"],
+    );
+    let mut tilted = g.clone();
+    tilted.header.source["average_fit"]["normal"] = serde_json::json!([0.1, 0.0]);
+    let tilted_path = dir.join("tilted.gbtf");
+    tilted.write(&tilted_path).unwrap();
+    let t = dir.join("tilted.bsdf");
+    let r: Value = serde_json::from_str(&ok(&[
+        "export",
+        tilted_path.to_str().unwrap(),
+        "--format",
+        "rgl-bsdf",
+        "--size",
+        "4",
+        t.to_str().unwrap(),
+        "--json",
+    ]))
+    .unwrap();
+    assert!(r["warnings"][0].as_str().unwrap().contains("anisotropic"), "{r}");
 }

@@ -18,10 +18,17 @@
 //! - texels the fit did not converge on were filled from their neighbours; the export's
 //!   metadata lists them;
 //! - provenance (dataset, fit, units) in each format's own metadata field.
+//!
+//! Two formats hold one BRDF, not textures: `rgl-bsdf` (Mitsuba 3's `measured`, [`rgl`]) and
+//! `merl` (the MERL binary, [`merl`]). They take the material's averaged fit, made
+//! isotropic ([`average`]).
 
+pub mod average;
 pub mod gltf;
 pub mod materialx;
+pub mod merl;
 pub mod mitsuba;
+pub mod rgl;
 pub mod texture;
 pub mod usd;
 
@@ -54,12 +61,16 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> ExportError + '_ {
 
 /// A format a fitted material is exported to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "kebab-case")]
 pub enum Format {
     Gltf,
     Materialx,
     Usd,
     Mitsuba,
+    /// Mitsuba 3 `measured`: the averaged BRDF as an RGL tensor file (`.bsdf`).
+    RglBsdf,
+    /// The averaged BRDF as a MERL binary (`.binary`, plus `OUT.binary.json`).
+    Merl,
 }
 
 impl Format {
@@ -69,7 +80,14 @@ impl Format {
             Format::Materialx => "materialx",
             Format::Usd => "usd",
             Format::Mitsuba => "mitsuba",
+            Format::RglBsdf => "rgl-bsdf",
+            Format::Merl => "merl",
         }
+    }
+
+    /// Whether the format holds the averaged BRDF ([`average`]) rather than textures.
+    pub fn is_average(self) -> bool {
+        matches!(self, Format::RglBsdf | Format::Merl)
     }
 
     /// Check OUT before any work: `.glb` (one file) or a folder for glTF, a folder for the
@@ -81,6 +99,14 @@ impl Format {
             reason,
         };
         match (self, ext.as_deref()) {
+            (Format::RglBsdf, Some("bsdf")) | (Format::Merl, Some("binary")) => Ok(Layout::File),
+            (Format::RglBsdf, _) => Err(bad(
+                "--format rgl-bsdf writes one RGL tensor file: give a name ending in .bsdf".into(),
+            )),
+            (Format::Merl, _) => Err(bad(
+                "--format merl writes one MERL binary (and OUT.binary.json beside it): give a name ending in .binary"
+                    .into(),
+            )),
             (Format::Gltf, Some("glb")) => Ok(Layout::File),
             (_, None) => Ok(Layout::Folder),
             (Format::Gltf, Some(e)) => Err(bad(format!(
@@ -114,6 +140,8 @@ pub struct ExportOptions {
     pub size: Option<usize>,
     /// Accept values that are not radiometrically calibrated (labelled so).
     pub allow_uncalibrated: bool,
+    /// Bits per PNG sample: 8 or 16.
+    pub bit_depth: u8,
 }
 
 /// The material as textures, ready for the writers.
@@ -131,6 +159,8 @@ pub struct Material {
     pub size_mm: f64,
     pub provenance: serde_json::Value,
     pub warnings: Vec<String>,
+    /// Bits per PNG sample of the textures: 8 or 16.
+    pub bit_depth: u8,
 }
 
 /// Whether a `.gbtf`'s values are calibrated: BRDF values, or calibrated by a white standard.
@@ -170,6 +200,15 @@ impl Material {
             Some(0) => return Err(input("--size 0: a texture needs at least one texel".into())),
             Some(s) => (s, s),
         };
+        if !matches!(opts.bit_depth, 8 | 16) {
+            return Err(ExportError::Output {
+                path: path.display().to_string(),
+                reason: format!(
+                    "--bit-depth {}: PNG textures are written with 8 or 16 bits",
+                    opts.bit_depth
+                ),
+            });
+        }
         let quality = &g.blocks[2];
         let failed: Vec<usize> = (0..w * h).filter(|t| quality[2 * t + 1] != 0.0).collect();
         let mut warnings = Vec::new();
@@ -185,6 +224,7 @@ impl Material {
             size_mm: g.header.source.get("sample").map_or(60.0, |s| s.get_size_mm()),
             provenance: serde_json::Value::Null,
             warnings: Vec::new(),
+            bit_depth: opts.bit_depth,
         };
         for j in 0..oh {
             for i in 0..ow {
@@ -237,6 +277,7 @@ impl Material {
             "base_color_texels_clamped": clamped,
             "not_converged_texels": failed,
             "normal_map": "tangent space, +X = u (right), +Y = up in the image (OpenGL), n/2 + 1/2",
+            "png_bit_depth": opts.bit_depth,
         });
         m.warnings = warnings;
         Ok(m)
@@ -279,6 +320,12 @@ pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, E
         (Format::Materialx, _) => materialx::write(m, out)?,
         (Format::Usd, _) => usd::write(m, out)?,
         (Format::Mitsuba, _) => mitsuba::write(m, out)?,
+        (Format::RglBsdf | Format::Merl, _) => {
+            return Err(ExportError::Output {
+                path: out.display().to_string(),
+                reason: format!("--format {} holds the averaged BRDF: use write_average", format.name()),
+            })
+        }
     };
     let mut bytes = 0;
     for f in &files {
@@ -295,6 +342,74 @@ pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, E
     })
 }
 
+/// What an export of the averaged BRDF wrote.
+#[derive(Clone, Debug, Serialize)]
+pub struct AverageReport {
+    pub format: Format,
+    pub out: PathBuf,
+    /// Every file written (the BRDF first).
+    pub files: Vec<PathBuf>,
+    pub bytes: u64,
+    /// rgl-bsdf: the grid side; merl: null.
+    pub size: Option<usize>,
+    /// rgl-bsdf: the θ_i slices (degrees).
+    pub theta_i_deg: Option<Vec<f64>>,
+    pub tilt_deg: f64,
+    pub warnings: Vec<String>,
+}
+
+/// Write the averaged BRDF `avg` as `format` (`rgl-bsdf` on `size × size` grids, default
+/// [`rgl::DEFAULT_SIZE`]; `merl`, which has its own fixed bins, refuses a size).
+pub fn write_average(
+    avg: &average::AverageBrdf,
+    format: Format,
+    size: Option<usize>,
+    out: &Path,
+) -> Result<AverageReport, ExportError> {
+    format.check_out(out)?;
+    let bad = |reason: String| ExportError::Output {
+        path: out.display().to_string(),
+        reason,
+    };
+    let (files, size, theta) = match format {
+        Format::RglBsdf => {
+            let n = size.unwrap_or(rgl::DEFAULT_SIZE);
+            rgl::check_size(n).map_err(bad)?;
+            let s = rgl::write(avg, n, out)?;
+            (vec![out.to_path_buf()], Some(n), Some(s.theta_i_deg))
+        }
+        Format::Merl => {
+            if let Some(n) = size {
+                return Err(bad(format!(
+                    "--size {n}: a MERL binary has fixed bins (90 θ_h × 90 θ_d × 180 φ_d); leave --size out"
+                )));
+            }
+            let s = merl::write(avg, out)?;
+            (vec![out.to_path_buf(), s.sidecar], None, None)
+        }
+        f => {
+            return Err(bad(format!(
+                "--format {} writes textures, not the averaged BRDF",
+                f.name()
+            )))
+        }
+    };
+    let mut bytes = 0;
+    for f in &files {
+        bytes += std::fs::metadata(f).map_err(io(f))?.len();
+    }
+    Ok(AverageReport {
+        format,
+        out: out.to_path_buf(),
+        files,
+        bytes,
+        size,
+        theta_i_deg: theta,
+        tilt_deg: average::tilt_deg(avg.fit.normal),
+        warnings: avg.warnings.clone(),
+    })
+}
+
 /// Create the folder OUT (and `OUT/textures`) and write the shared textures; returns
 /// their paths relative to OUT: base colour, metallic, roughness, normal.
 pub(crate) fn write_textures(m: &Material, out: &Path) -> Result<[(String, PathBuf); 4], ExportError> {
@@ -307,8 +422,14 @@ pub(crate) fn write_textures(m: &Material, out: &Path) -> Result<[(String, PathB
     };
     Ok([
         write("base_color.png", texture::base_color_png(m)?)?,
-        write("metallic.png", texture::gray_png(m.width, m.height, &m.metallic)?)?,
-        write("roughness.png", texture::gray_png(m.width, m.height, &m.roughness)?)?,
+        write(
+            "metallic.png",
+            texture::gray_png(m.width, m.height, &m.metallic, m.bit_depth)?,
+        )?,
+        write(
+            "roughness.png",
+            texture::gray_png(m.width, m.height, &m.roughness, m.bit_depth)?,
+        )?,
         write("normal.png", texture::normal_png(m)?)?,
     ])
 }

@@ -29,6 +29,7 @@ fn opts(size: Option<usize>) -> ExportOptions {
     ExportOptions {
         size,
         allow_uncalibrated: false,
+        bit_depth: 8,
     }
 }
 
@@ -81,6 +82,7 @@ fn materials_clamp_list_and_refuse_uncalibrated_values() {
         &ExportOptions {
             size: None,
             allow_uncalibrated: true,
+            bit_depth: 8,
         },
     )
     .unwrap();
@@ -125,4 +127,324 @@ fn every_format_writes_its_files_with_provenance() {
             assert!(p.is_file(), "{}", p.display());
         }
     }
+}
+
+/// `file` with an averaged fit in its header, tilted by `normal`.
+fn with_average(dir: &Path, normal: [f64; 2]) -> Gbtf {
+    let mut g = file(dir, true);
+    g.header.source["average_fit"] = serde_json::to_value(average::AverageFit {
+        model: "gltf".into(),
+        base_color: [0.5, 0.3, 0.2],
+        metallic: 0.1,
+        roughness: 0.4,
+        normal,
+        rel_rms: 0.05,
+        observations: 100,
+        dataset_journal_sha256: Some("ab".repeat(32)),
+    })
+    .unwrap();
+    g
+}
+
+/// The averaged-BRDF formats need `source.average_fit`: a file without it is refused with
+/// the refit command; a tilted fit warns that it is made isotropic; an untilted one does not.
+#[test]
+fn average_fit_is_required_and_a_tilt_warns() {
+    let tmp = tempfile::tempdir().unwrap();
+    let old = file(tmp.path(), true);
+    let e = average::AverageBrdf::from_gbtf(&old, Path::new("old.gbtf"), false)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("old.gbtf") && e.contains("gonio fit") && e.contains("--model gltf --per-texel"),
+        "{e}"
+    );
+    let flat = average::AverageBrdf::from_gbtf(
+        &with_average(&tmp.path().join("a"), [0.0, 0.0]),
+        Path::new("f.gbtf"),
+        false,
+    )
+    .unwrap();
+    assert!(flat.warnings.is_empty(), "{:?}", flat.warnings);
+    let tilted = average::AverageBrdf::from_gbtf(
+        &with_average(&tmp.path().join("b"), [0.1, 0.05]),
+        Path::new("f.gbtf"),
+        false,
+    )
+    .unwrap();
+    assert!(
+        tilted.warnings.iter().any(|w| w.contains("anisotropic")),
+        "{:?}",
+        tilted.warnings
+    );
+    // Isotropic: the same value for a pair rotated by any angle (the mean over 36 rotations
+    // is invariant under the rotations by 10°; the flat fit under every rotation).
+    let d = |t: f64, p: f64| gonio_devices::Direction::from_degrees(t, p).vector();
+    for (b, rot) in [(&flat, 37.0), (&tilted, 30.0)] {
+        let (x, y) = (
+            b.eval(d(30.0, 10.0), d(50.0, 200.0)),
+            b.eval(d(30.0, 10.0 + rot), d(50.0, 200.0 + rot)),
+        );
+        for c in 0..3 {
+            assert!((x[c] - y[c]).abs() <= 1e-12 * x[c], "{x:?} {y:?}");
+        }
+    }
+}
+
+/// The sample warp is the inverse CDF of the bilinear density: the identity for a constant
+/// density, `u = √s` for a density growing linearly in x.
+#[test]
+fn the_warp_inverts_the_bilinear_cdf() {
+    let n = 9;
+    let flat = rgl::Warp::new(vec![1.0; n * n], n);
+    let ramp = rgl::Warp::new((0..n * n).map(|k| (k % n) as f64).collect(), n);
+    for s in [[0.0, 0.0], [0.3, 0.7], [0.5, 0.5], [0.91, 0.12], [1.0, 1.0]] {
+        let u = flat.sample(s);
+        assert!(
+            (u[0] - s[0]).abs() < 1e-12 && (u[1] - s[1]).abs() < 1e-12,
+            "{u:?} {s:?}"
+        );
+        let u = ramp.sample(s);
+        assert!(
+            (u[0] - s[0].sqrt()).abs() < 1e-12 && (u[1] - s[1]).abs() < 1e-12,
+            "{u:?} {s:?}"
+        );
+    }
+}
+
+/// A tensor file's fields: name → (dtype, shape, bytes).
+fn tensor_fields(b: &[u8]) -> std::collections::BTreeMap<String, (u8, Vec<usize>, &[u8])> {
+    assert_eq!(&b[..12], b"tensor_file\0");
+    assert_eq!(&b[12..14], &[1, 0]);
+    let n = u32::from_le_bytes(b[14..18].try_into().unwrap());
+    let mut at = 18;
+    let mut out = std::collections::BTreeMap::new();
+    let u16_at = |p: usize| u16::from_le_bytes(b[p..p + 2].try_into().unwrap()) as usize;
+    let u64_at = |p: usize| u64::from_le_bytes(b[p..p + 8].try_into().unwrap()) as usize;
+    for _ in 0..n {
+        let len = u16_at(at);
+        let name = String::from_utf8(b[at + 2..at + 2 + len].to_vec()).unwrap();
+        at += 2 + len;
+        let ndim = u16_at(at);
+        let dtype = b[at + 2];
+        let off = u64_at(at + 3);
+        at += 11;
+        let shape: Vec<usize> = (0..ndim).map(|k| u64_at(at + 8 * k)).collect();
+        at += 8 * ndim;
+        let size = if dtype == 10 { 4 } else { 1 } * shape.iter().product::<usize>();
+        assert_eq!(off % 8, 0, "{name}");
+        out.insert(name, (dtype, shape, &b[off..off + size]));
+    }
+    out
+}
+
+/// The `.bsdf` has every field `measured.cpp` checks, with its types and shapes (one φ_i
+/// slice, 23 θ_i slices, `size²` grids), the provenance in `description`, the same bytes
+/// for the same input; at every grid node the stored value times the reader's Jacobian
+/// `ndf(u_m) / (4 σ(u_i))` is the fitted BRDF times cos θ_o (Mitsuba's `eval`) at the
+/// direction pair the warp maps it to.
+#[test]
+fn rgl_file_has_the_measured_plugins_layout() {
+    let tmp = tempfile::tempdir().unwrap();
+    let avg =
+        average::AverageBrdf::from_gbtf(&with_average(tmp.path(), [0.0, 0.0]), Path::new("f.gbtf"), false).unwrap();
+    let n = 8;
+    let (b, s) = rgl::encode(&avg, n).unwrap();
+    assert_eq!(b, rgl::encode(&avg, n).unwrap().0, "same input, same bytes");
+    assert_eq!(s.bytes, b.len());
+    let f = tensor_fields(&b);
+    let m = rgl::THETA_SLICES;
+    for (name, dtype, shape) in [
+        ("theta_i", 10, vec![m]),
+        ("phi_i", 10, vec![1]),
+        ("ndf", 10, vec![n, n]),
+        ("sigma", 10, vec![n, n]),
+        ("vndf", 10, vec![1, m, n, n]),
+        ("luminance", 10, vec![1, m, n, n]),
+        ("rgb", 10, vec![1, m, 3, n, n]),
+        ("valid", 1, vec![1, m, n, n]),
+        ("jacobian", 1, vec![1]),
+    ] {
+        let (d, sh, _) = &f[name];
+        assert_eq!((*d, sh), (dtype, &shape), "{name}");
+    }
+    assert_eq!(f["jacobian"].2, &[1]);
+    let desc: serde_json::Value = serde_json::from_slice(f["description"].2).unwrap();
+    assert!(desc["generator"].as_str().unwrap().starts_with("gonio "));
+    assert_eq!(desc["fit"]["roughness"], 0.4);
+    let floats = |name: &str| -> Vec<f64> {
+        f[name]
+            .2
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()) as f64)
+            .collect()
+    };
+    let (theta, ndf, sigma, rgb, vndf) = (
+        floats("theta_i"),
+        floats("ndf"),
+        floats("sigma"),
+        floats("rgb"),
+        floats("vndf"),
+    );
+    assert!(rgb.iter().chain(&vndf).chain(&ndf).all(|x| x.is_finite() && *x >= 0.0));
+    assert!((theta[m - 1].to_degrees() - 88.0).abs() < 1e-4);
+    let bil = |g: &[f64], x: f64, y: f64| {
+        let (fx, fy) = (x * (n - 1) as f64, y * (n - 1) as f64);
+        let (i, j) = ((fx as usize).min(n - 2), (fy as usize).min(n - 2));
+        let (tx, ty) = (fx - i as f64, fy - j as f64);
+        let at = |i: usize, j: usize| g[j * n + i];
+        (1.0 - ty) * ((1.0 - tx) * at(i, j) + tx * at(i + 1, j))
+            + ty * ((1.0 - tx) * at(i, j + 1) + tx * at(i + 1, j + 1))
+    };
+    let mut checked = 0;
+    for k in [0, 7, 15, 22] {
+        let ti = theta[k];
+        let wi = gonio_devices::Vec3::new(ti.sin(), 0.0, ti.cos());
+        let warp = rgl::Warp::new(vndf[k * n * n..(k + 1) * n * n].to_vec(), n);
+        for j in 0..n {
+            for i in 0..n {
+                let u = warp.sample([i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64]);
+                let (tm, pm) = (
+                    u[0] * u[0] * std::f64::consts::FRAC_PI_2,
+                    (2.0 * u[1] - 1.0) * std::f64::consts::PI,
+                );
+                let mm = gonio_devices::Vec3::new(tm.sin() * pm.cos(), tm.sin() * pm.sin(), tm.cos());
+                let wo = mm * (2.0 * mm.dot(wi)) - wi;
+                if wo.z <= 1e-3 {
+                    continue;
+                }
+                let wo = wo.normalized();
+                let want = avg.eval(wi, wo).map(|x| x * wo.z);
+                let jac = bil(&ndf, u[0], u[1]) / (4.0 * bil(&sigma, (ti / std::f64::consts::FRAC_PI_2).sqrt(), 0.5));
+                for (c, want) in want.iter().enumerate() {
+                    let got = rgb[((k * 3 + c) * n + j) * n + i] * jac;
+                    assert!(
+                        (got - want).abs() <= 1e-5 * want.max(1e-6),
+                        "slice {k} node ({i}, {j}) c{c}: {got} vs {want}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 100, "{checked}");
+}
+
+/// `--size` and the output name are checked before any work; merl refuses a size.
+#[test]
+fn average_exports_refuse_bad_sizes_and_names() {
+    for bad in [0, 1, 3, rgl::MAX_SIZE + 1] {
+        assert!(rgl::check_size(bad).unwrap_err().contains(&format!("--size {bad}")));
+    }
+    for (f, p) in [
+        (Format::RglBsdf, "x.binary"),
+        (Format::RglBsdf, "x"),
+        (Format::Merl, "x.bsdf"),
+    ] {
+        let e = f.check_out(Path::new(p)).unwrap_err().to_string();
+        assert!(e.contains(f.name()), "{e}");
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let avg =
+        average::AverageBrdf::from_gbtf(&with_average(tmp.path(), [0.0, 0.0]), Path::new("f.gbtf"), false).unwrap();
+    let e = write_average(&avg, Format::Merl, Some(32), &tmp.path().join("m.binary"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--size 32"), "{e}");
+    let e = write_average(&avg, Format::RglBsdf, Some(2), &tmp.path().join("m.bsdf"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--size 2"), "{e}");
+    assert!(!tmp.path().join("m.bsdf").exists() && !tmp.path().join("m.binary").exists());
+}
+
+/// The MERL binary: its header, its length, and at every probed bin `value × scale` is the
+/// BRDF at the bin's direction pair; the sidecar holds the provenance.
+#[test]
+fn merl_binary_layout_and_values() {
+    let tmp = tempfile::tempdir().unwrap();
+    let avg =
+        average::AverageBrdf::from_gbtf(&with_average(tmp.path(), [0.0, 0.0]), Path::new("f.gbtf"), false).unwrap();
+    let out = tmp.path().join("m.binary");
+    let r = write_average(&avg, Format::Merl, None, &out).unwrap();
+    let b = std::fs::read(&out).unwrap();
+    let cells = merl::THETA_H * merl::THETA_D * merl::PHI_D;
+    assert_eq!(b.len(), 12 + 3 * cells * 8);
+    let dims: Vec<i32> = (0..3)
+        .map(|k| i32::from_le_bytes(b[4 * k..4 * k + 4].try_into().unwrap()))
+        .collect();
+    assert_eq!(dims, [90, 90, 180]);
+    for (i, j, k) in [(0, 0, 0), (10, 20, 30), (45, 10, 90), (89, 89, 179), (60, 70, 5)] {
+        let (l, v) = merl::bin_directions(i, j, k);
+        let want = if l.z > 0.0 && v.z > 0.0 {
+            avg.eval(l, v)
+        } else {
+            [0.0; 3]
+        };
+        let idx = k + merl::PHI_D * (j + merl::THETA_D * i);
+        for (c, (want, scale)) in want.iter().zip(merl::SCALE).enumerate() {
+            let p = 12 + 8 * (c * cells + idx);
+            let got = f64::from_le_bytes(b[p..p + 8].try_into().unwrap()) * scale;
+            assert!(
+                (got - want).abs() <= 1e-12 * want.abs().max(1e-12),
+                "({i},{j},{k}) c{c}: {got} {want}"
+            );
+        }
+    }
+    let side: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&r.files[1]).unwrap()).unwrap();
+    assert_eq!(r.files[1], tmp.path().join("m.binary.json"));
+    assert_eq!(side["provenance"]["fit"]["roughness"], 0.4);
+    assert_eq!(side["scale"][1], 1.15 / 1500.0);
+}
+
+/// `--bit-depth 16` writes 16-bit PNGs that decode to the maps' values within 1/65535
+/// (sRGB-encoded base colour, linear others); 8 bits within 1/255.
+#[test]
+fn sixteen_bit_textures_decode_to_the_maps() {
+    let tmp = tempfile::tempdir().unwrap();
+    let g = file(tmp.path(), true);
+    for bits in [8u8, 16] {
+        let m = Material::from_gbtf(
+            &g,
+            Path::new("f.gbtf"),
+            &ExportOptions {
+                size: None,
+                allow_uncalibrated: false,
+                bit_depth: bits,
+            },
+        )
+        .unwrap();
+        let step = if bits == 16 { 1.0 / 65535.0 } else { 1.0 / 255.0 };
+        let png = texture::gray_png(m.width, m.height, &m.roughness, bits).unwrap();
+        let img = image::load_from_memory(&png).unwrap().into_luma16();
+        for (p, r) in img.pixels().zip(&m.roughness) {
+            assert!(
+                (p[0] as f64 / 65535.0 - *r as f64).abs() <= 0.51 * step + 1e-9,
+                "{bits} bits: {} vs {r}",
+                p[0]
+            );
+        }
+        let png = texture::base_color_png(&m).unwrap();
+        let img = image::load_from_memory(&png).unwrap().into_rgb16();
+        for (p, c) in img.pixels().zip(&m.base_color) {
+            let want = texture::srgb_encode(c[0]) as f64;
+            assert!(
+                (p[0] as f64 / 65535.0 - want).abs() <= 0.51 * step + 1e-6,
+                "{bits} bits: {} vs {want}",
+                p[0]
+            );
+        }
+    }
+    let e = Material::from_gbtf(
+        &g,
+        Path::new("f.gbtf"),
+        &ExportOptions {
+            size: None,
+            allow_uncalibrated: false,
+            bit_depth: 12,
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("--bit-depth 12"), "{e}");
 }

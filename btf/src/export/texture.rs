@@ -1,5 +1,8 @@
 //! The textures of an export: resampling the fitted parameters to the asked resolution and
-//! encoding them as 8-bit PNG (base colour sRGB-encoded, every other map linear).
+//! encoding them as 8- or 16-bit PNG (`--bit-depth`; base colour sRGB-encoded, every other
+//! map linear). 16 bits: an sRGB step of 1/65535 instead of 1/255, for materials whose
+//! maps are smooth enough that 8-bit banding shows in renders (docs/guide/export.md
+//! measures the difference inside texels).
 
 use super::{ExportError, Material};
 use gonio_dataset::store::linear_to_srgb8;
@@ -39,40 +42,68 @@ fn encode(width: usize, height: usize, data: &[u8], color: image::ExtendedColorT
     Ok(out)
 }
 
+/// Code values in [0, 1] (already transfer-encoded), `channels` per texel, as an 8- or
+/// 16-bit PNG (16-bit samples handed to the encoder in native byte order, which it
+/// writes big-endian as PNG stores them).
+fn encode_bits(width: usize, height: usize, values: &[f32], channels: usize, bits: u8) -> Result<Vec<u8>, ExportError> {
+    use image::ExtendedColorType as C;
+    if bits == 16 {
+        let data: Vec<u8> = values.iter().flat_map(|v| quantize16(*v).to_ne_bytes()).collect();
+        let color = if channels == 1 { C::L16 } else { C::Rgb16 };
+        return encode(width, height, &data, color);
+    }
+    let data: Vec<u8> = values.iter().map(|v| linear8(*v)).collect();
+    encode(width, height, &data, if channels == 1 { C::L8 } else { C::Rgb8 })
+}
+
 /// Linear [0, 1] → 8-bit code value (no transfer curve).
 pub fn linear8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
-/// The base colour, sRGB-encoded RGB8.
+/// [0, 1] → 16-bit code value.
+pub fn quantize16(v: f32) -> u16 {
+    (v.clamp(0.0, 1.0) as f64 * 65535.0 + 0.5) as u16
+}
+
+/// The sRGB transfer curve on [0, 1] (the same curve `linear_to_srgb8` quantizes).
+pub fn srgb_encode(v: f32) -> f32 {
+    let v = if v > 0.0 { v.min(1.0) } else { 0.0 };
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// The base colour, sRGB-encoded RGB (8 or 16 bits).
 pub fn base_color_png(m: &Material) -> Result<Vec<u8>, ExportError> {
+    if m.bit_depth == 16 {
+        let v: Vec<f32> = m.base_color.iter().flat_map(|c| c.map(srgb_encode)).collect();
+        return encode_bits(m.width, m.height, &v, 3, 16);
+    }
     let data: Vec<u8> = m.base_color.iter().flat_map(|c| c.map(linear_to_srgb8)).collect();
     encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
 }
 
-/// A linear single-channel map (metallic, roughness), L8.
-pub fn gray_png(width: usize, height: usize, v: &[f32]) -> Result<Vec<u8>, ExportError> {
-    let data: Vec<u8> = v.iter().map(|x| linear8(*x)).collect();
-    encode(width, height, &data, image::ExtendedColorType::L8)
+/// A linear single-channel map (metallic, roughness), L8 or L16.
+pub fn gray_png(width: usize, height: usize, v: &[f32], bits: u8) -> Result<Vec<u8>, ExportError> {
+    encode_bits(width, height, v, 1, bits)
 }
 
 /// glTF's packed metallic-roughness texture: G = roughness, B = metallic (linear), R unused (0).
 pub fn metallic_roughness_png(m: &Material) -> Result<Vec<u8>, ExportError> {
-    let data: Vec<u8> = m
+    let v: Vec<f32> = m
         .roughness
         .iter()
         .zip(&m.metallic)
-        .flat_map(|(r, mt)| [0, linear8(*r), linear8(*mt)])
+        .flat_map(|(r, mt)| [0.0, *r, *mt])
         .collect();
-    encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
+    encode_bits(m.width, m.height, &v, 3, m.bit_depth)
 }
 
-/// The tangent-space normal map: `n · ½ + ½` per component, linear RGB8 (+Y up).
+/// The tangent-space normal map: `n · ½ + ½` per component, linear RGB (+Y up).
 pub fn normal_png(m: &Material) -> Result<Vec<u8>, ExportError> {
-    let data: Vec<u8> = m
-        .normal
-        .iter()
-        .flat_map(|n| n.map(|c| linear8(0.5 * c + 0.5)))
-        .collect();
-    encode(m.width, m.height, &data, image::ExtendedColorType::Rgb8)
+    let v: Vec<f32> = m.normal.iter().flat_map(|n| n.map(|c| 0.5 * c + 0.5)).collect();
+    encode_bits(m.width, m.height, &v, 3, m.bit_depth)
 }
