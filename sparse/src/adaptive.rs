@@ -188,7 +188,9 @@ pub struct RoundChoice {
     pub picks: Vec<DesignStep>,
 }
 
-/// Analyse the measured pairs and choose up to `n` more among `candidates`.
+/// Analyse the measured pairs and choose up to `n` more among `candidates`, by A-optimal
+/// gain plus `residual_weight` × the residual a pair's measurement would remove (0: the
+/// fixed design's continuation, the analysis then only predicts and flags).
 ///
 /// `prior` is the full prior (it is truncated to at most the pairs measured); `y` holds the
 /// measured values of a sample of texel-channels (S × M, model space, rows in the order of
@@ -200,6 +202,7 @@ pub fn next_round(
     measured: &[usize],
     y: &DMatrix<f64>,
     noise_var: f64,
+    residual_weight: f64,
     n: usize,
 ) -> Result<RoundChoice, SparseError> {
     let d = prior.dims();
@@ -256,7 +259,7 @@ pub fn next_round(
             .par_iter()
             .filter(|&&q| q < d && !g.is_chosen(q))
             .map(|&q| {
-                let s = g.gain(q) + extra[q];
+                let s = g.gain(q) + residual_weight * extra[q];
                 (s, q)
             })
             .reduce_with(|a, b| if b.0 > a.0 || (b.0 == a.0 && b.1 < a.1) { b } else { a });
@@ -325,7 +328,7 @@ mod tests {
             measured.push(centre);
         }
         let y = truth.select_rows(&measured);
-        let r = next_round(&p, &geom, &cand, &measured, &y, nv, 10).unwrap();
+        let r = next_round(&p, &geom, &cand, &measured, &y, nv, 1.0, 10).unwrap();
         assert!(r.outside_prior, "{r:?}");
         let unmeasured_bumped: Vec<usize> = bumped.iter().copied().filter(|q| !measured.contains(q)).collect();
         if !unmeasured_bumped.is_empty() {
@@ -385,14 +388,14 @@ mod tests {
             .iter()
             .map(|s| s.pair)
             .collect();
-        let r = next_round(&p, &geom, &cand, &measured, &truth.select_rows(&measured), nv, 5).unwrap();
+        let r = next_round(&p, &geom, &cand, &measured, &truth.select_rows(&measured), nv, 1.0, 5).unwrap();
         assert!(!r.outside_prior, "{r:?}");
         assert!(r.predicted_mse.is_finite() && r.predicted_mse > 0.0);
         // Black texels: finite everything.
         let zero = DMatrix::<f64>::zeros(measured.len(), 3);
-        let r0 = next_round(&p, &geom, &cand, &measured, &zero, nv, 5).unwrap();
+        let r0 = next_round(&p, &geom, &cand, &measured, &zero, nv, 1.0, 5).unwrap();
         assert!(r0.predicted_mse.is_finite() && r0.picks.iter().all(|s| s.expected_mse.is_finite()));
         // A wrong row count is an error, not a panic.
-        assert!(next_round(&p, &geom, &cand, &measured, &zero.rows(0, 3).into_owned(), nv, 5).is_err());
+        assert!(next_round(&p, &geom, &cand, &measured, &zero.rows(0, 3).into_owned(), nv, 1.0, 5).is_err());
     }
 }
