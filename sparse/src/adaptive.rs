@@ -195,6 +195,8 @@ pub struct RoundChoice {
 /// `prior` is the full prior (it is truncated to at most the pairs measured); `y` holds the
 /// measured values of a sample of texel-channels (S × M, model space, rows in the order of
 /// `measured`); `noise_var` is the MAP's noise variance.
+// Every argument is one of the analysis' independent inputs; a struct would only rename them.
+#[allow(clippy::too_many_arguments)]
 pub fn next_round(
     prior: &Prior,
     geom: &PairGeometry,
