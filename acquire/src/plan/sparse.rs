@@ -59,7 +59,158 @@ pub struct SparseInfo {
     pub picks: Vec<(usize, f64)>,
     /// Present for an adaptive acquisition: its stop, rounds and analyses.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub adaptive: Option<super::adaptive::AdaptiveInfo>,
+    pub adaptive: Option<AdaptiveInfo>,
+}
+
+// The records of an adaptive acquisition (`plan.json` `sparse.adaptive`): they live here,
+// with the sparse plan they extend; the adaptive planner chooses and fills them.
+
+/// When an adaptive run stops (at least one is given; with both, at whichever comes first).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdaptiveStop {
+    /// Stop when the predicted PSNR of the completed dataset reaches this (dB, 8-bit sRGB).
+    pub target_psnr_db: Option<f64>,
+    /// Stop when the planned rig time (rounds plus analysis allowances) would exceed this (s).
+    pub rig_budget_s: Option<f64>,
+}
+
+impl AdaptiveStop {
+    /// Check the flags: at least one, each a finite positive number.
+    pub fn new(target_psnr_db: Option<f64>, rig_budget_s: Option<f64>) -> Result<AdaptiveStop, PlanError> {
+        if target_psnr_db.is_none() && rig_budget_s.is_none() {
+            return Err(invalid(
+                "--adaptive needs a stop: --target-psnr DB (predicted PSNR of the completed dataset) \
+                 and/or --rig-budget SECONDS"
+                    .into(),
+            ));
+        }
+        if let Some(t) = target_psnr_db {
+            if !(t.is_finite() && t > 0.0 && t < 100.0) {
+                return Err(invalid(format!(
+                    "--target-psnr {t}: use a PSNR in dB between 0 and 100"
+                )));
+            }
+        }
+        if let Some(b) = rig_budget_s {
+            if !(b.is_finite() && b > 0.0) {
+                return Err(invalid(format!(
+                    "--rig-budget {b}: must be a positive number of seconds"
+                )));
+            }
+        }
+        Ok(AdaptiveStop {
+            target_psnr_db,
+            rig_budget_s,
+        })
+    }
+}
+
+/// One round as `plan.json` records it (`sparse.adaptive.rounds`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AdaptiveRound {
+    /// 1, 2, …
+    pub round: usize,
+    /// Pairs measured before the round.
+    pub measured_before: usize,
+    /// The round's pairs in the order the analysis chose them.
+    pub pairs: Vec<usize>,
+    /// The round's steps: `plan.steps[first_step..first_step + pairs.len()]`.
+    pub first_step: usize,
+    /// Planned rig time of the round alone (s), and the analysis allowance charged before it.
+    pub planned_s: f64,
+    pub allowance_s: f64,
+    /// Components of the prior the analysis used (at most the pairs measured).
+    pub components: usize,
+    /// Predicted PSNR of the completed dataset before the round (dB; none before round 1,
+    /// nothing is measured) and after it: round 1's is the prior's own, later rounds'
+    /// include the residual the data showed.
+    pub predicted_psnr_before_db: Option<f64>,
+    pub predicted_psnr_after_db: f64,
+    /// Mean leave-one-out residual on the measured pairs, and what the prior expects there
+    /// (model space); `None` for round 1.
+    pub observed_residual: Option<f64>,
+    pub expected_residual: Option<f64>,
+    /// The residual is far above what the prior expects: the material is outside it, and
+    /// the round's pairs go where the residual is.
+    pub outside_prior: bool,
+}
+
+/// The adaptive part of a sparse plan (`plan.json` field `sparse.adaptive`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct AdaptiveInfo {
+    pub stop: AdaptiveStop,
+    /// The prior's payload hash and the components used: a resumed run must analyse with
+    /// the very prior the earlier rounds were chosen in.
+    pub prior_sha256: String,
+    pub components: usize,
+    pub noise_var: f64,
+    pub first_share: f64,
+    pub round_allowance_s: f64,
+    /// Weight of the residual term when choosing a round's pairs (the adaptive planner's `RESIDUAL_WEIGHT`).
+    pub residual_weight: f64,
+    pub analysis_texels: usize,
+    pub max_rounds: usize,
+    /// The order optimiser's kicks and seed: later rounds (also after a resume) are
+    /// planned with the first round's.
+    pub plan_kicks: usize,
+    pub plan_seed: u64,
+    /// Pairs of the sweep the rig cannot measure (never candidates).
+    pub infeasible: Vec<usize>,
+    pub rounds: Vec<AdaptiveRound>,
+    /// Why the run stopped choosing (absent while rounds may follow).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub finished: Option<String>,
+    /// The last analysis' predicted PSNR (dB) and whether it found the material outside
+    /// the prior (absent until a round after the first was analysed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predicted_psnr_db: Option<f64>,
+    #[serde(default)]
+    pub outside_prior: bool,
+}
+
+impl AdaptiveInfo {
+    /// Every pair chosen so far, in the order chosen.
+    pub fn chosen(&self) -> Vec<usize> {
+        self.rounds.iter().flat_map(|r| r.pairs.iter().copied()).collect()
+    }
+
+    /// Planned rig time so far: rounds plus analysis allowances (s).
+    pub fn spent_s(&self) -> f64 {
+        self.rounds.iter().map(|r| r.planned_s + r.allowance_s).sum()
+    }
+}
+
+/// The longest prefix (of `n` picks) whose plan fits `budget`: bisection on quick plans,
+/// then the real plan, shortened while it does not fit. `None` when not even one fits.
+pub(crate) fn fit_prefix(
+    n: usize,
+    budget: f64,
+    kicks: usize,
+    plan_of: impl Fn(usize, usize) -> Result<Plan, PlanError>,
+) -> Result<Option<(usize, Plan)>, PlanError> {
+    let quick = kicks.min(2000);
+    let (mut lo, mut hi) = (0usize, n);
+    while lo < hi {
+        let mid = (lo + hi).div_ceil(2);
+        if plan_of(mid, quick)?.durations.optimized_s <= budget {
+            lo = mid;
+        } else {
+            hi = mid - 1;
+        }
+    }
+    if lo == 0 {
+        return Ok(None);
+    }
+    let mut n = lo;
+    let mut plan = plan_of(n, kicks)?;
+    while plan.durations.optimized_s > budget && n > 1 {
+        n -= 1;
+        plan = plan_of(n, kicks)?;
+    }
+    if plan.durations.optimized_s > budget {
+        return Ok(None);
+    }
+    Ok(Some((n, plan)))
 }
 
 /// PSNR (dB) of a model-space mean squared error (the gamma space is close to 8-bit sRGB).
@@ -211,7 +362,7 @@ impl Plan {
             Plan::build_pairs(rig, sweep, &chosen, &o)
         };
         let (n, mut plan) = match req.target {
-            SparseTarget::RigBudget(b) => super::adaptive::fit_prefix(design.len(), b, opts.kicks, plan_of)?
+            SparseTarget::RigBudget(b) => fit_prefix(design.len(), b, opts.kicks, plan_of)?
                 .ok_or_else(|| invalid(format!("--rig-budget {b} s: not even one pair fits")))?,
             _ => (design.len(), plan_of(design.len(), opts.kicks)?),
         };
