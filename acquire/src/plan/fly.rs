@@ -37,6 +37,7 @@ use super::order::{self, Node, OrderOptions};
 use super::{node_for, Durations, Plan, PlanError, Step};
 use gonio_devices::kinematics::{self, Kinematics};
 use gonio_devices::rig::RigSpec;
+use gonio_devices::serial::FlightProfile;
 use gonio_devices::{Direction, MotionModel};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -146,6 +147,11 @@ struct Setup<'a> {
     rig: &'a RigSpec,
     kin: Box<dyn Kinematics>,
     motions: Vec<MotionModel>,
+    /// The moving axis' motion in flight: the rig file's, with the acceleration its
+    /// controller really runs (stop-and-go moves keep the rig file's figures).
+    fly_motion: MotionModel,
+    /// The controller's rounding of a flight's velocity (serial axes; `None`: simulated).
+    profile: Option<FlightProfile>,
     axis: usize,
     light_axes: Vec<usize>,
     exposure: f64,
@@ -180,7 +186,7 @@ pub fn refusal(rig: &RigSpec) -> Option<String> {
 /// can): the plan then stays stop and go as a whole and says why.
 fn axis_fallback(rig: &RigSpec) -> Option<String> {
     let axis = rig.axes.iter().find(|a| a.role == "light_azimuth")?;
-    if axis.backend != "sim" {
+    if axis.backend != "sim" && !gonio_devices::serial::BACKENDS.contains(&axis.backend.as_str()) {
         return Some(format!(
             "axis_backend: axis `{}` (backend `{}`) has no constant-velocity moves in gonio yet",
             axis.name, axis.backend
@@ -193,6 +199,20 @@ fn axis_fallback(rig: &RigSpec) -> Option<String> {
         ));
     }
     None
+}
+
+/// The moving axis' flight motion and its controller's velocity rounding, from the rig file
+/// alone (no port is opened: see `gonio_devices::serial::flight_profile`).
+fn flight_motion(rig: &RigSpec, axis: usize) -> Result<(MotionModel, Option<FlightProfile>), PlanError> {
+    let spec = &rig.axes[axis];
+    let mut m = spec.motion();
+    let profile = gonio_devices::serial::flight_profile(spec).map_err(|e| PlanError::Fly {
+        message: format!("rig `{}`: {e}", rig.name),
+    })?;
+    if let Some(p) = &profile {
+        m.acceleration = p.acceleration;
+    }
+    Ok((m, profile))
 }
 
 impl Plan {
@@ -213,15 +233,24 @@ impl Plan {
                 rig: rig.name.clone(),
                 source,
             })?;
+        let axis = rig
+            .axes
+            .iter()
+            .position(|a| a.role == "light_azimuth")
+            .ok_or_else(|| PlanError::Fly {
+                message: format!("rig `{}` has no light-azimuth axis", rig.name),
+            })?;
+        let (fly_motion, profile) = match axis_fallback(rig) {
+            None => flight_motion(rig, axis)?,
+            Some(_) => (rig.axes[axis].motion(), None),
+        };
         let s = Setup {
             rig,
             kin: kinematics::for_rig(rig),
             motions: rig.axes.iter().map(|a| a.motion()).collect(),
-            axis: rig
-                .axes
-                .iter()
-                .position(|a| a.role == "light_azimuth")
-                .expect("refusal() checked the axis"),
+            fly_motion,
+            profile,
+            axis,
             light_axes: (0..rig.axes.len())
                 .filter(|&i| rig.axes[i].role.starts_with("light_"))
                 .collect(),
@@ -595,7 +624,7 @@ impl Setup<'_> {
     /// A flown segment over `run` (sorted by the moving axis), or why it is not flown.
     fn flight(&self, run: &[(usize, Vec<f64>)]) -> Result<Item, &'static str> {
         let ax = self.axis;
-        let m = self.motions[ax];
+        let m = self.fly_motion;
         let values: Vec<f64> = run.iter().map(|(_, q)| q[ax]).collect();
         let min_gap = values.windows(2).map(|w| w[1] - w[0]).fold(f64::INFINITY, f64::min);
         if min_gap <= 1e-9 {
@@ -609,6 +638,10 @@ impl Setup<'_> {
         }
         if self.exposure > 0.0 && rate > 1e-12 {
             speed = speed.min(self.blur_rad / (self.exposure * rate));
+        }
+        if let Some(p) = &self.profile {
+            // What the controller runs, never above the bounds (it counts in whole units).
+            speed = p.velocity(speed);
         }
         if !(speed.is_finite() && speed > 1e-9) {
             return Err("blur_bound");
@@ -657,7 +690,7 @@ impl Setup<'_> {
         else {
             return 0.0;
         };
-        let mut m = self.motions[self.axis];
+        let mut m = self.fly_motion;
         m.max_velocity = *speed;
         let span = (values[values.len() - 1] - values[0]).abs();
         m.move_time(run_up + span + run_out)
@@ -741,7 +774,7 @@ impl Setup<'_> {
                     kick[self.axis] = values[0] - dir * run_up;
                     let d = kinematics::transition_time(&self.motions, &cur, &kick);
                     motion += d;
-                    let m = self.motions[self.axis];
+                    let m = self.fly_motion;
                     let first_offset = speed / m.acceleration + m.settle_time;
                     // The first exposure needs the sensor free: the engine kicks off no
                     // earlier than the previous readout allows.

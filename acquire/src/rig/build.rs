@@ -100,6 +100,7 @@ impl Rig {
         };
         let sim = build_sim_rig(spec, renderer, &sim_opts)?;
         let mut axes = sim.axes;
+        let mut shadows = vec![None; axes.len()];
         if mixed {
             let mut ports = gonio_devices::serial::PortRegistry::new();
             for (i, a) in spec.axes.iter().enumerate() {
@@ -110,6 +111,7 @@ impl Rig {
                     rig: spec.name.clone(),
                     error,
                 })?;
+                shadows[i] = Some(sim.world.axes[i].clone());
                 axes[i] = Arc::new(MirroredAxis {
                     real,
                     shadow: sim.world.axes[i].clone(),
@@ -165,6 +167,7 @@ impl Rig {
             border: sample.border.clone(),
             sample_mm: sample.size_mm,
             started: std::time::Instant::now(),
+            shadows,
             still_at: std::sync::Mutex::new(None),
         })
     }
@@ -235,15 +238,20 @@ pub struct MirroredAxis {
 
 impl MirroredAxis {
     async fn mirror(&self, read_back: f64) -> Result<(), DeviceError> {
-        let lim = self.shadow.limits();
-        // A read-back a microstep outside the soft limits must not fail the shadow move.
-        let x = read_back.clamp(lim.min, lim.max);
-        if let Err(DeviceError::NotHomed { .. }) = self.shadow.start_move(x).await {
-            self.shadow.home().await?;
-            self.shadow.start_move(x).await?;
-        }
-        self.shadow.wait_idle().await.map(|_| ())
+        mirror(&self.shadow, read_back).await
     }
+}
+
+/// Move a shadow axis to a real axis' read-back.
+pub(super) async fn mirror(shadow: &SimAxis, read_back: f64) -> Result<(), DeviceError> {
+    let lim = shadow.limits();
+    // A read-back a microstep outside the soft limits must not fail the shadow move.
+    let x = read_back.clamp(lim.min, lim.max);
+    if let Err(DeviceError::NotHomed { .. }) = shadow.start_move(x).await {
+        shadow.home().await?;
+        shadow.start_move(x).await?;
+    }
+    shadow.wait_idle().await.map(|_| ())
 }
 
 #[async_trait]
@@ -265,6 +273,9 @@ impl Axis for MirroredAxis {
     }
     async fn start_move(&self, target: f64) -> Result<(), DeviceError> {
         self.real.start_move(target).await
+    }
+    async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        self.real.start_move_at(target, velocity).await
     }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
         let p = self.real.wait_idle().await?;

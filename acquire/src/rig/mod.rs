@@ -49,6 +49,9 @@ pub struct Rig {
     pub border: MarkerBorder,
     pub sample_mm: f64,
     started: std::time::Instant,
+    /// The simulated axis behind each serial axis of a mixed rig (what its simulated camera
+    /// renders), by axis index; `None` for simulated axes.
+    shadows: Vec<Option<Arc<gonio_simulator::devices::SimAxis>>>,
     /// Rig-clock time the rig last became still (set by [`Rig::reach`]), when frame
     /// timestamps are on that clock: the stale-frame rule's reference.
     still_at: std::sync::Mutex<Option<f64>>,
@@ -69,12 +72,29 @@ impl Rig {
         match &self.clock {
             Some(c) => c.wait_until(t).await,
             None => {
+                // tokio's timer has millisecond granularity and wakes late by up to one
+                // tick; an exposure planned against a stage moving at 20 °/s must start
+                // within a fraction of that. Sleep to within SPIN_S, then yield until due.
+                const SPIN_S: f64 = 0.002;
                 let dt = t - self.time();
-                if dt > 0.0 {
-                    tokio::time::sleep(std::time::Duration::from_secs_f64(dt)).await;
+                if dt > SPIN_S {
+                    tokio::time::sleep(std::time::Duration::from_secs_f64(dt - SPIN_S)).await;
+                }
+                while self.time() < t {
+                    tokio::task::yield_now().await;
                 }
             }
         }
+    }
+
+    /// Show the simulated camera of a mixed rig axis `index` at `x` (radians) while the
+    /// serial axis flies: the camera renders its shadow axes, which otherwise follow only
+    /// settled read-backs. A no-op for a simulated axis (the camera sees it move).
+    pub async fn show_pose(&self, index: usize, x: f64) -> Result<(), DeviceError> {
+        let Some(Some(shadow)) = self.shadows.get(index) else {
+            return Ok(());
+        };
+        build::mirror(shadow, x).await
     }
 
     /// Read back every axis now (radians, the rig's axis order).

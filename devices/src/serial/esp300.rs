@@ -144,6 +144,10 @@ pub struct EspAxis {
     port: Arc<EspPort>,
     axis: u8,
     units_per_rad: f64,
+    /// `VA` and `AC` as they were before a flight changed them (controller units), restored
+    /// by [`Driver::end_flight`]: the ESP's velocity and acceleration are settings, not
+    /// per-move arguments, and every later stop-and-go move must run at the configured ones.
+    saved: std::sync::Mutex<Option<(f64, f64)>>,
 }
 
 impl EspAxis {
@@ -153,6 +157,7 @@ impl EspAxis {
             port,
             axis,
             units_per_rad,
+            saved: std::sync::Mutex::new(None),
         }
     }
 
@@ -249,6 +254,10 @@ impl EspAxis {
     }
 }
 
+/// The smallest step of any value the driver sends (commands carry 6 decimals of the
+/// controller's user unit).
+pub const VALUE_STEP: f64 = 1e-6;
+
 /// Numbers as the ESP expects them: plain decimal, no exponent.
 fn fmt_num(x: f64) -> String {
     let s = format!("{x:.6}");
@@ -316,6 +325,45 @@ impl Driver for EspAxis {
 
     fn describe_move(&self, target: f64) -> String {
         self.cmd(&format!("PA{}", fmt_num(target * self.units_per_rad)))
+    }
+
+    /// `VA` velocity, `AC` acceleration, then `PA`: the first flight saves the settings it
+    /// replaces (`VA?`, `AC?`), [`Driver::end_flight`] puts them back.
+    fn move_abs_at(&self, target: f64, velocity: f64, acceleration: f64) -> Result<(), DeviceError> {
+        let saved = *self.saved.lock().unwrap_or_else(|p| p.into_inner());
+        if saved.is_none() {
+            let va = self.port.query_number(&self.name, &self.cmd("VA?"))?;
+            let ac = self.port.query_number(&self.name, &self.cmd("AC?"))?;
+            *self.saved.lock().unwrap_or_else(|p| p.into_inner()) = Some((va, ac));
+        }
+        let (va, ac) = self.flight_settings(velocity, acceleration);
+        self.write_checked(&va)?;
+        self.write_checked(&ac)?;
+        self.write_checked(&self.describe_move(target))
+    }
+
+    fn describe_move_at(&self, target: f64, velocity: f64, acceleration: f64) -> String {
+        let (va, ac) = self.flight_settings(velocity, acceleration);
+        format!("{va};{ac};{}", self.describe_move(target))
+    }
+
+    fn end_flight(&self) -> Result<(), DeviceError> {
+        let saved = *self.saved.lock().unwrap_or_else(|p| p.into_inner());
+        let Some((va, ac)) = saved else { return Ok(()) };
+        self.write_checked(&self.cmd(&format!("VA{}", fmt_num(va))))?;
+        self.write_checked(&self.cmd(&format!("AC{}", fmt_num(ac))))?;
+        *self.saved.lock().unwrap_or_else(|p| p.into_inner()) = None;
+        Ok(())
+    }
+}
+
+impl EspAxis {
+    /// The `VA` and `AC` commands of a flight (controller units, 6 decimals).
+    fn flight_settings(&self, velocity: f64, acceleration: f64) -> (String, String) {
+        (
+            self.cmd(&format!("VA{}", fmt_num(velocity.abs() * self.units_per_rad))),
+            self.cmd(&format!("AC{}", fmt_num(acceleration.abs() * self.units_per_rad))),
+        )
     }
 }
 
@@ -445,6 +493,42 @@ mod tests {
             EspAxis::new("light_arc", port, 1, 1f64.to_degrees()),
         );
         (a, log)
+    }
+
+    #[tokio::test]
+    async fn flight_sets_va_ac_then_pa_and_restores_the_settings() {
+        let (a, log) = axis(esp(
+            |key, _| match key {
+                "VA?" => Some(vec![ScriptReply::line("20.00000")]),
+                "AC?" => Some(vec![ScriptReply::line("80.5")]),
+                "VA" | "AC" => Some(vec![]),
+                _ => None,
+            },
+            None,
+        ));
+        let log_handle = log.clone();
+        a.home().await.unwrap();
+        a.start_move_at(30f64.to_radians(), 15f64.to_radians()).await.unwrap();
+        let rb = a.wait_idle().await.unwrap();
+        assert!((rb.to_degrees() - 30.0).abs() < 1e-9);
+        let log = log.lock().unwrap().clone();
+        let sent: Vec<&str> = log
+            .iter()
+            .map(|l| l.trim_end())
+            .filter(|l| l.contains("VA") || l.contains("AC") || l.contains("PA"))
+            .collect();
+        // the rig's acceleration (10 rad/s²) in degrees, 6 decimals
+        assert_eq!(
+            sent,
+            ["1VA?", "1AC?", "1VA15", "1AC572.957795", "1PA30", "1VA20", "1AC80.5"],
+            "{log:?}"
+        );
+        drop(log);
+        // a stop-and-go move afterwards sends no VA/AC
+        a.move_abs(0.1).await.unwrap();
+        let log = log_handle.lock().unwrap().clone();
+        let settings = log.iter().filter(|l| l.contains("VA") || l.contains("AC")).count();
+        assert_eq!(settings, 6, "{log:?}");
     }
 
     #[tokio::test]

@@ -490,6 +490,72 @@ pub fn substitute_env(s: &str) -> Result<String, String> {
 /// The backends this module provides, as named in rig files.
 pub const BACKENDS: &[&str] = &["zaber", "esp300"];
 
+/// How a serial controller will really run a fly-scan's constant-velocity move: its native
+/// units quantize the commanded velocity and acceleration, and the planner must time the
+/// exposures against what the controller runs, not against the rig file's round numbers.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FlightProfile {
+    /// One step of the controller's velocity data (axis units/s).
+    pub velocity_step: f64,
+    /// The acceleration the controller runs (axis units/s²): the rig file's, rounded to
+    /// the controller's unit as the driver rounds it on the wire.
+    pub acceleration: f64,
+}
+
+impl FlightProfile {
+    /// The fastest velocity the controller runs that is not above `wanted` (so a blur or
+    /// frame-rate bound that gave `wanted` still holds); 0 when `wanted` is below one step.
+    pub fn velocity(&self, wanted: f64) -> f64 {
+        if !(wanted.is_finite() && wanted > 0.0) {
+            return 0.0;
+        }
+        // The tolerance keeps a velocity that already is a multiple of the step (up to
+        // floating-point error) on that multiple.
+        (wanted / self.velocity_step * (1.0 + 1e-12)).floor() * self.velocity_step
+    }
+}
+
+/// The flight profile of a serial axis from its rig-file entry alone (`Ok(None)` for a
+/// backend that is not a serial controller): `gonio plan` computes it without opening a
+/// port. The driver converts the same way when it flies ([`zaber::speed_data`],
+/// [`zaber::accel_data`]; the ESP takes 6 decimals of its user unit).
+pub fn flight_profile(spec: &AxisSpec) -> Result<Option<FlightProfile>, SerialConfigError> {
+    let opts = Options::new(&spec.name, &spec.options);
+    let accel = spec.motion().acceleration;
+    match spec.backend.as_str() {
+        "zaber" => {
+            let units = opts
+                .f64("units_per_deg")?
+                .filter(|u| *u > 0.0)
+                .ok_or_else(|| opts.invalid("units_per_deg", "missing or not > 0: microsteps per degree".into()))?;
+            let upr = units.to_degrees();
+            let data = zaber::accel_data(accel, upr);
+            if data < 1 {
+                return Err(opts.invalid(
+                    "units_per_deg",
+                    format!(
+                        "acceleration_deg_s2 {} is below one Zaber acceleration unit at {units} units/°",
+                        spec.acceleration_deg_s2
+                    ),
+                ));
+            }
+            Ok(Some(FlightProfile {
+                velocity_step: 1.0 / (upr * zaber::SPEED_SCALE),
+                acceleration: data as f64 / (upr * zaber::ACCEL_SCALE),
+            }))
+        }
+        "esp300" => {
+            let upr = opts.positive("units_per_deg", 1.0)?.to_degrees();
+            let step = esp300::VALUE_STEP / upr;
+            Ok(Some(FlightProfile {
+                velocity_step: step,
+                acceleration: ((accel / step).round() * step).max(step),
+            }))
+        }
+        _ => Ok(None),
+    }
+}
+
 /// Opens each serial port once, however many axes of the rig file use it.
 #[derive(Default)]
 pub struct PortRegistry {
@@ -691,6 +757,64 @@ pub mod testing {
 mod tests {
     use super::testing::*;
     use super::*;
+
+    fn spec(backend: &str, accel_deg_s2: f64, options: &str) -> AxisSpec {
+        toml::from_str(&format!(
+            r#"name = "lamp"
+role = "light_azimuth"
+backend = "{backend}"
+min_deg = -180.0
+max_deg = 180.0
+max_velocity_deg_s = 30.0
+acceleration_deg_s2 = {accel_deg_s2}
+options = {{ port = "${{GONIO_NO_SUCH_PORT_VARIABLE}}", {options} }}
+"#
+        ))
+        .unwrap()
+    }
+
+    #[test]
+    fn flight_profile_rounds_like_the_controller_and_opens_no_port() {
+        // Zaber, 1000 µsteps/°: one velocity step is 1/1638.4 °/s; 60 °/s² is ACCEL data
+        // 9.8304 → 10, i.e. 10 / 0.16384 = 61.035 °/s². The port option names an unset
+        // variable: the profile never reads it.
+        let p = flight_profile(&spec("zaber", 60.0, "units_per_deg = 1000.0"))
+            .unwrap()
+            .unwrap();
+        assert!((p.velocity_step.to_degrees() - 1.0 / 1638.4).abs() < 1e-15);
+        assert!(
+            (p.acceleration.to_degrees() - 10.0 / 0.16384).abs() < 1e-9,
+            "{}",
+            p.acceleration.to_degrees()
+        );
+        // velocities are rounded down to whole steps, and a whole step stays itself
+        let v = p.velocity(19.05f64.to_radians());
+        assert!(v <= 19.05f64.to_radians());
+        let data = v.to_degrees() * 1638.4;
+        assert!(
+            (data - data.round()).abs() < 1e-6 && data.round() == (19.05 * 1638.4f64).floor(),
+            "{data}"
+        );
+        assert_eq!(p.velocity(v), v);
+        assert_eq!(
+            zaber::speed_data(v, 1000f64.to_degrees()),
+            (19.05 * 1638.4f64).floor() as i64
+        );
+        assert_eq!(p.velocity(0.1 * p.velocity_step), 0.0);
+        assert_eq!(p.velocity(f64::NAN), 0.0);
+        // an acceleration below one Zaber unit is a typed error naming the option
+        let e = flight_profile(&spec("zaber", 0.01, "units_per_deg = 1.0")).unwrap_err();
+        assert!(e.to_string().contains("below one Zaber acceleration unit"), "{e}");
+        let e = flight_profile(&spec("zaber", 60.0, "device = 1")).unwrap_err();
+        assert!(e.to_string().contains("units_per_deg"), "{e}");
+        // ESP300 in degrees: 6 decimals
+        let p = flight_profile(&spec("esp300", 60.0, "axis = 1")).unwrap().unwrap();
+        assert!((p.velocity_step.to_degrees() - 1e-6).abs() < 1e-18);
+        assert!((p.acceleration.to_degrees() - 60.0).abs() < 1e-9);
+        assert!((p.velocity(12.3456789f64.to_radians()).to_degrees() - 12.345678).abs() < 1e-9);
+        // simulated axes have no controller
+        assert_eq!(flight_profile(&spec("sim", 60.0, "units_per_deg = 1.0")).unwrap(), None);
+    }
 
     #[test]
     fn link_splits_lines_and_strips_cr() {

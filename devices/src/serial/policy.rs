@@ -67,6 +67,27 @@ pub trait Driver: Send + Sync + 'static {
     fn reference(&self) -> Result<Option<f64>, DeviceError> {
         Ok(None)
     }
+    /// Start an absolute move to `target` that cruises at `velocity` and accelerates at
+    /// `acceleration` (axis units/s, units/s²; both > 0): a fly-scan's constant-velocity
+    /// pass. Controllers without per-move velocity refuse (the default).
+    fn move_abs_at(&self, target: f64, velocity: f64, acceleration: f64) -> Result<(), DeviceError> {
+        let _ = (velocity, acceleration);
+        Err(DeviceError::Rejected {
+            device: "serial axis".into(),
+            command: self.describe_move(target),
+            reason: "this controller's driver has no constant-velocity moves".into(),
+        })
+    }
+    /// The command text for [`Driver::move_abs_at`], for error messages.
+    fn describe_move_at(&self, target: f64, velocity: f64, acceleration: f64) -> String {
+        let _ = (velocity, acceleration);
+        self.describe_move(target)
+    }
+    /// Undo what [`Driver::move_abs_at`] changed in the controller's settings (called once
+    /// the flight's motion has ended or was stopped). Per-move settings need nothing.
+    fn end_flight(&self) -> Result<(), DeviceError> {
+        Ok(())
+    }
 }
 
 /// Policy parameters; see the module documentation.
@@ -129,6 +150,9 @@ struct Pending {
     /// The leg in motion: (from, to, command text, when it was commanded).
     current: Option<(f64, f64, String, Instant)>,
     corrections: u32,
+    /// The current leg is a flight at this velocity (axis units/s): its timeout follows
+    /// that velocity, and the driver's [`Driver::end_flight`] runs once it has ended.
+    flight: Option<f64>,
 }
 
 struct State {
@@ -229,6 +253,12 @@ impl<D: Driver> PolicyAxis<D> {
         let cmd = self.driver.describe_move(to);
         self.call(&cmd, move |d| d.move_abs(to)).await?;
         Ok(cmd)
+    }
+
+    async fn end_flight_quietly(&self) {
+        if let Err(e) = self.call("end flight", |d| d.end_flight()).await {
+            tracing::warn!(axis = %self.name, "restoring the controller after a flight failed: {e}");
+        }
     }
 
     async fn stop_quietly(&self) {
@@ -372,6 +402,7 @@ impl<D: Driver> Axis for PolicyAxis<D> {
                 legs: VecDeque::new(),
                 current: None,
                 corrections: 0,
+                flight: None,
             });
             return Ok(());
         }
@@ -383,6 +414,7 @@ impl<D: Driver> Axis for PolicyAxis<D> {
             legs,
             current: Some((from, first, cmd, Instant::now())),
             corrections: 0,
+            flight: None,
         });
         Ok(())
     }
@@ -394,7 +426,22 @@ impl<D: Driver> Axis for PolicyAxis<D> {
         loop {
             let moved = p.current.is_some();
             if let Some((from, to, cmd, since)) = p.current.take() {
-                self.wait_motion(&cmd, since, self.move_timeout(to - from)).await?;
+                let flight = p.flight.take();
+                let timeout = match flight {
+                    Some(v) => {
+                        let m = MotionModel {
+                            max_velocity: v,
+                            ..self.motion
+                        };
+                        self.policy.timeout_factor * m.profile_time(to - from) + self.policy.timeout_floor_s
+                    }
+                    None => self.move_timeout(to - from),
+                };
+                let waited = self.wait_motion(&cmd, since, timeout).await;
+                if flight.is_some() {
+                    self.end_flight_quietly().await;
+                }
+                waited?;
                 if let Some(next) = p.legs.pop_front() {
                     let cmd = self.command_move(next).await?;
                     p.current = Some((to, next, cmd, Instant::now()));
@@ -435,8 +482,51 @@ impl<D: Driver> Axis for PolicyAxis<D> {
     }
 
     async fn stop(&self) -> Result<(), DeviceError> {
-        self.lock().pending = None;
-        self.call("stop", |d| d.stop()).await
+        let flying = self.lock().pending.take().is_some_and(|p| p.flight.is_some());
+        let r = self.call("stop", |d| d.stop()).await;
+        if flying {
+            self.end_flight_quietly().await;
+        }
+        r
+    }
+
+    async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        check_limits(&self.name, self.effective_limits(), target, "start_move_at")?;
+        if !(velocity.is_finite() && velocity > 0.0) {
+            return Err(DeviceError::Rejected {
+                device: self.name.clone(),
+                command: "start_move_at".into(),
+                reason: format!("velocity {velocity}: must be finite and > 0"),
+            });
+        }
+        let (homed, last) = {
+            let s = self.lock();
+            (s.homed, s.last)
+        };
+        if !homed {
+            return Err(DeviceError::NotHomed {
+                device: self.name.clone(),
+                command: "start_move_at".into(),
+            });
+        }
+        let from = match last {
+            Some(x) => x,
+            None => self.poll("start_move_at").await?.position,
+        };
+        // A flight is one leg at the asked velocity: no backlash overshoot (the flown
+        // poses are read back, not assumed), and the rig file's acceleration, which the
+        // planner rounded the way the controller will (`serial::flight_profile`).
+        let accel = self.motion.acceleration;
+        let cmd = self.driver.describe_move_at(target, velocity, accel);
+        self.call(&cmd, move |d| d.move_abs_at(target, velocity, accel)).await?;
+        self.lock().pending = Some(Pending {
+            target,
+            legs: VecDeque::new(),
+            current: Some((from, target, cmd, Instant::now())),
+            corrections: 0,
+            flight: Some(velocity),
+        });
+        Ok(())
     }
 
     async fn position(&self) -> Result<f64, DeviceError> {

@@ -24,6 +24,13 @@ use crate::{DeviceError, SoftLimits};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
+/// Zaber's velocity data unit: `maxspeed` and a move's SPEED are native units/s × 1.6384
+/// (the firmware counts in 1/16384 s ticks, ten of which make its velocity unit).
+pub const SPEED_SCALE: f64 = 1.6384;
+/// Zaber's acceleration data unit: `accel` and a move's ACCEL are native units/s² ×
+/// 1.6384 / 10 000.
+pub const ACCEL_SCALE: f64 = 1.6384 / 10_000.0;
+
 /// The checksum of a message body (the bytes between the type character and the `:`).
 pub fn checksum(body: &[u8]) -> u8 {
     let sum = body.iter().fold(0u8, |s, &b| s.wrapping_add(b));
@@ -175,6 +182,17 @@ pub fn explain_rejection(reason: &str) -> &'static str {
         "DRIVERDISABLED" => "driver disabled",
         _ => "see the Zaber ASCII protocol manual",
     }
+}
+
+/// A velocity (axis units/s) as Zaber SPEED data for a stage with `units_per_axis_unit`
+/// native units per axis unit: rounded to the nearest integer, as the firmware takes it.
+pub fn speed_data(velocity: f64, units_per_axis_unit: f64) -> i64 {
+    (velocity.abs() * units_per_axis_unit * SPEED_SCALE).round() as i64
+}
+
+/// An acceleration (axis units/s²) as Zaber ACCEL data, rounded to the nearest integer.
+pub fn accel_data(acceleration: f64, units_per_axis_unit: f64) -> i64 {
+    (acceleration.abs() * units_per_axis_unit * ACCEL_SCALE).round() as i64
 }
 
 /// Link settings of one Zaber port.
@@ -379,6 +397,15 @@ impl ZaberAxis {
         (x * self.units_per_rad).round() as i64
     }
 
+    /// A velocity and an acceleration (axis units/s, /s²) in Zaber's data units, rounded
+    /// as [`speed_data`] and [`accel_data`] do (the planner's `flight_profile` uses them too).
+    fn speed_accel(&self, velocity: f64, acceleration: f64) -> (i64, i64) {
+        (
+            speed_data(velocity, self.units_per_rad),
+            accel_data(acceleration, self.units_per_rad),
+        )
+    }
+
     /// Send a command; an `RJ` reply becomes [`DeviceError::Rejected`] (or `NotHomed`
     /// when the device says it has no reference position).
     pub fn ok(&self, command: &str) -> Result<Reply, DeviceError> {
@@ -491,6 +518,28 @@ impl Driver for ZaberAxis {
 
     fn describe_move(&self, target: f64) -> String {
         format!("move abs {}", self.native(target))
+    }
+
+    fn move_abs_at(&self, target: f64, velocity: f64, acceleration: f64) -> Result<(), DeviceError> {
+        let cmd = self.describe_move_at(target, velocity, acceleration);
+        let (speed, accel) = self.speed_accel(velocity, acceleration);
+        if speed < 1 || accel < 1 {
+            return Err(DeviceError::Rejected {
+                device: self.name.clone(),
+                command: cmd,
+                reason: "velocity or acceleration below one controller unit".into(),
+            });
+        }
+        let r = self.ok(&cmd)?;
+        match self.fault(&r.warning, &cmd, f64::NAN) {
+            Some(DeviceError::Stall { .. }) | None => Ok(()),
+            Some(e) => Err(e),
+        }
+    }
+
+    fn describe_move_at(&self, target: f64, velocity: f64, acceleration: f64) -> String {
+        let (speed, accel) = self.speed_accel(velocity, acceleration);
+        format!("move abs {} {speed} {accel}", self.native(target))
     }
 
     fn reference(&self) -> Result<Option<f64>, DeviceError> {
@@ -707,6 +756,53 @@ mod tests {
         }
         // controller limits (±100°) now bound the axis
         assert!((a.limits().max.to_degrees() - 100.0).abs() < 1e-9);
+    }
+
+    #[tokio::test]
+    async fn flight_is_one_move_abs_with_speed_and_accel_in_zaber_units() {
+        // 1000 µsteps/°: 30 °/s = 30 000 µsteps/s × 1.6384 = 49 152; 60 °/s² = 60 000 µsteps/s²
+        // × 1.6384e-4 = 9.8304 → 10 (the controller then accelerates at 61.04 °/s²)
+        assert_eq!(speed_data(30f64.to_radians(), 1000f64.to_degrees()), 49_152);
+        assert_eq!(accel_data(60f64.to_radians(), 1000f64.to_degrees()), 10);
+        let (port, log) = port_with(device(|_, _, _| None));
+        let mut m = motion();
+        m.acceleration = 60f64.to_radians();
+        let a = PolicyAxis::new(
+            "turntable",
+            SoftLimits { min: -3.0, max: 3.0 },
+            m,
+            policy(),
+            ZaberAxis::new("turntable", port, 1, 1, 1000f64.to_degrees()),
+        );
+        assert!(matches!(
+            a.start_move_at(0.2, 0.5).await,
+            Err(DeviceError::NotHomed { .. })
+        ));
+        a.home().await.unwrap();
+        let bad = a.start_move_at(0.2, f64::NAN).await.unwrap_err();
+        assert!(matches!(bad, DeviceError::Rejected { .. }), "{bad}");
+        a.start_move_at(20f64.to_radians(), 30f64.to_radians()).await.unwrap();
+        let rb = a.wait_idle().await.unwrap();
+        assert!((rb.to_degrees() - 20.0).abs() < 1e-9, "{rb}");
+        let log = log.lock().unwrap().clone();
+        let moves: Vec<&String> = log.iter().filter(|l| l.contains("move")).collect();
+        assert_eq!(moves.len(), 1, "{log:?}");
+        assert!(
+            moves[0].starts_with("/1 1 ") && moves[0].contains(" move abs 20000 49152 10:"),
+            "{moves:?}"
+        );
+        // below one velocity unit: refused before anything is sent
+        let raw = ZaberAxis::new(
+            "turntable",
+            port_with(device(|_, _, _| None)).0,
+            1,
+            1,
+            1000f64.to_degrees(),
+        );
+        assert!(matches!(
+            raw.move_abs_at(0.1, 1e-9, 1.0),
+            Err(DeviceError::Rejected { .. })
+        ));
     }
 
     #[tokio::test]

@@ -3,7 +3,8 @@
 //! A line holds one or more commands separated by `;`. A command is `[axis]XX[?|params]`:
 //! `1MO` (motor on), `1MF` (off), `1MO?`, `1OR[type]` (home search: here, move to 0),
 //! `1PA x` / `1PR x` (absolute/relative move), `1TP` (position), `1MD?` (1 = motion done),
-//! `1ST` / `ST` (stop one / all), `AB` (abort), `1WS[ms]` (wait for stop), `1DH[x]` (define
+//! `1ST` / `ST` (stop one / all, decelerating at `AC`: motion is not done until the axis
+//! is at rest), `AB` (abort: at once), `1WS[ms]` (wait for stop), `1DH[x]` (define
 //! position), `1SL x` / `1SR x` (software limits), `1VA x` / `1AC x` and their queries,
 //! `1SN?` (units: 7 = degree), `1ID?` (stage model), `1DP?` (desired position), `TE?` (pop
 //! one error code), `TB?` (pop one error as `code, timestamp, MESSAGE`), `VE?` (firmware).
@@ -195,7 +196,16 @@ impl Esp300 {
                 out.push(EMULATED_VERSION.to_string());
                 return Ok(());
             }
-            ("ST" | "AB", None) => {
+            ("ST", None) => {
+                // A stop decelerates at each axis' AC (the axis is moving until at rest);
+                // an abort stops at once.
+                for a in &mut self.axes {
+                    let accel = a.acceleration_units();
+                    a.decelerate(now, accel);
+                }
+                return Ok(());
+            }
+            ("AB", None) => {
                 for a in &mut self.axes {
                     a.stop(now);
                 }
@@ -257,7 +267,11 @@ impl Esp300 {
             } else {
                 0.0
             })),
-            ("ST" | "AB", false) => {
+            ("ST", false) => {
+                let accel = self.axes[i].acceleration_units();
+                self.axes[i].decelerate(now, accel);
+            }
+            ("AB", false) => {
                 self.axes[i].stop(now);
             }
             ("SN", true) => out.push("7".into()),

@@ -237,12 +237,26 @@ enum MoveEnd {
     StallStop,
 }
 
+/// What an axis is doing: the three profiles a controller runs.
+#[derive(Clone, Copy, Debug)]
+enum Kind {
+    /// A trapezoidal move to `target` (controller units) under `model` (degrees: the axis'
+    /// own, or the move's own speed and acceleration).
+    To { target: f64, model: MotionModel },
+    /// A velocity move (Zaber `move vel`): accelerate at `accel` to `velocity` (controller
+    /// units/s², signed units/s) and keep going until a travel limit.
+    Vel { velocity: f64, accel: f64 },
+    /// A decelerating stop from `velocity` (signed units/s) at `accel` (units/s²): the axis
+    /// is busy until it has come to rest, as a real stage is.
+    Decel { velocity: f64, accel: f64 },
+}
+
 #[derive(Clone, Copy, Debug)]
 struct Motion {
     start_pos: f64,
-    target: f64,
     start: Instant,
     end: MoveEnd,
+    kind: Kind,
 }
 
 /// Something that happened to an axis since the controller last looked.
@@ -312,8 +326,31 @@ impl EmuAxis {
         }
     }
 
+    /// Seconds the profile of `m` lasts, if nothing goes wrong.
     fn profile_secs(&self, m: &Motion) -> f64 {
-        self.model.profile_time((m.target - m.start_pos) / self.upd)
+        match m.kind {
+            Kind::To { target, model } => model.profile_time((target - m.start_pos) / self.upd),
+            Kind::Vel { velocity, accel } => {
+                // until the travel limit in the direction of motion
+                let room = if velocity >= 0.0 {
+                    self.max - m.start_pos
+                } else {
+                    m.start_pos - self.min
+                }
+                .max(0.0);
+                let v = velocity.abs();
+                if v <= 0.0 {
+                    return 0.0;
+                }
+                let ramp = v * v / (2.0 * accel);
+                if room < ramp {
+                    (2.0 * room / accel).sqrt()
+                } else {
+                    v / accel + (room - ramp) / v
+                }
+            }
+            Kind::Decel { velocity, accel } => velocity.abs() / accel,
+        }
     }
 
     /// Seconds after its start at which a move stops (∞ for a stall: it never ends).
@@ -326,15 +363,70 @@ impl EmuAxis {
         }
     }
 
+    /// Seconds into `m` at which the axis stops making progress (a fault freezes it half way).
+    fn moving_secs(&self, m: &Motion, t: f64) -> f64 {
+        match m.end {
+            MoveEnd::Normal => t,
+            MoveEnd::Limit | MoveEnd::Stall | MoveEnd::StallStop => t.min(self.profile_secs(m) / 2.0),
+        }
+    }
+
     fn position_of(&self, m: &Motion, now: Instant) -> f64 {
         let t = now.saturating_duration_since(m.start).as_secs_f64();
-        let total = self.profile_secs(m);
-        let t = match m.end {
-            MoveEnd::Normal => t,
-            MoveEnd::Limit | MoveEnd::Stall | MoveEnd::StallStop => t.min(total / 2.0),
-        };
-        let dist_deg = (m.target - m.start_pos) / self.upd;
-        m.start_pos + self.model.position_at(dist_deg, t) * self.upd
+        let t = self.moving_secs(m, t);
+        match m.kind {
+            Kind::To { target, model } => {
+                let dist_deg = (target - m.start_pos) / self.upd;
+                m.start_pos + model.position_at(dist_deg, t) * self.upd
+            }
+            Kind::Vel { velocity, accel } => {
+                let t = t.min(self.profile_secs(m));
+                let v = velocity.abs();
+                let t_acc = v / accel;
+                let d = if t < t_acc {
+                    0.5 * accel * t * t
+                } else {
+                    0.5 * accel * t_acc * t_acc + v * (t - t_acc)
+                };
+                (m.start_pos + velocity.signum() * d).clamp(self.min, self.max)
+            }
+            Kind::Decel { velocity, accel } => {
+                let t = t.min(self.profile_secs(m));
+                m.start_pos + velocity * t - velocity.signum() * 0.5 * accel * t * t
+            }
+        }
+    }
+
+    /// Signed velocity (units/s) of `m` at `now`: what a stop decelerates from.
+    fn velocity_of(&self, m: &Motion, now: Instant) -> f64 {
+        let t_all = now.saturating_duration_since(m.start).as_secs_f64();
+        let t = self.moving_secs(m, t_all);
+        if t < t_all || t >= self.profile_secs(m) {
+            return 0.0; // frozen by a fault, or at rest
+        }
+        match m.kind {
+            Kind::To { target, model } => {
+                let d = ((target - m.start_pos) / self.upd).abs();
+                let s = (target - m.start_pos).signum();
+                let (a, v) = (model.acceleration, model.max_velocity);
+                let total = model.profile_time(d);
+                let (t_acc, v_peak) = if d < v * v / a {
+                    ((d / a).sqrt(), (d * a).sqrt())
+                } else {
+                    (v / a, v)
+                };
+                let deg_s = if t < t_acc {
+                    a * t
+                } else if t < total - t_acc {
+                    v_peak
+                } else {
+                    a * (total - t).max(0.0)
+                };
+                s * deg_s * self.upd
+            }
+            Kind::Vel { velocity, accel } => velocity.signum() * (accel * t).min(velocity.abs()),
+            Kind::Decel { velocity, accel } => velocity.signum() * (velocity.abs() - accel * t).max(0.0),
+        }
     }
 
     /// Fold a finished move into the resting position and raise its events.
@@ -343,10 +435,12 @@ impl EmuAxis {
             let t = now.saturating_duration_since(m.start).as_secs_f64();
             if t >= self.stop_secs(&m) {
                 self.pos = self.position_of(&m, now);
+                let positive = match m.kind {
+                    Kind::To { target, .. } => target > m.start_pos,
+                    Kind::Vel { velocity, .. } | Kind::Decel { velocity, .. } => velocity > 0.0,
+                };
                 match m.end {
-                    MoveEnd::Limit => self.events.push(AxisEvent::LimitHit {
-                        positive: m.target > m.start_pos,
-                    }),
+                    MoveEnd::Limit => self.events.push(AxisEvent::LimitHit { positive }),
                     MoveEnd::StallStop => self.events.push(AxisEvent::Stalled),
                     MoveEnd::Normal | MoveEnd::Stall => {}
                 }
@@ -375,8 +469,13 @@ impl EmuAxis {
 
     /// Where the axis will rest if nothing goes wrong (its target while moving).
     pub(crate) fn destination(&self, now: Instant) -> f64 {
-        match &self.motion {
-            Some(m) if m.end == MoveEnd::Normal => m.target,
+        match self.motion {
+            Some(m) if m.end == MoveEnd::Normal => match m.kind {
+                Kind::To { target, .. } => target,
+                // where a decelerating stop comes to rest
+                Kind::Decel { velocity, accel } => m.start_pos + velocity * velocity.abs() / (2.0 * accel),
+                Kind::Vel { .. } => self.position(now),
+            },
             _ => self.position(now),
         }
     }
@@ -393,9 +492,50 @@ impl EmuAxis {
         was
     }
 
+    /// Come to rest at the deceleration `accel` (controller units/s²) from wherever the
+    /// axis is and however fast it moves (Zaber `stop`, ESP `ST`): busy until at rest.
+    /// Returns true if the axis was moving.
+    pub(crate) fn decelerate(&mut self, now: Instant, accel: f64) -> bool {
+        self.update(now);
+        let Some(m) = self.motion else { return false };
+        let velocity = self.velocity_of(&m, now);
+        if velocity == 0.0 || !(accel.is_finite() && accel > 0.0) {
+            return self.stop(now);
+        }
+        self.pos = self.position(now);
+        if let Some(mech) = &mut self.mech {
+            mech.fold(self.pos / self.upd);
+        }
+        self.motion = Some(Motion {
+            start_pos: self.pos,
+            start: now,
+            end: MoveEnd::Normal,
+            kind: Kind::Decel { velocity, accel },
+        });
+        true
+    }
+
+    /// The axis' own acceleration in controller units/s².
+    pub(crate) fn acceleration_units(&self) -> f64 {
+        self.model.acceleration * self.upd
+    }
+
     /// Start a move to `target` (controller units) from wherever the axis is now.
     /// Returns true if a move in progress was interrupted.
     pub(crate) fn start(&mut self, target: f64, now: Instant, fault: Option<MoveFault>) -> bool {
+        self.start_with(target, now, fault, None)
+    }
+
+    /// [`Self::start`] with the move's own velocity and acceleration (degrees/s, /s²)
+    /// instead of the axis' settings (Zaber `move abs X SPEED ACCEL`); the move still
+    /// starts from rest (a move in progress is interrupted, not blended).
+    pub(crate) fn start_with(
+        &mut self,
+        target: f64,
+        now: Instant,
+        fault: Option<MoveFault>,
+        profile: Option<(f64, f64)>,
+    ) -> bool {
         let interrupted = self.stop(now);
         let end = match fault {
             Some(MoveFault::Stall) => MoveEnd::Stall,
@@ -403,14 +543,35 @@ impl EmuAxis {
             Some(MoveFault::StallStop) => MoveEnd::StallStop,
             _ => MoveEnd::Normal,
         };
+        let mut model = self.model;
+        if let Some((v, a)) = profile {
+            model.max_velocity = v;
+            model.acceleration = a;
+        }
         if (target - self.pos).abs() > 0.0 || end != MoveEnd::Normal {
             self.motion = Some(Motion {
                 start_pos: self.pos,
-                target,
                 start: now,
                 end,
+                kind: Kind::To { target, model },
             });
         }
+        interrupted
+    }
+
+    /// Start a velocity move (signed controller units/s, acceleration in units/s²) from
+    /// rest; a zero velocity decelerates to a stop. Returns true if a move was interrupted.
+    pub(crate) fn start_velocity(&mut self, velocity: f64, accel: f64, now: Instant) -> bool {
+        if velocity == 0.0 {
+            return self.decelerate(now, accel);
+        }
+        let interrupted = self.stop(now);
+        self.motion = Some(Motion {
+            start_pos: self.pos,
+            start: now,
+            end: MoveEnd::Normal,
+            kind: Kind::Vel { velocity, accel },
+        });
         interrupted
     }
 

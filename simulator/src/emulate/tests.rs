@@ -109,13 +109,70 @@ fn zaber_checksummed_replies_and_warnings() {
     assert_eq!(one(z.as_mut(), "/1 1 warnings", t), "@01 1 OK IDLE WR 01 WR");
     one(z.as_mut(), "/1 1 home", t);
     one(z.as_mut(), "/1 1 move abs 50000", t);
-    // interrupted by stop
-    assert_eq!(one(z.as_mut(), "/1 1 stop", secs(t, 0.1)), "@01 1 OK IDLE NI 0");
+    // interrupted by stop, which decelerates: at 0.1 s the axis runs at 72 °/s and needs
+    // another 0.1 s at 720 °/s² to come to rest, BUSY until then
+    assert_eq!(one(z.as_mut(), "/1 1 stop", secs(t, 0.1)), "@01 1 OK BUSY NI 0");
     assert_eq!(
-        one(z.as_mut(), "/1 1 warnings clear", secs(t, 0.2)),
+        one(z.as_mut(), "/1 1 warnings clear", secs(t, 0.3)),
         "@01 1 OK IDLE -- 01 NI"
     );
-    assert_eq!(one(z.as_mut(), "/1 1", secs(t, 0.2)), "@01 1 OK IDLE -- 0");
+    assert_eq!(one(z.as_mut(), "/1 1", secs(t, 0.3)), "@01 1 OK IDLE -- 0");
+}
+
+fn pos_of(reply: &str) -> i64 {
+    reply.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
+#[test]
+fn zaber_per_move_speed_velocity_moves_and_decelerating_stop() {
+    let mut z = zaber(1, &[]);
+    let t = Instant::now();
+    one(z.as_mut(), "/1 1 home", t);
+    for bad in [
+        "/1 1 move abs 100 0 5",
+        "/1 1 move abs 100 5",
+        "/1 1 move vel x",
+        "/1 1 move vel 5 0",
+    ] {
+        assert_eq!(one(z.as_mut(), bad, t), "@01 1 RJ IDLE -- BADDATA", "{bad}");
+    }
+    // SPEED 16384 = 10 000 µsteps/s = 10 °/s, ACCEL 16 = 97 656.25 µsteps/s² = 97.66 °/s²:
+    // at 1 s the axis is at ½·a·t_acc² + v·(1 − t_acc) = 9.488°, done after 2.1024 s
+    assert_eq!(one(z.as_mut(), "/1 1 move abs 20000 16384 16", t), "@01 1 OK BUSY -- 0");
+    let r = one(z.as_mut(), "/1 1 get pos", secs(t, 1.0));
+    assert!(r.starts_with("@01 1 OK BUSY"), "{r}");
+    assert!((pos_of(&r) - 9488).abs() <= 1, "{r}");
+    assert!(one(z.as_mut(), "/1 1", secs(t, 2.09)).contains("BUSY"));
+    assert_eq!(one(z.as_mut(), "/1 1 get pos", secs(t, 2.11)), "@01 1 OK IDLE -- 20000");
+    // `maxspeed`/`accel` are untouched by a per-move profile
+    assert_eq!(
+        one(z.as_mut(), "/1 1 get maxspeed", secs(t, 2.11)),
+        "@01 1 OK IDLE -- 147456"
+    );
+    // move vel at 10 °/s (axis accel 720 °/s²: up to speed in 1/72 s), stop after 1 s:
+    // 10 °/s decelerates in 1/72 s over 1/144°; BUSY meanwhile
+    let t = secs(t, 3.0);
+    assert_eq!(one(z.as_mut(), "/1 1 move vel 16384", t), "@01 1 OK BUSY -- 0");
+    let at_stop = 20_000.0 + 1000.0 * (10.0 / 144.0 + 10.0 * (1.0 - 1.0 / 72.0));
+    assert_eq!(one(z.as_mut(), "/1 1 stop", secs(t, 1.0)), "@01 1 OK BUSY NI 0");
+    assert!(one(z.as_mut(), "/1 1", secs(t, 1.01)).contains("BUSY"));
+    let r = one(z.as_mut(), "/1 1 get pos", secs(t, 1.02));
+    assert!(r.starts_with("@01 1 OK IDLE NI"), "{r}");
+    let rest = at_stop + 1000.0 * 10.0 / 144.0;
+    assert!((pos_of(&r) as f64 - rest).abs() <= 1.0, "{r} vs {rest}");
+    // a velocity move ends at the travel limit (180°), negative velocities run backwards
+    one(z.as_mut(), "/1 1 warnings clear", secs(t, 2.0));
+    assert_eq!(
+        one(z.as_mut(), "/1 1 move vel -163840 1638", secs(t, 2.0)),
+        "@01 1 OK BUSY -- 0"
+    );
+    assert_eq!(
+        one(z.as_mut(), "/1 1 get pos", secs(t, 60.0)),
+        "@01 1 OK IDLE -- -180000"
+    );
+    // estop is immediate
+    one(z.as_mut(), "/1 1 move abs 0", secs(t, 61.0));
+    assert_eq!(one(z.as_mut(), "/1 1 estop", secs(t, 61.1)), "@01 1 OK IDLE NI 0");
 }
 
 #[test]
@@ -265,6 +322,35 @@ fn esp_limit_switch_and_stall_faults() {
     assert_eq!(one(e.as_mut(), "1TP", secs(t, 60.0)), "10.00000");
     e.handle("1ST", secs(t, 61.0));
     assert_eq!(one(e.as_mut(), "1MD?", secs(t, 61.0)), "1");
+}
+
+#[test]
+fn esp_velocity_and_acceleration_apply_to_the_next_move_and_st_decelerates() {
+    let mut e = esp(1, &[]);
+    let t = Instant::now();
+    e.handle("1MO", t);
+    e.handle("1OR", t);
+    // 10 °/s at 100 °/s²: 20° take 2 + 0.1 s; at 1 s the axis is at 0.5 + 9 = 9.5°
+    e.handle("1VA10;1AC100", t);
+    assert_eq!(one(e.as_mut(), "1VA?", t), "10.00000");
+    e.handle("1PA20", t);
+    // a new VA while moving is for the next move; the flight keeps its velocity
+    e.handle("1VA90", secs(t, 0.5));
+    let p: f64 = one(e.as_mut(), "1TP", secs(t, 1.0)).parse().unwrap();
+    assert!((p - 9.5).abs() < 1e-3, "{p}");
+    assert_eq!(one(e.as_mut(), "1MD?", secs(t, 2.09)), "0");
+    assert_eq!(one(e.as_mut(), "1MD?", secs(t, 2.11)), "1");
+    // ST decelerates at AC (100 °/s²): from 90 °/s that is 0.9 s, not done meanwhile
+    let t = secs(t, 3.0);
+    e.handle("1PA-170", t);
+    e.handle("1ST", secs(t, 1.5));
+    assert_eq!(one(e.as_mut(), "1MD?", secs(t, 1.6)), "0");
+    assert_eq!(one(e.as_mut(), "1MD?", secs(t, 2.5)), "1");
+    // AB stops at once
+    e.handle("1PA0", secs(t, 3.0));
+    e.handle("1AB", secs(t, 3.5));
+    assert_eq!(one(e.as_mut(), "1MD?", secs(t, 3.5)), "1");
+    assert_eq!(one(e.as_mut(), "TE?", secs(t, 3.5)), "0");
 }
 
 // ---- through a real pty ----

@@ -14,6 +14,11 @@
 //! (`BADCOMMAND`, `BADDATA`, `BADAXIS`, `DEVICEONLY`).
 //!
 //! Positions are integer native units (`EmulatorConfig::units_per_deg` per degree).
+//!
+//! Motion: `move abs|rel X` under the axis' `maxspeed`/`accel`, `move abs|rel X SPEED
+//! ACCEL` under the move's own (data units: native units/s × 1.6384, native units/s² ×
+//! 1.6384 / 10 000), `move vel SPEED [ACCEL]` until a travel limit, `stop` decelerating at
+//! `accel` (BUSY until the axis is at rest, as on a real stage), `estop` at once.
 
 use super::{AxisEvent, AxisState, EmuAxis, EmulatorConfig, EmulatorState, Handled};
 use crate::emulate::faults::{FaultPlan, MoveFault};
@@ -279,14 +284,52 @@ impl Zaber {
                 }
                 Reply::Ok("0".into())
             }
+            ["move", "vel", rest @ ..] => {
+                // `move vel SPEED [ACCEL]`: signed velocity data; the axis' accel if none.
+                let speed = match rest {
+                    [v] | [v, _] => parse_number(v).map(f64::round),
+                    _ => None,
+                };
+                let accel = match rest {
+                    [_, a] => parse_number(a).map(f64::round).filter(|a| *a >= 1.0).map(Some),
+                    _ => Some(None),
+                };
+                let (Some(speed), Some(accel)) = (speed, accel) else {
+                    return Ok(Reply::Rj("BADDATA"));
+                };
+                self.moves += 1;
+                if self.faults.move_fault(self.moves) == Some(MoveFault::Disconnect) {
+                    return Err(MoveFault::Disconnect);
+                }
+                let d = &mut self.devices[dev];
+                for i in targets {
+                    let a = &mut d.axes[i];
+                    let accel = accel.map_or(a.axis.acceleration_units(), |x| x / ACCEL_SCALE);
+                    a.limit_hit = false;
+                    a.stalled = false;
+                    a.interrupted |= a.axis.start_velocity(speed / SPEED_SCALE, accel, now);
+                }
+                Reply::Ok("0".into())
+            }
             ["move", kind, rest @ ..] => {
+                // `move abs|rel X [SPEED ACCEL]`: the move's own speed and acceleration
+                // (data units, both ≥ 1) instead of `maxspeed` and `accel`.
+                let profile = match (*kind, rest) {
+                    ("abs" | "rel", [_, sp, ac]) => {
+                        match (parse_number(sp).map(f64::round), parse_number(ac).map(f64::round)) {
+                            (Some(sp), Some(ac)) if sp >= 1.0 && ac >= 1.0 => Some((sp, ac)),
+                            _ => return Ok(Reply::Rj("BADDATA")),
+                        }
+                    }
+                    _ => None,
+                };
                 // Validate every target first: a rejected command moves nothing.
                 let mut plan = Vec::new();
                 for i in targets.clone() {
                     let a = &d.axes[i].axis;
                     let target = match (*kind, rest) {
-                        ("abs", [v]) => parse_number(v).map(f64::round),
-                        ("rel", [v]) => parse_number(v).map(|v| a.destination(now).round() + v.round()),
+                        ("abs", [v] | [v, _, _]) => parse_number(v).map(f64::round),
+                        ("rel", [v] | [v, _, _]) => parse_number(v).map(|v| a.destination(now).round() + v.round()),
                         ("min", []) => Some(a.min),
                         ("max", []) => Some(a.max),
                         ("abs" | "rel", _) => None,
@@ -305,13 +348,24 @@ impl Zaber {
                 let d = &mut self.devices[dev];
                 for (i, t) in plan {
                     let a = &mut d.axes[i];
+                    let u = a.axis.units_per_deg();
+                    let degrees = profile.map(|(sp, ac)| (sp / SPEED_SCALE / u, ac / ACCEL_SCALE / u));
                     a.limit_hit = false;
                     a.stalled = false;
-                    a.interrupted |= a.axis.start(t, now, fault);
+                    a.interrupted |= a.axis.start_with(t, now, fault, degrees);
                 }
                 Reply::Ok("0".into())
             }
-            ["stop"] | ["estop"] => {
+            ["stop"] => {
+                // A stop decelerates at the axis' `accel`: BUSY until at rest.
+                for i in targets {
+                    let a = &mut d.axes[i];
+                    let accel = a.axis.acceleration_units();
+                    a.interrupted |= a.axis.decelerate(now, accel);
+                }
+                Reply::Ok("0".into())
+            }
+            ["estop"] => {
                 for i in targets {
                     let a = &mut d.axes[i];
                     a.interrupted |= a.axis.stop(now);
