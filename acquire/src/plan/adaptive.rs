@@ -276,14 +276,7 @@ impl Plan {
             return stop(ad, "every feasible pair is measured".into());
         }
         if n_max == 0 || choice.picks.is_empty() {
-            return stop(
-                ad,
-                format!(
-                    "the rig budget is spent ({:.0} s planned of {:.0} s)",
-                    ad.spent_s(),
-                    ad.stop.rig_budget_s.unwrap_or(f64::NAN)
-                ),
-            );
+            return stop(ad, budget_spent(ad));
         }
         // With a target: as many picks as the prediction says it needs (at least a few).
         let mut n = choice.picks.len();
@@ -304,16 +297,7 @@ impl Plan {
             None => (n, plan_of(n, opts.kicks)?),
             Some(rb) => match fit_prefix(n, rb, opts.kicks, plan_of)? {
                 Some(x) => x,
-                None => {
-                    return stop(
-                        ad,
-                        format!(
-                            "the rig budget is spent ({:.0} s planned of {:.0} s)",
-                            ad.spent_s(),
-                            ad.stop.rig_budget_s.unwrap_or(f64::NAN)
-                        ),
-                    )
-                }
+                None => return stop(ad, budget_spent(ad)),
             },
         };
         let allowance = ad.round_allowance_s;
@@ -354,6 +338,15 @@ impl Plan {
         d.optimized_motion_s += r.optimized_motion_s;
         Ok(true)
     }
+}
+
+/// The stop reason when the next round does not fit the rig budget.
+fn budget_spent(ad: &AdaptiveInfo) -> String {
+    format!(
+        "the rig budget is spent ({:.0} s planned of {:.0} s)",
+        ad.spent_s(),
+        ad.stop.rig_budget_s.unwrap_or(f64::NAN)
+    )
 }
 
 fn round3(x: f64) -> f64 {
