@@ -760,19 +760,11 @@ fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -
     };
     let space = prior.space();
     let texels = meas.first().map_or(0, |m| m.len() / 3);
-    let ad_texels = plan
-        .sparse
-        .as_ref()
-        .and_then(|s| s.adaptive.as_ref())
-        .map_or(0, |a| a.analysis_texels);
+    let ad_texels = plan.adaptive().map_or(0, |a| a.analysis_texels);
     let pick = analysis_texels(texels, ad_texels);
     let mut compute = 0.0;
     loop {
-        let ad = plan
-            .sparse
-            .as_ref()
-            .and_then(|s| s.adaptive.as_ref())
-            .expect("adaptive plan");
+        let ad = plan.adaptive().expect("adaptive plan");
         let mut measured = ad.chosen();
         measured.sort_unstable();
         let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
@@ -785,11 +777,7 @@ fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -
             break;
         }
     }
-    let ad = plan
-        .sparse
-        .as_ref()
-        .and_then(|s| s.adaptive.as_ref())
-        .expect("adaptive plan");
+    let ad = plan.adaptive().expect("adaptive plan");
     let mut measured = ad.chosen();
     measured.sort_unstable();
     let rounds: Vec<usize> = ad.rounds.iter().map(|r| r.pairs.len()).collect();

@@ -273,6 +273,11 @@ fn invalid(message: String) -> PlanError {
 }
 
 impl Plan {
+    /// The adaptive part of a sparse plan, if it is one (`plan.json` `sparse.adaptive`).
+    pub fn adaptive(&self) -> Option<&AdaptiveInfo> {
+        self.sparse.as_ref().and_then(|s| s.adaptive.as_ref())
+    }
+
     /// Choose pairs by greedy A-optimal design over the feasible pairs of `full` (the plan
     /// of the whole sweep) and plan them. A rig budget is met by the longest greedy prefix
     /// whose plan fits (bisection on quick plans, then the real plan). The prior must be

@@ -626,11 +626,7 @@ impl Session {
                 None => report,
                 Some(t) => add_reports(t, report),
             });
-            let open = plan
-                .sparse
-                .as_ref()
-                .and_then(|s| s.adaptive.as_ref())
-                .is_some_and(|a| a.finished.is_none());
+            let open = plan.adaptive().is_some_and(|a| a.finished.is_none());
             if !(open && go_on) {
                 break plan_shard;
             }
@@ -647,11 +643,7 @@ impl Session {
             })?;
             let sweep = sweep_from_header(&dataset.header().sweep)
                 .map_err(|e| json_err(&name, "reading the sweep snapshot", e))?;
-            let ad = plan
-                .sparse
-                .as_ref()
-                .and_then(|s| s.adaptive.as_ref())
-                .expect("open adaptive plan");
+            let ad = plan.adaptive().expect("open adaptive plan");
             let popts = PlanOptions {
                 policy: plan.policy,
                 kicks: ad.plan_kicks,
@@ -682,7 +674,7 @@ impl Session {
             &report,
             calibration.as_deref(),
         );
-        if let Some(ad) = plan.sparse.as_ref().and_then(|s| s.adaptive.as_ref()) {
+        if let Some(ad) = plan.adaptive() {
             summary.complete &= ad.finished.is_some();
             summary.adaptive = Some(summary::AdaptiveSummary::new(ad, analysis_wall_s));
         }
@@ -738,11 +730,7 @@ fn adaptive_values(
     prior: &gonio_sparse::Prior,
 ) -> Result<(Vec<usize>, nalgebra::DMatrix<f64>), String> {
     use rayon::prelude::*;
-    let ad: &AdaptiveInfo = plan
-        .sparse
-        .as_ref()
-        .and_then(|s| s.adaptive.as_ref())
-        .ok_or("not an adaptive plan")?;
+    let ad: &AdaptiveInfo = plan.adaptive().ok_or("not an adaptive plan")?;
     let mut image_of = std::collections::HashMap::new();
     for r in dataset.records() {
         if let Some(img) = &r.image {
