@@ -235,6 +235,7 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
                 target: l.target,
                 design: l.design,
                 adaptive: l.adaptive,
+                adaptive_tuning: l.adaptive_tuning,
             }),
             fly: args.fly.options()?,
         },
@@ -314,6 +315,12 @@ fn print_summary(s: &Summary) {
         "rectification  {} from markers, {} from pose",
         s.homography_from_markers, s.homography_from_pose
     );
+    if let Some(f) = &s.fly {
+        println!(
+            "fly-scan       {} frames exposed in flight, {} retaken stop and go",
+            f.flown, f.retaken_stop_and_go
+        );
+    }
     let t = &s.stage_seconds;
     println!(
         "stage seconds  motion {:.1}, capture {:.1}, rectify {:.1}, truth {:.1}, store {:.1}",

@@ -81,6 +81,12 @@ pub struct SparseBenchArgs {
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
+    /// Method `adaptive`: the rounds' residual weight (as `gonio acquire --residual-weight`).
+    #[arg(long)]
+    pub residual_weight: Option<f64>,
+    /// Method `adaptive`: seconds charged per analysis (as `gonio acquire --round-allowance`).
+    #[arg(long)]
+    pub round_allowance: Option<f64>,
     #[arg(long)]
     pub plot: Option<PathBuf>,
     #[arg(long)]
@@ -382,6 +388,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
     let rig = a.rig.load()?;
     let sweep = Sweep::resolve(&a.sweep)?;
     let (prior, prior_path) = load_prior(a.prior.as_deref())?;
+    let tuning = gonio_acquire::plan::adaptive::AdaptiveTuning::new(a.residual_weight, a.round_allowance)?;
     let (lights, views) = sweep.directions_deg();
     let (sample_name, truth) = match &a.truth {
         Some(dir) => {
@@ -583,7 +590,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 });
             }
             if want("adaptive") {
-                rows.push(match adaptive(&ctx, &prior, &meas, budget, nv)? {
+                rows.push(match adaptive(&ctx, &prior, &meas, budget, nv, tuning)? {
                     Some(run) => {
                         let (rec, _) = complete_map(&prior, &run.measured, &meas, nv)?;
                         Row {
@@ -742,7 +749,14 @@ struct AdaptiveRun {
 /// The adaptive rounds against the noisy truth, by the very plan steps `gonio acquire
 /// --adaptive` takes ([`Plan::build_adaptive`], [`Plan::adaptive_next`]): a measurement is
 /// the noisy truth image, read at the same analysis texels.
-fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -> Result<Option<AdaptiveRun>> {
+fn adaptive(
+    ctx: &Ctx,
+    prior: &Prior,
+    meas: &[Vec<f32>],
+    budget: f64,
+    nv: f64,
+    tuning: gonio_acquire::plan::adaptive::AdaptiveTuning,
+) -> Result<Option<AdaptiveRun>> {
     use gonio_acquire::plan::adaptive::{analysis_texels, AdaptiveRequest, AdaptiveStop};
     let stop = AdaptiveStop::new(None, Some(budget))?;
     let req = AdaptiveRequest {
@@ -750,6 +764,7 @@ fn adaptive(ctx: &Ctx, prior: &Prior, meas: &[Vec<f32>], budget: f64, nv: f64) -
         prior_name: "bench",
         stop,
         noise_var: nv,
+        tuning,
     };
     let mut plan = match Plan::build_adaptive(ctx.rig, ctx.sweep, &ctx.opts, ctx.full, req) {
         Ok(p) => p,

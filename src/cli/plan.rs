@@ -78,6 +78,7 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
                     prior_name: &sparse.name,
                     stop,
                     noise_var: sparse.prior.header.residual_var,
+                    tuning: sparse.adaptive_tuning,
                 };
                 Plan::build_adaptive(&rig, &sweep, &opts, &plan, req)?
             }

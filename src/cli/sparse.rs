@@ -5,7 +5,7 @@
 //! complete`'s job.
 
 use anyhow::{bail, Context, Result};
-use gonio_acquire::plan::adaptive::AdaptiveStop;
+use gonio_acquire::plan::adaptive::{AdaptiveStop, AdaptiveTuning};
 use gonio_acquire::plan::sparse::{SparseDesign, SparseInfo, SparseRequest, SparseTarget};
 use gonio_acquire::plan::Plan;
 use gonio_sparse::Prior;
@@ -44,6 +44,17 @@ pub struct SparseArgs {
     /// 8-bit sRGB). A real rig has no truth, so the target is the prediction.
     #[arg(long, requires = "adaptive")]
     pub target_psnr: Option<f64>,
+    /// Adaptive: weight of the residual the measured values show when choosing a round's
+    /// pairs, beside the A-optimal gain (default 0: the rounds continue the A-optimal
+    /// design and the residual decides when to stop; docs/guide/sparse.md has the
+    /// measurements). Recorded in plan.json.
+    #[arg(long, requires = "adaptive", allow_negative_numbers = true)]
+    pub residual_weight: Option<f64>,
+    /// Adaptive: rig time charged for each analysis between rounds, seconds (default 30). A
+    /// declared cost, so the rounds do not depend on the machine's speed; the summary
+    /// reports the real wall time beside it. Recorded in plan.json.
+    #[arg(long, requires = "adaptive", allow_negative_numbers = true)]
+    pub round_allowance: Option<f64>,
 }
 
 impl SparseArgs {
@@ -111,6 +122,7 @@ pub struct LoadedSparse {
     pub design: SparseDesign,
     /// `--adaptive`: the stop (then `target` is unused).
     pub adaptive: Option<AdaptiveStop>,
+    pub adaptive_tuning: AdaptiveTuning,
 }
 
 impl LoadedSparse {
@@ -132,6 +144,7 @@ impl LoadedSparse {
             target,
             design: a.design,
             adaptive,
+            adaptive_tuning: AdaptiveTuning::new(a.residual_weight, a.round_allowance).map_err(anyhow::Error::msg)?,
         }))
     }
 

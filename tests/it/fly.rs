@@ -190,6 +190,8 @@ async fn a_lagging_stage_gets_its_frames_retaken_stop_and_go() {
         })
         .collect();
     assert_eq!(retaken.len(), 12, "every flown frame trailed its pose by ≈ 0.7°");
+    let fly = sum.fly.as_ref().expect("a fly-scan's summary counts its frames");
+    assert_eq!((fly.flown, fly.retaken_stop_and_go), (0, 12), "{fly:?}");
     for r in retaken {
         let why = r.extra["flight"]["retaken_stop_and_go"].as_str().unwrap();
         assert!(why.contains("from the planned"), "{why}");

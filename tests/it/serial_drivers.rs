@@ -623,6 +623,8 @@ mod fly_scan {
             .collect();
         assert_eq!(measured.len(), 5);
         let (mut kept, mut offs) = (0, Vec::new());
+        let counted = sum.fly.clone().expect("a fly-scan's summary counts its frames");
+        assert_eq!(counted.flown + counted.retaken_stop_and_go, 5, "{counted:?}");
         for r in &measured {
             let f = r.extra.get("flight").expect("every pair was planned flown");
             if let Some(why) = f.get("retaken_stop_and_go") {
@@ -673,6 +675,7 @@ mod fly_scan {
         // late is 0.06° of light here, beyond the 0.05° tolerance): at least one flown
         // frame must survive, and none is stored off its pose (asserted above).
         assert!(kept >= 1, "no flown pair was kept");
+        assert_eq!(counted.flown, kept, "the summary counts the kept frames");
         let (lo, hi) = offs
             .iter()
             .fold((f64::INFINITY, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));

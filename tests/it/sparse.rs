@@ -420,7 +420,7 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
         assert!(r["predicted_psnr_after_db"].as_f64().unwrap().is_finite());
         if i > 0 {
             assert!(r["observed_residual"].as_f64().unwrap().is_finite(), "{r}");
-            assert_eq!(r["allowance_s"].as_f64(), Some(60.0));
+            assert_eq!(r["allowance_s"], ad["round_allowance_s"], "{r}");
         }
     }
     let spent: f64 = rounds
@@ -477,8 +477,21 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
 
     // A PSNR target alone: the run stops when the prediction reaches it, or says why not.
     let ad3 = d.join("adaptive3");
-    let o = acquire(&ad3, &["--target-psnr", "30"], &[]);
+    let o = acquire(
+        &ad3,
+        &["--target-psnr", "30"],
+        &["--residual-weight", "0.5", "--round-allowance", "5"],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The knobs asked for are the ones recorded (and kept by a resume).
+    let ad = &plan_of(&ad3)["sparse"]["adaptive"];
+    assert_eq!(
+        (ad["residual_weight"].as_f64(), ad["round_allowance_s"].as_f64()),
+        (Some(0.5), Some(5.0))
+    );
+    for r in ad["rounds"].as_array().unwrap().iter().skip(1) {
+        assert_eq!(r["allowance_s"].as_f64(), Some(5.0), "{r}");
+    }
     let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let fin = summary["adaptive"]["finished"].as_str().unwrap().to_string();
     let pred = summary["adaptive"]["predicted_psnr_db"].as_f64().unwrap();
@@ -546,5 +559,22 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
             s(&d.join("x4")),
         ],
         &["--target-psnr 200"],
+    );
+    refused(
+        &[
+            "acquire",
+            "--sweep",
+            SWEEP,
+            "--adaptive",
+            "--prior",
+            s(prior),
+            "--target-psnr",
+            "30",
+            "--round-allowance",
+            "-1",
+            "--out",
+            s(&d.join("x5")),
+        ],
+        &["--round-allowance -1", "≥ 0"],
     );
 }

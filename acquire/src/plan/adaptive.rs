@@ -35,7 +35,7 @@ pub const FIRST_SHARE: f64 = 0.5;
 /// Rig time charged for the analysis before each later round (s): a declared cost, so
 /// choices do not depend on the machine's load. The summary reports the real wall time
 /// beside it (`adaptive.analysis_wall_s`); docs/guide/sparse.md has what was measured.
-pub const ROUND_ALLOWANCE_S: f64 = 60.0;
+pub const ROUND_ALLOWANCE_S: f64 = 30.0;
 /// Weight of the residual term in the next pairs' score (see
 /// [`gonio_sparse::adaptive::next_round`]). Measured on brushed metal (32², noise on,
 /// 5 % and 10 % of the canonical rig time, docs/guide/sparse.md): weight 1 chose pairs in
@@ -59,6 +59,42 @@ pub struct AdaptiveRequest<'a> {
     pub prior_name: &'a str,
     pub stop: AdaptiveStop,
     pub noise_var: f64,
+    pub tuning: AdaptiveTuning,
+}
+
+/// The two declared knobs of the rounds (`--residual-weight`, `--round-allowance`),
+/// recorded in plan.json so that a resumed run keeps them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdaptiveTuning {
+    /// Weight of the residual term when choosing a round's pairs ([`RESIDUAL_WEIGHT`]).
+    pub residual_weight: f64,
+    /// Rig time charged for each analysis between rounds, seconds ([`ROUND_ALLOWANCE_S`]).
+    pub round_allowance_s: f64,
+}
+
+impl Default for AdaptiveTuning {
+    fn default() -> Self {
+        AdaptiveTuning {
+            residual_weight: RESIDUAL_WEIGHT,
+            round_allowance_s: ROUND_ALLOWANCE_S,
+        }
+    }
+}
+
+impl AdaptiveTuning {
+    /// From the flags (None: the default), each a finite number ≥ 0.
+    pub fn new(residual_weight: Option<f64>, round_allowance_s: Option<f64>) -> Result<AdaptiveTuning, PlanError> {
+        let d = AdaptiveTuning::default();
+        let check = |flag: &str, v: Option<f64>, default: f64| match v {
+            None => Ok(default),
+            Some(x) if x.is_finite() && x >= 0.0 => Ok(x),
+            Some(x) => Err(invalid(format!("{flag} {x}: must be a finite number ≥ 0"))),
+        };
+        Ok(AdaptiveTuning {
+            residual_weight: check("--residual-weight", residual_weight, d.residual_weight)?,
+            round_allowance_s: check("--round-allowance", round_allowance_s, d.round_allowance_s)?,
+        })
+    }
 }
 
 fn invalid(message: String) -> PlanError {
@@ -144,8 +180,8 @@ impl Plan {
             components: prior.components(),
             noise_var: req.noise_var,
             first_share: FIRST_SHARE,
-            round_allowance_s: ROUND_ALLOWANCE_S,
-            residual_weight: RESIDUAL_WEIGHT,
+            round_allowance_s: req.tuning.round_allowance_s,
+            residual_weight: req.tuning.residual_weight,
             analysis_texels: ANALYSIS_TEXELS,
             max_rounds: MAX_ROUNDS,
             plan_kicks: opts.kicks,

@@ -21,7 +21,7 @@ use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadErro
 use crate::develop::rectify::RectifyParams;
 use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
-use crate::plan::adaptive::{analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop};
+use crate::plan::adaptive::{analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop, AdaptiveTuning};
 use crate::plan::sparse::{units_key, SparseDesign, SparseRequest, SparseTarget};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
@@ -127,6 +127,8 @@ pub struct SparsePlan {
     /// `--adaptive`: measure in rounds until this stop ([`crate::plan::adaptive`]); the
     /// target and design above are then unused.
     pub adaptive: Option<AdaptiveStop>,
+    /// The adaptive rounds' declared knobs (defaults unless `--residual-weight`/`--round-allowance`).
+    pub adaptive_tuning: AdaptiveTuning,
 }
 
 impl std::fmt::Debug for SparsePlan {
@@ -326,6 +328,7 @@ impl Session {
                             prior_name: &sp.prior_name,
                             stop,
                             noise_var: sp.prior.header.residual_var,
+                            tuning: sp.adaptive_tuning,
                         };
                         Plan::build_adaptive(&rig, &new.sweep, &new.plan.options, &plan, req)
                             .map_err(SessionError::Plan)?
@@ -562,6 +565,9 @@ impl Session {
         let mut total: Option<engine::RunReport> = None;
         let mut limit_left = req.limit;
         let mut analysis_wall_s = 0.0;
+        // The analysis texels' values of every pair read so far: each round reads only the
+        // images measured since the last one.
+        let mut analysis_cache = AnalysisCache::default();
         let plan_shard = loop {
             let done_now: HashSet<usize> = done
                 .iter()
@@ -637,10 +643,11 @@ impl Session {
                 message: "an adaptive plan without its prior".into(),
             })?;
             let t = std::time::Instant::now();
-            let (measured, values) = adaptive_values(&dataset, &plan, prior).map_err(|e| SessionError::Invalid {
-                dir: name.clone(),
-                message: format!("reading the measured values for the next round: {e}"),
-            })?;
+            let (measured, values) =
+                adaptive_values(&dataset, &plan, prior, &mut analysis_cache).map_err(|e| SessionError::Invalid {
+                    dir: name.clone(),
+                    message: format!("reading the measured values for the next round: {e}"),
+                })?;
             let sweep = sweep_from_header(&dataset.header().sweep)
                 .map_err(|e| json_err(&name, "reading the sweep snapshot", e))?;
             let ad = plan.adaptive().expect("open adaptive plan");
@@ -674,6 +681,7 @@ impl Session {
             &report,
             calibration.as_deref(),
         );
+        summary.fly = summary::FlySummary::from_records(dataset.records());
         if let Some(ad) = plan.adaptive() {
             summary.complete &= ad.finished.is_some();
             summary.adaptive = Some(summary::AdaptiveSummary::new(ad, analysis_wall_s));
@@ -721,13 +729,26 @@ fn add_reports(mut a: engine::RunReport, b: engine::RunReport) -> engine::RunRep
     a
 }
 
+/// The analysis texels' values (prior's value space) of the pairs read so far, and the
+/// image size they were read at.
+#[derive(Default)]
+struct AnalysisCache {
+    texels: Option<usize>,
+    values: std::collections::HashMap<usize, Vec<f64>>,
+}
+
 /// The measured pairs of an adaptive plan's rounds and their values at the analysis texels
 /// (rows in the order of the returned pairs, columns texel-major then channel, in the
 /// prior's value space). Pairs without an image (failed, skipped) are left out.
+///
+/// Reads only the images `cache` does not hold yet, and keeps only the analysis texels of
+/// each (not the image): at 256² the analysis once read every measured image again each
+/// round and held them all (0.8 GB at 927 images).
 fn adaptive_values(
     dataset: &Dataset,
     plan: &Plan,
     prior: &gonio_sparse::Prior,
+    cache: &mut AnalysisCache,
 ) -> Result<(Vec<usize>, nalgebra::DMatrix<f64>), String> {
     use rayon::prelude::*;
     let ad: &AdaptiveInfo = plan.adaptive().ok_or("not an adaptive plan")?;
@@ -740,24 +761,39 @@ fn adaptive_values(
     let mut measured: Vec<usize> = ad.chosen().into_iter().filter(|p| image_of.contains_key(p)).collect();
     measured.sort_unstable();
     let dir = dataset.dir();
-    let images: Vec<Vec<f32>> = measured
-        .par_iter()
-        .map(|p| {
-            let path = dir.join(&image_of[p]);
-            store::exr_io::read_exr(&path)
-                .map(|i| i.data)
-                .map_err(|e| format!("{}: {e}", path.display()))
-        })
-        .collect::<Result<_, _>>()?;
-    let texels = images.first().map_or(0, |i| i.len() / 3);
-    if images.iter().any(|i| i.len() != 3 * texels) {
-        return Err("the measured images differ in size".into());
-    }
-    let pick = analysis_texels(texels, ad.analysis_texels);
     let space = prior.space();
-    let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
-        space.forward(images[i][3 * pick[j / 3] + j % 3] as f64)
-    });
+    let n_texels = ad.analysis_texels;
+    let new: Vec<usize> = measured
+        .iter()
+        .copied()
+        .filter(|p| !cache.values.contains_key(p))
+        .collect();
+    let read: Vec<(usize, usize, Vec<f64>)> = new
+        .par_iter()
+        .map(|&p| {
+            let path = dir.join(&image_of[&p]);
+            let img = store::exr_io::read_exr(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+            let texels = img.data.len() / 3;
+            let pick = analysis_texels(texels, n_texels);
+            let v = pick
+                .iter()
+                .flat_map(|&t| (0..3).map(move |c| (t, c)))
+                .map(|(t, c)| space.forward(img.data[3 * t + c] as f64))
+                .collect();
+            Ok((p, texels, v))
+        })
+        .collect::<Result<_, String>>()?;
+    for (p, texels, v) in read {
+        if *cache.texels.get_or_insert(texels) != texels {
+            return Err(format!(
+                "the measured images differ in size: pair {p} has {texels} texels, earlier ones {}",
+                cache.texels.unwrap_or(0)
+            ));
+        }
+        cache.values.insert(p, v);
+    }
+    let cols = measured.first().map_or(0, |p| cache.values[p].len());
+    let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), cols, |i, j| cache.values[&measured[i]][j]);
     Ok((measured, values))
 }
 

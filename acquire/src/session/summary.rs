@@ -60,6 +60,39 @@ pub struct Summary {
     /// An adaptive acquisition's rounds and stop (`gonio acquire --adaptive`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<AdaptiveSummary>,
+    /// A fly-scan's frames: how many were exposed in flight and how many were retaken stop
+    /// and go (`gonio acquire --fly`), over the whole dataset (resumed runs included).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fly: Option<FlySummary>,
+}
+
+/// What a fly-scan did, read from the journal's records (`extra.flight`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct FlySummary {
+    /// Frames exposed while the axis moved and kept.
+    pub flown: usize,
+    /// Frames of a flight retaken stop and go (a capture retry in flight, or the
+    /// mid-exposure directions off the planned ones by more than the tolerance).
+    pub retaken_stop_and_go: usize,
+}
+
+impl FlySummary {
+    /// Count the flown and retaken frames among `records`; None when none was flown.
+    pub fn from_records(records: &[gonio_dataset::store::MeasurementRecord]) -> Option<FlySummary> {
+        let mut s = FlySummary::default();
+        for r in records {
+            let f = &r.extra["flight"];
+            if f.is_null() {
+                continue;
+            }
+            if f.get("retaken_stop_and_go").is_some() {
+                s.retaken_stop_and_go += 1;
+            } else {
+                s.flown += 1;
+            }
+        }
+        (s != FlySummary::default()).then_some(s)
+    }
 }
 
 /// What an adaptive acquisition did: its rounds, its prediction and why it stopped.
@@ -145,6 +178,7 @@ impl Summary {
             lamp_drift_warnings: report.lamp_drift_warnings,
             lamp_identity: report.lamp_identity.clone(),
             adaptive: None,
+            fly: None,
         }
     }
 }
