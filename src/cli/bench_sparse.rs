@@ -8,6 +8,8 @@
 //! pairs as its plan fits in the budget (the existing planner orders and times them):
 //!
 //! * **ours**: greedy A-optimal design in the prior, per-texel MAP completion;
+//! * **ours-auto** (asked for by name): the same design, the MAP's σ² chosen by
+//!   leave-one-out on the measured values; measured, not reliably better;
 //! * **ours-joint** (asked for by name): the same design, completed jointly across texels
 //!   (`gonio_sparse::joint`: the material's Gaussian by EM); measured, not better;
 //! * **project** (asked for by name, a diagnosis): the truth projected onto the prior's
@@ -77,10 +79,14 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
+    /// Only these methods (ours, ours-auto, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
+    /// Measurement noise RMS (8-bit codes) the MAP weights and designs assume, added to the
+    /// prior's out-of-basis variance (as `gonio complete --noise-codes`).
+    #[arg(long, default_value_t = 0.0)]
+    pub noise_codes: f64,
     /// Method `adaptive`: the rounds' residual weight (as `gonio acquire --residual-weight`).
     #[arg(long)]
     pub residual_weight: Option<f64>,
@@ -279,6 +285,9 @@ fn fill(c: &Completion, measured: &[usize], meas: &[Vec<f32>]) -> Vec<Vec<f32>> 
 }
 
 /// Ours (or dense when `measured` is every feasible pair): MAP completion.
+/// Texels (three channels each) whose measured values choose `ours-auto`'s σ².
+const LOO_TEXELS: usize = 512;
+
 fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -> Result<(Vec<Vec<f32>>, f64)> {
     let p = prior.truncated(prior.components().min(measured.len()));
     let c = Completion::new(&p, measured, nv)?;
@@ -427,7 +436,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         full: &full,
     };
     let canonical = full.durations.canonical_s;
-    let nv = noise_var(&prior, 0.0);
+    let nv = noise_var(&prior, a.noise_codes);
     let design: Vec<usize> = gonio_sparse::greedy_design(&prior, &feasible, &[], feasible.len(), nv)?
         .iter()
         .map(|s| s.pair)
@@ -536,6 +545,42 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         }
                     }
                     None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            if want("ours-auto") {
+                // The same design; the MAP's σ² chosen by leave-one-out on the measured
+                // values (`gonio_sparse::complete::loo_noise_var`). Measured, not adopted
+                // (docs/guide/sparse.md).
+                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) => {
+                        let m = &design[..n];
+                        let p = prior.truncated(prior.components().min(n));
+                        let texels = meas.first().map_or(0, |x| x.len() / 3);
+                        let pick = super::prior::spread_texels(texels, LOO_TEXELS);
+                        let space = prior.space();
+                        let y = nalgebra::DMatrix::<f64>::from_fn(n, pick.len() * 3, |i, j| {
+                            space.forward(meas[m[i]][3 * pick[j / 3] + j % 3] as f64)
+                        });
+                        let choice = gonio_sparse::complete::loo_noise_var(&p, m, &y, nv)?;
+                        let (rec, pred) = complete_map(&prior, m, &meas, choice.noise_var)?;
+                        Row {
+                            noise: noisy,
+                            method: "ours-auto".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: n,
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(pred),
+                            note: format!(
+                                "K = {}, σ = {:.2} codes by leave-one-out",
+                                p.components(),
+                                choice.noise_var.sqrt() * 255.0
+                            ),
+                        }
+                    }
+                    None => na(noisy, "ours-auto", f, budget, "no pair fits"),
                 });
             }
             if want("ours-joint") {
