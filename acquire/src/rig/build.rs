@@ -2,6 +2,7 @@
 //! the camera and the light (the rig file's `backend` keys), and the adapters a *mixed*
 //! rig (serial axes, simulated camera) needs.
 
+use super::backends::{Backends, Make, Ports, RigBuildError};
 use super::{GroundTruth, Rig};
 use async_trait::async_trait;
 use gonio_devices::kinematics;
@@ -11,39 +12,9 @@ use gonio_simulator::devices::{SimAxis, SimLight};
 use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions};
 use std::sync::Arc;
 
-#[derive(Debug, thiserror::Error)]
-pub enum RigBuildError {
-    #[error("rig {rig}: {part} uses backend `{backend}`, which this build does not provide (available: {available})")]
-    UnknownBackend {
-        rig: String,
-        part: String,
-        backend: String,
-        available: String,
-    },
-    /// (`error` is not a `source`: its text is already in the message, and anyhow's chain
-    /// would print it twice.)
-    #[error("rig {rig}: {error}")]
-    Serial {
-        rig: String,
-        error: gonio_devices::serial::SerialConfigError,
-    },
-    #[cfg(feature = "v4l2")]
-    #[error("rig {rig}: {source}")]
-    Camera { rig: String, source: DeviceError },
-    /// A rig-file option that is present but wrong (its key names it).
-    #[error("rig {rig}: {error}")]
-    Option {
-        rig: String,
-        error: gonio_devices::rig::OptionError,
-    },
-    #[error(transparent)]
-    Sim(#[from] gonio_simulator::devices::SimRigError),
-    #[error(transparent)]
-    Sample(#[from] gonio_simulator::sample::SampleError),
-}
-
 impl Rig {
-    /// Build the rig from the rig file's backends.
+    /// Build the rig from the rig file's backends, with this build's backend tables
+    /// ([`Backends::builtin`]).
     ///
     /// The camera is simulated (`sim`, or `v4l2` with that feature); the light is `sim` or
     /// `hmp` (a lamp on a Rohde & Schwarz HMP supply, options in `[light] options`, see
@@ -55,41 +26,31 @@ impl Rig {
     /// (each serial axis drives a shadow simulated axis to its read-back, see
     /// [`MirroredAxis`]), so the images and the ground truth stay consistent.
     pub fn build(spec: &RigSpec, sample: &SampleSpec, opts: &SimOptions) -> Result<Rig, RigBuildError> {
-        let unknown = |part: String, backend: &str, available: &str| RigBuildError::UnknownBackend {
-            rig: spec.name.clone(),
-            part,
-            backend: backend.to_string(),
-            available: available.to_string(),
-        };
-        for (part, backend) in [("camera", &spec.camera.backend), ("light", &spec.light.backend)] {
-            #[cfg(feature = "v4l2")]
-            if part == "camera" && backend == "v4l2" {
-                continue;
-            }
-            if part == "light" && backend == "hmp" {
-                continue;
-            }
-            if backend != "sim" {
-                let available = if part == "light" { "sim, hmp" } else { "sim" };
-                return Err(unknown(part.to_string(), backend, available));
-            }
-        }
+        Self::build_with(spec, sample, opts, &Backends::builtin())
+    }
+
+    /// [`Rig::build`] with the caller's backend tables: a library user adds its own rows
+    /// (a lab's camera crate) with [`Backends::with_camera`] and the like.
+    pub fn build_with(
+        spec: &RigSpec,
+        sample: &SampleSpec,
+        opts: &SimOptions,
+        backends: &Backends,
+    ) -> Result<Rig, RigBuildError> {
+        // Every backend is resolved before anything is opened or built, so a misspelt or
+        // compiled-out backend fails at once, whichever part names it.
+        let camera_make = backends.camera(spec)?;
+        let light_make = backends.light(spec)?;
+        let axis_makes = spec
+            .axes
+            .iter()
+            .map(|a| backends.axis(spec, a))
+            .collect::<Result<Vec<_>, _>>()?;
         let lamp_monitor = spec.lamp_monitor().map_err(|error| RigBuildError::Option {
             rig: spec.name.clone(),
             error,
         })?;
-        let axis_backends = std::iter::once("sim")
-            .chain(gonio_devices::serial::BACKENDS.iter().copied())
-            .collect::<Vec<_>>()
-            .join(", ");
-        let mut mixed = false;
-        for a in &spec.axes {
-            if gonio_devices::serial::BACKENDS.contains(&a.backend.as_str()) {
-                mixed = true;
-            } else if a.backend != "sim" {
-                return Err(unknown(format!("axis {}", a.name), &a.backend, &axis_backends));
-            }
-        }
+        let mixed = axis_makes.iter().any(|m| matches!(m, Make::Real(_)));
         let built = Arc::new(sample.clone().build()?);
         let renderer = Arc::new(Renderer::new(built, opts.quality));
         // The shadow world of a mixed rig runs on a virtual clock: the serial axes already
@@ -101,25 +62,17 @@ impl Rig {
         let sim = build_sim_rig(spec, renderer, &sim_opts)?;
         let mut axes = sim.axes;
         let mut shadows = vec![None; axes.len()];
-        if mixed {
-            let mut ports = gonio_devices::serial::PortRegistry::new();
-            for (i, a) in spec.axes.iter().enumerate() {
-                if a.backend == "sim" {
-                    continue;
-                }
-                let real = ports.build_axis(a).map_err(|error| RigBuildError::Serial {
-                    rig: spec.name.clone(),
-                    error,
-                })?;
-                shadows[i] = Some(sim.world.axes[i].clone());
-                axes[i] = Arc::new(MirroredAxis {
-                    real,
-                    shadow: sim.world.axes[i].clone(),
-                });
-            }
+        let mut ports = Ports::default();
+        for (i, (a, make)) in spec.axes.iter().zip(&axis_makes).enumerate() {
+            let Make::Real(open) = make else { continue };
+            let real = open(spec, a, &mut ports)?;
+            shadows[i] = Some(sim.world.axes[i].clone());
+            axes[i] = Arc::new(MirroredAxis {
+                real,
+                shadow: sim.world.axes[i].clone(),
+            });
         }
         let shadow_light = sim.world.light.clone();
-        #[allow(unused_mut)]
         let (mut camera, mut truth): (Arc<dyn Camera>, Option<Arc<dyn GroundTruth>>) =
             (sim.camera, Some(sim.world as Arc<dyn GroundTruth>));
         if mixed && opts.realtime {
@@ -134,26 +87,17 @@ impl Rig {
                 free_at: std::sync::Mutex::new(None),
             });
         }
-        #[cfg(feature = "v4l2")]
-        if let Some(real) = v4l2_camera(spec)? {
+        if let Make::Real(open) = camera_make {
             // A real camera sees the real scene: the simulator's ground truth does not apply.
-            camera = real;
+            camera = open(spec)?;
             truth = None;
         }
-        let light: Arc<dyn Light> = if spec.light.backend == "hmp" {
-            let serial = |error| RigBuildError::Serial {
-                rig: spec.name.clone(),
-                error,
-            };
-            let opts = gonio_devices::serial::Options::for_light(&spec.light.options);
-            let config = gonio_devices::serial::hmp::HmpConfig::from_options(&opts).map_err(serial)?;
-            let real = gonio_devices::serial::hmp::HmpLight::open(config).map_err(serial)?;
-            Arc::new(MirroredLight {
-                real: Arc::new(real),
+        let light: Arc<dyn Light> = match light_make {
+            Make::Real(open) => Arc::new(MirroredLight {
+                real: open(spec)?,
                 shadow: shadow_light,
-            })
-        } else {
-            sim.light
+            }),
+            _ => sim.light,
         };
         Ok(Rig {
             spec: spec.clone(),
@@ -319,23 +263,4 @@ impl Light for MirroredLight {
     async fn read_back(&self) -> Result<Option<LampReading>, DeviceError> {
         self.real.read_back().await
     }
-}
-
-// ---- V4L2 camera backend (feature `v4l2`, devices/src/v4l2) ---------------------------
-
-/// The rig's camera when its backend is `v4l2` (`None` for other backends): opened and
-/// checked here so that a missing or wrong device fails the rig build, not step one.
-#[cfg(feature = "v4l2")]
-fn v4l2_camera(spec: &RigSpec) -> Result<Option<Arc<dyn Camera>>, RigBuildError> {
-    use gonio_devices::v4l2::{V4l2Camera, V4l2Options};
-    if spec.camera.backend != "v4l2" {
-        return Ok(None);
-    }
-    let err = |source| RigBuildError::Camera {
-        rig: spec.name.clone(),
-        source,
-    };
-    let opts = V4l2Options::from_rig(&spec.camera).map_err(err)?;
-    let camera = V4l2Camera::open(opts).map_err(err)?;
-    Ok(Some(Arc::new(camera)))
 }

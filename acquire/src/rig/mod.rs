@@ -17,13 +17,15 @@
 //! So a calibration gets the same timeouts, retries and stale-frame rule as an acquisition,
 //! and a fault reads the same in both. This folder imports no other folder of `src/`.
 
+pub mod backends;
 pub mod bracket;
 mod build;
 pub mod capture;
 mod truth;
 
+pub use backends::{Backends, RigBuildError};
 pub use bracket::{BracketNotes, SampleRegion};
-pub use build::{MirroredAxis, MirroredLight, RigBuildError};
+pub use build::{MirroredAxis, MirroredLight};
 pub use capture::{CaptureFailed, CaptureNotes, CapturePolicy, SaturationPolicy};
 pub use truth::{GroundTruth, MechanicalErrors, SensorResponse, SensorTruth};
 
