@@ -2,7 +2,7 @@
 //! the camera and the light (the rig file's `backend` keys), and the adapters a *mixed*
 //! rig (serial axes, simulated camera) needs.
 
-use super::backends::{Backends, Make, Ports, RigBuildError};
+use super::backends::{AxisCtor, Backends, Make, Ports, RigBuildError};
 use super::{GroundTruth, Rig};
 use async_trait::async_trait;
 use gonio_devices::kinematics;
@@ -24,13 +24,21 @@ impl Rig {
     /// `gonio_devices::serial`). A rig with serial axes is a *mixed* rig: the serial axes
     /// move in wall time, and the simulated camera renders the pose they actually reached
     /// (each serial axis drives a shadow simulated axis to its read-back, see
-    /// [`MirroredAxis`]), so the images and the ground truth stay consistent.
+    /// [`MirroredAxis`]), so the images and the ground truth stay consistent. A rig with
+    /// no simulated part at all builds no simulator (see [`Rig::build_with`]).
     pub fn build(spec: &RigSpec, sample: &SampleSpec, opts: &SimOptions) -> Result<Rig, RigBuildError> {
         Self::build_with(spec, sample, opts, &Backends::builtin())
     }
 
     /// [`Rig::build`] with the caller's backend tables: a library user adds its own rows
     /// (a lab's camera crate) with [`Backends::with_camera`] and the like.
+    ///
+    /// A rig whose camera, light and every axis are real builds no simulator at all (no
+    /// sample, renderer or simulated world: `sample` and `opts` are not used), has no
+    /// ground truth and runs on the wall clock. Whenever the camera is real, the sample
+    /// holder (marker border, sample size) comes from the rig file
+    /// ([`RigSpec::holder_geometry`]); a simulated camera takes it from the sample it
+    /// renders.
     pub fn build_with(
         spec: &RigSpec,
         sample: &SampleSpec,
@@ -50,6 +58,42 @@ impl Rig {
             rig: spec.name.clone(),
             error,
         })?;
+        let open_camera = real(&camera_make);
+        let (border, sample_mm) = if open_camera.is_some() {
+            spec.holder_geometry().map_err(|error| RigBuildError::Option {
+                rig: spec.name.clone(),
+                error,
+            })?
+        } else {
+            (sample.border.clone(), sample.size_mm)
+        };
+        let open_axes: Option<Vec<AxisCtor>> = axis_makes.iter().map(real).collect();
+        if let (Some(open_camera), Some(open_light), Some(open_axes)) = (open_camera, real(&light_make), open_axes) {
+            let mut ports = Ports::default();
+            let axes = spec
+                .axes
+                .iter()
+                .zip(open_axes)
+                .map(|(a, open)| open(spec, a, &mut ports))
+                .collect::<Result<Vec<_>, _>>()?;
+            let camera = open_camera(spec)?;
+            let light = open_light(spec)?;
+            return Ok(Rig {
+                spec: spec.clone(),
+                kinematics: kinematics::for_rig(spec),
+                shadows: vec![None; axes.len()],
+                axes,
+                camera,
+                light,
+                lamp_monitor,
+                truth: None,
+                clock: None,
+                border,
+                sample_mm,
+                started: std::time::Instant::now(),
+                still_at: std::sync::Mutex::new(None),
+            });
+        }
         let mixed = axis_makes.iter().any(|m| matches!(m, Make::Real(_)));
         let built = Arc::new(sample.clone().build()?);
         let renderer = Arc::new(Renderer::new(built, opts.quality));
@@ -108,12 +152,20 @@ impl Rig {
             lamp_monitor,
             truth,
             clock: if mixed { None } else { Some(sim.clock) },
-            border: sample.border.clone(),
-            sample_mm: sample.size_mm,
+            border,
+            sample_mm,
             started: std::time::Instant::now(),
             shadows,
             still_at: std::sync::Mutex::new(None),
         })
+    }
+}
+
+/// The constructor behind a real backend's row (`None` for a simulated one).
+fn real<C: Copy>(make: &Make<C>) -> Option<C> {
+    match make {
+        Make::Real(open) => Some(*open),
+        _ => None,
     }
 }
 
@@ -170,6 +222,9 @@ impl Camera for WallPacedCamera {
     fn begin_measurement(&self, index: u64) {
         self.inner.begin_measurement(index)
     }
+    async fn identity(&self) -> Result<String, DeviceError> {
+        self.inner.identity().await
+    }
 }
 
 /// A real axis whose settled read-back is copied to a simulated axis, so the simulated
@@ -208,6 +263,9 @@ impl Axis for MirroredAxis {
     }
     fn motion(&self) -> MotionModel {
         self.real.motion()
+    }
+    async fn identity(&self) -> Result<String, DeviceError> {
+        self.real.identity().await
     }
     async fn home(&self) -> Result<(), DeviceError> {
         self.real.home().await?;

@@ -46,8 +46,11 @@ pub struct Rig {
     pub lamp_monitor: gonio_devices::rig::LampMonitor,
     pub truth: Option<Arc<dyn GroundTruth>>,
     /// The simulated rig's clock (virtual time); `None` on real hardware (wall time).
+    /// `None` with `truth` `None` and no shadows: the rig built no simulator at all.
     pub clock: Option<Arc<SimClock>>,
-    /// The holder's marker border and the sample edge length (mm), for rectification.
+    /// The holder's marker border and the sample edge length (mm), for rectification: the
+    /// rendered sample's with a simulated camera, the rig file's with a real one
+    /// (`RigSpec::holder_geometry`).
     pub border: MarkerBorder,
     pub sample_mm: f64,
     started: std::time::Instant,
