@@ -20,6 +20,7 @@ mod campaign_camera_faults;
 mod campaign_faults;
 mod campaign_kill9;
 mod determinism;
+mod devices_check;
 mod fit;
 mod fly;
 mod fuzz_import;

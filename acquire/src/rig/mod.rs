@@ -21,6 +21,7 @@ pub mod backends;
 pub mod bracket;
 mod build;
 pub mod capture;
+pub mod check;
 mod truth;
 
 pub use backends::{Backends, RigBuildError};
