@@ -52,6 +52,10 @@ pub struct AcquireArgs {
     /// Print the summary as JSON on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Start even when the planned dataset size (an upper bound) exceeds the free space
+    /// of its disk.
+    #[arg(long)]
+    pub no_space_check: bool,
     /// Stop after this many measurements (the run stays resumable).
     #[arg(long)]
     pub limit: Option<usize>,
@@ -126,6 +130,37 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     };
     if let (Some(info), false) = (&session.plan().sparse, args.json) {
         super::sparse::print_summary(session.plan(), info);
+    }
+    // Before the first frame: will it fit, and when will it end?
+    let pre = session.preflight();
+    if !pre.fits() && !args.no_space_check {
+        anyhow::bail!(
+            "dataset {}: the {} remaining measurements need up to {} and its disk has {} free: free space, \
+             write to another disk (--out), or pass --no-space-check (the estimate is an upper bound: \
+             uncompressed float32 images)",
+            session.dir().display(),
+            pre.remaining,
+            gonio_acquire::session::preflight::human_bytes(pre.planned_bytes),
+            gonio_acquire::session::preflight::human_bytes(pre.free_bytes.unwrap_or(0)),
+        );
+    }
+    tracing::info!(
+        remaining = pre.remaining,
+        planned_s = pre.planned_s,
+        planned_bytes = pre.planned_bytes,
+        "planned end {}",
+        pre.planned_end_utc()
+    );
+    if !args.json {
+        eprintln!(
+            "planned: {} measurements, {:.0} s of rig time, up to {} on disk ({} free); ends about {}",
+            pre.remaining,
+            pre.planned_s,
+            gonio_acquire::session::preflight::human_bytes(pre.planned_bytes),
+            pre.free_bytes
+                .map_or("unknown".into(), gonio_acquire::session::preflight::human_bytes),
+            pre.planned_end_utc()
+        );
     }
     let viewer = match args.view {
         true => Some(serve_view(session.dir(), args.view_port).await?),
