@@ -401,6 +401,31 @@ pub struct LampMonitor {
     pub output_exponent: Option<f64>,
 }
 
+/// How a run waits for a real lamp to warm up before its first frame
+/// (`light.options.warmup_tolerance`, `warmup_interval_s`, `warmup_timeout_s`).
+///
+/// Why: a halogen filament's resistance, hence its current and output, settles over
+/// seconds to minutes after switch-on; frames taken before then are darker than the rest
+/// of an eight-hour run. The lamp counts as warm when two readings `interval_s` apart
+/// differ in current by less than `tolerance` (relative). A lamp still changing after
+/// `timeout_s` fails the run's start; `timeout_s` = 0 does not wait.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LampWarmup {
+    pub tolerance: f64,
+    pub interval_s: f64,
+    pub timeout_s: f64,
+}
+
+impl Default for LampWarmup {
+    fn default() -> Self {
+        LampWarmup {
+            tolerance: 0.005,
+            interval_s: 1.0,
+            timeout_s: 300.0,
+        }
+    }
+}
+
 /// The default relative drift that warns (2 %).
 pub const DEFAULT_LAMP_DRIFT: f64 = 0.02;
 
@@ -434,6 +459,42 @@ impl RigSpec {
         Ok(LampMonitor {
             drift_threshold,
             output_exponent,
+        })
+    }
+
+    /// The lamp warm-up options (see [`LampWarmup`]): `warmup_tolerance` in (0, 0.5)
+    /// (default 0.005), `warmup_interval_s` in (0, 60] (default 1), `warmup_timeout_s` in
+    /// [0, 7200] (default 300; 0 = no wait).
+    pub fn lamp_warmup(&self) -> Result<LampWarmup, OptionError> {
+        let o = &self.light.options;
+        let d = LampWarmup::default();
+        let read = |key: &str, default: f64, ok: &dyn Fn(f64) -> bool, message: &str| match o.get(key) {
+            None => Ok(default),
+            Some(v) => option_number(v).filter(|x| ok(*x)).ok_or_else(|| OptionError {
+                key: format!("light.options.{key}"),
+                value: v.to_string(),
+                message: message.to_string(),
+            }),
+        };
+        Ok(LampWarmup {
+            tolerance: read(
+                "warmup_tolerance",
+                d.tolerance,
+                &|x| x > 0.0 && x < 0.5,
+                "must be a relative change of the current in (0, 0.5), e.g. 0.005 for 0.5 %",
+            )?,
+            interval_s: read(
+                "warmup_interval_s",
+                d.interval_s,
+                &|x| x > 0.0 && x <= 60.0,
+                "must be seconds between readings in (0, 60]",
+            )?,
+            timeout_s: read(
+                "warmup_timeout_s",
+                d.timeout_s,
+                &|x| (0.0..=7200.0).contains(&x),
+                "must be seconds in [0, 7200] (0: do not wait for the lamp)",
+            )?,
         })
     }
 

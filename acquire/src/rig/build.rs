@@ -58,6 +58,14 @@ impl Rig {
             rig: spec.name.clone(),
             error,
         })?;
+        // A real lamp warms up before the first frame; a simulated one is warm at once.
+        let lamp_warmup = match light_make {
+            Make::Real(_) => Some(spec.lamp_warmup().map_err(|error| RigBuildError::Option {
+                rig: spec.name.clone(),
+                error,
+            })?),
+            _ => None,
+        };
         let open_camera = real(&camera_make);
         let (border, sample_mm) = if open_camera.is_some() {
             spec.holder_geometry().map_err(|error| RigBuildError::Option {
@@ -86,6 +94,7 @@ impl Rig {
                 camera,
                 light,
                 lamp_monitor,
+                lamp_warmup,
                 truth: None,
                 clock: None,
                 border,
@@ -150,6 +159,7 @@ impl Rig {
             camera,
             light,
             lamp_monitor,
+            lamp_warmup,
             truth,
             clock: if mixed { None } else { Some(sim.clock) },
             border,
