@@ -30,6 +30,7 @@ mod fuzz_resume;
 mod golden;
 mod hdr;
 mod lamp_hmp;
+mod on_pause;
 mod serial_drivers;
 mod shard_merge;
 mod sparse;
