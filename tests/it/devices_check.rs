@@ -129,3 +129,18 @@ fn a_missing_serial_port_is_named_with_its_fix_and_exits_1() {
         "{text}"
     );
 }
+
+/// A rig file that names a backend this build lacks: the message names the cargo feature.
+#[cfg(not(feature = "v4l2"))]
+#[test]
+fn a_compiled_out_camera_backend_names_the_feature_to_enable() {
+    let (o, r) = check("v4l2-vivid.toml", ("GONIO_UNUSED", Path::new("")), &["--no-move"]);
+    assert_eq!(o.status.code(), Some(1), "{r:#}");
+    let row = &r["devices"][0];
+    let failure = row["failure"].as_str().unwrap();
+    assert!(
+        failure.contains("`v4l2` is not in this build") && failure.contains("--features v4l2"),
+        "{failure}"
+    );
+    assert!(row["fix"].as_str().unwrap().contains("--features v4l2"), "{row:#}");
+}
