@@ -97,6 +97,13 @@ pub trait Camera: Send + Sync {
     async fn identity(&self) -> Result<String, DeviceError> {
         Ok(self.name().to_string())
     }
+    /// The sensor's temperature (°C) where the camera reports one (GenICam's
+    /// `DeviceTemperature`, say), `Ok(None)` otherwise (the default). Why: dark current
+    /// and gain drift with it over a long run; each measurement's record keeps it
+    /// (`extra.camera_temperature_c`), so a drift can be told from the sample.
+    async fn temperature_c(&self) -> Result<Option<f64>, DeviceError> {
+        Ok(None)
+    }
     /// Whether the camera may expose while the rig moves (fly-scan): its frames then show
     /// the motion of one exposure, and the engine stamps them with the stages' positions at
     /// exposure start and end. Only the simulated camera, which renders that motion, does.

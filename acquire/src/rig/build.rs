@@ -235,6 +235,9 @@ impl Camera for WallPacedCamera {
     async fn identity(&self) -> Result<String, DeviceError> {
         self.inner.identity().await
     }
+    async fn temperature_c(&self) -> Result<Option<f64>, DeviceError> {
+        self.inner.temperature_c().await
+    }
 }
 
 /// A real axis whose settled read-back is copied to a simulated axis, so the simulated
