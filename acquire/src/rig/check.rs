@@ -368,3 +368,24 @@ fn fix_device(e: &DeviceError) -> String {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_step_goes_toward_the_middle_of_the_limits_and_stays_inside() {
+        let spec = RigSpec::default_rig();
+        let sample = SampleSpec::resolve("leather").unwrap();
+        let rig = Rig::build(&spec, &sample, &SimOptions::default()).unwrap();
+        let step = 1f64.to_radians();
+        let lim = rig.axes[0].limits();
+        // Below the middle: up; above it: down; at the upper limit: down, inside.
+        assert_eq!(step_target(&rig, 0, 0.0, step), Some(step));
+        let down = step_target(&rig, 0, lim.max - 0.1 * step, step).unwrap();
+        assert!((down - (lim.max - 1.1 * step)).abs() < 1e-12, "{down}");
+        assert_eq!(step_target(&rig, 0, lim.min, step), Some(lim.min + step));
+        // A step larger than the whole range fits nowhere.
+        assert_eq!(step_target(&rig, 0, 0.0, 10.0 * (lim.max - lim.min)), None);
+    }
+}
