@@ -114,7 +114,7 @@ const SIMULATOR_ALLOWED: &[&str] = &["rig", "session", "cli", "synth", "calibrat
 const FOLDERS: &[(&str, &[&str])] = &[
     ("store", &["atomic", "error", "export", "journal", "manifest"]),
     ("store/export", &["entry", "npy", "ubo2003"]),
-    ("rig", &["capture"]),
+    ("rig", &["backends", "capture"]),
     ("develop", &[]),
     ("plan", &["order", "sparse"]),
     ("engine", &[]),

@@ -71,6 +71,13 @@ pub trait Axis: Send + Sync {
         })
     }
 
+    /// Who the controller says it is (model or device id, firmware): what `gonio devices
+    /// check` prints so a lab sees the hardware it is about to run on. An axis that cannot
+    /// tell answers with its name (the default).
+    async fn identity(&self) -> Result<String, DeviceError> {
+        Ok(self.name().to_string())
+    }
+
     /// Move to `target` and wait until settled; returns the read-back position.
     async fn move_abs(&self, target: f64) -> Result<f64, DeviceError> {
         self.start_move(target).await?;

@@ -91,6 +91,19 @@ pub trait Camera: Send + Sync {
     /// hence the empty default. The engine calls it when a run ends, so the run's rig time
     /// includes the last readout.
     async fn readout_done(&self) {}
+    /// Who the camera says it is (driver, card or model, firmware where it reports one),
+    /// for `gonio devices check`; a camera that cannot tell answers with its name (the
+    /// default).
+    async fn identity(&self) -> Result<String, DeviceError> {
+        Ok(self.name().to_string())
+    }
+    /// The sensor's temperature (°C) where the camera reports one (GenICam's
+    /// `DeviceTemperature`, say), `Ok(None)` otherwise (the default). Why: dark current
+    /// and gain drift with it over a long run; each measurement's record keeps it
+    /// (`extra.camera_temperature_c`), so a drift can be told from the sample.
+    async fn temperature_c(&self) -> Result<Option<f64>, DeviceError> {
+        Ok(None)
+    }
     /// Whether the camera may expose while the rig moves (fly-scan): its frames then show
     /// the motion of one exposure, and the engine stamps them with the stages' positions at
     /// exposure start and end. Only the simulated camera, which renders that motion, does.

@@ -4,6 +4,7 @@
 //! light it has, and the geometry its kinematics need. Angles are degrees in the file and
 //! radians after loading. Every validation error names the file, the key and the valid range.
 
+use crate::target::MarkerBorder;
 use crate::{MotionModel, SoftLimits};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -145,6 +146,12 @@ pub struct GeometrySpec {
     /// the sample and the rim.
     #[serde(default = "default_rim_gap")]
     pub holder_rim_gap_mm: f64,
+    /// The holder's marker border (`[geometry.marker_border]`: `border_mm`, `marker_mm`,
+    /// `markers_per_side`), what rectification looks for on a real camera's frames. Absent
+    /// = [`MarkerBorder::default`]. A simulated camera renders (and finds) the sample
+    /// file's border instead, so the simulator never reads this key.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub marker_border: Option<MarkerBorder>,
     /// static-light: the fixed lamp's angle from the world zenith, in the world x-z plane.
     #[serde(default)]
     pub fixed_light_elevation_deg: f64,
@@ -394,6 +401,31 @@ pub struct LampMonitor {
     pub output_exponent: Option<f64>,
 }
 
+/// How a run waits for a real lamp to warm up before its first frame
+/// (`light.options.warmup_tolerance`, `warmup_interval_s`, `warmup_timeout_s`).
+///
+/// Why: a halogen filament's resistance, hence its current and output, settles over
+/// seconds to minutes after switch-on; frames taken before then are darker than the rest
+/// of an eight-hour run. The lamp counts as warm when two readings `interval_s` apart
+/// differ in current by less than `tolerance` (relative). A lamp still changing after
+/// `timeout_s` fails the run's start; `timeout_s` = 0 does not wait.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LampWarmup {
+    pub tolerance: f64,
+    pub interval_s: f64,
+    pub timeout_s: f64,
+}
+
+impl Default for LampWarmup {
+    fn default() -> Self {
+        LampWarmup {
+            tolerance: 0.005,
+            interval_s: 1.0,
+            timeout_s: 300.0,
+        }
+    }
+}
+
 /// The default relative drift that warns (2 %).
 pub const DEFAULT_LAMP_DRIFT: f64 = 0.02;
 
@@ -427,6 +459,42 @@ impl RigSpec {
         Ok(LampMonitor {
             drift_threshold,
             output_exponent,
+        })
+    }
+
+    /// The lamp warm-up options (see [`LampWarmup`]): `warmup_tolerance` in (0, 0.5)
+    /// (default 0.005), `warmup_interval_s` in (0, 60] (default 1), `warmup_timeout_s` in
+    /// [0, 7200] (default 300; 0 = no wait).
+    pub fn lamp_warmup(&self) -> Result<LampWarmup, OptionError> {
+        let o = &self.light.options;
+        let d = LampWarmup::default();
+        let read = |key: &str, default: f64, ok: &dyn Fn(f64) -> bool, message: &str| match o.get(key) {
+            None => Ok(default),
+            Some(v) => option_number(v).filter(|x| ok(*x)).ok_or_else(|| OptionError {
+                key: format!("light.options.{key}"),
+                value: v.to_string(),
+                message: message.to_string(),
+            }),
+        };
+        Ok(LampWarmup {
+            tolerance: read(
+                "warmup_tolerance",
+                d.tolerance,
+                &|x| x > 0.0 && x < 0.5,
+                "must be a relative change of the current in (0, 0.5), e.g. 0.005 for 0.5 %",
+            )?,
+            interval_s: read(
+                "warmup_interval_s",
+                d.interval_s,
+                &|x| x > 0.0 && x <= 60.0,
+                "must be seconds between readings in (0, 60]",
+            )?,
+            timeout_s: read(
+                "warmup_timeout_s",
+                d.timeout_s,
+                &|x| (0.0..=7200.0).contains(&x),
+                "must be seconds in [0, 7200] (0: do not wait for the lamp)",
+            )?,
         })
     }
 
@@ -525,6 +593,27 @@ impl RigSpec {
             Some(h) => h.planned_capture_time(&self.camera),
             None => self.camera.capture_time(),
         }
+    }
+
+    /// The sample holder a real camera sees: the marker border (`geometry.marker_border`,
+    /// default [`MarkerBorder::default`]) and the sample's edge length
+    /// (`geometry.sample_size_mm`). Why from the rig file: with a real camera there is no
+    /// simulated sample to take them from, and rectification needs both. An error when
+    /// `sample_size_mm` is 0 (its "off" value for the rim), which no rectification can use.
+    pub fn holder_geometry(&self) -> Result<(MarkerBorder, f64), OptionError> {
+        let size = self.geometry.sample_size_mm;
+        if size <= 0.0 {
+            return Err(OptionError {
+                key: "geometry.sample_size_mm".into(),
+                value: size.to_string(),
+                message: format!(
+                    "camera backend `{}` is real, so rectification needs the sample's edge length: set \
+                     geometry.sample_size_mm (mm, > 0) in the rig file",
+                    self.camera.backend
+                ),
+            });
+        }
+        Ok((self.geometry.marker_border.clone().unwrap_or_default(), size))
     }
 
     /// The axis with a given role, if present.
@@ -799,6 +888,29 @@ impl RigSpec {
                 return Err(bad(key, v.to_string(), "must be a finite number ≥ 0"));
             }
         }
+        if let Some(b) = &g.marker_border {
+            if !(b.border_mm.is_finite() && b.border_mm > 0.0) {
+                return Err(bad(
+                    "marker_border.border_mm",
+                    b.border_mm.to_string(),
+                    "must be a finite number > 0 (the white frame's width, mm)",
+                ));
+            }
+            if !(b.marker_mm.is_finite() && b.marker_mm > 0.0 && b.marker_mm < b.border_mm) {
+                return Err(bad(
+                    "marker_border.marker_mm",
+                    b.marker_mm.to_string(),
+                    "must be > 0 and smaller than marker_border.border_mm (a marker lies inside the border)",
+                ));
+            }
+            if !(2..=64).contains(&b.markers_per_side) {
+                return Err(bad(
+                    "marker_border.markers_per_side",
+                    b.markers_per_side.to_string(),
+                    "valid range is 2..=64 (corners included)",
+                ));
+            }
+        }
         if g.holder_rim_height_mm > 0.0 && g.sample_size_mm > 0.0 && g.holder_rim_gap_mm <= 0.0 {
             return Err(bad(
                 "holder_rim_gap_mm",
@@ -973,6 +1085,28 @@ mod tests {
         let big = format!("{DEFAULT_RIG_TOML}\n[alignment]\ncamera_rotation_deg = [0.0, 12.0, 0.0]\n");
         let e = RigSpec::parse(&big, "r.toml").unwrap_err().to_string();
         assert!(e.contains("alignment.camera_rotation_deg"), "{e}");
+    }
+
+    #[test]
+    fn the_holder_geometry_of_a_real_camera_comes_from_the_rig_file() {
+        let r = RigSpec::parse(DEFAULT_RIG_TOML, "r.toml").unwrap();
+        let (border, size) = r.holder_geometry().unwrap();
+        assert_eq!((border, size), (MarkerBorder::default(), 50.0));
+        let own = format!(
+            "{DEFAULT_RIG_TOML}\n[geometry.marker_border]\nborder_mm = 12.0\nmarker_mm = 8.0\nmarkers_per_side = 4\n"
+        );
+        let (border, _) = RigSpec::parse(&own, "r.toml").unwrap().holder_geometry().unwrap();
+        assert_eq!(
+            (border.border_mm, border.marker_mm, border.markers_per_side),
+            (12.0, 8.0, 4)
+        );
+        let big = own.replace("marker_mm = 8.0", "marker_mm = 13.0");
+        let e = RigSpec::parse(&big, "r.toml").unwrap_err().to_string();
+        assert!(e.contains("geometry.marker_border.marker_mm"), "{e}");
+        let mut none = r.clone();
+        none.geometry.sample_size_mm = 0.0;
+        let e = none.holder_geometry().unwrap_err().to_string();
+        assert!(e.contains("geometry.sample_size_mm") && e.contains("set"), "{e}");
     }
 
     #[test]

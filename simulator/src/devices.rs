@@ -818,6 +818,7 @@ fn option_error(spec: &RigSpec, e: gonio_devices::rig::OptionError) -> SimRigErr
 }
 
 pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions) -> Result<SimRig, SimRigError> {
+    crate::count_construction();
     let clock = Arc::new(SimClock::new(opts.realtime));
     let axes: Vec<Arc<SimAxis>> = spec
         .axes

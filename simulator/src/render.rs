@@ -151,6 +151,7 @@ enum Hit {
 
 impl Renderer {
     pub fn new(sample: Arc<Sample>, quality: RenderQuality) -> Self {
+        crate::count_construction();
         Renderer {
             sample,
             quality,

@@ -52,6 +52,16 @@ pub struct AcquireArgs {
     /// Print the summary as JSON on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Run CMD (`sh -c CMD`) when the run pauses (Ctrl-C, --limit), finishes or fails, to
+    /// notify someone. Its environment: GONIO_DATASET (the dataset directory),
+    /// GONIO_STATE (`paused`, `finished` or `failed`) and GONIO_MESSAGE (the error of a
+    /// failed run, else empty). Its failure is reported and does not change the exit code.
+    #[arg(long, value_name = "CMD")]
+    pub on_pause: Option<String>,
+    /// Start even when the planned dataset size (an upper bound) exceeds the free space
+    /// of its disk.
+    #[arg(long)]
+    pub no_space_check: bool,
     /// Stop after this many measurements (the run stays resumable).
     #[arg(long)]
     pub limit: Option<usize>,
@@ -127,6 +137,37 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     if let (Some(info), false) = (&session.plan().sparse, args.json) {
         super::sparse::print_summary(session.plan(), info);
     }
+    // Before the first frame: will it fit, and when will it end?
+    let pre = session.preflight();
+    if !pre.fits() && !args.no_space_check {
+        anyhow::bail!(
+            "dataset {}: the {} remaining measurements need up to {} and its disk has {} free: free space, \
+             write to another disk (--out), or pass --no-space-check (the estimate is an upper bound: \
+             uncompressed float32 images)",
+            session.dir().display(),
+            pre.remaining,
+            gonio_acquire::session::preflight::human_bytes(pre.planned_bytes),
+            gonio_acquire::session::preflight::human_bytes(pre.free_bytes.unwrap_or(0)),
+        );
+    }
+    tracing::info!(
+        remaining = pre.remaining,
+        planned_s = pre.planned_s,
+        planned_bytes = pre.planned_bytes,
+        "planned end {}",
+        pre.planned_end_utc()
+    );
+    if !args.json {
+        eprintln!(
+            "planned: {} measurements, {:.0} s of rig time, up to {} on disk ({} free); ends about {}",
+            pre.remaining,
+            pre.planned_s,
+            gonio_acquire::session::preflight::human_bytes(pre.planned_bytes),
+            pre.free_bytes
+                .map_or("unknown".into(), gonio_acquire::session::preflight::human_bytes),
+            pre.planned_end_utc()
+        );
+    }
     let viewer = match args.view {
         true => Some(serve_view(session.dir(), args.view_port).await?),
         false => None,
@@ -159,8 +200,17 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         realtime: args.realtime,
         limit: args.limit,
     };
+    let dataset_dir = session.dir().to_path_buf();
     let summary = session.run(&req, pause, observer).await;
     bar.finish_and_clear();
+    if let Some(cmd) = &args.on_pause {
+        let (state, message) = match &summary {
+            Err(e) => ("failed", error_chain(e)),
+            Ok(s) if s.complete => ("finished", String::new()),
+            Ok(_) => ("paused", String::new()),
+        };
+        on_pause(cmd, &dataset_dir, state, &message);
+    }
     let summary = summary?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
@@ -332,4 +382,34 @@ fn print_summary(s: &Summary) {
     if !s.complete {
         println!("resume with    gonio acquire --resume {}", s.dataset);
     }
+}
+
+/// `--on-pause CMD`: run the notification command and wait for it (a run that ends is
+/// not in a hurry); a command that fails or cannot start is reported on stderr only.
+fn on_pause(cmd: &str, dataset: &std::path::Path, state: &str, message: &str) {
+    let status = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(cmd)
+        .env("GONIO_DATASET", dataset)
+        .env("GONIO_STATE", state)
+        .env("GONIO_MESSAGE", message)
+        .stdin(std::process::Stdio::null())
+        .status();
+    match status {
+        Ok(s) if s.success() => {}
+        Ok(s) => eprintln!("--on-pause `{cmd}` ({state}) exited with {s}"),
+        Err(e) => eprintln!("--on-pause `{cmd}` ({state}) could not start: {e}"),
+    }
+}
+
+/// An error and its causes on one line (what `{:#}` prints for an anyhow error).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }

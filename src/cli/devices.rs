@@ -2,11 +2,17 @@
 //!
 //! `list` shows serial ports and video devices; `probe PORT` asks a port who is there
 //! (Zaber ASCII at 115200 and 9600 baud, then Newport ESP300 `VE?` at 19200, then an R&S HMP
-//! supply's `*IDN?` at 9600).
+//! supply's `*IDN?` at 9600). `check --rig FILE` opens every device of a rig file and
+//! exercises it (`gonio_acquire::rig::check`; this module parses and prints only).
 
-use anyhow::Result;
+use super::common::load_sample;
+use anyhow::{bail, Context, Result};
+use gonio_acquire::rig::check::{self, CheckOptions, CheckReport};
+use gonio_acquire::rig::Backends;
+use gonio_devices::rig::RigSpec;
 use gonio_devices::serial::list;
 use serde::Serialize;
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(clap::Subcommand, Debug)]
@@ -15,6 +21,28 @@ pub enum DevicesCommand {
     List(ListArgs),
     /// Identify the motor controller on a serial port (or an emulator's pty).
     Probe(ProbeArgs),
+    /// Open every device of a rig file: identity and firmware, a small step of each axis
+    /// and back, one frame, the lamp on and off. Exit 0 only when everything answered.
+    Check(CheckArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct CheckArgs {
+    /// The rig file to check (TOML, see devices/rigs/).
+    #[arg(long)]
+    pub rig: PathBuf,
+    /// Move nothing: skip each axis' step (and the homing before it).
+    #[arg(long)]
+    pub no_move: bool,
+    /// The step each axis takes and comes back from, degrees.
+    #[arg(long, default_value_t = 1.0)]
+    pub step_deg: f64,
+    /// Sample the simulated camera of a mixed rig renders (unused by real cameras).
+    #[arg(long, default_value = gonio_simulator::sample::DEFAULT_SAMPLE)]
+    pub sample: String,
+    /// Print the report as JSON (one object: rig, ok, moved, devices[]).
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -41,6 +69,7 @@ struct Listing {
 
 pub fn run(cmd: DevicesCommand) -> Result<ExitCode> {
     match cmd {
+        DevicesCommand::Check(a) => run_check(a),
         DevicesCommand::List(a) => {
             let (serial_ports, serial_error) = match list::serial_ports() {
                 Ok(p) => (p, None),
@@ -110,5 +139,81 @@ pub fn run(cmd: DevicesCommand) -> Result<ExitCode> {
                 ExitCode::SUCCESS
             })
         }
+    }
+}
+
+fn run_check(a: CheckArgs) -> Result<ExitCode> {
+    if !(a.step_deg.is_finite() && a.step_deg > 0.0 && a.step_deg <= 10.0) {
+        bail!(
+            "--step-deg {}: must be a number of degrees in (0, 10] (a small step, inside the limits)",
+            a.step_deg
+        );
+    }
+    let spec = RigSpec::load(&a.rig).with_context(|| format!("loading rig {}", a.rig.display()))?;
+    let sample = load_sample(&a.sample)?;
+    let opts = CheckOptions {
+        moves: !a.no_move,
+        step_deg: a.step_deg,
+    };
+    let rt = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    let report = rt.block_on(check::check(
+        &spec,
+        &sample,
+        &gonio_simulator::SimOptions::default(),
+        &Backends::builtin(),
+        &opts,
+    ));
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_check(&report);
+    }
+    Ok(if report.ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// The report as a table: one block per device (what answered, what it reported, what
+/// failed and how to fix it), then the verdict.
+fn print_check(r: &CheckReport) {
+    println!(
+        "rig {}{}",
+        r.rig,
+        if r.moved { "" } else { " (--no-move: no axis moved)" }
+    );
+    println!(
+        "{:<22} {:<8} {:<9} identity / reported",
+        "device", "backend", "answered"
+    );
+    for d in &r.devices {
+        println!(
+            "{:<22} {:<8} {:<9} {}",
+            d.device,
+            d.backend,
+            if d.answered { "yes" } else { "NO" },
+            d.identity.as_deref().unwrap_or("-")
+        );
+        for line in &d.reported {
+            println!("{:<41} {line}", "");
+        }
+        if let Some(f) = &d.failure {
+            println!("{:<41} FAILED: {f}", "");
+        }
+        if let Some(f) = &d.fix {
+            println!("{:<41} fix: {f}", "");
+        }
+    }
+    let failed: Vec<&str> = r
+        .devices
+        .iter()
+        .filter(|d| !d.answered)
+        .map(|d| d.device.as_str())
+        .collect();
+    if failed.is_empty() {
+        println!("every device answered");
+    } else {
+        println!("not ready: {} failed", failed.join(", "));
     }
 }

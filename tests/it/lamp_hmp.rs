@@ -107,8 +107,10 @@ fn lamp_rig(dir: &Path, extra: &str) -> PathBuf {
     assert!(text.contains(from), "the default rig's [light] table changed");
     let text = text.replacen(
         from,
+        // No warm-up wait: the drift fault moves the current at every reading, and the
+        // assertions below count the readings (`warm_up_waits_for_a_stable_current` tests it).
         &format!(
-            "[light]\nbackend = \"hmp\"\noptions = {{ port = \"${{GONIO_LAMP_PORT}}\", voltage = 12.0, current = 10.0, settle_s = 0.05{extra} }}\n"
+            "[light]\nbackend = \"hmp\"\noptions = {{ port = \"${{GONIO_LAMP_PORT}}\", voltage = 12.0, current = 10.0, settle_s = 0.05, warmup_timeout_s = 0{extra} }}\n"
         ),
         1,
     );
@@ -228,4 +230,36 @@ fn acquisition_records_the_lamp_and_warns_when_it_drifts() {
         );
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 31: before the first frame `Rig::prepare` waits until the lamp's current is
+/// stable within `warmup_tolerance`; a lamp still changing at `warmup_timeout_s` fails
+/// with the options to change. (Simulated axes and camera: the waits run on the virtual
+/// clock.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn warm_up_waits_for_a_stable_current() {
+    let sample = gonio_simulator::SampleSpec::resolve("leather").unwrap();
+    for (drift, ok) in [(0.0, true), (0.001, true), (0.01, false)] {
+        let h = emulator(&[], drift);
+        let mut spec = gonio_devices::rig::RigSpec::default_rig();
+        spec.light.backend = "hmp".into();
+        let options = format!(
+            "port = \"{}\"\nvoltage = 12.0\ncurrent = 10.0\nsettle_s = 0\nwarmup_tolerance = 0.005\nwarmup_timeout_s = 3",
+            h.path().display()
+        );
+        spec.light.options = toml::from_str(&options).unwrap();
+        let rig = gonio::rig::Rig::build(&spec, &sample, &gonio_simulator::SimOptions::default()).unwrap();
+        let r = rig.prepare().await;
+        match ok {
+            true => assert!(r.is_ok(), "drift {drift}: {r:?}"),
+            false => {
+                let e = r.unwrap_err().to_string();
+                assert!(
+                    e.contains("lamp warm-up") && e.contains("warmup_timeout_s"),
+                    "drift {drift}: {e}"
+                );
+            }
+        }
+        h.stop();
+    }
 }

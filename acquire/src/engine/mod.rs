@@ -141,6 +141,9 @@ struct Job {
     lamp: Option<LampRecord>,
     /// A flown frame's measured poses (`extra.flight`, see [`fly`]).
     flight: Option<serde_json::Value>,
+    /// The camera's sensor temperature after the capture, where it reports one
+    /// (`extra.camera_temperature_c`).
+    camera_temperature_c: Option<f64>,
 }
 
 /// The exposures of an HDR bracket beyond its base frame, and what bracketing noted.
@@ -307,6 +310,7 @@ pub async fn run(
                     break;
                 }
             };
+            let camera_temperature_c = camera_temperature(&rig).await;
             let (frame, notes, bracket, q_cmd, q_read) = f.driven;
             let job = Job {
                 order: f.order,
@@ -320,6 +324,7 @@ pub async fn run(
                 bracket,
                 lamp: lamp_record,
                 flight: (!f.flight.is_null()).then_some(f.flight),
+                camera_temperature_c,
             };
             let index = job.step.index;
             if tx.send(job).await.is_err() {
@@ -390,6 +395,18 @@ async fn lamp_reference(rig: &Rig, watch: &mut lamp::LampWatch) -> Result<Option
 }
 
 /// The lamp's reading for measurement `index`, taken right after its capture.
+/// The camera's temperature for the record. A camera that fails to say does not stop a
+/// run (the frame is fine): the failure is logged and the record has no temperature.
+async fn camera_temperature(rig: &Rig) -> Option<f64> {
+    match rig.camera.temperature_c().await {
+        Ok(t) => t.filter(|t| t.is_finite()),
+        Err(e) => {
+            tracing::warn!("camera temperature: {e}");
+            None
+        }
+    }
+}
+
 async fn read_lamp(rig: &Rig, index: usize, watch: &mut lamp::LampWatch) -> Result<Option<LampRecord>, EngineError> {
     match rig.light.read_back().await {
         Ok(Some(r)) => Ok(Some(watch.observe(index, r))),
@@ -614,6 +631,9 @@ fn store_loop(
         };
         if let Some(f) = &job.flight {
             extra["flight"] = f.clone();
+        }
+        if let Some(t) = job.camera_temperature_c {
+            extra["camera_temperature_c"] = serde_json::json!(t);
         }
         job.notes.write_extra(&mut extra);
         if let (Some(b), Some(r)) = (&job.bracket, &merge_report) {

@@ -2,6 +2,7 @@
 //! the camera and the light (the rig file's `backend` keys), and the adapters a *mixed*
 //! rig (serial axes, simulated camera) needs.
 
+use super::backends::{AxisCtor, Backends, Make, Ports, RigBuildError};
 use super::{GroundTruth, Rig};
 use async_trait::async_trait;
 use gonio_devices::kinematics;
@@ -11,39 +12,9 @@ use gonio_simulator::devices::{SimAxis, SimLight};
 use gonio_simulator::{build_sim_rig, Renderer, SampleSpec, SimOptions};
 use std::sync::Arc;
 
-#[derive(Debug, thiserror::Error)]
-pub enum RigBuildError {
-    #[error("rig {rig}: {part} uses backend `{backend}`, which this build does not provide (available: {available})")]
-    UnknownBackend {
-        rig: String,
-        part: String,
-        backend: String,
-        available: String,
-    },
-    /// (`error` is not a `source`: its text is already in the message, and anyhow's chain
-    /// would print it twice.)
-    #[error("rig {rig}: {error}")]
-    Serial {
-        rig: String,
-        error: gonio_devices::serial::SerialConfigError,
-    },
-    #[cfg(feature = "v4l2")]
-    #[error("rig {rig}: {source}")]
-    Camera { rig: String, source: DeviceError },
-    /// A rig-file option that is present but wrong (its key names it).
-    #[error("rig {rig}: {error}")]
-    Option {
-        rig: String,
-        error: gonio_devices::rig::OptionError,
-    },
-    #[error(transparent)]
-    Sim(#[from] gonio_simulator::devices::SimRigError),
-    #[error(transparent)]
-    Sample(#[from] gonio_simulator::sample::SampleError),
-}
-
 impl Rig {
-    /// Build the rig from the rig file's backends.
+    /// Build the rig from the rig file's backends, with this build's backend tables
+    /// ([`Backends::builtin`]).
     ///
     /// The camera is simulated (`sim`, or `v4l2` with that feature); the light is `sim` or
     /// `hmp` (a lamp on a Rohde & Schwarz HMP supply, options in `[light] options`, see
@@ -53,43 +24,86 @@ impl Rig {
     /// `gonio_devices::serial`). A rig with serial axes is a *mixed* rig: the serial axes
     /// move in wall time, and the simulated camera renders the pose they actually reached
     /// (each serial axis drives a shadow simulated axis to its read-back, see
-    /// [`MirroredAxis`]), so the images and the ground truth stay consistent.
+    /// [`MirroredAxis`]), so the images and the ground truth stay consistent. A rig with
+    /// no simulated part at all builds no simulator (see [`Rig::build_with`]).
     pub fn build(spec: &RigSpec, sample: &SampleSpec, opts: &SimOptions) -> Result<Rig, RigBuildError> {
-        let unknown = |part: String, backend: &str, available: &str| RigBuildError::UnknownBackend {
-            rig: spec.name.clone(),
-            part,
-            backend: backend.to_string(),
-            available: available.to_string(),
-        };
-        for (part, backend) in [("camera", &spec.camera.backend), ("light", &spec.light.backend)] {
-            #[cfg(feature = "v4l2")]
-            if part == "camera" && backend == "v4l2" {
-                continue;
-            }
-            if part == "light" && backend == "hmp" {
-                continue;
-            }
-            if backend != "sim" {
-                let available = if part == "light" { "sim, hmp" } else { "sim" };
-                return Err(unknown(part.to_string(), backend, available));
-            }
-        }
+        Self::build_with(spec, sample, opts, &Backends::builtin())
+    }
+
+    /// [`Rig::build`] with the caller's backend tables: a library user adds its own rows
+    /// (a lab's camera crate) with [`Backends::with_camera`] and the like.
+    ///
+    /// A rig whose camera, light and every axis are real builds no simulator at all (no
+    /// sample, renderer or simulated world: `sample` and `opts` are not used), has no
+    /// ground truth and runs on the wall clock. Whenever the camera is real, the sample
+    /// holder (marker border, sample size) comes from the rig file
+    /// ([`RigSpec::holder_geometry`]); a simulated camera takes it from the sample it
+    /// renders.
+    pub fn build_with(
+        spec: &RigSpec,
+        sample: &SampleSpec,
+        opts: &SimOptions,
+        backends: &Backends,
+    ) -> Result<Rig, RigBuildError> {
+        // Every backend is resolved before anything is opened or built, so a misspelt or
+        // compiled-out backend fails at once, whichever part names it.
+        let camera_make = backends.camera(spec)?;
+        let light_make = backends.light(spec)?;
+        let axis_makes = spec
+            .axes
+            .iter()
+            .map(|a| backends.axis(spec, a))
+            .collect::<Result<Vec<_>, _>>()?;
         let lamp_monitor = spec.lamp_monitor().map_err(|error| RigBuildError::Option {
             rig: spec.name.clone(),
             error,
         })?;
-        let axis_backends = std::iter::once("sim")
-            .chain(gonio_devices::serial::BACKENDS.iter().copied())
-            .collect::<Vec<_>>()
-            .join(", ");
-        let mut mixed = false;
-        for a in &spec.axes {
-            if gonio_devices::serial::BACKENDS.contains(&a.backend.as_str()) {
-                mixed = true;
-            } else if a.backend != "sim" {
-                return Err(unknown(format!("axis {}", a.name), &a.backend, &axis_backends));
-            }
+        // A real lamp warms up before the first frame; a simulated one is warm at once.
+        let lamp_warmup = match light_make {
+            Make::Real(_) => Some(spec.lamp_warmup().map_err(|error| RigBuildError::Option {
+                rig: spec.name.clone(),
+                error,
+            })?),
+            _ => None,
+        };
+        let open_camera = real(&camera_make);
+        let (border, sample_mm) = if open_camera.is_some() {
+            spec.holder_geometry().map_err(|error| RigBuildError::Option {
+                rig: spec.name.clone(),
+                error,
+            })?
+        } else {
+            (sample.border.clone(), sample.size_mm)
+        };
+        let open_axes: Option<Vec<AxisCtor>> = axis_makes.iter().map(real).collect();
+        if let (Some(open_camera), Some(open_light), Some(open_axes)) = (open_camera, real(&light_make), open_axes) {
+            let mut ports = Ports::default();
+            let axes = spec
+                .axes
+                .iter()
+                .zip(open_axes)
+                .map(|(a, open)| open(spec, a, &mut ports))
+                .collect::<Result<Vec<_>, _>>()?;
+            let camera = open_camera(spec)?;
+            let light = open_light(spec)?;
+            return Ok(Rig {
+                spec: spec.clone(),
+                kinematics: kinematics::for_rig(spec),
+                shadows: vec![None; axes.len()],
+                axes,
+                camera,
+                light,
+                lamp_monitor,
+                lamp_warmup,
+                truth: None,
+                clock: None,
+                border,
+                sample_mm,
+                started: std::time::Instant::now(),
+                still_at: std::sync::Mutex::new(None),
+            });
         }
+        let mixed = axis_makes.iter().any(|m| matches!(m, Make::Real(_)));
         let built = Arc::new(sample.clone().build()?);
         let renderer = Arc::new(Renderer::new(built, opts.quality));
         // The shadow world of a mixed rig runs on a virtual clock: the serial axes already
@@ -101,25 +115,17 @@ impl Rig {
         let sim = build_sim_rig(spec, renderer, &sim_opts)?;
         let mut axes = sim.axes;
         let mut shadows = vec![None; axes.len()];
-        if mixed {
-            let mut ports = gonio_devices::serial::PortRegistry::new();
-            for (i, a) in spec.axes.iter().enumerate() {
-                if a.backend == "sim" {
-                    continue;
-                }
-                let real = ports.build_axis(a).map_err(|error| RigBuildError::Serial {
-                    rig: spec.name.clone(),
-                    error,
-                })?;
-                shadows[i] = Some(sim.world.axes[i].clone());
-                axes[i] = Arc::new(MirroredAxis {
-                    real,
-                    shadow: sim.world.axes[i].clone(),
-                });
-            }
+        let mut ports = Ports::default();
+        for (i, (a, make)) in spec.axes.iter().zip(&axis_makes).enumerate() {
+            let Make::Real(open) = make else { continue };
+            let real = open(spec, a, &mut ports)?;
+            shadows[i] = Some(sim.world.axes[i].clone());
+            axes[i] = Arc::new(MirroredAxis {
+                real,
+                shadow: sim.world.axes[i].clone(),
+            });
         }
         let shadow_light = sim.world.light.clone();
-        #[allow(unused_mut)]
         let (mut camera, mut truth): (Arc<dyn Camera>, Option<Arc<dyn GroundTruth>>) =
             (sim.camera, Some(sim.world as Arc<dyn GroundTruth>));
         if mixed && opts.realtime {
@@ -134,26 +140,17 @@ impl Rig {
                 free_at: std::sync::Mutex::new(None),
             });
         }
-        #[cfg(feature = "v4l2")]
-        if let Some(real) = v4l2_camera(spec)? {
+        if let Make::Real(open) = camera_make {
             // A real camera sees the real scene: the simulator's ground truth does not apply.
-            camera = real;
+            camera = open(spec)?;
             truth = None;
         }
-        let light: Arc<dyn Light> = if spec.light.backend == "hmp" {
-            let serial = |error| RigBuildError::Serial {
-                rig: spec.name.clone(),
-                error,
-            };
-            let opts = gonio_devices::serial::Options::for_light(&spec.light.options);
-            let config = gonio_devices::serial::hmp::HmpConfig::from_options(&opts).map_err(serial)?;
-            let real = gonio_devices::serial::hmp::HmpLight::open(config).map_err(serial)?;
-            Arc::new(MirroredLight {
-                real: Arc::new(real),
+        let light: Arc<dyn Light> = match light_make {
+            Make::Real(open) => Arc::new(MirroredLight {
+                real: open(spec)?,
                 shadow: shadow_light,
-            })
-        } else {
-            sim.light
+            }),
+            _ => sim.light,
         };
         Ok(Rig {
             spec: spec.clone(),
@@ -162,14 +159,23 @@ impl Rig {
             camera,
             light,
             lamp_monitor,
+            lamp_warmup,
             truth,
             clock: if mixed { None } else { Some(sim.clock) },
-            border: sample.border.clone(),
-            sample_mm: sample.size_mm,
+            border,
+            sample_mm,
             started: std::time::Instant::now(),
             shadows,
             still_at: std::sync::Mutex::new(None),
         })
+    }
+}
+
+/// The constructor behind a real backend's row (`None` for a simulated one).
+fn real<C: Copy>(make: &Make<C>) -> Option<C> {
+    match make {
+        Make::Real(open) => Some(*open),
+        _ => None,
     }
 }
 
@@ -226,6 +232,12 @@ impl Camera for WallPacedCamera {
     fn begin_measurement(&self, index: u64) {
         self.inner.begin_measurement(index)
     }
+    async fn identity(&self) -> Result<String, DeviceError> {
+        self.inner.identity().await
+    }
+    async fn temperature_c(&self) -> Result<Option<f64>, DeviceError> {
+        self.inner.temperature_c().await
+    }
 }
 
 /// A real axis whose settled read-back is copied to a simulated axis, so the simulated
@@ -264,6 +276,9 @@ impl Axis for MirroredAxis {
     }
     fn motion(&self) -> MotionModel {
         self.real.motion()
+    }
+    async fn identity(&self) -> Result<String, DeviceError> {
+        self.real.identity().await
     }
     async fn home(&self) -> Result<(), DeviceError> {
         self.real.home().await?;
@@ -319,23 +334,4 @@ impl Light for MirroredLight {
     async fn read_back(&self) -> Result<Option<LampReading>, DeviceError> {
         self.real.read_back().await
     }
-}
-
-// ---- V4L2 camera backend (feature `v4l2`, devices/src/v4l2) ---------------------------
-
-/// The rig's camera when its backend is `v4l2` (`None` for other backends): opened and
-/// checked here so that a missing or wrong device fails the rig build, not step one.
-#[cfg(feature = "v4l2")]
-fn v4l2_camera(spec: &RigSpec) -> Result<Option<Arc<dyn Camera>>, RigBuildError> {
-    use gonio_devices::v4l2::{V4l2Camera, V4l2Options};
-    if spec.camera.backend != "v4l2" {
-        return Ok(None);
-    }
-    let err = |source| RigBuildError::Camera {
-        rig: spec.name.clone(),
-        source,
-    };
-    let opts = V4l2Options::from_rig(&spec.camera).map_err(err)?;
-    let camera = V4l2Camera::open(opts).map_err(err)?;
-    Ok(Some(Arc::new(camera)))
 }

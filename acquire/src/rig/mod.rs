@@ -17,13 +17,16 @@
 //! So a calibration gets the same timeouts, retries and stale-frame rule as an acquisition,
 //! and a fault reads the same in both. This folder imports no other folder of `src/`.
 
+pub mod backends;
 pub mod bracket;
 mod build;
 pub mod capture;
+pub mod check;
 mod truth;
 
+pub use backends::{Backends, RigBuildError};
 pub use bracket::{BracketNotes, SampleRegion};
-pub use build::{MirroredAxis, MirroredLight, RigBuildError};
+pub use build::{MirroredAxis, MirroredLight};
 pub use capture::{CaptureFailed, CaptureNotes, CapturePolicy, SaturationPolicy};
 pub use truth::{GroundTruth, MechanicalErrors, SensorResponse, SensorTruth};
 
@@ -42,10 +45,15 @@ pub struct Rig {
     pub light: Arc<dyn Light>,
     /// How a run watches the lamp's read-back (rig file `light.options`).
     pub lamp_monitor: gonio_devices::rig::LampMonitor,
+    /// How [`Rig::prepare`] waits for a real lamp to warm up (`None`: a simulated lamp).
+    pub lamp_warmup: Option<gonio_devices::rig::LampWarmup>,
     pub truth: Option<Arc<dyn GroundTruth>>,
     /// The simulated rig's clock (virtual time); `None` on real hardware (wall time).
+    /// `None` with `truth` `None` and no shadows: the rig built no simulator at all.
     pub clock: Option<Arc<SimClock>>,
-    /// The holder's marker border and the sample edge length (mm), for rectification.
+    /// The holder's marker border and the sample edge length (mm), for rectification: the
+    /// rendered sample's with a simulated camera, the rig file's with a real one
+    /// (`RigSpec::holder_geometry`).
     pub border: MarkerBorder,
     pub sample_mm: f64,
     started: std::time::Instant,
@@ -106,13 +114,15 @@ impl Rig {
         Ok(q)
     }
 
-    /// Home every axis, switch the light on and configure the camera from the rig file.
+    /// Home every axis, switch the light on, wait for a real lamp to warm up
+    /// ([`Rig::warm_up_lamp`]) and configure the camera from the rig file.
     /// Returns the configuration the camera applied.
     pub async fn prepare(&self) -> Result<CameraConfig, DeviceError> {
         for a in &self.axes {
             a.home().await?;
         }
         self.light.set(true, 1.0).await?;
+        self.warm_up_lamp().await?;
         let c = &self.spec.camera;
         self.camera
             .configure(&CameraConfig {
@@ -123,6 +133,52 @@ impl Rig {
                 bit_depth: c.bit_depth,
             })
             .await
+    }
+
+    /// Wait until the lamp's current is stable (see `gonio_devices::rig::LampWarmup`): two
+    /// readings `interval_s` apart within `tolerance`. Returns at once for a simulated lamp,
+    /// a lamp that measures nothing, or `warmup_timeout_s` = 0; an error naming the lamp,
+    /// the last change and the options to change when it is still changing at the timeout.
+    pub async fn warm_up_lamp(&self) -> Result<(), DeviceError> {
+        let Some(w) = self.lamp_warmup.filter(|w| w.timeout_s > 0.0) else {
+            return Ok(());
+        };
+        let Some(mut last) = self.light.read_back().await? else {
+            return Ok(());
+        };
+        let start = self.time();
+        loop {
+            self.wait_until(self.time() + w.interval_s).await;
+            let Some(now) = self.light.read_back().await? else {
+                return Ok(());
+            };
+            let change = (now.current_a - last.current_a).abs() / last.current_a.abs().max(1e-9);
+            if change < w.tolerance {
+                tracing::info!(
+                    lamp = %self.light.name(),
+                    current_a = now.current_a,
+                    "lamp warm after {:.1} s",
+                    self.time() - start
+                );
+                return Ok(());
+            }
+            if self.time() - start >= w.timeout_s {
+                return Err(DeviceError::Other {
+                    device: self.light.name().to_string(),
+                    command: "lamp warm-up".into(),
+                    reason: format!(
+                        "the current still changes {:.2} % between readings {} s apart after {:.0} s \
+                         (wanted < {:.2} %): check the lamp and its supply, or raise \
+                         light.options.warmup_timeout_s or warmup_tolerance in the rig file",
+                        change * 100.0,
+                        w.interval_s,
+                        self.time() - start,
+                        w.tolerance * 100.0
+                    ),
+                });
+            }
+            last = now;
+        }
     }
 
     /// Move every axis to `q` (radians, the rig's axis order): all start together, then all

@@ -15,6 +15,8 @@
 
 mod summary;
 
+pub mod preflight;
+pub use preflight::Preflight;
 pub use summary::{peak_rss_mib, AdaptiveSummary, Summary};
 
 use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadError, LoadedResult};
@@ -495,6 +497,30 @@ impl Session {
     /// The plan this session executes.
     pub fn plan(&self) -> &Plan {
         &self.plan
+    }
+
+    /// What the rest of the run will take (planned bytes against the free space of the
+    /// dataset's disk, planned end): call it before [`Session::run`] and refuse a run that
+    /// does not fit ([`Preflight::fits`]).
+    pub fn preflight(&self) -> Preflight {
+        let s = &self.settings;
+        // An HDR bracket's raw frames are all stored.
+        let exposures = match (self.rig.hdr_mode(), &self.rig.hdr) {
+            (HdrMode::Fixed(n), _) => n as usize,
+            (HdrMode::Auto, Some(h)) => 1 + h.planned_extra_exposures.ceil().max(0.0) as usize,
+            _ => 1,
+        };
+        let raw = s
+            .raw
+            .then_some((self.rig.camera.width, self.rig.camera.height, exposures));
+        let per = preflight::bytes_per_measurement(s.width, s.height, s.store_truth, raw);
+        let done: HashSet<usize> = self
+            .done
+            .iter()
+            .copied()
+            .chain(self.dataset.records().iter().map(|r| r.index))
+            .collect();
+        preflight::preflight(&self.plan, &done, per, self.dataset.dir())
     }
 
     /// Measurements already stored when the session was opened.

@@ -270,6 +270,10 @@ fn fmt_num(x: f64) -> String {
 }
 
 impl Driver for EspAxis {
+    /// The controller's `VE?` (model and firmware).
+    fn identity(&self) -> Result<Option<String>, DeviceError> {
+        Ok(Some(format!("{} (axis {})", self.version()?.trim(), self.axis)))
+    }
     fn clear_faults(&self) -> Result<(), DeviceError> {
         // Empty the error queue: old entries must not be blamed on the next command.
         for _ in 0..10 {

@@ -23,7 +23,9 @@
 //! - `settle_s` (1.0: seconds waited after switching, so the filament reaches its
 //!   temperature before a frame), `reply_timeout_ms` (1000), `retries` (2),
 //! - `drift_threshold`, `output_exponent`: the lamp monitor's, read by
-//!   [`crate::rig::RigSpec::lamp_monitor`] for any backend.
+//!   [`crate::rig::RigSpec::lamp_monitor`] for any backend;
+//! - `warmup_tolerance`, `warmup_interval_s`, `warmup_timeout_s`: the warm-up wait before
+//!   a run's first frame, read by [`crate::rig::RigSpec::lamp_warmup`].
 //!
 //! `intensity` ∈ [0, 1] scales the voltage: the channel is set to `voltage × intensity`
 //! with the current limit `current` (constant-voltage operation; a halogen lamp's output
@@ -55,6 +57,9 @@ pub const HMP_KEYS: &[&str] = &[
     "retries",
     "drift_threshold",
     "output_exponent",
+    "warmup_tolerance",
+    "warmup_interval_s",
+    "warmup_timeout_s",
 ];
 
 /// Channels of an HMP model named in its `*IDN?` (`None`: not an HMP model we know).

@@ -54,6 +54,11 @@ pub trait Driver: Send + Sync + 'static {
     fn stop(&self) -> Result<(), DeviceError>;
     /// The controller's own travel limits, if it has any.
     fn device_limits(&self) -> Result<Option<SoftLimits>, DeviceError>;
+    /// The controller's identity (device id, firmware version) for `gonio devices check`;
+    /// `None` when the protocol has no such query (the default).
+    fn identity(&self) -> Result<Option<String>, DeviceError> {
+        Ok(None)
+    }
     /// Check for errors after a motion ended (controllers with an error queue).
     fn after_motion(&self, _during: &str) -> Result<(), DeviceError> {
         Ok(())
@@ -339,6 +344,13 @@ impl<D: Driver> Axis for PolicyAxis<D> {
 
     fn limits(&self) -> SoftLimits {
         self.effective_limits()
+    }
+
+    async fn identity(&self) -> Result<String, DeviceError> {
+        Ok(self
+            .call("identity", |d| d.identity())
+            .await?
+            .unwrap_or_else(|| self.name.clone()))
     }
 
     fn motion(&self) -> MotionModel {

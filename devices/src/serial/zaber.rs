@@ -472,6 +472,30 @@ impl ZaberAxis {
 }
 
 impl Driver for ZaberAxis {
+    /// `get device.id` and `get version`, asked of the device (axis 0): the same
+    /// questions `gonio devices probe` relies on the chain to answer.
+    fn identity(&self) -> Result<Option<String>, DeviceError> {
+        let get = |what: &str| -> Result<String, DeviceError> {
+            let command = format!("get {what}");
+            let r = self.port.command(&self.name, self.device, 0, &command)?;
+            if r.rejected {
+                return Err(DeviceError::Rejected {
+                    device: self.name.clone(),
+                    command,
+                    reason: format!("{} ({})", r.data, explain_rejection(&r.data)),
+                });
+            }
+            Ok(r.data.trim().to_string())
+        };
+        Ok(Some(format!(
+            "Zaber device {} axis {} (device.id {}, firmware {}) on {}",
+            self.device,
+            self.axis,
+            get("device.id")?,
+            get("version")?,
+            self.port.path()
+        )))
+    }
     fn clear_faults(&self) -> Result<(), DeviceError> {
         self.ok("warnings clear").map(|_| ())
     }
