@@ -15,7 +15,9 @@ use serde::Serialize;
 
 use super::options::GenicamOptions;
 use super::pixel::{self, PixelFormat};
-use super::{check_buffer, classify, device_error, exposure_feature, unchanged, BufferInfo, GainControl};
+use super::{
+    check_buffer, classify, device_error, exposure_feature, unchanged, unwrap_frame_id, BufferInfo, GainControl,
+};
 use crate::camera::{Camera, CameraConfig, Frame, FrameMeta};
 use crate::rig::CameraSpec;
 use crate::DeviceError;
@@ -60,6 +62,8 @@ struct Inner {
     stream: Option<aravis::Stream>,
     applied: Option<Applied>,
     stats: CaptureStats,
+    /// The last frame's raw id and sequence (see [`super::unwrap_frame_id`]).
+    last_frame: Option<(u64, u64)>,
     /// The last capture timed out: restart the acquisition before the next trigger (a
     /// camera that stopped acquiring, or lost its trigger state, resumes).
     rearm: bool,
@@ -131,6 +135,7 @@ impl GenicamCamera {
                 applied: None,
                 stats: CaptureStats::default(),
                 rearm: false,
+                last_frame: None,
             })),
             lost,
         })
@@ -523,7 +528,7 @@ impl Inner {
             return Err(e);
         }
         let data = buffer.image_data();
-        let (frame_id, ts, sys_ts) = (buffer.frame_id(), buffer.timestamp(), buffer.system_timestamp());
+        let (raw_id, ts, sys_ts) = (buffer.frame_id(), buffer.timestamp(), buffer.system_timestamp());
         stream.push_buffer(buffer);
         // The exposure and gain the frame carries are read again now: a camera changed
         // behind gonio's back must not give a frame with the wrong metadata.
@@ -561,6 +566,8 @@ impl Inner {
             reply: e.to_string(),
         })?;
         self.stats.frames += 1;
+        let frame_id = unwrap_frame_id(self.last_frame, raw_id);
+        self.last_frame = Some((raw_id, frame_id));
         // The camera's own timestamp (ns on its clock, taken at exposure); cameras without
         // one give 0, then the host's reception time stands in.
         let timestamp = if ts != 0 { ts } else { sys_ts } as f64 * 1e-9;

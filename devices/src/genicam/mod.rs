@@ -218,6 +218,24 @@ pub fn check_buffer(
     Ok(())
 }
 
+/// The frame's sequence number from the buffer's frame id. GigE Vision 1.x block ids are
+/// 16 bits and skip 0 (65535 is followed by 1); gonio's `FrameMeta::sequence` increases by
+/// one per frame for the whole run, so a wrap is unwrapped against the previous frame
+/// (`prev`: its raw id and sequence). Wider ids (GigE Vision 2, USB3 Vision) pass through.
+pub fn unwrap_frame_id(prev: Option<(u64, u64)>, raw: u64) -> u64 {
+    match prev {
+        Some((prev_raw, prev_seq)) if prev_raw <= 0xFFFF && raw <= 0xFFFF => {
+            let step = if raw > prev_raw {
+                raw - prev_raw
+            } else {
+                raw + 0xFFFF - prev_raw
+            };
+            prev_seq + step
+        }
+        _ => raw,
+    }
+}
+
 /// Whether a read-back value still equals the applied one (to a relative 1e-6: the
 /// features are floats, written once and read back through the same converter).
 pub fn unchanged(applied: f64, read_back: f64) -> bool {
@@ -329,6 +347,19 @@ mod tests {
         );
         let e = check_buffer("cam", "success", BufferInfo { width: 32, ..ok }, fmt, (64, 48)).unwrap_err();
         assert!(e.to_string().contains("32 × 48"), "{e}");
+    }
+
+    #[test]
+    fn sixteen_bit_block_ids_are_unwrapped() {
+        assert_eq!(unwrap_frame_id(None, 65_534), 65_534);
+        assert_eq!(unwrap_frame_id(Some((65_534, 65_534)), 65_535), 65_535);
+        // 65535 is followed by 1 (0 is not a valid block id).
+        assert_eq!(unwrap_frame_id(Some((65_535, 65_535)), 1), 65_536);
+        assert_eq!(unwrap_frame_id(Some((1, 65_536)), 3), 65_538);
+        // A later wrap keeps counting from the unwrapped sequence.
+        assert_eq!(unwrap_frame_id(Some((65_535, 131_070)), 1), 131_071);
+        // 64-bit ids pass through.
+        assert_eq!(unwrap_frame_id(Some((1 << 40, 1 << 40)), (1 << 40) + 1), (1 << 40) + 1);
     }
 
     #[test]
