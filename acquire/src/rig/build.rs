@@ -27,7 +27,19 @@ pub enum RigBuildError {
         rig: String,
         error: gonio_devices::serial::SerialConfigError,
     },
-    #[cfg(feature = "v4l2")]
+    /// The rig names a real backend that this build leaves out (a cargo feature).
+    #[error(
+        "rig {rig}: {part} uses backend `{backend}`, which this build leaves out: rebuild gonio with \
+         `--features {feature}` (needs {needs})"
+    )]
+    MissingFeature {
+        rig: String,
+        part: String,
+        backend: String,
+        feature: &'static str,
+        needs: &'static str,
+    },
+    #[cfg(any(feature = "v4l2", feature = "genicam"))]
     #[error("rig {rig}: {source}")]
     Camera { rig: String, source: DeviceError },
     /// A rig-file option that is present but wrong (its key names it).
@@ -66,11 +78,29 @@ impl Rig {
             if part == "camera" && backend == "v4l2" {
                 continue;
             }
+            #[cfg(feature = "genicam")]
+            if part == "camera" && backend == "genicam" {
+                continue;
+            }
+            if let Some(&(_, feature, needs)) = CAMERA_FEATURES.iter().find(|(b, ..)| part == "camera" && b == backend)
+            {
+                return Err(RigBuildError::MissingFeature {
+                    rig: spec.name.clone(),
+                    part: part.to_string(),
+                    backend: backend.to_string(),
+                    feature,
+                    needs,
+                });
+            }
             if part == "light" && backend == "hmp" {
                 continue;
             }
             if backend != "sim" {
-                let available = if part == "light" { "sim, hmp" } else { "sim" };
+                let available = if part == "light" {
+                    "sim, hmp"
+                } else {
+                    "sim; with cargo features: v4l2, genicam"
+                };
                 return Err(unknown(part.to_string(), backend, available));
             }
         }
@@ -137,6 +167,11 @@ impl Rig {
         #[cfg(feature = "v4l2")]
         if let Some(real) = v4l2_camera(spec)? {
             // A real camera sees the real scene: the simulator's ground truth does not apply.
+            camera = real;
+            truth = None;
+        }
+        #[cfg(feature = "genicam")]
+        if let Some(real) = genicam_camera(spec)? {
             camera = real;
             truth = None;
         }
@@ -338,4 +373,60 @@ fn v4l2_camera(spec: &RigSpec) -> Result<Option<Arc<dyn Camera>>, RigBuildError>
     let opts = V4l2Options::from_rig(&spec.camera).map_err(err)?;
     let camera = V4l2Camera::open(opts).map_err(err)?;
     Ok(Some(Arc::new(camera)))
+}
+
+// ---- GenICam camera backend (feature `genicam`, devices/src/genicam) --------------------
+
+/// The rig's camera when its backend is `genicam` (`None` for other backends): opened here
+/// so that a missing camera or a wrong option fails the rig build, not step one.
+#[cfg(feature = "genicam")]
+fn genicam_camera(spec: &RigSpec) -> Result<Option<Arc<dyn Camera>>, RigBuildError> {
+    use gonio_devices::genicam::camera::{FromRigError, GenicamCamera};
+    if spec.camera.backend != "genicam" {
+        return Ok(None);
+    }
+    let camera = GenicamCamera::from_rig(&spec.camera).map_err(|e| match e {
+        FromRigError::Option(error) => RigBuildError::Option {
+            rig: spec.name.clone(),
+            error,
+        },
+        FromRigError::Device(source) => RigBuildError::Camera {
+            rig: spec.name.clone(),
+            source,
+        },
+    })?;
+    Ok(Some(Arc::new(camera)))
+}
+
+/// Camera backends behind cargo features: (backend, feature, what building it needs). A rig
+/// naming one that this build leaves out is told which feature to enable.
+const CAMERA_FEATURES: [(&str, &str, &str); 2] =
+    [("v4l2", "v4l2", "libclang"), ("genicam", "genicam", "libaravis-dev")];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A rig naming a real camera backend that this build leaves out says which cargo
+    /// feature to enable (and what building it needs), before anything is opened.
+    #[test]
+    fn a_camera_backend_left_out_of_the_build_names_its_feature() {
+        for (backend, feature, needs) in CAMERA_FEATURES {
+            let compiled =
+                (backend == "v4l2" && cfg!(feature = "v4l2")) || (backend == "genicam" && cfg!(feature = "genicam"));
+            if compiled {
+                continue;
+            }
+            let mut spec = RigSpec::default_rig();
+            spec.camera.backend = backend.to_string();
+            let sample = SampleSpec::resolve("white-standard").unwrap();
+            let e = Rig::build(&spec, &sample, &SimOptions::default()).err().unwrap();
+            let msg = e.to_string();
+            assert!(matches!(e, RigBuildError::MissingFeature { .. }), "{msg}");
+            assert!(
+                msg.contains(&format!("--features {feature}")) && msg.contains(needs),
+                "{msg}"
+            );
+        }
+    }
 }
