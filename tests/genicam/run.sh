@@ -104,18 +104,21 @@ acquire "$WORK/ds" fibonacci:8 >"$WORK/acquire.json" 2>"$WORK/acquire.err" || {
 }
 grep -q '"complete": true' "$WORK/acquire.json" || die "the acquisition did not complete: $(cat "$WORK/acquire.json")"
 "$GONIO" verify "$WORK/ds" >/dev/null || die "gonio verify of the acquired dataset"
-n=$(grep -c '"raw":"raw/' "$WORK/ds/journal.jsonl")
+n=$(grep -c '"raw":"raw/' "$WORK/ds/journal.jsonl" || true)
 python3 tests/genicam/check_pattern.py "$WORK/ds" --min-frames "$n" | tail -4 || die "stored frames do not match the fake's pattern"
-log "exposure recorded: $(grep -o '"exposure_s":[0-9.e-]*' "$WORK/ds/journal.jsonl" | sort -u | tr '\n' ' ')(asked 0.0123456 s)"
+log "exposure recorded with the frames: $(grep '"raw":"raw/' "$WORK/ds/journal.jsonl" | grep -o '"exposure_s":[0-9.e-]*' | sort -u | tr '\n' ' ')(asked 0.0123456 s)"
 
 log "fault: the fake killed mid-acquisition"
 acquire "$WORK/ds-kill" fibonacci:12 >"$WORK/kill.json" 2>"$WORK/kill.err" &
 ACQ=$!
 PIDS+=("$ACQ")
-for _ in $(seq 300); do
-  [ "$(grep -c . "$WORK/ds-kill/journal.jsonl" 2>/dev/null || echo 0)" -ge 5 ] && break
+# Stored frames so far (skipped pairs are journalled up front, without a frame).
+frames() { local n; n=$(grep -c '"raw":"raw/' "$1" 2>/dev/null) || true; echo "${n:-0}"; }
+for _ in $(seq 600); do
+  [ "$(frames "$WORK/ds-kill/journal.jsonl")" -ge 5 ] && break
   sleep 0.1
 done
+[ "$(frames "$WORK/ds-kill/journal.jsonl")" -ge 5 ] || die "the second acquisition stored no frames in 60 s"
 kill "$FAKE_PID"
 rc=0
 wait "$ACQ" || rc=$?
