@@ -10,7 +10,8 @@
 #  3. end to end: `gonio acquire --rig devices/rigs/genicam-fake-zaber.toml --sweep
 #     fibonacci:8` with the stages on gonio's Zaber emulator, every stored raw frame
 #     checked pixel for pixel against the fake's pattern (tests/genicam/check_pattern.py);
-#  4. the fake killed mid-acquisition: the run fails with the camera named as disconnected,
+#  4. `--hdr 2`: the bracket's exposures are recorded as the camera read them back;
+#  5. the fake killed mid-acquisition: the run fails with the camera named as disconnected,
 #     and every frame stored before that still matches the pattern (none with wrong metadata).
 #
 # Needs libaravis-dev, libusb-1.0-0-dev and aravis-tools (.ci/run installs them). Without
@@ -107,6 +108,29 @@ grep -q '"complete": true' "$WORK/acquire.json" || die "the acquisition did not 
 n=$(grep -c '"raw":"raw/' "$WORK/ds/journal.jsonl" || true)
 python3 tests/genicam/check_pattern.py "$WORK/ds" --min-frames "$n" | tail -4 || die "stored frames do not match the fake's pattern"
 log "exposure recorded with the frames: $(grep '"raw":"raw/' "$WORK/ds/journal.jsonl" | grep -o '"exposure_s":[0-9.e-]*' | sort -u | tr '\n' ' ')(asked 0.0123456 s)"
+
+# HDR brackets check the exposure the camera read back (docs/guide/hdr.md): the fake keeps
+# whole microseconds, so every bracket exposure must be recorded as whole microseconds
+# (what the sensor used, not the 1/8 of the base that was asked), and the stored base
+# frames still match the pattern.
+log "HDR: gonio acquire --hdr 2 --sweep fibonacci:3"
+GONIO_ZABER_PORT=$WORK/zaber "$GONIO" acquire --rig devices/rigs/genicam-fake-zaber.toml --sample white-standard \
+  --sweep fibonacci:3 --plan-time 0 --no-truth --raw --hdr 2 --out "$WORK/ds-hdr" --json -q >"$WORK/hdr.json" 2>"$WORK/hdr.err" || {
+  tail -20 "$WORK/hdr.err" >&2
+  die "gonio acquire --hdr 2 with the fake camera failed"
+}
+python3 - "$WORK/ds-hdr/journal.jsonl" <<'PY' || die "HDR bracket exposures are not the camera's read-back"
+import json, sys
+recs = [json.loads(l)["rec"] for l in open(sys.argv[1]) if l.strip()]
+brackets = [r["extra"]["hdr"]["exposures_s"] for r in recs if r.get("raw") and (r.get("extra") or {}).get("hdr")]
+assert brackets, "no HDR measurement stored"
+for b in brackets:
+    assert len(b) >= 2, b
+    for e in b:
+        assert abs(e * 1e6 - round(e * 1e6)) < 1e-6, f"exposure {e} s is not the fake's whole-microsecond read-back"
+print(f"genicam: HDR: {len(brackets)} brackets, exposures as read back: {sorted({e for b in brackets for e in b})}")
+PY
+python3 tests/genicam/check_pattern.py "$WORK/ds-hdr" | tail -1 || die "an HDR base frame does not match the pattern"
 
 log "fault: the fake killed mid-acquisition"
 acquire "$WORK/ds-kill" fibonacci:12 >"$WORK/kill.json" 2>"$WORK/kill.err" &
