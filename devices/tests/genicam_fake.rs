@@ -254,6 +254,41 @@ mod fake {
     }
 
     #[test]
+    fn exposure_changes_between_frames_give_each_frame_its_own_exposure() {
+        let Some(fake) = start(&[]) else { return };
+        let cam = open(&fake);
+        use_format(&cam, "Mono8");
+        // An HDR-like sequence: base, 1/8, base again; each frame must be the pattern of
+        // the exposure it reports.
+        for asked in [0.012_345_6, 0.012_345_6 / 8.0, 0.05, 0.012_345_6] {
+            let applied = cam.configure_blocking(&config(48, 32, asked)).unwrap();
+            // The fake keeps the whole microseconds of what it is asked.
+            assert!(
+                (applied.exposure * 1e6 - (asked * 1e6).floor()).abs() < 1e-6,
+                "{asked} s asked: {applied:?}"
+            );
+            let f = cam.capture_blocking().unwrap();
+            assert_eq!(f.meta.exposure, applied.exposure);
+            let s = scale(f.meta.exposure);
+            for y in 0..32 {
+                for x in 0..48 {
+                    assert_eq!(
+                        f.data[3 * (y * 48 + x)],
+                        ramp(x, y, f.meta.sequence, s, false),
+                        "{asked} s at ({x}, {y})"
+                    );
+                }
+            }
+            println!(
+                "genicam_fake: exposure {asked} s asked, {} s applied: frame {} mean {:.3} DN, exact",
+                applied.exposure,
+                f.meta.sequence,
+                mean(&f)
+            );
+        }
+    }
+
+    #[test]
     fn a_camera_changed_behind_our_back_never_gives_a_frame() {
         let Some(fake) = start(&[]) else { return };
         let cam = open(&fake);

@@ -62,6 +62,9 @@ struct Inner {
     stream: Option<aravis::Stream>,
     applied: Option<Applied>,
     stats: CaptureStats,
+    /// The size the last full `configure` was asked for (the camera may have adjusted
+    /// it): the same size again keeps the stream (see `configure`).
+    requested_size: Option<(usize, usize)>,
     /// The last frame's raw id and sequence (see [`super::unwrap_frame_id`]).
     last_frame: Option<(u64, u64)>,
     /// The last capture timed out: restart the acquisition before the next trigger (a
@@ -136,6 +139,7 @@ impl GenicamCamera {
                 stats: CaptureStats::default(),
                 rearm: false,
                 last_frame: None,
+                requested_size: None,
             })),
             lost,
         })
@@ -172,7 +176,10 @@ impl GenicamCamera {
 
     /// Change the formats accepted by the next `configure`.
     pub fn set_formats(&self, formats: Vec<PixelFormat>) {
-        self.lock().opts.pixel_formats = formats;
+        let mut inner = self.lock();
+        inner.opts.pixel_formats = formats;
+        // The next configure chooses the format again (a full one).
+        inner.requested_size = None;
     }
 
     /// Write a GenICam feature directly (tests: provoke a camera changed behind gonio's back).
@@ -250,9 +257,43 @@ impl Inner {
     }
 
     fn configure(&mut self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
+        // Only exposure or gain changed (an HDR bracket, a re-exposure): set them while
+        // the camera streams, as cameras allow; restarting the stream would cost every
+        // bracket step an AcquisitionStop/Start.
+        // (The pixel format is read first: a camera reconfigured behind gonio's back gets a
+        // full configure.)
+        let same_format = |inner: &Self| {
+            inner.applied.as_ref().is_some_and(|a| {
+                inner
+                    .camera
+                    .pixel_format()
+                    .is_ok_and(|f| f.raw() == a.format.pfnc_code())
+            })
+        };
+        if self.stream.is_some() && self.requested_size == Some((config.width, config.height)) && same_format(self) {
+            if let Some(a) = self.applied.take() {
+                let (exposure_feature, exposure) = self.apply_exposure(config.exposure)?;
+                let (gain_control, gain_value, gain) = self.apply_gain(config.gain)?;
+                let applied = CameraConfig {
+                    exposure,
+                    gain,
+                    ..a.config
+                };
+                tracing::debug!(camera = %self.name, exposure, gain, "exposure and gain changed while streaming");
+                self.applied = Some(Applied {
+                    config: applied.clone(),
+                    exposure_feature,
+                    gain: gain_control,
+                    gain_value,
+                    ..a
+                });
+                return Ok(applied);
+            }
+        }
         // Formats and regions are locked while the camera streams (TLParamsLocked).
         self.stop();
         self.applied = None;
+        self.requested_size = Some((config.width, config.height));
         let format = self.apply_format()?;
         let (width, height) = self.apply_region(config.width, config.height)?;
         let (exposure_feature, exposure) = self.apply_exposure(config.exposure)?;
