@@ -68,7 +68,7 @@ out=$(cargo test -q -p gonio-devices --features genicam --lib --test genicam_fak
   echo "$out" | tail -60 >&2
   die "cargo test -p gonio-devices --features genicam"
 }
-echo "$out" | grep -E '^genicam_fake:|^test result' || true
+echo "$out" | grep -oE 'genicam_fake: .*|test result.*' || true
 
 start_fake() {
   "$FAKE" -i 127.0.0.1 >"$WORK/fake.log" 2>&1 &
