@@ -58,6 +58,15 @@ fi
 echo "== browser (gonio view in headless chromium)"
 bash tests/browser/run.sh
 
+# --- GenICam camera backend (feature `genicam`) against Debian's fake GigE Vision camera
+# on loopback (tests/genicam/): builds gonio with the feature once, runs the backend's
+# tests, an end-to-end acquisition with emulated Zaber stages checked against the fake's
+# pattern, and the fake killed mid-run. Mandatory under CI; elsewhere skipped with a notice
+# when libaravis or the fake are missing.
+disk
+echo "== genicam (GenICam backend against arv-fake-gv-camera-0.8)"
+bash tests/genicam/run.sh
+
 # --- V4L2 camera backend against the kernel's vivid driver in a QEMU VM (tests/vivid/).
 # Needs apt-get (to download the Debian kernel/busybox/QEMU packages, never installed) and
 # libclang (the `v4l2` feature's bindgen). Mandatory under CI; elsewhere skipped with a

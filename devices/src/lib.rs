@@ -9,6 +9,9 @@ pub mod axis;
 pub mod camera;
 pub mod coded_board;
 pub mod error;
+/// GenICam cameras through Aravis: the camera itself behind the `genicam` feature; pixel
+/// formats, demosaicing and the rig-file options in every build.
+pub mod genicam;
 pub mod geometry;
 pub mod hdr;
 pub mod image;

@@ -118,7 +118,14 @@ impl Backends {
                     #[cfg(not(feature = "v4l2"))]
                     make: Make::NotBuilt,
                 },
-                // A `genicam` row goes here (feature `genicam`, devices/src/genicam/).
+                Row {
+                    name: "genicam",
+                    feature: Some("genicam"),
+                    #[cfg(feature = "genicam")]
+                    make: Make::Real(genicam_camera),
+                    #[cfg(not(feature = "genicam"))]
+                    make: Make::NotBuilt,
+                },
             ],
             lights: vec![
                 Row {
@@ -252,6 +259,24 @@ fn hmp_light(spec: &RigSpec) -> Result<Arc<dyn Light>, RigBuildError> {
     let config = gonio_devices::serial::hmp::HmpConfig::from_options(&opts).map_err(serial)?;
     let real = gonio_devices::serial::hmp::HmpLight::open(config).map_err(serial)?;
     Ok(Arc::new(real))
+}
+
+/// A GenICam camera through Aravis (feature `genicam`, devices/src/genicam): opened here
+/// so that a missing camera or a wrong option fails the rig build, not step one.
+#[cfg(feature = "genicam")]
+fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
+    use gonio_devices::genicam::camera::{FromRigError, GenicamCamera};
+    let camera = GenicamCamera::from_rig(&spec.camera).map_err(|e| match e {
+        FromRigError::Option(error) => RigBuildError::Option {
+            rig: spec.name.clone(),
+            error,
+        },
+        FromRigError::Device(source) => RigBuildError::Camera {
+            rig: spec.name.clone(),
+            source,
+        },
+    })?;
+    Ok(Arc::new(camera))
 }
 
 /// A V4L2 camera (feature `v4l2`, devices/src/v4l2): opened and checked here so that a
