@@ -198,6 +198,21 @@ mod fake {
         assert_eq!(cam.capture_blocking().unwrap().meta.exposure, short.exposure);
     }
 
+    /// `gonio devices check` and each record ask the camera who it is and how warm: the
+    /// fake answers from its GenICam description (vendor, model, serial number).
+    #[test]
+    fn identity_and_temperature_come_from_the_standard_features() {
+        use gonio_devices::Camera;
+        let Some(fake) = start(&[]) else { return };
+        let cam = open(&fake);
+        let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        let id = rt.block_on(cam.identity()).unwrap();
+        assert!(id.contains("S/N") && id != cam.name(), "{id}");
+        let t = rt.block_on(cam.temperature_c()).unwrap();
+        assert!(t.is_none_or(|c| c.is_finite()), "{t:?}");
+        println!("genicam_fake: identity `{id}`, temperature {t:?}");
+    }
+
     #[test]
     fn bayer_frames_demosaic_to_the_fakes_colour_pattern() {
         let Some(fake) = start(&[]) else { return };

@@ -656,6 +656,51 @@ impl Camera for GenicamCamera {
                 reason: format!("worker task failed: {e}"),
             })?
     }
+
+    /// Vendor, model, serial number and firmware, as the camera's standard features
+    /// (`DeviceVendorName`, `DeviceModelName`, `DeviceSerialNumber`/`DeviceID`,
+    /// `DeviceFirmwareVersion`/`DeviceVersion`) report them; the ones it lacks are left out.
+    async fn identity(&self) -> Result<String, DeviceError> {
+        let inner = self.lock();
+        let c = &inner.camera;
+        let mut parts: Vec<String> = Vec::new();
+        for v in [c.vendor_name(), c.model_name()].into_iter().flatten() {
+            if !v.is_empty() {
+                parts.push(v.to_string());
+            }
+        }
+        if let Some(sn) = [c.device_serial_number(), c.device_id()]
+            .into_iter()
+            .flatten()
+            .find(|v| !v.is_empty())
+        {
+            parts.push(format!("S/N {sn}"));
+        }
+        if let Some(fw) = ["DeviceFirmwareVersion", "DeviceVersion"]
+            .into_iter()
+            .filter(|f| inner.has(f))
+            .find_map(|f| c.string(f).ok().filter(|v| !v.is_empty()))
+        {
+            parts.push(format!("firmware {fw}"));
+        }
+        if parts.is_empty() {
+            return Ok(self.name.clone());
+        }
+        Ok(parts.join(", "))
+    }
+
+    /// `DeviceTemperature` (°C, the SFNC feature) where the camera has it.
+    async fn temperature_c(&self) -> Result<Option<f64>, DeviceError> {
+        let inner = self.lock();
+        if !inner.has("DeviceTemperature") {
+            return Ok(None);
+        }
+        inner
+            .camera
+            .float("DeviceTemperature")
+            .map(Some)
+            .map_err(|e| inner.err("DeviceTemperature", &e))
+    }
 }
 
 #[cfg(test)]
