@@ -317,8 +317,27 @@ fn storage_faults() {
             let filler = full.join("filler");
             let keep = need / 2;
             std::fs::write(&filler, vec![1u8; (free_bytes(&full) - keep) as usize]).unwrap();
+            // Before the first frame, the space check refuses this disk (its estimate is an
+            // upper bound) and writes no measurement.
+            let pre = full.join("pre");
+            let out = acquire_cmd(&rig, &sweep, &pre).output().unwrap();
+            let err = String::from_utf8_lossy(&out.stderr).to_string();
+            let stored = std::fs::read_dir(pre.join("images")).map_or(0, |d| d.count());
+            if out.status.success() || !err.contains("--no-space-check") || stored != 0 {
+                failures.push(format!("disk full (before the first frame): not refused: {err}"));
+            }
+            rows.push(Row {
+                fault: "disk full (before the first frame)".into(),
+                outcome: "refused by the space check, nothing stored".into(),
+                lost: 0,
+            });
+            let _ = std::fs::remove_dir_all(&pre);
+            // Mid-run: the check is overridden so that the disk fills during the run.
             let dir = full.join("ds");
-            let out = acquire_cmd(&rig, &sweep, &dir).output().unwrap();
+            let out = acquire_cmd(&rig, &sweep, &dir)
+                .arg("--no-space-check")
+                .output()
+                .unwrap();
             let clear = || std::fs::remove_file(&filler).unwrap();
             let mut row = check_fault_then_resume(
                 "disk full (mid-run)",

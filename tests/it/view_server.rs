@@ -483,7 +483,7 @@ fn fuzzed_parameters_never_get_a_5xx() {
 }
 
 /// `gonio acquire --view`: the viewer of the dataset being written, in the same process. Its
-/// URL is the first stderr line; the monitor's JSON advances while the rig works (real-time
+/// URL is on stderr (after the plan's line); the monitor's JSON advances while the rig works (real-time
 /// simulated rig: each capture takes its readout time), and only the token opens it.
 #[test]
 fn acquire_view_serves_the_monitor_of_the_running_acquisition() {
@@ -508,10 +508,17 @@ fn acquire_view_serves_the_monitor_of_the_running_acquisition() {
         .spawn()
         .unwrap();
     let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
-    let first = lines.next().expect("a first stderr line").unwrap();
-    let url = first
-        .strip_prefix("view: ")
-        .unwrap_or_else(|| panic!("first stderr line {first:?}"));
+    // The plan's line (size, free space, end time) comes first, then the viewer's URL.
+    let mut seen = Vec::new();
+    let first = loop {
+        let line = lines.next().expect("a stderr line with the viewer's URL").unwrap();
+        if line.starts_with("view: ") {
+            break line;
+        }
+        seen.push(line);
+        assert!(seen.len() < 20, "no `view: ` line in {seen:?}");
+    };
+    let url = first.strip_prefix("view: ").unwrap();
     let rest = url.strip_prefix("http://").unwrap();
     let (addr, token) = rest.split_once("/?token=").unwrap();
     let addr: SocketAddr = addr.parse().unwrap();
