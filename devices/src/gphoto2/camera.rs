@@ -248,7 +248,7 @@ impl Inner {
                 what,
                 format!(
                     "camera.options.{what} = \"{wanted}\", but the camera has no {what} setting ({}); \
-                     remove the option (a manual lens, or a camera that does not expose it)",
+                     remove the option (a manual lens has no aperture setting; some cameras expose no ISO)",
                     keys.join(", ")
                 ),
             ));
