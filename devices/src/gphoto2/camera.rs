@@ -217,16 +217,23 @@ impl Inner {
         )
     }
 
-    /// The first of `keys` the camera has, as a radio widget, or None.
-    fn first_radio(&self, keys: &[&'static str]) -> Option<(&'static str, RadioWidget)> {
-        keys.iter().find_map(|k| {
-            self.camera
-                .config_key::<RadioWidget>(k)
-                .try_wait()
-                .ok()?
-                .ok()
-                .map(|w| (*k, w))
-        })
+    /// The first of `keys` the camera has, as a radio widget, or None when it has none of
+    /// them. Only "no such setting" (libgphoto2's bad-parameters or not-supported answer)
+    /// moves on to the next key: a camera that stopped answering is its own error, not a
+    /// missing setting.
+    fn first_radio(&self, keys: &[&'static str]) -> Result<Option<(&'static str, RadioWidget)>, DeviceError> {
+        for key in keys {
+            match wait(
+                &self.name,
+                &format!("{key} (read)"),
+                self.camera.config_key::<RadioWidget>(key),
+            ) {
+                Ok(w) => return Ok(Some((key, w))),
+                Err(DeviceError::Rejected { .. }) => continue,
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(None)
     }
 
     /// Set `widget` (the camera's `key`) to its choice `index` and return the choice the
@@ -243,7 +250,7 @@ impl Inner {
     /// A setting the rig file asks for (aperture, ISO): chosen from the camera's choices,
     /// set, and read back.
     fn apply_choice(&self, what: &str, keys: &[&'static str], wanted: &str) -> Result<String, DeviceError> {
-        let Some((key, widget)) = self.first_radio(keys) else {
+        let Some((key, widget)) = self.first_radio(keys)? else {
             return Err(self.rejected(
                 what,
                 format!(
