@@ -13,6 +13,9 @@ pub mod error;
 /// formats, demosaicing and the rig-file options in every build.
 pub mod genicam;
 pub mod geometry;
+/// DSLRs through libgphoto2: the camera itself behind the `gphoto2` feature; shutter-speed
+/// parsing, choice matching, error mapping and the rig-file options in every build.
+pub mod gphoto2;
 pub mod hdr;
 pub mod image;
 pub mod kinematics;

@@ -126,6 +126,14 @@ impl Backends {
                     #[cfg(not(feature = "genicam"))]
                     make: Make::NotBuilt,
                 },
+                Row {
+                    name: "gphoto2",
+                    feature: Some("gphoto2"),
+                    #[cfg(feature = "gphoto2")]
+                    make: Make::Real(gphoto2_camera),
+                    #[cfg(not(feature = "gphoto2"))]
+                    make: Make::NotBuilt,
+                },
             ],
             lights: vec![
                 Row {
@@ -279,6 +287,24 @@ fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
     Ok(Arc::new(camera))
 }
 
+/// A DSLR through libgphoto2 (feature `gphoto2`, devices/src/gphoto2): opened here so
+/// that a missing camera or a wrong option fails the rig build, not step one.
+#[cfg(feature = "gphoto2")]
+fn gphoto2_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
+    use gonio_devices::gphoto2::camera::{FromRigError, Gphoto2Camera};
+    let camera = Gphoto2Camera::from_rig(&spec.camera).map_err(|e| match e {
+        FromRigError::Option(error) => RigBuildError::Option {
+            rig: spec.name.clone(),
+            error,
+        },
+        FromRigError::Device(source) => RigBuildError::Camera {
+            rig: spec.name.clone(),
+            source,
+        },
+    })?;
+    Ok(Arc::new(camera))
+}
+
 /// A V4L2 camera (feature `v4l2`, devices/src/v4l2): opened and checked here so that a
 /// missing or wrong device fails the rig build, not step one.
 #[cfg(feature = "v4l2")]
@@ -312,6 +338,18 @@ mod tests {
         spec.camera.backend = "v4l2".into();
         let e = Backends::builtin().camera(&spec).err().unwrap().to_string();
         assert!(e.contains("not in this build") && e.contains("--features v4l2"), "{e}");
+    }
+
+    #[cfg(not(feature = "gphoto2"))]
+    #[test]
+    fn the_gphoto2_backend_names_its_feature_when_compiled_out() {
+        let mut spec = RigSpec::default_rig();
+        spec.camera.backend = "gphoto2".into();
+        let e = Backends::builtin().camera(&spec).err().unwrap().to_string();
+        assert!(
+            e.contains("not in this build") && e.contains("--features gphoto2"),
+            "{e}"
+        );
     }
 
     #[test]

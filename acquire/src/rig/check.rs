@@ -339,8 +339,9 @@ fn fix_build(e: &RigBuildError) -> String {
                 .into(),
         },
         RigBuildError::Camera { .. } => {
-            "check that the camera device exists (`gonio devices list`), that you may open it (group \
-             `video`) and that no other program streams from it"
+            "check that the camera device exists (`gonio devices list`; a still camera: `gphoto2 \
+             --auto-detect`), that you may open it (group `video`, or `plugdev` for USB) and that no \
+             other program streams from it or holds it (a desktop's gvfs-gphoto2-volume-monitor)"
                 .into()
         }
         RigBuildError::Option { .. } | RigBuildError::Sim(_) => "fix the named key in the rig file".into(),
