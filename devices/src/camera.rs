@@ -3,6 +3,7 @@
 use crate::DeviceError;
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
+use std::sync::{Arc, Mutex};
 
 /// Settings a camera is asked for. Real drivers adjust what they are asked (sizes,
 /// exposure steps): `Camera::configure` returns what was actually applied.
@@ -110,4 +111,29 @@ pub trait Camera: Send + Sync {
     fn exposes_in_motion(&self) -> bool {
         false
     }
+}
+
+/// Run one call of a blocking camera driver (V4L2 ioctls, libaravis, libgphoto2) on tokio's
+/// blocking pool with the driver's state locked: the one place where a real camera backend
+/// turns its blocking library into the async [`Camera`] trait. A poisoned lock is taken
+/// over (the state is the driver's own, and a call that panicked stored no frame), and a
+/// worker that panicked becomes a typed error naming the device and the command.
+pub async fn blocking_call<S, T>(
+    device: &str,
+    command: &str,
+    state: &Arc<Mutex<S>>,
+    call: impl FnOnce(&mut S) -> Result<T, DeviceError> + Send + 'static,
+) -> Result<T, DeviceError>
+where
+    S: Send + 'static,
+    T: Send + 'static,
+{
+    let state = state.clone();
+    tokio::task::spawn_blocking(move || call(&mut state.lock().unwrap_or_else(|p| p.into_inner())))
+        .await
+        .map_err(|e| DeviceError::Other {
+            device: device.to_string(),
+            command: command.to_string(),
+            reason: format!("worker task failed: {e}"),
+        })?
 }

@@ -634,27 +634,16 @@ impl Camera for GenicamCamera {
     }
 
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
-        let inner = self.inner.clone();
         let config = config.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).configure(&config))
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "configure".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "configure", &self.inner, move |inner| {
+            inner.configure(&config)
+        })
+        .await
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
-        let inner = self.inner.clone();
         let lost = self.lost.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).capture(&lost))
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "capture".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "capture", &self.inner, move |inner| inner.capture(&lost)).await
     }
 
     /// Vendor, model, serial number and firmware, as the camera's standard features

@@ -441,26 +441,15 @@ impl Camera for Gphoto2Camera {
     }
 
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
-        let inner = self.inner.clone();
         let config = config.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).configure(&config))
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "configure".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "configure", &self.inner, move |inner| {
+            inner.configure(&config)
+        })
+        .await
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
-        let inner = self.inner.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).capture())
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "capture".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "capture", &self.inner, |inner| inner.capture()).await
     }
 
     /// libgphoto2's model name, then manufacturer, model, serial number and firmware as

@@ -735,15 +735,11 @@ impl Camera for V4l2Camera {
     }
 
     async fn configure(&self, config: &CameraConfig) -> Result<CameraConfig, DeviceError> {
-        let inner = self.inner.clone();
         let config = config.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).configure(&config))
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "configure".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "configure", &self.inner, move |inner| {
+            inner.configure(&config)
+        })
+        .await
     }
 
     async fn capture(&self) -> Result<Frame, DeviceError> {
@@ -753,14 +749,7 @@ impl Camera for V4l2Camera {
             .unwrap_or_else(|p| p.into_inner())
             .take()
             .unwrap_or_else(stream::monotonic_now);
-        let inner = self.inner.clone();
-        tokio::task::spawn_blocking(move || inner.lock().unwrap_or_else(|p| p.into_inner()).capture(still))
-            .await
-            .map_err(|e| DeviceError::Other {
-                device: self.name.clone(),
-                command: "capture".into(),
-                reason: format!("worker task failed: {e}"),
-            })?
+        crate::camera::blocking_call(&self.name, "capture", &self.inner, move |inner| inner.capture(still)).await
     }
 
     fn rig_still(&self) {
