@@ -137,3 +137,14 @@ where
             reason: format!("worker task failed: {e}"),
         })?
 }
+
+/// Why a rig file's camera could not be opened: an option the backend refused (its key
+/// names it) or the device itself. Shared by the real camera backends, so the rig builder
+/// maps one type.
+#[derive(Debug, thiserror::Error)]
+pub enum FromRigError {
+    #[error(transparent)]
+    Option(#[from] crate::rig::OptionError),
+    #[error(transparent)]
+    Device(#[from] DeviceError),
+}

@@ -269,12 +269,11 @@ fn hmp_light(spec: &RigSpec) -> Result<Arc<dyn Light>, RigBuildError> {
     Ok(Arc::new(real))
 }
 
-/// A GenICam camera through Aravis (feature `genicam`, devices/src/genicam): opened here
-/// so that a missing camera or a wrong option fails the rig build, not step one.
-#[cfg(feature = "genicam")]
-fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
-    use gonio_devices::genicam::camera::{FromRigError, GenicamCamera};
-    let camera = GenicamCamera::from_rig(&spec.camera).map_err(|e| match e {
+/// A real camera's `from_rig` error as the rig builder reports it.
+#[cfg(any(feature = "genicam", feature = "gphoto2"))]
+fn open_error(spec: &RigSpec, e: gonio_devices::camera::FromRigError) -> RigBuildError {
+    use gonio_devices::camera::FromRigError;
+    match e {
         FromRigError::Option(error) => RigBuildError::Option {
             rig: spec.name.clone(),
             error,
@@ -283,7 +282,15 @@ fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
             rig: spec.name.clone(),
             source,
         },
-    })?;
+    }
+}
+
+/// A GenICam camera through Aravis (feature `genicam`, devices/src/genicam): opened here
+/// so that a missing camera or a wrong option fails the rig build, not step one.
+#[cfg(feature = "genicam")]
+fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
+    use gonio_devices::genicam::camera::GenicamCamera;
+    let camera = GenicamCamera::from_rig(&spec.camera).map_err(|e| open_error(spec, e))?;
     Ok(Arc::new(camera))
 }
 
@@ -291,17 +298,8 @@ fn genicam_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
 /// that a missing camera or a wrong option fails the rig build, not step one.
 #[cfg(feature = "gphoto2")]
 fn gphoto2_camera(spec: &RigSpec) -> Result<Arc<dyn Camera>, RigBuildError> {
-    use gonio_devices::gphoto2::camera::{FromRigError, Gphoto2Camera};
-    let camera = Gphoto2Camera::from_rig(&spec.camera).map_err(|e| match e {
-        FromRigError::Option(error) => RigBuildError::Option {
-            rig: spec.name.clone(),
-            error,
-        },
-        FromRigError::Device(source) => RigBuildError::Camera {
-            rig: spec.name.clone(),
-            source,
-        },
-    })?;
+    use gonio_devices::gphoto2::camera::Gphoto2Camera;
+    let camera = Gphoto2Camera::from_rig(&spec.camera).map_err(|e| open_error(spec, e))?;
     Ok(Arc::new(camera))
 }
 

@@ -222,14 +222,7 @@ impl GenicamCamera {
     }
 }
 
-/// Why a rig file's camera could not be opened.
-#[derive(Debug, thiserror::Error)]
-pub enum FromRigError {
-    #[error(transparent)]
-    Option(#[from] crate::rig::OptionError),
-    #[error(transparent)]
-    Device(#[from] DeviceError),
-}
+pub use crate::camera::FromRigError;
 
 impl Inner {
     fn err(&self, command: &str, e: &aravis::glib::Error) -> DeviceError {

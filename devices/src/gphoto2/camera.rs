@@ -69,14 +69,7 @@ fn wait<T: 'static + Send>(
         .map_err(|e| gp_err(device, command, &e))
 }
 
-/// Why a rig file's camera could not be opened.
-#[derive(Debug, thiserror::Error)]
-pub enum FromRigError {
-    #[error(transparent)]
-    Option(#[from] crate::rig::OptionError),
-    #[error(transparent)]
-    Device(#[from] DeviceError),
-}
+pub use crate::camera::FromRigError;
 
 impl Gphoto2Camera {
     /// Open the camera the options name: by port and/or model, or the only one found.
