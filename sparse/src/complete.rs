@@ -132,6 +132,9 @@ impl<'a> Completion<'a> {
         if plain {
             return Self::build_plain(prior, measured);
         }
+        if prior.pair_residual_var.is_some() {
+            return Self::build_per_pair(prior, measured, noise_var);
+        }
         Self::build_with(prior, measured, noise_var, |p, s2| {
             for j in 0..prior.components() {
                 p[(j, j)] += s2 / prior.variances[j];
@@ -150,6 +153,40 @@ impl<'a> Completion<'a> {
             .pseudo_inverse(1e-10)
             .map_err(|e| SparseError::Invalid(e.to_string()))?;
         Self::finish(prior, measured, 0.0, w, DMatrix::zeros(k, k), ls_cond, ls_cond)
+    }
+
+    /// MAP with each measured pair's own noise variance σ_s² (measurement noise plus the
+    /// prior's ρ at that pair, [`Prior::pair_noise_var`]): with `D = diag(1/σ_s²)`,
+    /// `â = (U_SᵀDU_S + Λ⁻¹)⁻¹ U_SᵀD (y_S − μ_S)` and `Σ = (U_SᵀDU_S + Λ⁻¹)⁻¹`. A pair where
+    /// the basis is known to miss much (a specular peak) then pulls the coefficients less
+    /// than one where it fits well; with equal σ_s² this is the plain MAP.
+    fn build_per_pair(prior: &'a Prior, measured: &[usize], noise_var: f64) -> Result<Self, SparseError> {
+        check_design(prior, measured)?;
+        let k = prior.components();
+        let s = measured.len();
+        let sd: Vec<f64> = measured
+            .iter()
+            .map(|&p| prior.pair_noise_var(p, noise_var).sqrt())
+            .collect();
+        let us = DMatrix::<f64>::from_fn(s, k, |i, j| prior.basis[(measured[i], j)]);
+        let ls_cond = condition(&(us.transpose() * &us));
+        let white = DMatrix::<f64>::from_fn(s, k, |i, j| us[(i, j)] / sd[i]);
+        let mut p = white.transpose() * &white;
+        for j in 0..k {
+            p[(j, j)] += 1.0 / prior.variances[j];
+        }
+        let cond = condition(&p);
+        let chol = p.cholesky().ok_or_else(|| {
+            SparseError::Refused(format!(
+                "the MAP system is not positive definite (condition {cond:.3e})"
+            ))
+        })?;
+        let mut w = chol.solve(&white.transpose());
+        for (i, mut col) in w.column_iter_mut().enumerate() {
+            col /= sd[i];
+        }
+        let post = chol.inverse();
+        Self::finish(prior, measured, noise_var, w, post, cond, ls_cond)
     }
 
     /// MAP: `(U_SᵀU_S + σ² C⁻¹)`, where `regularize(p, σ²)` adds `σ² C⁻¹` to `p`.
@@ -258,11 +295,12 @@ impl<'a> Completion<'a> {
     /// basis plus what the basis leaves out.
     pub fn predicted_var(&self, p: usize) -> f64 {
         let u = self.prior.basis.row(p).transpose();
-        (u.transpose() * &self.post * &u)[(0, 0)].max(0.0) + self.prior.header.residual_var
+        (u.transpose() * &self.post * &u)[(0, 0)].max(0.0) + self.prior.pair_residual(p)
     }
 
     /// Mean predicted squared error over every pair of the sweep (model space):
-    /// `Σ_p u_pᵀ Σ u_p / D + ρ = tr(Σ) / D + ρ` (U orthonormal), the quantity the design
+    /// `Σ_p u_pᵀ Σ u_p / D + ρ = tr(Σ) / D + ρ` (U orthonormal; ρ is also the mean of the
+    /// per-pair residuals), the quantity the design
     /// minimizes (`design::Greedy::expected_mse`).
     pub fn predicted_mse(&self) -> f64 {
         self.post.trace().max(0.0) / self.prior.dims() as f64 + self.prior.header.residual_var
@@ -471,6 +509,54 @@ mod tests {
         let black = DMatrix::<f64>::zeros(design.len(), 6);
         assert!(loo_noise_var(&p, &design, &black, floor).unwrap().noise_var.is_finite());
         assert!(loo_noise_var(&p, &design, &black.rows(0, 3).into_owned(), floor).is_err());
+    }
+
+    #[test]
+    fn per_pair_residuals_weigh_pairs_and_reduce_to_the_plain_map() {
+        let (meta, rows) = toy(9, 500, 6, 5);
+        let plain = Prior::learn(meta, &rows, 8, 1).unwrap();
+        let d = 81;
+        let (_, test) = toy(9, 20, 6, 99);
+        let truth = model_rows(&test, d, 20);
+        let design: Vec<usize> = (0..d).step_by(4).collect();
+        let nv = plain.header.residual_var + 1e-6;
+        // Equal per-pair residuals: the weighted MAP is the plain one.
+        let mut equal = plain.clone();
+        equal.pair_residual_var = Some(vec![plain.header.residual_var; d]);
+        let (a, b) = (
+            Completion::new(&plain, &design, nv).unwrap(),
+            Completion::new(&equal, &design, nv).unwrap(),
+        );
+        let y = truth.select_rows(&design);
+        let (fa, fb) = (a.predict_all(&a.coefficients(&y)), b.predict_all(&b.coefficients(&y)));
+        assert!((&fa - &fb).amax() < 1e-9, "{}", (&fa - &fb).amax());
+        assert!((a.predicted_var(3) - b.predicted_var(3)).abs() < 1e-12);
+        // One pair declared unreliable (a large residual there, the mean kept): a gross error
+        // on that pair's measurement moves the completion far less, and its own predicted
+        // error is its residual.
+        let bad = design[5];
+        let mut uneven = vec![plain.header.residual_var * 0.5; d];
+        uneven[bad] = plain.header.residual_var * 0.5 + 0.5 * d as f64 * plain.header.residual_var;
+        let mut weighted = plain.clone();
+        weighted.pair_residual_var = Some(uneven);
+        let c = Completion::new(&weighted, &design, nv).unwrap();
+        let mut y_bad = y.clone();
+        y_bad.row_mut(5).add_scalar_mut(0.3);
+        let shift =
+            |c: &Completion| (c.predict_all(&c.coefficients(&y_bad)) - c.predict_all(&c.coefficients(&y))).norm();
+        assert!(
+            shift(&c) < 0.5 * shift(&a),
+            "weighted {} plain {}",
+            shift(&c),
+            shift(&a)
+        );
+        assert!(c.predicted_var(bad) > a.predicted_var(bad));
+        // The greedy design sees the same weights: it does not start at the unreliable pair.
+        let cand: Vec<usize> = (0..d).collect();
+        let first = greedy_design(&weighted, &cand, &[], 1, nv).unwrap()[0].pair;
+        assert_ne!(first, bad);
+        let same = greedy_design(&equal, &cand, &[], 12, nv).unwrap();
+        assert_eq!(same, greedy_design(&plain, &cand, &[], 12, nv).unwrap());
     }
 
     #[test]

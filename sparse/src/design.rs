@@ -37,6 +37,8 @@ pub struct DesignStep {
 pub struct Greedy<'a> {
     prior: &'a Prior,
     noise_var: f64,
+    /// Per pair σ_q² when the prior has per-pair residuals ([`Prior::pair_noise_var`]).
+    pair_noise: Option<Vec<f64>>,
     k: usize,
     u: Vec<f64>, // D × K row-major copy of the basis
     b: Vec<f64>, // D × K row-major, B = U Σ
@@ -82,9 +84,15 @@ impl<'a> Greedy<'a> {
                 .map(|(row, ur)| norms(row, ur))
                 .unzip()
         };
+        let noise_var = noise_var.max(1e-12);
+        let pair_noise = prior
+            .pair_residual_var
+            .as_ref()
+            .map(|_| (0..d).map(|q| prior.pair_noise_var(q, noise_var)).collect());
         Greedy {
             prior,
-            noise_var: noise_var.max(1e-12),
+            noise_var,
+            pair_noise,
             k,
             u,
             b,
@@ -110,7 +118,12 @@ impl<'a> Greedy<'a> {
     /// per-row sums `add` keeps.
     pub fn gain_and_var(&self, q: usize) -> (f64, f64) {
         let qu = self.qu[q];
-        (self.nn[q] / (self.noise_var + qu), qu.max(0.0))
+        (self.nn[q] / (self.noise(q) + qu), qu.max(0.0))
+    }
+
+    /// σ_q²: the noise variance of a measurement of pair q.
+    fn noise(&self, q: usize) -> f64 {
+        self.pair_noise.as_ref().map_or(self.noise_var, |v| v[q])
     }
 
     pub fn is_chosen(&self, q: usize) -> bool {
@@ -127,7 +140,7 @@ impl<'a> Greedy<'a> {
             return;
         }
         let g: Vec<f64> = self.b[q * k..q * k + k].to_vec(); // Σ u_q
-        let c: f64 = self.noise_var + g.iter().zip(&self.u[q * k..q * k + k]).map(|(a, b)| a * b).sum::<f64>();
+        let c: f64 = self.noise(q) + g.iter().zip(&self.u[q * k..q * k + k]).map(|(a, b)| a * b).sum::<f64>();
         let gn: f64 = g.iter().map(|x| x * x).sum();
         let g = &g;
         self.b

@@ -36,6 +36,12 @@ pub struct GenerateArgs {
     /// disjoint member directories of the same --out, with no lock.
     #[arg(long)]
     pub shard: Option<Shard>,
+    /// Generate N members instead of the spec's `members`. Member m's draws depend only
+    /// on the spec's seed and m, so the first members are the same for any N; with
+    /// `--shard`, `--members 18 --shard 3/3` draws only members 12–17: fresh members of a
+    /// family whose first 12 trained a prior (`gonio prior holdout`).
+    #[arg(long, value_name = "N")]
+    pub members: Option<usize>,
     /// Replace members (and the spec) of another family at --out.
     #[arg(long)]
     pub force: bool,
@@ -84,7 +90,12 @@ fn check(a: CheckArgs) -> Result<ExitCode> {
 }
 
 fn generate(a: GenerateArgs) -> Result<ExitCode> {
-    let family = Family::load(&a.spec).with_context(|| format!("reading the family spec {}", a.spec.display()))?;
+    let mut family = Family::load(&a.spec).with_context(|| format!("reading the family spec {}", a.spec.display()))?;
+    if let Some(m) = a.members {
+        family = family
+            .with_members(m)
+            .with_context(|| format!("--members {m} for {}", a.spec.display()))?;
+    }
     let n = a
         .shard
         .map_or(family.spec.members, |s| s.views(family.spec.members).len());

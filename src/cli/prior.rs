@@ -20,6 +20,31 @@ pub enum PriorCommand {
     Build(BuildArgs),
     /// Print a prior's header: sweep, units, components, training data.
     Show(ShowArgs),
+    /// Measure a learned prior on complete datasets it never saw (fresh members of its
+    /// family): ρ, the variance its basis leaves out, becomes the held-out figure instead of
+    /// the training one, which understates it. The mean and basis are kept.
+    Holdout(HoldoutArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct HoldoutArgs {
+    /// The prior (a .gprior file, or `default`).
+    pub prior: String,
+    /// Complete datasets of the prior's sweep and units that it was not learned from.
+    #[arg(required = true)]
+    pub datasets: Vec<PathBuf>,
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Texels taken from each dataset (evenly spaced; 3 ABRDFs each).
+    #[arg(long, default_value_t = 400)]
+    pub texels: usize,
+    /// Also take each component's variance (λ) from the held-out datasets.
+    #[arg(long)]
+    pub variances: bool,
+    #[arg(long)]
+    pub force: bool,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -38,6 +63,16 @@ pub struct BuildArgs {
     /// Value space of the model: `gamma` (x^(1/2.2), close to the 8-bit sRGB metric) or `linear`.
     #[arg(long, default_value = "gamma")]
     pub space: ValueSpace,
+    /// Hold out every N-th dataset (the N-th, 2N-th, … in the order given): they shape
+    /// neither the mean nor the basis, and ρ — the variance the basis leaves out, which the
+    /// completion treats as noise and every predicted error includes — is measured on them
+    /// instead of on the training data (which fit their own basis and understate it).
+    #[arg(long, value_name = "N")]
+    pub holdout: Option<usize>,
+    /// With --holdout: also take each component's variance (λ, the prior's Gaussian) from
+    /// the held-out datasets instead of the training data.
+    #[arg(long, requires = "holdout")]
+    pub holdout_variances: bool,
     /// Seed of the randomized SVD's sketch.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -58,6 +93,7 @@ pub struct ShowArgs {
 pub fn run(c: PriorCommand) -> Result<ExitCode> {
     match c {
         PriorCommand::Build(a) => build(a),
+        PriorCommand::Holdout(a) => holdout(a),
         PriorCommand::Show(a) => {
             let (p, path) = load_prior(Some(&a.prior))?;
             if a.json {
@@ -95,6 +131,22 @@ fn print_header(p: &Prior, path: &Path) {
         .map(|s| s.sample.clone().unwrap_or_else(|| s.dataset.clone()))
         .collect();
     println!("  trained on {} datasets: {}", names.len(), names.join(", "));
+    if let Some(o) = &h.held_out {
+        println!(
+            "  held out {} datasets ({} ABRDFs): residual {:.3e} per pair on them against {:.3e} on the \
+             training data ({:.1} ×){}",
+            o.datasets.len(),
+            o.abrdfs,
+            o.residual_var,
+            o.training_residual_var,
+            o.residual_var / o.training_residual_var.max(1e-300),
+            if o.variances_from_held_out {
+                "; component variances from the held-out data"
+            } else {
+                ""
+            }
+        );
+    }
 }
 
 /// The sample name a dataset's manifest records.
@@ -161,10 +213,20 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
     if a.out.exists() && !a.force {
         bail!("{} exists: use --force to replace it", a.out.display());
     }
-    let mut rows = Vec::new();
-    let mut sources = Vec::new();
+    if let Some(n) = a.holdout {
+        if n < 2 || n > a.datasets.len() {
+            bail!(
+                "--holdout {n}: holds out every {n}-th of the {} datasets given; it must be at least 2 \
+                 (something must remain to learn from) and at most the number of datasets",
+                a.datasets.len()
+            );
+        }
+    }
+    let held = |i: usize| a.holdout.is_some_and(|n| (i + 1).is_multiple_of(n));
+    let (mut rows, mut held_rows) = (Vec::new(), Vec::new());
+    let (mut sources, mut held_sources) = (Vec::new(), Vec::new());
     let mut first: Option<DatasetViews> = None;
-    for dir in &a.datasets {
+    for (i, dir) in a.datasets.iter().enumerate() {
         let ds = DatasetViews::open(dir).with_context(|| format!("opening {}", dir.display()))?;
         if let Some(f) = &first {
             if f.lights_deg != ds.lights_deg || f.views_deg != ds.views_deg {
@@ -187,6 +249,11 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
             }
         }
         let texels = spread_texels(ds.texels(), a.texels);
+        let (rows, sources) = if held(i) {
+            (&mut held_rows, &mut held_sources)
+        } else {
+            (&mut rows, &mut sources)
+        };
         rows.extend(abrdf_rows(&ds, &texels)?);
         sources.push(TrainingSource {
             // The directory's own name only: the prior's bytes do not depend on where the
@@ -210,21 +277,61 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
         space: a.space,
         sources,
     };
-    let prior = Prior::learn(meta, &rows, a.components, a.seed)?;
+    let holdout = a
+        .holdout
+        .map(|_| (held_rows.as_slice(), held_sources, a.holdout_variances));
+    let prior = Prior::learn_with_holdout(meta, &rows, holdout, a.components, a.seed)?;
+    write_prior(&prior, &a.out, a.json)
+}
+
+fn holdout(a: HoldoutArgs) -> Result<ExitCode> {
+    if a.out.exists() && !a.force {
+        bail!("{} exists: use --force to replace it", a.out.display());
+    }
+    let (prior, path) = load_prior(Some(&a.prior))?;
+    let mut rows = Vec::new();
+    let mut sources = Vec::new();
+    for dir in &a.datasets {
+        let ds = DatasetViews::open(dir).with_context(|| format!("opening {}", dir.display()))?;
+        prior
+            .check_compatible(
+                &sweep_name(&ds),
+                &ds.lights_deg,
+                &ds.views_deg,
+                &units_key(&ds.header.values),
+            )
+            .with_context(|| format!("{} against {}", dir.display(), path.display()))?;
+        let texels = spread_texels(ds.texels(), a.texels);
+        rows.extend(abrdf_rows(&ds, &texels)?);
+        sources.push(TrainingSource {
+            dataset: dir
+                .file_name()
+                .map_or_else(|| dir.display().to_string(), |f| f.to_string_lossy().into_owned()),
+            sample: sample_name(&ds),
+            texels: texels.len(),
+        });
+    }
+    let out = prior
+        .with_held_out(&rows, sources, a.variances)
+        .with_context(|| format!("measuring {} on the held-out datasets", path.display()))?;
+    write_prior(&out, &a.out, a.json)
+}
+
+fn write_prior(prior: &Prior, out: &Path, json: bool) -> Result<ExitCode> {
     let bytes = prior.to_bytes()?;
-    if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)?;
     }
-    crate::store::atomic::write_atomic(&a.out, &bytes, None).with_context(|| format!("writing {}", a.out.display()))?;
-    if a.json {
+    crate::store::atomic::write_atomic(out, &bytes, None).with_context(|| format!("writing {}", out.display()))?;
+    if json {
         let j = BuildJson {
-            out: a.out.display().to_string(),
+            out: out.display().to_string(),
             bytes: bytes.len(),
             header: &prior.header,
         };
         println!("{}", serde_json::to_string(&j)?);
     } else {
-        print_header(&prior, &a.out);
+        print_header(prior, out);
         println!("  wrote {} bytes", bytes.len());
     }
     Ok(ExitCode::SUCCESS)

@@ -190,6 +190,45 @@ impl Family {
         Family::parse(&text, &file, path.parent().unwrap_or(Path::new(".")))
     }
 
+    /// The same family with `members` members: the spec's top-level `members = N` line is
+    /// rewritten, so the stored `family.toml` says what was generated. Member m's draws
+    /// depend only on the seed and m, so the first members are unchanged.
+    pub fn with_members(mut self, members: usize) -> Result<Family, FamilyError> {
+        let bad = |message: String| FamilyError::Spec {
+            file: self.file.clone(),
+            message,
+        };
+        if members == 0 || members > MAX_MEMBERS {
+            return Err(bad(format!("--members {members}: give 1 to {MAX_MEMBERS}")));
+        }
+        let mut found = false;
+        let text: Vec<String> = self
+            .text
+            .lines()
+            .map(|l| {
+                let key = l.split('=').next().unwrap_or("").trim();
+                if !found && key == "members" && !l.starts_with(char::is_whitespace) {
+                    found = true;
+                    format!("members = {members}")
+                } else {
+                    l.to_string()
+                }
+            })
+            .collect();
+        if !found {
+            return Err(bad(
+                "--members needs a top-level `members = N` line in the spec to rewrite".into(),
+            ));
+        }
+        let mut text = text.join("\n");
+        if self.text.ends_with('\n') {
+            text.push('\n');
+        }
+        self.text = text;
+        self.spec.members = members;
+        Ok(self)
+    }
+
     /// [`Family::load`] from text; relative paths resolve against `base_dir`.
     pub fn parse(text: &str, file: &str, base_dir: &Path) -> Result<Family, FamilyError> {
         let bad = |message: String| FamilyError::Spec {

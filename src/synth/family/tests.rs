@@ -182,3 +182,20 @@ fn shards_write_the_single_process_family_and_reruns_keep_complete_members() {
         .unwrap_err();
     assert!(e.to_string().contains("3 members cannot be split into 4"), "{e}");
 }
+
+#[test]
+fn more_members_keep_the_first_draws_and_say_so_in_the_stored_spec() {
+    let f = family(SPEC).unwrap();
+    let g = family(SPEC).unwrap().with_members(5).unwrap();
+    assert_eq!(g.spec.members, 5);
+    for m in 0..3 {
+        assert_eq!(f.member(m).unwrap().labels, g.member(m).unwrap().labels, "member {m}");
+    }
+    assert!(g.member(4).is_ok());
+    // The stored spec is the original text with only the members line rewritten.
+    assert_eq!(g.text, SPEC.replace("members = 3", "members = 5"));
+    assert!(family(&g.text).is_ok());
+    assert!(family(SPEC).unwrap().with_members(0).is_err());
+    let no_line = SPEC.replace("members = 3\n", "members=3\n");
+    assert!(family(&no_line).unwrap().with_members(4).is_ok());
+}
