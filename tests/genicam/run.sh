@@ -3,7 +3,10 @@
 # wire: Debian's arv-fake-gv-camera-0.8 (aravis-tools) on the loopback interface.
 #
 #  1. builds gonio (the lab build) with `--features genicam` once and lints the backend
-#     with the feature on (the workspace lint of tests/run.sh has it off);
+#     with the feature on (the workspace lint of tests/run.sh has it off). With
+#     GONIO_LAB_FEATURES (tests/run.sh sets `genicam,gphoto2`) every cargo command here
+#     uses those features instead, as tests/gphoto2/run.sh does: whichever script runs
+#     second finds the lab build, the lint and the test build fresh;
 #  2. the backend's unit tests and devices/tests/genicam_fake.rs (exposure read-back, the
 #     fake's pattern in Mono8/Mono16/Bayer, a camera changed mid-run, timeout and re-arm,
 #     the fake killed mid-run);
@@ -35,15 +38,18 @@ if pgrep -f "$FAKE" >/dev/null; then
   die "another $FAKE is already running on this host; stop it first"
 fi
 
-# Locally a separate target dir keeps target/debug/gonio the default build. Under CI this
-# shares target/: the dependencies tests/run.sh already built are not built again.
-# GONIO_GENICAM_TARGET_DIR overrides.
+# The features of every cargo command below (the lab build shared with tests/gphoto2/run.sh).
+FEATURES=${GONIO_LAB_FEATURES:-genicam}
+case ",$FEATURES," in *,genicam,*) ;; *) FEATURES="$FEATURES,genicam" ;; esac
+# Locally a separate target dir keeps target/debug/gonio the default build (target/lab, the
+# same as tests/gphoto2/run.sh's). Under CI this shares target/: the dependencies
+# tests/run.sh already built are not built again. GONIO_GENICAM_TARGET_DIR overrides.
 if [ -n "${GONIO_GENICAM_TARGET_DIR:-}" ]; then
   export CARGO_TARGET_DIR=$GONIO_GENICAM_TARGET_DIR
 elif [ -n "${CI:-}" ]; then
   export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 else
-  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/genicam}
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/lab}
 fi
 TARGET=$CARGO_TARGET_DIR
 WORK=$(mktemp -d)
@@ -56,17 +62,17 @@ trap cleanup EXIT
 
 # The lab build (acquisition only: no faer, zarrs, axum) plus the feature: the least that
 # acquires, so CI compiles the feature's dependants once and nothing it does not run.
-log "building gonio (lab build) with --features genicam (target dir $TARGET)"
-cargo build -q -p gonio --no-default-features --features genicam --bin gonio ||
-  die "cargo build -p gonio --no-default-features --features genicam (needs libaravis-dev)"
-cargo clippy -q -p gonio-devices --features genicam --all-targets -- -D warnings ||
-  die "cargo clippy -p gonio-devices --features genicam"
+log "building gonio (lab build) with --features $FEATURES (target dir $TARGET)"
+cargo build -q -p gonio --no-default-features --features "$FEATURES" --bin gonio ||
+  die "cargo build -p gonio --no-default-features --features $FEATURES (needs libaravis-dev)"
+cargo clippy -q -p gonio-devices --features "$FEATURES" --all-targets -- -D warnings ||
+  die "cargo clippy -p gonio-devices --features $FEATURES"
 GONIO=$TARGET/debug/gonio
 
 log "unit tests and the fake-camera tests (devices/tests/genicam_fake.rs)"
-out=$(cargo test -q -p gonio-devices --features genicam --lib --test genicam_fake -- genicam:: fake:: --test-threads=1 --nocapture 2>&1) || {
+out=$(cargo test -q -p gonio-devices --features "$FEATURES" --lib --test genicam_fake -- genicam:: fake:: --test-threads=1 --nocapture 2>&1) || {
   echo "$out" | tail -60 >&2
-  die "cargo test -p gonio-devices --features genicam"
+  die "cargo test -p gonio-devices --features $FEATURES"
 }
 echo "$out" | grep -oE 'genicam_fake: .*|test result.*' || true
 
