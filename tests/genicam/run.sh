@@ -15,7 +15,9 @@
 #     checked pixel for pixel against the fake's pattern (tests/genicam/check_pattern.py);
 #  4. `--hdr 2`: the bracket's exposures are recorded as the camera read them back;
 #  5. the fake killed mid-acquisition: the run fails with the camera named as disconnected,
-#     and every frame stored before that still matches the pattern (none with wrong metadata).
+#     and every frame stored before that still matches the pattern (none with wrong metadata);
+#  6. `gonio devices list --json` finds the fake through Aravis' discovery (with the
+#     `device` option that opens it), and no longer once it is killed.
 #
 # Needs libaravis-dev, libusb-1.0-0-dev and aravis-tools (.ci/run installs them). Without
 # them it prints why it is skipped; under CI ($CI set) that is a failure.
@@ -105,6 +107,24 @@ acquire() { # acquire OUT SWEEP
 log "end to end: gonio acquire --sweep fibonacci:8 with the fake camera and emulated Zaber stages"
 start_fake
 start_stages
+
+# `gonio devices list`: the fake found by Aravis' discovery, listed with what a rig file writes.
+listed() { # listed JSON: the genicam cameras at 127.0.0.1, one line each
+  python3 - "$1" <<'PY'
+import json, sys
+l = json.load(open(sys.argv[1]))
+rows = [b for b in l["cameras"] if b["backend"] == "genicam"]
+assert len(rows) == 1 and rows[0]["built"] and not rows[0]["error"], rows
+for c in rows[0]["cameras"]:
+    if "127.0.0.1" in c["address"]:
+        print(f'{c["model"]} at {c["address"]} ({c["rig_options"]})')
+PY
+}
+"$GONIO" devices list --json >"$WORK/list.json" || die "gonio devices list --json failed"
+found=$(listed "$WORK/list.json") || die "gonio devices list --json: no genicam entry: $(cat "$WORK/list.json")"
+[ -n "$found" ] || die "gonio devices list does not list the fake camera: $(cat "$WORK/list.json")"
+echo "$found" | grep -q 'device = "Aravis-Fake-' || die "the listed fake has no device option: $found"
+log "devices list: $found"
 acquire "$WORK/ds" fibonacci:8 >"$WORK/acquire.json" 2>"$WORK/acquire.err" || {
   tail -30 "$WORK/acquire.err" >&2
   die "gonio acquire with the fake camera failed"
@@ -158,6 +178,9 @@ grep -qi "disconnected\|timed out" "$WORK/kill.err" || {
   die "the failed run does not say the camera was lost"
 }
 log "run ended with rc=$rc: $(grep -iE 'disconnected|timed out' "$WORK/kill.err" | tail -1)"
+"$GONIO" devices list --json >"$WORK/list-killed.json" || die "gonio devices list --json failed"
+[ -z "$(listed "$WORK/list-killed.json")" ] || die "gonio devices list still lists the killed fake camera"
+log "devices list after the kill: the fake is no longer listed"
 python3 tests/genicam/check_pattern.py "$WORK/ds-kill" --min-frames 5 | tail -1 ||
   die "a frame stored before the camera was lost does not match the pattern"
 log "passed"

@@ -20,7 +20,9 @@
 #     choice and read back, aperture set from the choices, refusals (aperture not offered,
 #     ISO, gain, wrong size), capture, download, decoded image equal to the reference,
 #     file deleted from the card;
-#  5. end to end: `gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibonacci:4`
+#  5. `gonio devices list --json` (libgphoto2's auto-detection) lists the vusb camera with
+#     the rig-file options that open it, and lists none with Debian's libgphoto2;
+#  6. end to end: `gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibonacci:4`
 #     (the lab build with --features gphoto2; simulated axes and light, the vusb camera
 #     serving the same reference JPEG): complete, `gonio verify` clean, every stored raw
 #     frame 96 × 64 16-bit RGB with the read-back exposure 0.1 s.
@@ -120,6 +122,27 @@ log "end to end: gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibo
 cargo build -q -p gonio --no-default-features --features "$FEATURES" --bin gonio ||
   die "cargo build -p gonio --no-default-features --features $FEATURES"
 GONIO=$CARGO_TARGET_DIR/debug/gonio
+
+listed() { # listed JSON: the gphoto2 cameras, one line each
+  python3 - "$1" <<'PY'
+import json, sys
+l = json.load(open(sys.argv[1]))
+rows = [b for b in l["cameras"] if b["backend"] == "gphoto2"]
+assert len(rows) == 1 and rows[0]["built"] and not rows[0]["error"], rows
+for c in rows[0]["cameras"]:
+    print(f'{c["model"]} at {c["address"]} ({c["rig_options"]})')
+PY
+}
+log "gonio devices list --json with the vusb camera"
+VCAMERADIR=$WORK/vcam IOLIBS=$VUSB CAMLIBS=$WORK/wh/gphoto2/libgphoto2/camlibs LD_LIBRARY_PATH=$WORK/shim:$LIBS \
+  "$GONIO" devices list --json >"$WORK/list.json" || die "gonio devices list --json failed"
+found=$(listed "$WORK/list.json") || die "gonio devices list --json: no gphoto2 entry: $(cat "$WORK/list.json")"
+echo "$found" | grep -q 'Nikon DSC D750 at usb:001,001 (port = "usb:001,001", model = "Nikon DSC D750")' ||
+  die "gonio devices list does not list the vusb camera: $(cat "$WORK/list.json")"
+log "devices list: $found"
+"$GONIO" devices list --json >"$WORK/list-none.json" || die "gonio devices list --json failed"
+[ -z "$(listed "$WORK/list-none.json")" ] || die "Debian's libgphoto2 (no vusb) lists a camera: $(cat "$WORK/list-none.json")"
+log "devices list with Debian's libgphoto2: no camera"
 VCAMERADIR=$WORK/vcam IOLIBS=$VUSB CAMLIBS=$WORK/wh/gphoto2/libgphoto2/camlibs LD_LIBRARY_PATH=$WORK/shim:$LIBS \
   "$GONIO" acquire --rig devices/rigs/gphoto2-vusb.toml --sample white-standard --sweep fibonacci:4 --plan-time 0 \
   --no-truth --raw --out "$WORK/ds" --json -q >"$WORK/acquire.json" 2>"$WORK/acquire.err" || {
