@@ -58,14 +58,31 @@ fi
 echo "== browser (gonio view in headless chromium)"
 bash tests/browser/run.sh
 
-# --- GenICam camera backend (feature `genicam`) against Debian's fake GigE Vision camera
-# on loopback (tests/genicam/): builds gonio with the feature once, runs the backend's
-# tests, an end-to-end acquisition with emulated Zaber stages checked against the fake's
-# pattern, and the fake killed mid-run. Mandatory under CI; elsewhere skipped with a notice
-# when libaravis or the fake are missing.
+# --- Lab cameras: the GenICam backend (feature `genicam`) against Debian's fake GigE Vision
+# camera on loopback (tests/genicam/: the backend's tests, an end-to-end acquisition with
+# emulated Zaber stages checked against the fake's pattern, the fake killed mid-run) and the
+# gphoto2 backend (feature `gphoto2`) against libgphoto2's vusb virtual camera
+# (tests/gphoto2/: the backend's tests, capture/download/delete/decode, an acquisition).
+# One build for both: the two scripts build with the same features (GONIO_LAB_FEATURES), so
+# the lab build of gonio, the backends' lint and gonio-devices' test build are compiled
+# once, by the first script, and the second finds them fresh. Mandatory under CI;
+# elsewhere a script whose prerequisites are missing is skipped with a notice (and its
+# feature is left out of the shared build).
 disk
-echo "== genicam (GenICam backend against arv-fake-gv-camera-0.8)"
+echo "== lab cameras (genicam, gphoto2): one lab build with both features"
+lab_features=()
+if [ -n "${CI:-}" ] || { command -v arv-fake-gv-camera-0.8 >/dev/null && pkg-config --exists aravis-0.8 2>/dev/null; }; then
+  lab_features+=(genicam)
+fi
+if [ -n "${CI:-}" ] || pkg-config --exists libgphoto2 2>/dev/null; then
+  lab_features+=(gphoto2)
+fi
+GONIO_LAB_FEATURES=$(IFS=,; echo "${lab_features[*]}")
+export GONIO_LAB_FEATURES
+lab_start=$(date +%s)
 bash tests/genicam/run.sh
+bash tests/gphoto2/run.sh
+echo "lab cameras: $(($(date +%s) - lab_start)) s wall (features: ${GONIO_LAB_FEATURES:-none})"
 
 # --- V4L2 camera backend against the kernel's vivid driver in a QEMU VM (tests/vivid/).
 # Needs apt-get (to download the Debian kernel/busybox/QEMU packages, never installed) and

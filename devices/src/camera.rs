@@ -113,6 +113,20 @@ pub trait Camera: Send + Sync {
     }
 }
 
+/// A camera a backend found on this machine (`gonio devices list`), with the rig-file
+/// options that open exactly it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FoundCamera {
+    /// The rig file's `camera.backend`.
+    pub backend: String,
+    /// Vendor and model as the backend reports them.
+    pub model: String,
+    /// Where it is, in the backend's terms (libgphoto2 port; GenICam protocol and address).
+    pub address: String,
+    /// What goes into the rig file's `[camera] options` to open it (`port = "usb:001,004"`).
+    pub rig_options: String,
+}
+
 /// Run one call of a blocking camera driver (V4L2 ioctls, libaravis, libgphoto2) on tokio's
 /// blocking pool with the driver's state locked: the one place where a real camera backend
 /// turns its blocking library into the async [`Camera`] trait. A poisoned lock is taken

@@ -3,7 +3,10 @@
 # wire: Debian's arv-fake-gv-camera-0.8 (aravis-tools) on the loopback interface.
 #
 #  1. builds gonio (the lab build) with `--features genicam` once and lints the backend
-#     with the feature on (the workspace lint of tests/run.sh has it off);
+#     with the feature on (the workspace lint of tests/run.sh has it off). With
+#     GONIO_LAB_FEATURES (tests/run.sh sets `genicam,gphoto2`) every cargo command here
+#     uses those features instead, as tests/gphoto2/run.sh does: whichever script runs
+#     second finds the lab build, the lint and the test build fresh;
 #  2. the backend's unit tests and devices/tests/genicam_fake.rs (exposure read-back, the
 #     fake's pattern in Mono8/Mono16/Bayer, a camera changed mid-run, timeout and re-arm,
 #     the fake killed mid-run);
@@ -12,7 +15,9 @@
 #     checked pixel for pixel against the fake's pattern (tests/genicam/check_pattern.py);
 #  4. `--hdr 2`: the bracket's exposures are recorded as the camera read them back;
 #  5. the fake killed mid-acquisition: the run fails with the camera named as disconnected,
-#     and every frame stored before that still matches the pattern (none with wrong metadata).
+#     and every frame stored before that still matches the pattern (none with wrong metadata);
+#  6. `gonio devices list --json` finds the fake through Aravis' discovery (with the
+#     `device` option that opens it), and no longer once it is killed.
 #
 # Needs libaravis-dev, libusb-1.0-0-dev and aravis-tools (.ci/run installs them). Without
 # them it prints why it is skipped; under CI ($CI set) that is a failure.
@@ -35,15 +40,18 @@ if pgrep -f "$FAKE" >/dev/null; then
   die "another $FAKE is already running on this host; stop it first"
 fi
 
-# Locally a separate target dir keeps target/debug/gonio the default build. Under CI this
-# shares target/: the dependencies tests/run.sh already built are not built again.
-# GONIO_GENICAM_TARGET_DIR overrides.
+# The features of every cargo command below (the lab build shared with tests/gphoto2/run.sh).
+FEATURES=${GONIO_LAB_FEATURES:-genicam}
+case ",$FEATURES," in *,genicam,*) ;; *) FEATURES="$FEATURES,genicam" ;; esac
+# Locally a separate target dir keeps target/debug/gonio the default build (target/lab, the
+# same as tests/gphoto2/run.sh's). Under CI this shares target/: the dependencies
+# tests/run.sh already built are not built again. GONIO_GENICAM_TARGET_DIR overrides.
 if [ -n "${GONIO_GENICAM_TARGET_DIR:-}" ]; then
   export CARGO_TARGET_DIR=$GONIO_GENICAM_TARGET_DIR
 elif [ -n "${CI:-}" ]; then
   export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 else
-  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/genicam}
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/lab}
 fi
 TARGET=$CARGO_TARGET_DIR
 WORK=$(mktemp -d)
@@ -56,17 +64,17 @@ trap cleanup EXIT
 
 # The lab build (acquisition only: no faer, zarrs, axum) plus the feature: the least that
 # acquires, so CI compiles the feature's dependants once and nothing it does not run.
-log "building gonio (lab build) with --features genicam (target dir $TARGET)"
-cargo build -q -p gonio --no-default-features --features genicam --bin gonio ||
-  die "cargo build -p gonio --no-default-features --features genicam (needs libaravis-dev)"
-cargo clippy -q -p gonio-devices --features genicam --all-targets -- -D warnings ||
-  die "cargo clippy -p gonio-devices --features genicam"
+log "building gonio (lab build) with --features $FEATURES (target dir $TARGET)"
+cargo build -q -p gonio --no-default-features --features "$FEATURES" --bin gonio ||
+  die "cargo build -p gonio --no-default-features --features $FEATURES (needs libaravis-dev)"
+cargo clippy -q -p gonio-devices --features "$FEATURES" --all-targets -- -D warnings ||
+  die "cargo clippy -p gonio-devices --features $FEATURES"
 GONIO=$TARGET/debug/gonio
 
 log "unit tests and the fake-camera tests (devices/tests/genicam_fake.rs)"
-out=$(cargo test -q -p gonio-devices --features genicam --lib --test genicam_fake -- genicam:: fake:: --test-threads=1 --nocapture 2>&1) || {
+out=$(cargo test -q -p gonio-devices --features "$FEATURES" --lib --test genicam_fake -- genicam:: fake:: --test-threads=1 --nocapture 2>&1) || {
   echo "$out" | tail -60 >&2
-  die "cargo test -p gonio-devices --features genicam"
+  die "cargo test -p gonio-devices --features $FEATURES"
 }
 echo "$out" | grep -oE 'genicam_fake: .*|test result.*' || true
 
@@ -99,6 +107,24 @@ acquire() { # acquire OUT SWEEP
 log "end to end: gonio acquire --sweep fibonacci:8 with the fake camera and emulated Zaber stages"
 start_fake
 start_stages
+
+# `gonio devices list`: the fake found by Aravis' discovery, listed with what a rig file writes.
+listed() { # listed JSON: the genicam cameras at 127.0.0.1, one line each
+  python3 - "$1" <<'PY'
+import json, sys
+l = json.load(open(sys.argv[1]))
+rows = [b for b in l["cameras"] if b["backend"] == "genicam"]
+assert len(rows) == 1 and rows[0]["built"] and not rows[0]["error"], rows
+for c in rows[0]["cameras"]:
+    if "127.0.0.1" in c["address"]:
+        print(f'{c["model"]} at {c["address"]} ({c["rig_options"]})')
+PY
+}
+"$GONIO" devices list --json >"$WORK/list.json" || die "gonio devices list --json failed"
+found=$(listed "$WORK/list.json") || die "gonio devices list --json: no genicam entry: $(cat "$WORK/list.json")"
+[ -n "$found" ] || die "gonio devices list does not list the fake camera: $(cat "$WORK/list.json")"
+echo "$found" | grep -q 'device = "Aravis-Fake-' || die "the listed fake has no device option: $found"
+log "devices list: $found"
 acquire "$WORK/ds" fibonacci:8 >"$WORK/acquire.json" 2>"$WORK/acquire.err" || {
   tail -30 "$WORK/acquire.err" >&2
   die "gonio acquire with the fake camera failed"
@@ -152,6 +178,9 @@ grep -qi "disconnected\|timed out" "$WORK/kill.err" || {
   die "the failed run does not say the camera was lost"
 }
 log "run ended with rc=$rc: $(grep -iE 'disconnected|timed out' "$WORK/kill.err" | tail -1)"
+"$GONIO" devices list --json >"$WORK/list-killed.json" || die "gonio devices list --json failed"
+[ -z "$(listed "$WORK/list-killed.json")" ] || die "gonio devices list still lists the killed fake camera"
+log "devices list after the kill: the fake is no longer listed"
 python3 tests/genicam/check_pattern.py "$WORK/ds-kill" --min-frames 5 | tail -1 ||
   die "a frame stored before the camera was lost does not match the pattern"
 log "passed"

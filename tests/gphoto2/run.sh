@@ -6,7 +6,10 @@
 # Debian's libgphoto2 (2.5.30) is built without vusb; the `gphoto2` Python wheel bundles a
 # libgphoto2 2.5.34 that has it. So:
 #  1. builds and lints gonio-devices with --features gphoto2 against the system
-#     libgphoto2-dev (the headers and the link);
+#     libgphoto2-dev (the headers and the link). With GONIO_LAB_FEATURES (tests/run.sh sets
+#     `genicam,gphoto2`) every cargo command here uses those features instead, as
+#     tests/genicam/run.sh does, so the two share one lab build of gonio, one lint and one
+#     test build of gonio-devices;
 #  2. `pip download gphoto2==2.6.4 --no-deps` into a temporary folder and unpacks it
 #     (GONIO_GPHOTO2_WHEEL=path/to.whl uses a wheel already downloaded, for offline runs);
 #  3. a shim folder with libgphoto2.so.6 and libgphoto2_port.so.12 linked to the wheel's
@@ -17,7 +20,9 @@
 #     choice and read back, aperture set from the choices, refusals (aperture not offered,
 #     ISO, gain, wrong size), capture, download, decoded image equal to the reference,
 #     file deleted from the card;
-#  5. end to end: `gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibonacci:4`
+#  5. `gonio devices list --json` (libgphoto2's auto-detection) lists the vusb camera with
+#     the rig-file options that open it, and lists none with Debian's libgphoto2;
+#  6. end to end: `gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibonacci:4`
 #     (the lab build with --features gphoto2; simulated axes and light, the vusb camera
 #     serving the same reference JPEG): complete, `gonio verify` clean, every stored raw
 #     frame 96 × 64 16-bit RGB with the read-back exposure 0.1 s.
@@ -39,28 +44,37 @@ skip() {
 
 pkg-config --exists libgphoto2 2>/dev/null || skip "needs libgphoto2-dev (apt-get install libgphoto2-dev libclang-dev pkg-config)"
 command -v python3 >/dev/null || skip "needs python3 (to fetch and unpack the gphoto2 wheel)"
+# pip for the download: the project venv's (tests/run.sh exports GONIO_PYTHON) when it has
+# one, else the system python3's.
+PIP_PY=python3
+if [ -n "${GONIO_PYTHON:-}" ] && "$GONIO_PYTHON" -m pip --version >/dev/null 2>&1; then
+  PIP_PY=$GONIO_PYTHON
+fi
 
-# As tests/genicam/run.sh: a separate target dir locally, target/ under CI;
-# GONIO_GPHOTO2_TARGET_DIR overrides.
+# The features of every cargo command below (the lab build shared with tests/genicam/run.sh).
+FEATURES=${GONIO_LAB_FEATURES:-gphoto2}
+case ",$FEATURES," in *,gphoto2,*) ;; *) FEATURES="$FEATURES,gphoto2" ;; esac
+# As tests/genicam/run.sh: target/lab locally (the same dir, so the lab build is shared),
+# target/ under CI; GONIO_GPHOTO2_TARGET_DIR overrides.
 if [ -n "${GONIO_GPHOTO2_TARGET_DIR:-}" ]; then
   export CARGO_TARGET_DIR=$GONIO_GPHOTO2_TARGET_DIR
 elif [ -n "${CI:-}" ]; then
   export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
 else
-  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/gphoto2}
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/lab}
 fi
 WORK=$(mktemp -d)
 trap 'rm -rf "$WORK"' EXIT
 
-log "building and linting gonio-devices with --features gphoto2 (target dir $CARGO_TARGET_DIR)"
-cargo clippy -q -p gonio-devices --features gphoto2 --all-targets -- -D warnings ||
-  die "cargo clippy -p gonio-devices --features gphoto2 (needs libgphoto2-dev and libclang)"
-out=$(cargo test -q -p gonio-devices --features gphoto2 --lib gphoto2:: 2>&1) || {
+log "building and linting gonio-devices with --features $FEATURES (target dir $CARGO_TARGET_DIR)"
+cargo clippy -q -p gonio-devices --features "$FEATURES" --all-targets -- -D warnings ||
+  die "cargo clippy -p gonio-devices --features $FEATURES (needs libgphoto2-dev and libclang)"
+out=$(cargo test -q -p gonio-devices --features "$FEATURES" --lib gphoto2:: 2>&1) || {
   echo "$out" | tail -40 >&2
   die "unit tests of the gphoto2 backend"
 }
 echo "$out" | grep 'test result' || true
-TEST_BIN=$(cargo test -q -p gonio-devices --features gphoto2 --test gphoto2_vusb --no-run --message-format=json 2>/dev/null |
+TEST_BIN=$(cargo test -q -p gonio-devices --features "$FEATURES" --test gphoto2_vusb --no-run --message-format=json 2>/dev/null |
   python3 -c 'import json,sys
 for l in sys.stdin:
     m = json.loads(l)
@@ -73,7 +87,7 @@ if [ -n "${GONIO_GPHOTO2_WHEEL:-}" ]; then
   log "using the wheel $WHEEL"
 else
   log "pip download gphoto2==2.6.4 --no-deps (the libgphoto2 2.5.34 with vusb)"
-  python3 -m pip download -q gphoto2==2.6.4 --no-deps --only-binary=:all: -d "$WORK/wheel" >"$WORK/pip.log" 2>&1 || {
+  "$PIP_PY" -m pip download -q gphoto2==2.6.4 --no-deps --only-binary=:all: -d "$WORK/wheel" >"$WORK/pip.log" 2>&1 || {
     tail -5 "$WORK/pip.log" >&2
     skip "pip download gphoto2==2.6.4 failed (no network? set GONIO_GPHOTO2_WHEEL to a downloaded wheel)"
   }
@@ -105,9 +119,30 @@ done
 echo "$out" | grep -q SKIPPED && die "the vusb test was skipped"
 
 log "end to end: gonio acquire --rig devices/rigs/gphoto2-vusb.toml --sweep fibonacci:4 (vusb camera, simulated axes)"
-cargo build -q -p gonio --no-default-features --features gphoto2 --bin gonio ||
-  die "cargo build -p gonio --no-default-features --features gphoto2"
+cargo build -q -p gonio --no-default-features --features "$FEATURES" --bin gonio ||
+  die "cargo build -p gonio --no-default-features --features $FEATURES"
 GONIO=$CARGO_TARGET_DIR/debug/gonio
+
+listed() { # listed JSON: the gphoto2 cameras, one line each
+  python3 - "$1" <<'PY'
+import json, sys
+l = json.load(open(sys.argv[1]))
+rows = [b for b in l["cameras"] if b["backend"] == "gphoto2"]
+assert len(rows) == 1 and rows[0]["built"] and not rows[0]["error"], rows
+for c in rows[0]["cameras"]:
+    print(f'{c["model"]} at {c["address"]} ({c["rig_options"]})')
+PY
+}
+log "gonio devices list --json with the vusb camera"
+VCAMERADIR=$WORK/vcam IOLIBS=$VUSB CAMLIBS=$WORK/wh/gphoto2/libgphoto2/camlibs LD_LIBRARY_PATH=$WORK/shim:$LIBS \
+  "$GONIO" devices list --json >"$WORK/list.json" || die "gonio devices list --json failed"
+found=$(listed "$WORK/list.json") || die "gonio devices list --json: no gphoto2 entry: $(cat "$WORK/list.json")"
+echo "$found" | grep -q 'Nikon DSC D750 at usb:001,001 (port = "usb:001,001", model = "Nikon DSC D750")' ||
+  die "gonio devices list does not list the vusb camera: $(cat "$WORK/list.json")"
+log "devices list: $found"
+"$GONIO" devices list --json >"$WORK/list-none.json" || die "gonio devices list --json failed"
+[ -z "$(listed "$WORK/list-none.json")" ] || die "Debian's libgphoto2 (no vusb) lists a camera: $(cat "$WORK/list-none.json")"
+log "devices list with Debian's libgphoto2: no camera"
 VCAMERADIR=$WORK/vcam IOLIBS=$VUSB CAMLIBS=$WORK/wh/gphoto2/libgphoto2/camlibs LD_LIBRARY_PATH=$WORK/shim:$LIBS \
   "$GONIO" acquire --rig devices/rigs/gphoto2-vusb.toml --sample white-standard --sweep fibonacci:4 --plan-time 0 \
   --no-truth --raw --out "$WORK/ds" --json -q >"$WORK/acquire.json" 2>"$WORK/acquire.err" || {

@@ -11,6 +11,7 @@
 //! world (`gonio_simulator::build_sim_rig`), which the builder constructs only when some
 //! part of the rig is simulated (see `build.rs`).
 
+use gonio_devices::camera::FoundCamera;
 use gonio_devices::rig::{AxisSpec, RigSpec};
 use gonio_devices::{Axis, Camera, DeviceError, Light};
 use std::sync::Arc;
@@ -198,6 +199,45 @@ impl Backends {
     }
 }
 
+/// Looks for the cameras of one backend on this machine (`gonio devices list`).
+pub type CameraLister = fn() -> Result<Vec<FoundCamera>, DeviceError>;
+
+/// The camera backends that can look for their cameras, a table like the others: a row
+/// whose feature is off is [`Make::NotBuilt`], so `gonio devices list` says which feature
+/// lists them. (V4L2 cameras are listed as video device nodes.)
+pub fn camera_listers() -> Vec<Row<CameraLister>> {
+    vec![
+        Row {
+            name: "genicam",
+            feature: Some("genicam"),
+            #[cfg(feature = "genicam")]
+            make: Make::Real(list_genicam),
+            #[cfg(not(feature = "genicam"))]
+            make: Make::NotBuilt,
+        },
+        Row {
+            name: "gphoto2",
+            feature: Some("gphoto2"),
+            #[cfg(feature = "gphoto2")]
+            make: Make::Real(list_gphoto2),
+            #[cfg(not(feature = "gphoto2"))]
+            make: Make::NotBuilt,
+        },
+    ]
+}
+
+/// GenICam cameras: Aravis' device enumeration (GigE Vision discovery, USB3 Vision).
+#[cfg(feature = "genicam")]
+fn list_genicam() -> Result<Vec<FoundCamera>, DeviceError> {
+    Ok(gonio_devices::genicam::camera::list_cameras())
+}
+
+/// Still cameras: libgphoto2's auto-detection (what `gphoto2 --auto-detect` prints).
+#[cfg(feature = "gphoto2")]
+fn list_gphoto2() -> Result<Vec<FoundCamera>, DeviceError> {
+    gonio_devices::gphoto2::camera::list_cameras(std::time::Duration::from_secs(20))
+}
+
 fn upsert<C>(rows: &mut Vec<Row<C>>, name: &'static str, make: C) {
     let row = Row {
         name,
@@ -348,6 +388,30 @@ mod tests {
             e.contains("not in this build") && e.contains("--features gphoto2"),
             "{e}"
         );
+    }
+
+    /// Every real camera backend can list its cameras, and a compiled-out one is a
+    /// `NotBuilt` row naming its feature (what `gonio devices list` prints for it).
+    #[test]
+    fn every_listing_backend_is_a_camera_backend_with_its_feature() {
+        let b = Backends::builtin();
+        let listers = camera_listers();
+        assert_eq!(
+            listers.iter().map(|r| r.name).collect::<Vec<_>>(),
+            ["genicam", "gphoto2"]
+        );
+        for l in &listers {
+            let camera = b.cameras.iter().find(|r| r.name == l.name).expect("a camera row");
+            assert_eq!(l.feature, camera.feature, "{}", l.name);
+            assert_eq!(
+                matches!(l.make, Make::NotBuilt),
+                matches!(camera.make, Make::NotBuilt),
+                "{}: listed and built under the same feature",
+                l.name
+            );
+        }
+        #[cfg(not(feature = "gphoto2"))]
+        assert!(matches!(listers[1].make, Make::NotBuilt));
     }
 
     #[test]

@@ -303,6 +303,72 @@ mod tests {
         }
     }
 
+    /// A camera whose driver call hangs (a DSLR that stops answering mid-capture, faked by
+    /// a call that never returns) behind the gphoto2 backend's deadline
+    /// (`gonio_devices::gphoto2::wait_until`, on the blocking pool as the backend runs it):
+    /// each capture ends in the backend's typed `Timeout`, the policy retries it
+    /// `capture_retries` times, notes each, and then fails with that error (the camera and
+    /// the limit named), so the run ends instead of hanging.
+    #[test]
+    fn a_hung_driver_call_times_out_is_retried_and_then_ends_the_capture() {
+        use gonio_devices::gphoto2::{wait_until, Deadline};
+        use std::sync::atomic::{AtomicU32, Ordering};
+        use std::sync::{Arc, Mutex};
+
+        struct Hung {
+            state: Arc<Mutex<()>>,
+            calls: AtomicU32,
+        }
+        #[async_trait::async_trait]
+        impl Camera for Hung {
+            fn name(&self) -> &str {
+                "gphoto2 Nikon DSC D750 on usb:001,001"
+            }
+            async fn configure(&self, c: &CameraConfig) -> Result<CameraConfig, DeviceError> {
+                Ok(c.clone())
+            }
+            async fn capture(&self) -> Result<Frame, DeviceError> {
+                self.calls.fetch_add(1, Ordering::SeqCst);
+                let name = self.name().to_string();
+                gonio_devices::camera::blocking_call(&name.clone(), "capture", &self.state, move |_| {
+                    let mut never = std::future::pending::<Frame>();
+                    wait_until(&name, "capture", &mut never, Deadline::after(Duration::from_millis(20)))
+                })
+                .await
+            }
+        }
+        let cam = Hung {
+            state: Arc::new(Mutex::new(())),
+            calls: AtomicU32::new(0),
+        };
+        // The policy's own limit is far longer: the backend's deadline is what ends each try.
+        let policy = CapturePolicy::from_spec(&spec("capture_timeout_s = 600, capture_retries = 2")).unwrap();
+        let config = CameraConfig {
+            width: 8,
+            height: 8,
+            exposure: 0.5,
+            gain: 1.0,
+            bit_depth: 16,
+        };
+        let rt = tokio::runtime::Runtime::new().unwrap();
+        let failed = rt
+            .block_on(capture_measurement(&cam, &policy, &config, None))
+            .expect_err("a hung camera gave a frame");
+        assert_eq!(failed.attempts, 3);
+        assert_eq!(cam.calls.load(Ordering::SeqCst), 3);
+        match &failed.source {
+            DeviceError::Timeout { device, command, .. } => {
+                assert_eq!((device.as_str(), command.as_str()), (cam.name(), "capture"))
+            }
+            other => panic!("not the backend's timeout: {other:?}"),
+        }
+        assert!(
+            failed.source.to_string().contains("timed out after 0.020 s"),
+            "{}",
+            failed.source
+        );
+    }
+
     #[test]
     fn saturated_fraction_counts_max_dn() {
         let mut f = Frame {

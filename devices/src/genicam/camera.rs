@@ -18,7 +18,7 @@ use super::pixel::{self, PixelFormat};
 use super::{
     check_buffer, classify, device_error, exposure_feature, unchanged, unwrap_frame_id, BufferInfo, GainControl,
 };
-use crate::camera::{Camera, CameraConfig, Frame, FrameMeta};
+use crate::camera::{Camera, CameraConfig, FoundCamera, Frame, FrameMeta};
 use crate::rig::CameraSpec;
 use crate::DeviceError;
 
@@ -95,6 +95,36 @@ impl aravis::glib::error::ErrorDomain for ArvDeviceCode {
     fn from(code: i32) -> Option<Self> {
         Some(ArvDeviceCode(code))
     }
+}
+
+/// The GenICam cameras Aravis finds on this machine (GigE Vision discovery on every
+/// interface, USB3 Vision), for `gonio devices list`: vendor and model, protocol and
+/// address, and the `device` option (the Aravis device id) that opens exactly it.
+pub fn list_cameras() -> Vec<FoundCamera> {
+    static LISTING: Mutex<()> = Mutex::new(());
+    let _one_at_a_time = LISTING.lock().unwrap_or_else(|p| p.into_inner());
+    // SAFETY: Aravis' device list is global state of the library, valid until the next
+    // update; the lock keeps gonio's own enumerations apart, and the list is copied out
+    // before the lock is released. It is called where no camera is being opened (the
+    // `devices list` command).
+    let devices = unsafe { aravis::get_device_list() };
+    let text = |c: &std::ffi::CString| c.to_string_lossy().trim().to_string();
+    devices
+        .iter()
+        .map(|d| {
+            let model = [text(&d.vendor), text(&d.model)]
+                .into_iter()
+                .filter(|s| !s.is_empty())
+                .collect::<Vec<_>>()
+                .join(" ");
+            FoundCamera {
+                backend: "genicam".into(),
+                model,
+                address: format!("{} {}", text(&d.protocol), text(&d.address)).trim().to_string(),
+                rig_options: format!("device = \"{}\"", text(&d.id)),
+            }
+        })
+        .collect()
 }
 
 /// The typed error of a failed Aravis call.

@@ -2,21 +2,23 @@
 //! camera's choices, read back), capture (capture, download, delete from the card,
 //! decode, linearise).
 //!
-//! libgphoto2 is blocking (the `gphoto2` crate runs it on its own thread and waits); the
-//! async trait methods wait on tokio's blocking pool, one camera behind one mutex.
+//! libgphoto2 is blocking (the `gphoto2` crate runs it on its own thread); the async trait
+//! methods wait on tokio's blocking pool, one camera behind one mutex, and every wait has
+//! a deadline ([`super::wait_until`]): a call that does not answer in time is cancelled
+//! and ends in a `Timeout` naming the camera, so a hung camera never hangs a run.
 
 use std::sync::{Arc, Mutex};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use async_trait::async_trait;
 use gphoto2::widget::{RadioWidget, TextWidget};
 
 use super::options::Gphoto2Options;
 use super::{
-    classify, device_error, file_kind, nearest_shutter, parse_shutter, pick_choice, srgb_to_linear16, FileKind,
-    APERTURE_KEYS, ISO_KEYS, SHUTTER_KEY,
+    classify, device_error, file_kind, nearest_shutter, parse_shutter, pick_choice, srgb_to_linear16, wait_until,
+    Deadline, FileKind, APERTURE_KEYS, ISO_KEYS, SHUTTER_KEY,
 };
-use crate::camera::{Camera, CameraConfig, Frame, FrameMeta};
+use crate::camera::{Camera, CameraConfig, FoundCamera, Frame, FrameMeta};
 use crate::rig::CameraSpec;
 use crate::DeviceError;
 
@@ -53,20 +55,45 @@ fn gp_err(device: &str, command: &str, e: &gphoto2::Error) -> DeviceError {
     device_error(device, command, classify(&format!("{:?}", e.kind())), &e.to_string())
 }
 
-/// Wait for a libgphoto2 task (the crate's worker thread) without panicking when the
-/// worker is gone.
+/// Wait for a libgphoto2 task (the crate's worker thread) until `deadline`: its answer, or
+/// a `Timeout` naming the camera and the call, after asking libgphoto2 to cancel it.
 fn wait<T: 'static + Send>(
     device: &str,
     command: &str,
     task: gphoto2::task::Task<gphoto2::Result<T>>,
+    deadline: Deadline,
 ) -> Result<T, DeviceError> {
-    task.try_wait()
-        .map_err(|e| DeviceError::Other {
-            device: device.to_string(),
-            command: command.to_string(),
-            reason: format!("libgphoto2 worker thread gone: {e}"),
-        })?
-        .map_err(|e| gp_err(device, command, &e))
+    let mut task = task;
+    match wait_until(device, command, &mut task, deadline) {
+        Ok(answer) => answer.map_err(|e| gp_err(device, command, &e)),
+        Err(timeout) => {
+            task.cancel();
+            tracing::warn!(
+                camera = device,
+                command,
+                limit_s = deadline.limit().as_secs_f64(),
+                "libgphoto2 call did not answer in time; cancelled"
+            );
+            Err(timeout)
+        }
+    }
+}
+
+/// The still cameras libgphoto2 detects (what `gphoto2 --auto-detect` prints), for `gonio
+/// devices list`: each with the rig-file options that open exactly it. `timeout` bounds
+/// the detection.
+pub fn list_cameras(timeout: Duration) -> Result<Vec<FoundCamera>, DeviceError> {
+    let name = "gphoto2";
+    let context = gphoto2::Context::new().map_err(|e| gp_err(name, "gp_context_new", &e))?;
+    let found = wait(name, "auto-detect", context.list_cameras(), Deadline::after(timeout))?;
+    Ok(found
+        .map(|d| FoundCamera {
+            backend: "gphoto2".into(),
+            rig_options: format!("port = \"{}\", model = \"{}\"", d.port, d.model),
+            model: d.model,
+            address: d.port,
+        })
+        .collect())
 }
 
 pub use crate::camera::FromRigError;
@@ -82,7 +109,9 @@ impl Gphoto2Camera {
         };
         let name = format!("gphoto2 {wanted}");
         let context = gphoto2::Context::new().map_err(|e| gp_err(&name, "gp_context_new", &e))?;
-        let found: Vec<gphoto2::list::CameraDescriptor> = wait(&name, "auto-detect", context.list_cameras())?.collect();
+        let limit = opts.timeout;
+        let found: Vec<gphoto2::list::CameraDescriptor> =
+            wait(&name, "auto-detect", context.list_cameras(), Deadline::after(limit))?.collect();
         let listed = || {
             if found.is_empty() {
                 "none".to_string()
@@ -123,7 +152,7 @@ impl Gphoto2Camera {
                 })
             }
         };
-        let camera = wait(&name, "open", context.get_camera(&desc))?;
+        let camera = wait(&name, "open", context.get_camera(&desc), Deadline::after(limit))?;
         let name = format!("gphoto2 {} on {}", desc.model, desc.port);
         tracing::info!(camera = %name, "opened libgphoto2 camera");
         Ok(Gphoto2Camera {
@@ -162,7 +191,7 @@ impl Gphoto2Camera {
     /// current value.
     pub fn choices(&self, key: &str) -> Result<(Vec<String>, String), DeviceError> {
         let inner = self.lock();
-        let w = inner.radio(key)?;
+        let w = inner.radio(key, inner.deadline())?;
         Ok((w.choices_iter().collect(), w.choice()))
     }
 
@@ -178,6 +207,7 @@ impl Gphoto2Camera {
             &inner.name,
             &format!("list {folder}"),
             inner.camera.fs().list_files(folder),
+            inner.deadline(),
         )?
         .collect())
     }
@@ -202,11 +232,17 @@ impl Inner {
         }
     }
 
-    fn radio(&self, key: &str) -> Result<RadioWidget, DeviceError> {
+    /// A deadline of `timeout_s` from now, for one call outside a capture.
+    fn deadline(&self) -> Deadline {
+        Deadline::after(self.opts.timeout)
+    }
+
+    fn radio(&self, key: &str, deadline: Deadline) -> Result<RadioWidget, DeviceError> {
         wait(
             &self.name,
             &format!("{key} (read)"),
             self.camera.config_key::<RadioWidget>(key),
+            deadline,
         )
     }
 
@@ -220,6 +256,7 @@ impl Inner {
                 &self.name,
                 &format!("{key} (read)"),
                 self.camera.config_key::<RadioWidget>(key),
+                self.deadline(),
             ) {
                 Ok(w) => return Ok(Some((key, w))),
                 Err(DeviceError::Rejected { .. }) => continue,
@@ -236,8 +273,8 @@ impl Inner {
         widget
             .set_choice(choice)
             .map_err(|e| gp_err(&self.name, &command, &e))?;
-        wait(&self.name, &command, self.camera.set_config(&widget))?;
-        Ok(self.radio(key)?.choice())
+        wait(&self.name, &command, self.camera.set_config(&widget), self.deadline())?;
+        Ok(self.radio(key, self.deadline())?.choice())
     }
 
     /// A setting the rig file asks for (aperture, ISO): chosen from the camera's choices,
@@ -286,7 +323,7 @@ impl Inner {
             let got = self.apply_choice("iso", &ISO_KEYS, &iso)?;
             tracing::info!(camera = %self.name, iso = %got, "ISO set");
         }
-        let widget = self.radio(SHUTTER_KEY)?;
+        let widget = self.radio(SHUTTER_KEY, self.deadline())?;
         let choices: Vec<String> = widget.choices_iter().collect();
         let (index, _) =
             nearest_shutter(&choices, config.exposure).map_err(|reason| self.rejected(SHUTTER_KEY, reason))?;
@@ -321,9 +358,13 @@ impl Inner {
         let Some(applied) = self.applied.clone() else {
             return Err(self.rejected("capture", "camera not configured (call configure first)".into()));
         };
+        // One deadline for the whole capture (the shutter check, capture, download, delete):
+        // `timeout_s` beyond the exposure. A camera that stops answering ends the capture
+        // in a `Timeout`, which the capture policy retries and then reports.
+        let deadline = Deadline::after(self.opts.timeout + Duration::from_secs_f64(applied.config.exposure.max(0.0)));
         // The shutter speed is read again now: one changed on the camera's dial must not
         // give a frame with the wrong exposure.
-        let now = self.radio(SHUTTER_KEY)?.choice();
+        let now = self.radio(SHUTTER_KEY, deadline)?.choice();
         if now != applied.shutter {
             return Err(self.rejected(
                 SHUTTER_KEY,
@@ -337,15 +378,25 @@ impl Inner {
         let timestamp = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
-        let path = wait(&self.name, "capture", self.camera.capture_image())?;
+        let path = wait(&self.name, "capture", self.camera.capture_image(), deadline)?;
         let (folder, file) = (path.folder().to_string(), path.name().to_string());
         self.last_file = Some((folder.clone(), file.clone()));
         let command = format!("download {folder}/{file}");
-        let cf = wait(&self.name, &command, self.camera.fs().download(&folder, &file))?;
-        let data = wait(&self.name, &command, cf.get_data(&self.context))?;
+        let cf = wait(
+            &self.name,
+            &command,
+            self.camera.fs().download(&folder, &file),
+            deadline,
+        )?;
+        let data = wait(&self.name, &command, cf.get_data(&self.context), deadline)?;
         if !self.opts.keep_on_card {
             let command = format!("delete {folder}/{file}");
-            wait(&self.name, &command, self.camera.fs().delete_file(&folder, &file))?;
+            wait(
+                &self.name,
+                &command,
+                self.camera.fs().delete_file(&folder, &file),
+                deadline,
+            )?;
         }
         let (width, height) = (applied.config.width, applied.config.height);
         let rgb = match file_kind(&file, &data) {
@@ -395,15 +446,17 @@ impl Inner {
         })
     }
 
-    /// A text setting, or None when the camera lacks it.
+    /// A text setting, or None when the camera lacks it (or does not answer in time).
     fn text(&self, key: &str) -> Option<String> {
-        self.camera
-            .config_key::<TextWidget>(key)
-            .try_wait()
-            .ok()?
-            .ok()
-            .map(|w| w.value().trim().to_string())
-            .filter(|v| !v.is_empty())
+        wait(
+            &self.name,
+            key,
+            self.camera.config_key::<TextWidget>(key),
+            self.deadline(),
+        )
+        .ok()
+        .map(|w| w.value().trim().to_string())
+        .filter(|v| !v.is_empty())
     }
 }
 

@@ -24,6 +24,11 @@
 //! - **Errors** ([`classify`], [`device_error`]): libgphoto2's results are mapped to
 //!   gonio's typed [`DeviceError`]s, so the capture policy can retry a busy or timed-out
 //!   camera and stop on one that is gone.
+//! - **Time limits** ([`wait_until`]): every libgphoto2 call has a deadline (the option
+//!   `timeout_s`; a capture gets it plus its exposure for capture, download and delete
+//!   together). A call that has not answered by then is cancelled and becomes a
+//!   [`DeviceError::Timeout`] naming the camera, the call and the limit: a camera that
+//!   stops answering never hangs a run, and the camera's lock is released.
 //!
 //! [`options`] and everything in this file need no library and are built and tested in
 //! every build; [`camera`] (the device itself) only with the feature.
@@ -37,6 +42,11 @@ pub use camera::Gphoto2Camera;
 pub use options::Gphoto2Options;
 
 use crate::DeviceError;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll, Waker};
+use std::time::{Duration, Instant};
 
 /// The config widget of the shutter speed (every PTP camera driver of libgphoto2 2.5).
 pub const SHUTTER_KEY: &str = "shutterspeed";
@@ -247,6 +257,77 @@ pub fn device_error(device: &str, command: &str, kind: ErrorKind, message: &str)
     }
 }
 
+/// When a libgphoto2 call must have answered: a call that has not by then ends in
+/// [`DeviceError::Timeout`] ([`wait_until`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Deadline {
+    at: Instant,
+    limit: Duration,
+}
+
+impl Deadline {
+    /// `limit` from now.
+    pub fn after(limit: Duration) -> Deadline {
+        Deadline {
+            at: Instant::now() + limit,
+            limit,
+        }
+    }
+
+    /// The whole time allowed (what a timeout reports).
+    pub fn limit(&self) -> Duration {
+        self.limit
+    }
+}
+
+/// Wakes the thread that waits in [`wait_until`].
+struct Unpark(std::thread::Thread);
+
+impl std::task::Wake for Unpark {
+    fn wake(self: Arc<Self>) {
+        self.0.unpark();
+    }
+    fn wake_by_ref(self: &Arc<Self>) {
+        self.0.unpark();
+    }
+}
+
+/// Wait on this thread for `call` (a libgphoto2 call running on the `gphoto2` crate's
+/// worker thread: its `Task` is a future) until `deadline`. A call that has not answered by
+/// then is a [`DeviceError::Timeout`] naming `device`, `command` and the deadline's limit;
+/// the call itself is left to the caller (to cancel it: libgphoto2 gives up at its next
+/// progress check, and a call stuck in the USB stack keeps the worker thread until it
+/// returns, so later calls time out too).
+///
+/// Why not the crate's own blocking wait: it has no limit, so a camera that stops answering
+/// mid-capture (a USB hub resetting, a camera that fell asleep) would hang the run with the
+/// camera's lock held. A call whose worker is gone (its channel closed without an answer)
+/// never becomes ready and ends in the same timeout.
+pub fn wait_until<F: Future + Unpin>(
+    device: &str,
+    command: &str,
+    call: &mut F,
+    deadline: Deadline,
+) -> Result<F::Output, DeviceError> {
+    let waker = Waker::from(Arc::new(Unpark(std::thread::current())));
+    let mut cx = Context::from_waker(&waker);
+    loop {
+        if let Poll::Ready(out) = Pin::new(&mut *call).poll(&mut cx) {
+            return Ok(out);
+        }
+        let now = Instant::now();
+        if now >= deadline.at {
+            return Err(DeviceError::Timeout {
+                device: device.to_string(),
+                command: command.to_string(),
+                seconds: deadline.limit.as_secs_f64(),
+            });
+        }
+        // Woken by the call's answer; spurious wake-ups only poll again.
+        std::thread::park_timeout(deadline.at - now);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -357,5 +438,80 @@ mod tests {
         );
         assert!(device_error("c", "capture", ErrorKind::Transient, "busy").is_transient());
         assert!(!device_error("c", "f-number", ErrorKind::Rejected, "bad").is_transient());
+    }
+
+    /// A libgphoto2 call that never answers (a camera hung mid-capture, faked by a future
+    /// that is never ready): the wait ends at its deadline with a typed timeout naming the
+    /// camera, the call and the limit.
+    #[test]
+    fn a_call_that_never_answers_ends_in_a_timeout_naming_the_camera() {
+        let mut hung = std::future::pending::<Result<Vec<u8>, String>>();
+        let cam = "gphoto2 Nikon DSC D750 on usb:001,001";
+        let e = wait_until(cam, "capture", &mut hung, Deadline::after(Duration::from_millis(30))).unwrap_err();
+        match &e {
+            DeviceError::Timeout {
+                device,
+                command,
+                seconds,
+            } => assert!(
+                device == cam && command == "capture" && (seconds - 0.03).abs() < 1e-12,
+                "{e:?}"
+            ),
+            other => panic!("not a timeout: {other:?}"),
+        }
+        assert_eq!(
+            e.to_string(),
+            "gphoto2 Nikon DSC D750 on usb:001,001: `capture` timed out after 0.030 s"
+        );
+        // The capture policy retries it (a timeout is transient).
+        assert!(e.is_transient());
+    }
+
+    /// An answer from another thread (as the `gphoto2` crate's worker thread answers) wakes
+    /// the wait and is returned.
+    #[test]
+    fn an_answer_from_the_worker_thread_is_returned() {
+        struct Slot {
+            value: Option<u32>,
+            waker: Option<Waker>,
+        }
+        struct Answer(Arc<std::sync::Mutex<Slot>>);
+        impl Future for Answer {
+            type Output = u32;
+            fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<u32> {
+                let mut s = self.0.lock().unwrap();
+                match s.value.take() {
+                    Some(v) => Poll::Ready(v),
+                    None => {
+                        s.waker = Some(cx.waker().clone());
+                        Poll::Pending
+                    }
+                }
+            }
+        }
+        let slot = Arc::new(std::sync::Mutex::new(Slot {
+            value: None,
+            waker: None,
+        }));
+        let worker = {
+            let slot = slot.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(20));
+                let mut s = slot.lock().unwrap();
+                s.value = Some(42);
+                if let Some(w) = s.waker.take() {
+                    w.wake();
+                }
+            })
+        };
+        let mut answer = Answer(slot);
+        let got = wait_until(
+            "cam",
+            "download",
+            &mut answer,
+            Deadline::after(Duration::from_secs(600)),
+        );
+        worker.join().unwrap();
+        assert_eq!(got, Ok(42));
     }
 }

@@ -3,9 +3,10 @@
 //! every build.
 
 use crate::rig::{CameraSpec, OptionError};
+use std::time::Duration;
 
 /// How to find and set up one still camera.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Gphoto2Options {
     /// libgphoto2 port (`usb:001,004`, as `gphoto2 --auto-detect` lists it); None: any.
     pub port: Option<String>,
@@ -21,10 +22,27 @@ pub struct Gphoto2Options {
     /// Keep each captured file on the card after the download (default false: deleted,
     /// so a long run does not fill the card and the card never holds a stale file).
     pub keep_on_card: bool,
+    /// Longest wait for one libgphoto2 call (open, a setting); a capture (capture,
+    /// download, delete together) gets this plus its exposure (`timeout_s`, default 20 s).
+    /// Past it the call is cancelled and the result is a `Timeout` naming the camera.
+    pub timeout: Duration,
+}
+
+impl Default for Gphoto2Options {
+    fn default() -> Gphoto2Options {
+        Gphoto2Options {
+            port: None,
+            model: None,
+            aperture: None,
+            iso: None,
+            keep_on_card: false,
+            timeout: Duration::from_secs(20),
+        }
+    }
 }
 
 /// The options this backend reads (for the unknown-key message).
-pub const KEYS: &str = "port, model, aperture, iso, keep_on_card";
+pub const KEYS: &str = "port, model, aperture, iso, keep_on_card, timeout_s";
 
 impl Gphoto2Options {
     /// Read `camera.options`: `port`, `model`, `aperture` (string or number), `iso`
@@ -69,6 +87,14 @@ impl Gphoto2Options {
                 "keep_on_card" => {
                     opts.keep_on_card = v.as_bool().ok_or_else(|| bad("must be true or false"))?;
                 }
+                "timeout_s" => {
+                    let t = v
+                        .as_float()
+                        .or_else(|| v.as_integer().map(|i| i as f64))
+                        .filter(|t| t.is_finite() && *t > 0.0 && *t < 3600.0)
+                        .ok_or_else(|| bad("must be seconds in (0, 3600), e.g. 20"))?;
+                    opts.timeout = Duration::from_secs_f64(t);
+                }
                 // The engine's capture policy (gonio `rig::capture`), validated there.
                 "capture_timeout_s" | "capture_retries" | "saturation" | "saturation_fraction" => {}
                 // Validated by `CameraSpec::readout_overlaps_motion` (refused when true).
@@ -95,9 +121,11 @@ mod tests {
     fn options_parse_with_defaults() {
         assert_eq!(Gphoto2Options::from_rig(&spec("")).unwrap(), Gphoto2Options::default());
         let o = Gphoto2Options::from_rig(&spec(
-            "port = \"usb:001,001\", model = \"Nikon DSC D750\", aperture = 8, iso = 100, keep_on_card = true, capture_retries = 2",
+            "port = \"usb:001,001\", model = \"Nikon DSC D750\", aperture = 8, iso = 100, keep_on_card = true, capture_retries = 2, timeout_s = 5",
         ))
         .unwrap();
+        assert_eq!(o.timeout, Duration::from_secs(5));
+        assert_eq!(Gphoto2Options::default().timeout, Duration::from_secs(20));
         assert_eq!(o.port.as_deref(), Some("usb:001,001"));
         assert_eq!(o.model.as_deref(), Some("Nikon DSC D750"));
         assert_eq!(
@@ -117,6 +145,8 @@ mod tests {
             ("aperture = true", "camera.options.aperture", "f/8"),
             ("iso = \"\"", "camera.options.iso", "ISO speed"),
             ("keep_on_card = 1", "camera.options.keep_on_card", "true or false"),
+            ("timeout_s = 0", "camera.options.timeout_s", "(0, 3600)"),
+            ("timeout_s = \"long\"", "camera.options.timeout_s", "(0, 3600)"),
         ] {
             let e = Gphoto2Options::from_rig(&spec(bad)).unwrap_err();
             assert_eq!(e.key, key, "{bad}");
