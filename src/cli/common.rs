@@ -145,3 +145,43 @@ pub fn parse_angles(s: &str) -> std::result::Result<gonio_devices::Direction, St
     }
     Ok(gonio_devices::Direction::from_degrees(nums[0], nums[1]))
 }
+
+/// Record `input` in an output's JSON object `obj` as `key` (its path relative to `out_dir`,
+/// the output's directory) and `{key}_sha256` right after it (`gonio_dataset::store::provenance`:
+/// same bytes wherever the files sit). Other keys keep their order. Its users (compress,
+/// synthesize, complete, fit, the material exports) are all `btf` commands.
+#[cfg(feature = "btf")]
+pub fn record_input(
+    obj: &mut serde_json::Value,
+    key: &str,
+    input: &std::path::Path,
+    out_dir: &std::path::Path,
+) -> Result<()> {
+    let r = gonio_dataset::store::provenance::InputRef::new(input, out_dir)
+        .with_context(|| format!("recording the input {} in the output", input.display()))?;
+    let old = match obj.take() {
+        serde_json::Value::Object(m) => m,
+        _ => serde_json::Map::new(),
+    };
+    let sha_key = format!("{key}_sha256");
+    let mut m = serde_json::Map::new();
+    let mut placed = false;
+    for (k, v) in old {
+        if k == sha_key {
+            continue;
+        }
+        if k == key {
+            m.insert(k, serde_json::Value::String(r.path.clone()));
+            m.insert(sha_key.clone(), serde_json::Value::String(r.sha256.clone()));
+            placed = true;
+        } else {
+            m.insert(k, v);
+        }
+    }
+    if !placed {
+        m.insert(key.to_string(), serde_json::Value::String(r.path));
+        m.insert(sha_key, serde_json::Value::String(r.sha256));
+    }
+    *obj = serde_json::Value::Object(m);
+    Ok(())
+}
