@@ -18,7 +18,7 @@
 use gonio_btf::compress::rsvd_shard::{self, PartHeader};
 use gonio_btf::compress::{Gbtf, GbtfHeader};
 use gonio_dataset::shard::{self, first_difference, ShardError, ShardInfo};
-use gonio_dataset::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
+use gonio_dataset::store::{self, provenance, Dataset, ManifestHeader, MeasurementRecord, StoreError};
 use std::path::{Path, PathBuf};
 
 /// Errors of a merge; each names the part (or output) concerned.
@@ -515,6 +515,12 @@ fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
     let mut header: GbtfHeader = read[0].0.header.clone();
     if let Some(s) = header.source.as_object_mut() {
         s.remove("shard");
+    }
+    // The parts name the dataset absolute; the merged file names it relative to its own
+    // directory, as one process would (`gonio_dataset::store::provenance`).
+    if let Some(abs) = header.source.get("dataset").and_then(|d| d.as_str()) {
+        let rel = provenance::relative_path(&provenance::output_dir(out), Path::new(abs));
+        header.source["dataset"] = serde_json::Value::String(rel);
     }
     header.blocks.clear();
     header.filled.clear();

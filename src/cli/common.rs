@@ -159,29 +159,6 @@ pub fn record_input(
 ) -> Result<()> {
     let r = gonio_dataset::store::provenance::InputRef::new(input, out_dir)
         .with_context(|| format!("recording the input {} in the output", input.display()))?;
-    let old = match obj.take() {
-        serde_json::Value::Object(m) => m,
-        _ => serde_json::Map::new(),
-    };
-    let sha_key = format!("{key}_sha256");
-    let mut m = serde_json::Map::new();
-    let mut placed = false;
-    for (k, v) in old {
-        if k == sha_key {
-            continue;
-        }
-        if k == key {
-            m.insert(k, serde_json::Value::String(r.path.clone()));
-            m.insert(sha_key.clone(), serde_json::Value::String(r.sha256.clone()));
-            placed = true;
-        } else {
-            m.insert(k, v);
-        }
-    }
-    if !placed {
-        m.insert(key.to_string(), serde_json::Value::String(r.path));
-        m.insert(sha_key, serde_json::Value::String(r.sha256));
-    }
-    *obj = serde_json::Value::Object(m);
+    gonio_dataset::store::provenance::record(obj, key, r.path, r.sha256);
     Ok(())
 }

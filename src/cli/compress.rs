@@ -373,8 +373,8 @@ fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> Result<(DfmfPara
     };
     let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
     // The dataset as seen from the output's directory, and its SHA-256 (same bytes
-    // wherever the files sit; `gonio_dataset::store::provenance`). A sharded pass's parts name it
-    // as given: their merge may sit elsewhere.
+    // wherever the files sit; `gonio_dataset::store::provenance`). A sharded pass's parts
+    // name it absolute, as the job's header does: the merge makes it relative.
     let source = match args.shard {
         None => {
             let r = gonio_dataset::store::provenance::InputRef::new(
@@ -384,20 +384,34 @@ fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> Result<(DfmfPara
             .with_context(|| format!("recording the input {} in the output", ds.dir.display()))?;
             format!("<source>{}</source><source_sha256>{}</source_sha256>", r.path, r.sha256)
         }
-        Some(_) => format!("<source>{}</source>", ds.dir.display()),
+        Some(_) => {
+            let sha = gonio_dataset::store::provenance::input_sha256(&ds.dir)
+                .with_context(|| format!("recording the input {} in the output", ds.dir.display()))?;
+            let abs = gonio_dataset::store::provenance::absolute(&ds.dir);
+            format!("<source>{}</source><source_sha256>{sha}</source_sha256>", abs.display())
+        }
     };
     let xml = format!("<gonio>{source}<params>{pjson}</params></gonio>");
     Ok((params, precision, xml))
 }
 
 /// Name the dataset in a fresh `.gbtf`'s `source` as seen from the output's directory,
-/// with its SHA-256 beside it (`source.dataset`, `source.dataset_sha256`).
+/// with its SHA-256 beside it (`source.dataset`, `source.dataset_sha256`). A shard's part
+/// names it absolute: `gonio merge` makes it relative to the merged file's directory.
 fn record_dataset(gbtf: &mut compress::Gbtf, args: &CompressArgs) -> Result<()> {
+    use gonio_dataset::store::provenance;
+    if args.shard.is_some() {
+        let sha = provenance::input_sha256(&args.dataset)
+            .with_context(|| format!("recording the input {} in the output", args.dataset.display()))?;
+        let abs = provenance::absolute(&args.dataset).display().to_string();
+        provenance::record(&mut gbtf.header.source, "dataset", abs, sha);
+        return Ok(());
+    }
     super::common::record_input(
         &mut gbtf.header.source,
         "dataset",
         &args.dataset,
-        &gonio_dataset::store::provenance::output_dir(&args.out),
+        &provenance::output_dir(&args.out),
     )
 }
 
@@ -490,9 +504,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     if let Some(bits) = args.quantize {
         gbtf.quantize(bits).context("--quantize")?;
     }
-    if args.shard.is_none() {
-        record_dataset(&mut gbtf, args)?;
-    }
+    record_dataset(&mut gbtf, args)?;
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;

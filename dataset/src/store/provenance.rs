@@ -88,6 +88,43 @@ pub fn output_dir(out_file: &Path) -> PathBuf {
     }
 }
 
+/// `p` absolute, without `.` and `..`, with the links of its existing prefix resolved: how
+/// the parts of a sharded job name an input until their merge knows the output's directory
+/// (the merge then stores it relative, as one process would).
+pub fn absolute(p: &Path) -> PathBuf {
+    absolute_clean(p)
+}
+
+/// Set `obj[key]` to `path` and `obj["{key}_sha256"]` to `sha256` right after it; other keys
+/// keep their order (a non-object `obj` becomes an object).
+pub fn record(obj: &mut serde_json::Value, key: &str, path: String, sha256: String) {
+    let old = match obj.take() {
+        serde_json::Value::Object(m) => m,
+        _ => serde_json::Map::new(),
+    };
+    let sha_key = format!("{key}_sha256");
+    let mut m = serde_json::Map::new();
+    let mut pending = Some((path, sha256));
+    for (k, v) in old {
+        if k == sha_key {
+            continue;
+        }
+        if k == key {
+            if let Some((p, s)) = pending.take() {
+                m.insert(k, serde_json::Value::String(p));
+                m.insert(sha_key.clone(), serde_json::Value::String(s));
+            }
+        } else {
+            m.insert(k, v);
+        }
+    }
+    if let Some((p, s)) = pending {
+        m.insert(key.to_string(), serde_json::Value::String(p));
+        m.insert(sha_key, serde_json::Value::String(s));
+    }
+    *obj = serde_json::Value::Object(m);
+}
+
 /// Absolute, without `.` and `..`, with the links of its longest existing prefix resolved.
 fn absolute_clean(p: &Path) -> PathBuf {
     let abs = std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
