@@ -112,7 +112,10 @@ const SIMULATOR_ALLOWED: &[&str] = &["rig", "session", "cli", "synth", "calibrat
 /// may import ("shared files": the folder's ground floor and its registries). `mod.rs`
 /// dispatches and may import any sibling; a folder's main type may live in it.
 const FOLDERS: &[(&str, &[&str])] = &[
-    ("store", &["atomic", "error", "export", "journal", "manifest"]),
+    (
+        "store",
+        &["atomic", "error", "export", "journal", "manifest", "provenance"],
+    ),
     ("store/export", &["entry", "npy", "ubo2003"]),
     ("rig", &["backends", "capture"]),
     ("develop", &[]),

@@ -18,7 +18,7 @@
 use gonio_btf::compress::rsvd_shard::{self, PartHeader};
 use gonio_btf::compress::{Gbtf, GbtfHeader};
 use gonio_dataset::shard::{self, first_difference, ShardError, ShardInfo};
-use gonio_dataset::store::{self, Dataset, ManifestHeader, MeasurementRecord, StoreError};
+use gonio_dataset::store::{self, provenance, Dataset, ManifestHeader, MeasurementRecord, StoreError};
 use std::path::{Path, PathBuf};
 
 /// Errors of a merge; each names the part (or output) concerned.
@@ -299,7 +299,7 @@ fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeRep
         extra.remove("shard");
     }
     let summary = if acquisition {
-        acquisition_summary(out, &read.iter().map(|r| r.summary.clone()).collect::<Vec<_>>())
+        acquisition_summary(&read.iter().map(|r| r.summary.clone()).collect::<Vec<_>>())
     } else {
         norms[0].get("summary").cloned().unwrap_or(serde_json::Value::Null)
     };
@@ -373,7 +373,7 @@ fn merge_datasets(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeRep
 /// The summary of a merged acquisition: the parts' counts and times added up, and every
 /// part's own summary under `parts` (their truth-error figures cannot be combined without
 /// the per-measurement values, which are in the journal's records).
-fn acquisition_summary(out: &Path, parts: &[serde_json::Value]) -> serde_json::Value {
+fn acquisition_summary(parts: &[serde_json::Value]) -> serde_json::Value {
     let mut s = parts[0].clone();
     let Some(o) = s.as_object_mut() else {
         return serde_json::Value::Null;
@@ -421,7 +421,9 @@ fn acquisition_summary(out: &Path, parts: &[serde_json::Value]) -> serde_json::V
     let all = |key: &str| parts.iter().all(|p| p.get(key) == Some(&serde_json::Value::Bool(true)));
     o.insert("complete".into(), serde_json::json!(all("complete")));
     o.insert("paused".into(), serde_json::json!(false));
-    o.insert("dataset".into(), serde_json::json!(out.display().to_string()));
+    // The dataset itself, relative to its own directory, as `gonio acquire` stores it (a
+    // dataset's bytes do not depend on where it was written; `gonio_dataset::store::provenance`).
+    o.insert("dataset".into(), serde_json::json!("."));
     o.insert("truth_error".into(), serde_json::Value::Null);
     o.insert("stage_seconds".into(), serde_json::Value::Null);
     o.insert(
@@ -513,6 +515,12 @@ fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
     let mut header: GbtfHeader = read[0].0.header.clone();
     if let Some(s) = header.source.as_object_mut() {
         s.remove("shard");
+    }
+    // The parts name the dataset absolute; the merged file names it relative to its own
+    // directory, as one process would (`gonio_dataset::store::provenance`).
+    if let Some(abs) = header.source.get("dataset").and_then(|d| d.as_str()) {
+        let rel = provenance::relative_path(&provenance::output_dir(out), Path::new(abs));
+        header.source["dataset"] = serde_json::Value::String(rel);
     }
     header.blocks.clear();
     header.filled.clear();

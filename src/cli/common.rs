@@ -145,3 +145,20 @@ pub fn parse_angles(s: &str) -> std::result::Result<gonio_devices::Direction, St
     }
     Ok(gonio_devices::Direction::from_degrees(nums[0], nums[1]))
 }
+
+/// Record `input` in an output's JSON object `obj` as `key` (its path relative to `out_dir`,
+/// the output's directory) and `{key}_sha256` right after it (`gonio_dataset::store::provenance`:
+/// same bytes wherever the files sit). Other keys keep their order. Its users (compress,
+/// synthesize, complete, fit, the material exports) are all `btf` commands.
+#[cfg(feature = "btf")]
+pub fn record_input(
+    obj: &mut serde_json::Value,
+    key: &str,
+    input: &std::path::Path,
+    out_dir: &std::path::Path,
+) -> Result<()> {
+    let r = gonio_dataset::store::provenance::InputRef::new(input, out_dir)
+        .with_context(|| format!("recording the input {} in the output", input.display()))?;
+    gonio_dataset::store::provenance::record(obj, key, r.path, r.sha256);
+    Ok(())
+}

@@ -224,16 +224,17 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         serde_json::Value::Object(m) => m,
         _ => serde_json::Map::new(),
     };
-    extra.insert(
-        "completion".into(),
-        serde_json::json!({
-            "from": a.dataset.display().to_string(),
-            "prior": prior_id,
-            "measured": measured.len(),
-            "conditioning": c.conditioning,
-            "method": "per-texel MAP in the prior (ridge with the prior's eigenvalues), gamma space",
-        }),
-    );
+    // The sparse dataset as seen from the output dataset's directory, with its SHA-256
+    // (`from`, `from_sha256`; `gonio_dataset::store::provenance`): same bytes wherever it sits.
+    let mut completion = serde_json::json!({
+        "from": a.dataset.display().to_string(),
+        "prior": prior_id,
+        "measured": measured.len(),
+        "conditioning": c.conditioning,
+        "method": "per-texel MAP in the prior (ridge with the prior's eigenvalues), gamma space",
+    });
+    super::common::record_input(&mut completion, "from", &a.dataset, &a.out)?;
+    extra.insert("completion".into(), completion);
     header.extra = serde_json::Value::Object(extra);
     let mut out = Dataset::create(&a.out, &header, a.force)?;
     // The input's plan (read only: the input dataset is never opened for writing).
@@ -289,7 +290,13 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         holdout: hold,
         warnings: warnings.clone(),
     };
-    out.finish(&serde_json::json!({ "completion": &report }))?;
+    // The manifest's summary leaves out `out` (the dataset's own path as typed, which
+    // --json reports): a dataset's bytes do not depend on where it was written.
+    let mut stored = serde_json::to_value(&report)?;
+    if let Some(o) = stored.as_object_mut() {
+        o.remove("out");
+    }
+    out.finish(&serde_json::json!({ "completion": stored }))?;
     if a.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {

@@ -300,7 +300,7 @@ fn shard_pass(args: &CompressArgs, shard: gonio_dataset::shard::Shard) -> Result
             if args.quantize.is_some() {
                 anyhow::bail!("--quantize applies to .gbtf files; UBO2014 .btf stores f16 or f32 (--precision)");
             }
-            let (dfmf, precision, xml) = btf_job(args, &ds, c);
+            let (dfmf, precision, xml) = btf_job(args, &ds, c)?;
             Output::Btf { dfmf, precision, xml }
         }
         (_, FormatArg::Btf) => anyhow::bail!("--format btf (UBO2014 DFMF) is written by --method dfmf only"),
@@ -354,7 +354,7 @@ fn shard_pass(args: &CompressArgs, shard: gonio_dataset::shard::Shard) -> Result
 
 /// The DFMF parameters, precision and XML block of a `--format btf` compression: one
 /// home for the single-process and the sharded run, so both write the same bytes.
-fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> (DfmfParams, Precision, String) {
+fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> Result<(DfmfParams, Precision, String)> {
     let color_model = color_model(args.color_model);
     let precision = match args.precision {
         PrecisionArg::F16 => Precision::F16,
@@ -372,12 +372,47 @@ fn btf_job(args: &CompressArgs, ds: &DatasetViews, c: usize) -> (DfmfParams, Pre
         power_iters: args.power_iters,
     };
     let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
-    let xml = format!(
-        "<gonio><source>{}</source><params>{}</params></gonio>",
-        ds.dir.display(),
-        pjson
-    );
-    (params, precision, xml)
+    // The dataset as seen from the output's directory, and its SHA-256 (same bytes
+    // wherever the files sit; `gonio_dataset::store::provenance`). A sharded pass's parts
+    // name it absolute, as the job's header does: the merge makes it relative.
+    let source = match args.shard {
+        None => {
+            let r = gonio_dataset::store::provenance::InputRef::new(
+                &ds.dir,
+                &gonio_dataset::store::provenance::output_dir(&args.out),
+            )
+            .with_context(|| format!("recording the input {} in the output", ds.dir.display()))?;
+            format!("<source>{}</source><source_sha256>{}</source_sha256>", r.path, r.sha256)
+        }
+        Some(_) => {
+            let sha = gonio_dataset::store::provenance::input_sha256(&ds.dir)
+                .with_context(|| format!("recording the input {} in the output", ds.dir.display()))?;
+            let abs = gonio_dataset::store::provenance::absolute(&ds.dir);
+            format!("<source>{}</source><source_sha256>{sha}</source_sha256>", abs.display())
+        }
+    };
+    let xml = format!("<gonio>{source}<params>{pjson}</params></gonio>");
+    Ok((params, precision, xml))
+}
+
+/// Name the dataset in a fresh `.gbtf`'s `source` as seen from the output's directory,
+/// with its SHA-256 beside it (`source.dataset`, `source.dataset_sha256`). A shard's part
+/// names it absolute: `gonio merge` makes it relative to the merged file's directory.
+fn record_dataset(gbtf: &mut compress::Gbtf, args: &CompressArgs) -> Result<()> {
+    use gonio_dataset::store::provenance;
+    if args.shard.is_some() {
+        let sha = provenance::input_sha256(&args.dataset)
+            .with_context(|| format!("recording the input {} in the output", args.dataset.display()))?;
+        let abs = provenance::absolute(&args.dataset).display().to_string();
+        provenance::record(&mut gbtf.header.source, "dataset", abs, sha);
+        return Ok(());
+    }
+    super::common::record_input(
+        &mut gbtf.header.source,
+        "dataset",
+        &args.dataset,
+        &provenance::output_dir(&args.out),
+    )
 }
 
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
@@ -469,6 +504,7 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     if let Some(bits) = args.quantize {
         gbtf.quantize(bits).context("--quantize")?;
     }
+    record_dataset(&mut gbtf, args)?;
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -587,6 +623,8 @@ fn target_report(args: &CompressArgs, ds: &DatasetViews, goal: Goal, t0: Instant
             }
         }
     };
+    let mut gbtf = gbtf;
+    record_dataset(&mut gbtf, args)?;
     let stored = gbtf
         .write(&args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -684,7 +722,7 @@ fn color_model(a: ColorModelArg) -> ColorModel {
 
 fn dfmf_report(args: &CompressArgs, ds: &DatasetViews, t0: Instant) -> Result<Report> {
     let c = args.components.context("--method dfmf needs -c (components)")?;
-    let (params, precision, xml) = btf_job(args, ds, c);
+    let (params, precision, xml) = btf_job(args, ds, c)?;
     let (model, info) = dfmf::encode(ds, &params).with_context(|| format!("compressing {}", args.dataset.display()))?;
     let pjson = serde_json::json!({"method": "dfmf", "dfmf": params, "precision": precision});
     let stored = btf_ubo2014::write(&args.out, &model, precision, &xml)

@@ -178,7 +178,11 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
         _ => unreachable!("material formats only"),
     };
     // Refuse a wrong output name before reading or fitting anything.
-    format.check_out(&args.out)?;
+    let layout = format.check_out(&args.out)?;
+    let out_dir = match layout {
+        gonio_btf::export::Layout::Folder => args.out.clone(),
+        gonio_btf::export::Layout::File => gonio_dataset::store::provenance::output_dir(&args.out),
+    };
     let input = args.dir.display().to_string();
     let mut fitted = None;
     let gbtf = if args.dir.is_dir() {
@@ -205,14 +209,24 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
                 format.name()
             );
         }
-        return write_average_cli(&args, format, &gbtf, fitted);
+        return write_average_cli(&args, format, &gbtf, fitted, &out_dir);
     }
     let opts = ExportOptions {
         size: args.size,
         allow_uncalibrated: args.allow_uncalibrated,
         bit_depth: args.bit_depth,
     };
-    let material = Material::from_gbtf(&gbtf, &args.dir, &opts)?;
+    let mut material = Material::from_gbtf(&gbtf, &args.dir, &opts)?;
+    if let Some(fit) = material.provenance.get_mut("fit") {
+        super::common::record_input(fit, "file", &args.dir, &out_dir)?;
+    }
+    relocate_inputs(
+        &mut material.provenance,
+        &gbtf,
+        &args.dir,
+        args.white.as_deref(),
+        &out_dir,
+    )?;
     for w in &material.warnings {
         tracing::warn!("{input}: {w}");
     }
@@ -242,6 +256,44 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// Name the fitted dataset and the white standard that calibrated it in an export's
+/// provenance object `obj` (keys `dataset`, `calibrated_by`) as seen from the export's
+/// directory, each with `{key}_sha256` beside it (`gonio_dataset::store::provenance`). `input` is
+/// what was exported: the dataset itself (fitted first, `white` its --white), or a `.gbtf`
+/// whose `source` paths are relative to the `.gbtf`'s directory (older files: as typed).
+#[cfg(feature = "btf")]
+fn relocate_inputs(
+    obj: &mut serde_json::Value,
+    gbtf: &gonio_btf::compress::Gbtf,
+    input: &std::path::Path,
+    white: Option<&std::path::Path>,
+    out_dir: &std::path::Path,
+) -> Result<()> {
+    use gonio_dataset::store::provenance::{output_dir, relative_path, resolve};
+    if input.is_dir() {
+        super::common::record_input(obj, "dataset", input, out_dir)?;
+        if let Some(w) = white {
+            super::common::record_input(obj, "calibrated_by", w, out_dir)?;
+        }
+        return Ok(());
+    }
+    for key in ["dataset", "calibrated_by"] {
+        let Some(recorded) = gbtf.header.source.get(key).and_then(|d| d.as_str()) else {
+            continue;
+        };
+        let path = resolve(&output_dir(input), recorded);
+        let sha_key = format!("{key}_sha256");
+        let sha = gbtf.header.source.get(&sha_key).cloned();
+        if let Some(o) = obj.as_object_mut() {
+            o.insert(key.into(), relative_path(out_dir, &path).into());
+            if let Some(sha) = sha {
+                o.insert(sha_key, sha);
+            }
+        }
+    }
+    Ok(())
+}
+
 /// `--format rgl-bsdf | merl`: the averaged fit of a `.gbtf` (or of the dataset fitted
 /// first) as one isotropic BRDF.
 #[cfg(feature = "btf")]
@@ -250,6 +302,7 @@ fn write_average_cli(
     format: gonio_btf::export::Format,
     gbtf: &gonio_btf::compress::Gbtf,
     fitted: Option<gonio_btf::fit::texel::TexelSummary>,
+    out_dir: &std::path::Path,
 ) -> Result<ExitCode> {
     use gonio_btf::export::{average::AverageBrdf, write_average};
     let input = args.dir.display().to_string();
@@ -258,7 +311,11 @@ fn write_average_cli(
             gonio_btf::export::rgl::check_size(n).map_err(|e| anyhow::anyhow!("{input}: {e}"))?;
         }
     }
-    let avg = AverageBrdf::from_gbtf(gbtf, &args.dir, args.allow_uncalibrated)?;
+    let mut avg = AverageBrdf::from_gbtf(gbtf, &args.dir, args.allow_uncalibrated)?;
+    if let Some(source) = avg.provenance.get_mut("source") {
+        super::common::record_input(source, "fit_file", &args.dir, out_dir)?;
+        relocate_inputs(source, gbtf, &args.dir, args.white.as_deref(), out_dir)?;
+    }
     for w in &avg.warnings {
         tracing::warn!("{input}: {w}");
     }

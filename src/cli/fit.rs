@@ -243,6 +243,15 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
                 .with_context(|| format!("storing the SVBRDF of {input}"))?;
             gbtf.header.source["calibrated_by"] = serde_json::to_value(&loaded.calibrated_by)?;
             store_average_fit(&mut gbtf, &report, &a.input)?;
+            if let Some(path) = a.out.as_ref().filter(|_| out_gbtf) {
+                // `source.dataset` as seen from the file's directory, `source.dataset_sha256`
+                // beside it (`gonio_dataset::store::provenance`).
+                let dir = gonio_dataset::store::provenance::output_dir(path);
+                super::common::record_input(&mut gbtf.header.source, "dataset", &a.input, &dir)?;
+                if let Some(w) = &a.white {
+                    super::common::record_input(&mut gbtf.header.source, "calibrated_by", w, &dir)?;
+                }
+            }
             let stored = gbtf.to_bytes().context("encoding the SVBRDF's .gbtf")?.len();
             let decoder = CompressedBtf::new(gbtf.clone()).context("decoding the SVBRDF's .gbtf")?;
             let ev = gonio_btf::compress::evaluate(&ds, &decoder)
@@ -286,6 +295,13 @@ pub fn run(a: FitArgs) -> Result<ExitCode> {
     };
     if let Some(path) = a.out.as_ref().filter(|_| !out_gbtf) {
         let mut v = serde_json::to_value(&out)?;
+        // The file names its input as seen from its own directory, with the input's SHA-256
+        // (`input`, `input_sha256`; `gonio_dataset::store::provenance`); --json keeps the path as given.
+        let dir = gonio_dataset::store::provenance::output_dir(path);
+        super::common::record_input(&mut v, "input", &a.input, &dir)?;
+        if let Some(w) = &a.white {
+            super::common::record_input(&mut v, "calibrated_by", w, &dir)?;
+        }
         if let Some(s) = &texel_fit {
             v["per_texel"]["parameter_names"] =
                 serde_json::to_value(s.family.params.iter().map(|p| &p.name).collect::<Vec<_>>())?;

@@ -158,7 +158,7 @@ impl SynthArgs {
 /// gathers whole per-texel factor rows, which a dataset of images does not have, and an
 /// output of raw images (6561 × 1024² texels: 41 GB as half floats) would not be a useful
 /// file. What was done is reported as `from_dataset` in `--json`.
-fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::Value)> {
+fn dataset_exemplar(dir: &Path, c: usize, out: &Path) -> Result<(CompressedBtf, serde_json::Value)> {
     if c == 0 {
         bail!(
             "--components 0: the in-memory PCA of dataset {} needs at least one component",
@@ -169,8 +169,16 @@ fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::
         gonio_btf::compress::DatasetViews::open(dir).with_context(|| format!("opening dataset {}", dir.display()))?;
     let t0 = Instant::now();
     let params = gonio_btf::compress::Params::new(gonio_btf::compress::Method::Pca, c);
-    let (gbtf, info) = gonio_btf::compress::compress(&ds, &params)
+    let (mut gbtf, info) = gonio_btf::compress::compress(&ds, &params)
         .with_context(|| format!("compressing dataset {} to PCA c = {c}", dir.display()))?;
+    // The in-memory model has no directory of its own: its `source.dataset` (the output's
+    // `exemplar_source.dataset`) is relative to the output's directory, like `exemplar`.
+    super::common::record_input(
+        &mut gbtf.header.source,
+        "dataset",
+        dir,
+        &gonio_dataset::store::provenance::output_dir(out),
+    )?;
     let model = CompressedBtf::new(gbtf)?;
     let note = serde_json::json!({
         "dataset": dir.display().to_string(),
@@ -187,7 +195,7 @@ fn dataset_exemplar(dir: &Path, c: usize) -> Result<(CompressedBtf, serde_json::
 pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
     let (w, h) = parse_size(&a.size, 1..=usize::MAX).map_err(|e| anyhow::anyhow!("--size {e}"))?;
     let (model, from_dataset) = if a.input.is_dir() {
-        let (m, note) = dataset_exemplar(&a.input, a.components)?;
+        let (m, note) = dataset_exemplar(&a.input, a.components, &a.out)?;
         (Exemplar::Gbtf(m), Some(note))
     } else {
         (open_exemplar(&a.input)?, None)
@@ -208,7 +216,11 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
     let map = synthesize::synthesize(&feats.image, &p)
         .with_context(|| format!("synthesizing {w}×{h} from {}", a.input.display()))?;
     let synth_seconds = t1.elapsed().as_secs_f64();
-    let provenance = serde_json::json!({
+    // The file names its exemplar as seen from the output's directory, with the exemplar's
+    // SHA-256 (`exemplar`, `exemplar_sha256`; `gonio_dataset::store::provenance`), and leaves the
+    // in-memory PCA's wall-clock seconds to --json: same bytes wherever the files sit.
+    let out_dir = gonio_dataset::store::provenance::output_dir(&a.out);
+    let mut provenance = serde_json::json!({
         "method": p.method.name(),
         "params": &p,
         "exemplar": a.input.display().to_string(),
@@ -216,6 +228,22 @@ pub fn run(a: SynthesizeArgs) -> Result<ExitCode> {
         "features": { "embedding": emb.kind, "embedding_dims": emb.image.dims, "k": k, "explained": explained },
         "from_dataset": &from_dataset,
     });
+    super::common::record_input(&mut provenance, "exemplar", &a.input, &out_dir)?;
+    if let Some(note) = provenance.get_mut("from_dataset").filter(|n| n.is_object()) {
+        let rel = gonio_dataset::store::provenance::relative_path(&out_dir, &a.input);
+        if let Some(o) = note.as_object_mut() {
+            o.remove("seconds");
+            o.insert("dataset".into(), serde_json::Value::String(rel.clone()));
+            o.insert(
+                "note".into(),
+                serde_json::Value::String(format!(
+                    "the output is a PCA c = {c} model; its fidelity to the dataset is that of \
+                     `gonio compress {rel} --method pca -c {c}`",
+                    c = a.components
+                )),
+            );
+        }
+    }
     let t2 = Instant::now();
     let written = model
         .write(&map, &a.out, provenance)

@@ -31,6 +31,7 @@ mod golden;
 mod hdr;
 mod lamp_hmp;
 mod on_pause;
+mod same_bytes_anywhere;
 mod serial_drivers;
 mod shard_merge;
 mod sparse;

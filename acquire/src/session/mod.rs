@@ -713,7 +713,11 @@ impl Session {
             summary.adaptive = Some(summary::AdaptiveSummary::new(ad, analysis_wall_s));
         }
         if summary.complete {
-            let value = serde_json::to_value(&summary).map_err(|e| json_err(&name, "the summary", e))?;
+            let mut value = serde_json::to_value(&summary).map_err(|e| json_err(&name, "the summary", e))?;
+            // In the manifest the dataset names itself relative to its own directory (`.`),
+            // not by the path the command was given: a dataset's bytes do not depend on
+            // where it was written (`gonio_dataset::store::provenance`). --json keeps the path.
+            value["dataset"] = serde_json::Value::String(".".into());
             dataset
                 .finish(&value)
                 .map_err(|source| store_err("writing the final manifest".into(), source))?;

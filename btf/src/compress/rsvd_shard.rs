@@ -51,6 +51,7 @@ use super::pca::{self, ViewCache};
 use super::rsvd::{PassOutput, Rsvd, ViewSource};
 use faer::Mat;
 use gonio_dataset::shard::{Shard, ShardInfo};
+use gonio_dataset::store::provenance;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -271,6 +272,15 @@ impl Job {
             Output::Btf { .. } => Params::new(Method::Pca, 1),
         };
         let mut header = header_for(ds, &params, Vec::new(), Vec::new());
+        // The parts name the dataset absolute, with its SHA-256; the merge writes it relative
+        // to the merged file's directory ([`relocate_dataset`]), as one process would.
+        let sha = provenance::input_sha256(&ds.dir).map_err(|e| CompressError::Invalid(e.to_string()))?;
+        provenance::record(
+            &mut header.source,
+            "dataset",
+            provenance::absolute(&ds.dir).display().to_string(),
+            sha,
+        );
         if matches!(output, Output::Btf { .. }) {
             header.method = "dfmf".into();
             header.params = serde_json::Value::Null;
@@ -602,6 +612,7 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
     let (kind, bytes) = match &job.output {
         Output::Gbtf { params, quantize } => {
             let mut header = job.header.clone();
+            relocate_dataset(&mut header, out);
             header.filled = filled;
             let mut g = if params.method == Method::Pca {
                 let (infos, blocks) = pca::factors(params, &q[0], &b[0])?;
@@ -620,10 +631,24 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
             dfmf: d,
             precision,
             xml,
-        } => (
-            "btf",
-            super::btf_ubo2014::write(out, &dfmf_of(job, d, &q, &b)?, *precision, xml)?,
-        ),
+        } => {
+            // The XML's `<source>` names the dataset as the job's header does: absolute.
+            let xml = match job.header.source.get("dataset").and_then(|d| d.as_str()) {
+                Some(abs) => {
+                    let rel = provenance::relative_path(&provenance::output_dir(out), Path::new(abs));
+                    xml.replacen(
+                        &format!("<source>{abs}</source>"),
+                        &format!("<source>{rel}</source>"),
+                        1,
+                    )
+                }
+                None => xml.clone(),
+            };
+            (
+                "btf",
+                super::btf_ubo2014::write(out, &dfmf_of(job, d, &q, &b)?, *precision, &xml)?,
+            )
+        }
     };
     Ok(MergedPass {
         kind,
@@ -631,6 +656,15 @@ pub fn merge_parts(parts: &[(PathBuf, PartHeader, Vec<u8>)], out: &Path) -> Resu
         passes,
         bytes,
     })
+}
+
+/// A merged file's `source.dataset`: the parts' absolute path, relative to the directory of
+/// `out` (`gonio_dataset::store::provenance`).
+fn relocate_dataset(header: &mut GbtfHeader, out: &Path) {
+    if let Some(abs) = header.source.get("dataset").and_then(|d| d.as_str()) {
+        let rel = provenance::relative_path(&provenance::output_dir(out), Path::new(abs));
+        header.source["dataset"] = serde_json::Value::String(rel);
+    }
 }
 
 /// A pass's parts put together: the exact sums added exactly, or every block's columns
@@ -816,13 +850,9 @@ fn merge_local_pca(
                 unreachable!("local PCA writes a .gbtf")
             };
             let (blocks, extra) = local_pca::file_blocks(m, plan.texels, plan.dims(), plan.c, plan.d);
-            let mut g = abrdf_gbtf(
-                first.job.header.clone(),
-                filled,
-                blocks,
-                &extra,
-                first.job.abrdf_exact(),
-            );
+            let mut header = first.job.header.clone();
+            relocate_dataset(&mut header, out);
+            let mut g = abrdf_gbtf(header, filled, blocks, &extra, first.job.abrdf_exact());
             if let Some(bits) = quantize {
                 g.quantize(*bits)?;
             }

@@ -69,6 +69,7 @@ pub mod exr_io;
 pub mod import_ubo2003;
 mod journal;
 mod manifest;
+pub mod provenance;
 pub mod verify;
 
 #[cfg(test)]

@@ -193,8 +193,28 @@ fn layout(dir: &Path, header: &ManifestHeader, entries: Vec<ExportEntry>, out: &
 }
 
 /// The group's `gonio` attribute: what the data are, where they came from.
-fn group_attributes(dir: &Path, header: &ManifestHeader, lay: &Layout) -> Result<serde_json::Value, StoreError> {
+fn group_attributes(
+    dir: &Path,
+    out: &Path,
+    header: &ManifestHeader,
+    lay: &Layout,
+) -> Result<serde_json::Value, StoreError> {
     let complete = read_manifest(dir)?.complete;
+    // The dataset as seen from the store's directory, and its SHA-256 (same bytes wherever
+    // the files sit; `crate::store::provenance`).
+    let input = crate::store::provenance::InputRef::new(dir, out).map_err(|e| match e {
+        crate::store::provenance::ProvenanceError::Read { path, source } => StoreError::Io {
+            op: "hashing",
+            path,
+            source,
+        },
+        crate::store::provenance::ProvenanceError::Dataset { source, .. } => *source,
+        e @ crate::store::provenance::ProvenanceError::NotADataset { .. } => StoreError::Io {
+            op: "hashing",
+            path: dir.to_path_buf(),
+            source: std::io::Error::other(e.to_string()),
+        },
+    })?;
     let plan_path = dir.join(PLAN_FILE);
     let plan = match std::fs::read(&plan_path) {
         Ok(bytes) => serde_json::json!({ "path": PLAN_FILE, "sha256": sha256_hex(&bytes) }),
@@ -217,7 +237,8 @@ fn group_attributes(dir: &Path, header: &ManifestHeader, lay: &Layout) -> Result
         "format": "gonio-zarr",
         "version": 1,
         "gonio_version": env!("CARGO_PKG_VERSION"),
-        "dataset": dir.to_string_lossy(),
+        "dataset": input.path,
+        "dataset_sha256": input.sha256,
         "dataset_complete": complete,
         "values": header.values,
         "value_unit": extra("value_unit"),
@@ -366,7 +387,7 @@ pub fn export_zarr(dir: &Path, out: &Path, opts: &ZarrOptions) -> Result<(ZarrRe
     // Group and arrays (metadata and small arrays: identical in every part).
     let mut group = zarrs::group::GroupBuilder::new();
     group.attributes(attrs(
-        serde_json::json!({ "gonio": group_attributes(dir, &header, &lay)? }),
+        serde_json::json!({ "gonio": group_attributes(dir, out, &header, &lay)? }),
     ));
     let group = group.build(mem.clone(), "/").map_err(|e| zarr(&e))?;
     group.store_metadata().map_err(|e| zarr(&e))?;
