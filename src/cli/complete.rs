@@ -9,10 +9,10 @@
 //! its predicted RMS error. Substituted measurements are used at their grid position (as
 //! `compress` does); skipped pairs are predicted.
 
-use super::prior::{sample_name, sweep_name};
+use super::prior::sample_name;
 use super::sparse::load_prior;
 use crate::compress::data::DatasetViews;
-use crate::plan::sparse::{psnr_of_mse, units_key};
+use crate::plan::sparse::psnr_of_mse;
 use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_VERSION};
 use anyhow::{bail, Context, Result};
 use gonio_devices::image::RgbImage;
@@ -158,13 +158,7 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
     let (prior, prior_path) = load_prior(a.prior.as_deref())?;
     let prior = super::sparse::with_components(prior, a.components)?;
     let ds = DatasetViews::open(&a.dataset).with_context(|| format!("opening {}", a.dataset.display()))?;
-    prior
-        .check_compatible(
-            &sweep_name(&ds),
-            &ds.lights_deg,
-            &ds.views_deg,
-            &units_key(&ds.header.values),
-        )
+    super::prior::check_dataset(&prior, &ds)
         .with_context(|| format!("prior {} for {}", prior_path.display(), a.dataset.display()))?;
     let (_, records) = store::load(&a.dataset)?;
     let l = ds.n_lights();

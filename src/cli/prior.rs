@@ -167,6 +167,31 @@ pub fn sweep_name(ds: &DatasetViews) -> String {
         .to_string()
 }
 
+/// Refuse a prior for a dataset of another sweep or other value units.
+pub fn check_dataset(prior: &Prior, ds: &DatasetViews) -> Result<(), gonio_sparse::SparseError> {
+    prior.check_compatible(
+        &sweep_name(ds),
+        &ds.lights_deg,
+        &ds.views_deg,
+        &units_key(&ds.header.values),
+    )
+}
+
+/// Append the ABRDF rows of `texels` spread texels of `ds` (at `dir`) to `rows`, and say
+/// where they came from: the directory's own name only, so a prior's bytes do not depend
+/// on where its datasets sit.
+fn read_source(dir: &Path, ds: &DatasetViews, texels: usize, rows: &mut Vec<f32>) -> Result<TrainingSource> {
+    let texels = spread_texels(ds.texels(), texels);
+    rows.extend(abrdf_rows(ds, &texels)?);
+    Ok(TrainingSource {
+        dataset: dir
+            .file_name()
+            .map_or_else(|| dir.display().to_string(), |f| f.to_string_lossy().into_owned()),
+        sample: sample_name(ds),
+        texels: texels.len(),
+    })
+}
+
 /// `texels` evenly spaced texel indices out of `total`.
 pub fn spread_texels(total: usize, texels: usize) -> Vec<usize> {
     let n = texels.min(total).max(1);
@@ -248,22 +273,12 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
                 );
             }
         }
-        let texels = spread_texels(ds.texels(), a.texels);
         let (rows, sources) = if held(i) {
             (&mut held_rows, &mut held_sources)
         } else {
             (&mut rows, &mut sources)
         };
-        rows.extend(abrdf_rows(&ds, &texels)?);
-        sources.push(TrainingSource {
-            // The directory's own name only: the prior's bytes do not depend on where the
-            // training data sit.
-            dataset: dir
-                .file_name()
-                .map_or_else(|| dir.display().to_string(), |f| f.to_string_lossy().into_owned()),
-            sample: sample_name(&ds),
-            texels: texels.len(),
-        });
+        sources.push(read_source(dir, &ds, a.texels, rows)?);
         if first.is_none() {
             first = Some(ds);
         }
@@ -293,23 +308,8 @@ fn holdout(a: HoldoutArgs) -> Result<ExitCode> {
     let mut sources = Vec::new();
     for dir in &a.datasets {
         let ds = DatasetViews::open(dir).with_context(|| format!("opening {}", dir.display()))?;
-        prior
-            .check_compatible(
-                &sweep_name(&ds),
-                &ds.lights_deg,
-                &ds.views_deg,
-                &units_key(&ds.header.values),
-            )
-            .with_context(|| format!("{} against {}", dir.display(), path.display()))?;
-        let texels = spread_texels(ds.texels(), a.texels);
-        rows.extend(abrdf_rows(&ds, &texels)?);
-        sources.push(TrainingSource {
-            dataset: dir
-                .file_name()
-                .map_or_else(|| dir.display().to_string(), |f| f.to_string_lossy().into_owned()),
-            sample: sample_name(&ds),
-            texels: texels.len(),
-        });
+        check_dataset(&prior, &ds).with_context(|| format!("{} against {}", dir.display(), path.display()))?;
+        sources.push(read_source(dir, &ds, a.texels, &mut rows)?);
     }
     let out = prior
         .with_held_out(&rows, sources, a.variances)
