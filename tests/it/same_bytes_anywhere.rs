@@ -366,25 +366,7 @@ fn hashes(p: &Path) -> BTreeMap<String, String> {
         }
         sha(&comparable(rel, bytes))
     }
-    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<String, String>) {
-        for e in std::fs::read_dir(dir).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                walk(root, &p, out);
-            } else {
-                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
-                out.insert(rel.clone(), one(&rel, &std::fs::read(&p).unwrap()));
-            }
-        }
-    }
-    let mut out = BTreeMap::new();
-    if p.is_dir() {
-        walk(p, p, &mut out);
-    } else {
-        let name = p.file_name().unwrap().to_string_lossy().into_owned();
-        out.insert(String::new(), one(&name, &std::fs::read(p).unwrap()));
-    }
-    out
+    common::hashes::hashes_by(p, &one)
 }
 
 fn run_tree(cwd: &Path, base: &Path) -> BTreeMap<String, String> {

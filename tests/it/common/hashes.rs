@@ -65,22 +65,34 @@ pub fn comparable(rel: &str, bytes: &[u8]) -> Vec<u8> {
 /// Relative path → SHA-256 of the comparable bytes, for a file or every file of a tree
 /// (a single file is keyed by the empty path).
 pub fn hashes(root: &Path) -> BTreeMap<String, String> {
-    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<String, String>) {
+    if root.is_dir() {
+        hashes_by(root, &|rel, bytes| sha(&comparable(rel, bytes)))
+    } else {
+        BTreeMap::from([(String::new(), sha(&std::fs::read(root).unwrap()))])
+    }
+}
+
+/// Relative path → `one(relative path, bytes)` for every file of a tree; for a single file
+/// `one(file name, bytes)`, keyed by the empty path.
+pub fn hashes_by(root: &Path, one: &dyn Fn(&str, &[u8]) -> String) -> BTreeMap<String, String> {
+    fn walk(root: &Path, dir: &Path, one: &dyn Fn(&str, &[u8]) -> String, out: &mut BTreeMap<String, String>) {
         for e in std::fs::read_dir(dir).unwrap() {
             let p = e.unwrap().path();
             if p.is_dir() {
-                walk(root, &p, out);
+                walk(root, &p, one, out);
             } else {
                 let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
-                out.insert(rel.clone(), sha(&comparable(&rel, &std::fs::read(&p).unwrap())));
+                let h = one(&rel, &std::fs::read(&p).unwrap());
+                out.insert(rel, h);
             }
         }
     }
     let mut out = BTreeMap::new();
     if root.is_dir() {
-        walk(root, root, &mut out);
+        walk(root, root, one, &mut out);
     } else {
-        out.insert(String::new(), sha(&std::fs::read(root).unwrap()));
+        let name = root.file_name().unwrap().to_string_lossy().into_owned();
+        out.insert(String::new(), one(&name, &std::fs::read(root).unwrap()));
     }
     out
 }
