@@ -161,13 +161,48 @@ impl<'a> Completion<'a> {
     /// the basis is known to miss much (a specular peak) then pulls the coefficients less
     /// than one where it fits well; with equal σ_s² this is the plain MAP.
     fn build_per_pair(prior: &'a Prior, measured: &[usize], noise_var: f64) -> Result<Self, SparseError> {
+        let var: Vec<f64> = measured.iter().map(|&p| prior.pair_noise_var(p, noise_var)).collect();
+        Self::build_weighted(prior, measured, &var, noise_var)
+    }
+
+    /// MAP with a measurement noise variance of its own at each measured pair (model
+    /// space, in the order of `measured`), on top of the variance the prior's basis leaves
+    /// out there (ρ_p, or ρ): `σ_s² = noise_s + ρ_s`. This is how a sensor's noise enters:
+    /// shot noise grows with the signal and the value space's curve stretches the dark end
+    /// ([`crate::noise`]), so a dark pair is far noisier in the model than a bright one, and
+    /// a constant σ² would either trust the dark pairs' noise or throw away the bright
+    /// pairs' detail.
+    pub fn with_pair_noise(prior: &'a Prior, measured: &[usize], noise: &[f64]) -> Result<Self, SparseError> {
+        if noise.len() != measured.len() {
+            return Err(SparseError::Invalid(format!(
+                "{} noise variances for {} measured pairs",
+                noise.len(),
+                measured.len()
+            )));
+        }
+        if let Some(bad) = noise.iter().position(|v| !v.is_finite() || *v < 0.0) {
+            return Err(SparseError::Invalid(format!(
+                "the noise variance of measured pair {} is {} (must be finite and ≥ 0)",
+                measured[bad], noise[bad]
+            )));
+        }
+        let var: Vec<f64> = measured
+            .iter()
+            .zip(noise)
+            .map(|(&p, &n)| (n + prior.pair_residual(p)).max(1e-12))
+            .collect();
+        let mean = noise.iter().sum::<f64>() / noise.len().max(1) as f64 + prior.header.residual_var;
+        Self::build_weighted(prior, measured, &var, mean)
+    }
+
+    /// MAP with each measured pair's own variance `var[i]` (model space, in the order of
+    /// `measured`): with `D = diag(1/σ_s²)`, `â = (U_SᵀDU_S + Λ⁻¹)⁻¹ U_SᵀD (y_S − μ_S)` and
+    /// `Σ = (U_SᵀDU_S + Λ⁻¹)⁻¹`. `noise_var` is the overall figure the completion reports.
+    fn build_weighted(prior: &'a Prior, measured: &[usize], var: &[f64], noise_var: f64) -> Result<Self, SparseError> {
         check_design(prior, measured)?;
         let k = prior.components();
         let s = measured.len();
-        let sd: Vec<f64> = measured
-            .iter()
-            .map(|&p| prior.pair_noise_var(p, noise_var).sqrt())
-            .collect();
+        let sd: Vec<f64> = var.iter().map(|v| v.max(1e-12).sqrt()).collect();
         let us = DMatrix::<f64>::from_fn(s, k, |i, j| prior.basis[(measured[i], j)]);
         let ls_cond = condition(&(us.transpose() * &us));
         let white = DMatrix::<f64>::from_fn(s, k, |i, j| us[(i, j)] / sd[i]);
@@ -260,6 +295,46 @@ impl<'a> Completion<'a> {
             col += &self.offset;
         }
         a
+    }
+
+    /// Coefficients when some readings were clipped at the sensor's full scale: a reading
+    /// at or above `ceiling` (model space) says only that the value is *at least* that, and
+    /// fitting it as the value would pull the whole texel's ABRDF down towards the clip
+    /// (a specular peak flattened at full scale spreads its error over every predicted
+    /// pair). Each clipped reading is replaced by the larger of the ceiling and the
+    /// completion's own prediction there, and the coefficients are solved again, until
+    /// nothing moves (at most `iterations` times): the fixed point is the censored MAP, in
+    /// which a clipped reading whose prediction is above the clip exerts no pull and one
+    /// whose prediction falls below it pulls it up to the clip. Columns without a clipped
+    /// reading are as [`Self::coefficients`] gives them. Returns the coefficients and the
+    /// number of clipped readings.
+    pub fn coefficients_censored(&self, y: &DMatrix<f64>, ceiling: f64, iterations: usize) -> (DMatrix<f64>, usize) {
+        let mut a = self.coefficients(y);
+        let mut clipped = 0;
+        for j in 0..y.ncols() {
+            let rows: Vec<usize> = (0..y.nrows()).filter(|&i| y[(i, j)] >= ceiling).collect();
+            if rows.is_empty() {
+                continue;
+            }
+            clipped += rows.len();
+            let mut yj = y.column(j).clone_owned();
+            for _ in 0..iterations {
+                let mut moved = 0f64;
+                for &i in &rows {
+                    let p = self.measured[i];
+                    let pred = (self.prior.basis.row(p) * a.column(j))[(0, 0)] + self.prior.mean[p];
+                    let v = pred.max(ceiling);
+                    moved = moved.max((v - yj[i]).abs());
+                    yj[i] = v;
+                }
+                let col = self.coefficients(&DMatrix::from_column_slice(yj.len(), 1, yj.as_slice()));
+                a.set_column(j, &col.column(0));
+                if moved <= 1e-9 * ceiling.abs().max(1.0) {
+                    break;
+                }
+            }
+        }
+        (a, clipped)
     }
 
     /// The leverage of each measured pair (diagonal of the hat matrix `U_S W`, in the order
@@ -624,5 +699,88 @@ mod tests {
         }
         let h = holdout_check(&p, &measured, &y_out, nv, 4).unwrap();
         assert!(h.outside_prior, "{h:?}");
+    }
+
+    /// Readings clipped at full scale: fitted as values they drag the whole ABRDF down;
+    /// as lower bounds (the censored fit) the completion comes back close to the fit of
+    /// unclipped data, clipped readings whose prediction is above the clip are left there,
+    /// and columns without clipped readings are untouched.
+    #[test]
+    fn clipped_readings_are_lower_bounds() {
+        let (meta, rows) = toy(9, 500, 6, 5);
+        let p = Prior::learn(meta, &rows, 8, 1).unwrap();
+        let d = 81;
+        let (_, test) = toy(9, 20, 6, 99);
+        let truth = model_rows(&test, d, 20);
+        let design: Vec<usize> = (0..d).step_by(3).collect();
+        let c = Completion::new(&p, &design, p.header.residual_var + 1e-6).unwrap();
+        let y = truth.select_rows(&design);
+        // Clip at a level that cuts the brightest readings of most columns.
+        let mut sorted: Vec<f64> = y.iter().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        let ceiling = sorted[sorted.len() * 9 / 10];
+        let clipped = y.map(|v| v.min(ceiling));
+        let err = |a: &DMatrix<f64>| (c.predict_all(a) - &truth).norm();
+        let exact = err(&c.coefficients(&y));
+        let naive = err(&c.coefficients(&clipped));
+        let (a, n) = c.coefficients_censored(&clipped, ceiling, 50);
+        let censored = err(&a);
+        assert!(n > 0 && n == clipped.iter().filter(|&&v| v >= ceiling).count());
+        assert!(
+            censored < 0.6 * naive,
+            "censored {censored:.4} naive {naive:.4} exact {exact:.4}"
+        );
+        assert!(censored < 2.0 * exact + 1e-9, "censored {censored:.4} exact {exact:.4}");
+        for (j, col) in clipped.column_iter().enumerate() {
+            if col.iter().all(|&v| v < ceiling) {
+                assert_eq!(a.column(j), c.coefficients(&clipped).column(j));
+            }
+        }
+        // Nothing at the ceiling: the plain coefficients, bit for bit.
+        let (b, none) = c.coefficients_censored(&y, f64::INFINITY, 50);
+        assert_eq!(none, 0);
+        assert_eq!(b, c.coefficients(&y));
+    }
+
+    /// Per-pair noise: with equal noise at every pair and no ρ_p it is the plain MAP; a
+    /// noisier pair pulls the completion less; bad variances are refused by name.
+    #[test]
+    fn per_pair_noise_weighs_measured_pairs() {
+        let (meta, rows) = toy(9, 500, 6, 5);
+        let p = Prior::learn(meta, &rows, 8, 1).unwrap();
+        let d = 81;
+        let (_, test) = toy(9, 20, 6, 99);
+        let truth = model_rows(&test, d, 20);
+        let design: Vec<usize> = (0..d).step_by(4).collect();
+        let extra = 1e-5;
+        let plain = Completion::new(&p, &design, p.header.residual_var + extra).unwrap();
+        let same = Completion::with_pair_noise(&p, &design, &vec![extra; design.len()]).unwrap();
+        let y = truth.select_rows(&design);
+        let (fa, fb) = (
+            plain.predict_all(&plain.coefficients(&y)),
+            same.predict_all(&same.coefficients(&y)),
+        );
+        assert!((&fa - &fb).amax() < 1e-9, "{}", (&fa - &fb).amax());
+        let mut noise = vec![extra; design.len()];
+        noise[5] = 1.0;
+        let loud = Completion::with_pair_noise(&p, &design, &noise).unwrap();
+        let mut y_bad = y.clone();
+        y_bad.row_mut(5).add_scalar_mut(0.3);
+        let moved =
+            |c: &Completion| (c.predict_all(&c.coefficients(&y_bad)) - c.predict_all(&c.coefficients(&y))).norm();
+        assert!(
+            moved(&loud) < 0.05 * moved(&same),
+            "{} vs {}",
+            moved(&loud),
+            moved(&same)
+        );
+        let mut nan = vec![extra; design.len()];
+        nan[2] = f64::NAN;
+        let e = Completion::with_pair_noise(&p, &design, &nan)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains(&format!("pair {}", design[2])), "{e}");
+        assert!(Completion::with_pair_noise(&p, &design, &[extra]).is_err());
     }
 }

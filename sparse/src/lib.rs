@@ -33,6 +33,7 @@ pub mod adaptive;
 pub mod complete;
 pub mod design;
 pub mod joint;
+pub mod noise;
 pub mod prior;
 
 pub use complete::{Completion, Conditioning};

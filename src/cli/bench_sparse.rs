@@ -79,7 +79,7 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-auto, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
+    /// Only these methods (ours, ours-constant, ours-auto, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
@@ -270,6 +270,11 @@ fn psnr(truth: &[Vec<f32>], recon: &[Vec<f32>]) -> f64 {
 fn fill(c: &Completion, measured: &[usize], meas: &[Vec<f32>]) -> Vec<Vec<f32>> {
     let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
     let a = coefficients(c, &refs);
+    fill_from(c, &a, measured, meas)
+}
+
+/// The full grid from coefficients `a`: measured pairs as measured, the rest predicted.
+fn fill_from(c: &Completion, a: &nalgebra::DMatrix<f64>, measured: &[usize], meas: &[Vec<f32>]) -> Vec<Vec<f32>> {
     let mut is_m = vec![false; c.prior.dims()];
     measured.iter().for_each(|&i| is_m[i] = true);
     (0..c.prior.dims())
@@ -278,20 +283,43 @@ fn fill(c: &Completion, measured: &[usize], meas: &[Vec<f32>]) -> Vec<Vec<f32>> 
             if is_m[q] {
                 meas[q].clone()
             } else {
-                predict_image(c, &a, q)
+                predict_image(c, a, q)
             }
         })
         .collect()
 }
 
-/// Ours (or dense when `measured` is every feasible pair): MAP completion.
 /// Texels (three channels each) whose measured values choose `ours-auto`'s σ².
 const LOO_TEXELS: usize = 512;
 
+/// `ours-constant`, `ours-auto`: MAP completion with one noise variance `nv` for every
+/// pair, clipped readings fitted as values (the method before the sensor model).
 fn complete_map(prior: &Prior, measured: &[usize], meas: &[Vec<f32>], nv: f64) -> Result<(Vec<Vec<f32>>, f64)> {
     let p = prior.truncated(prior.components().min(measured.len()));
     let c = Completion::new(&p, measured, nv)?;
     Ok((fill(&c, measured, meas), psnr_of_mse(c.predicted_mse())))
+}
+
+/// Ours, as `gonio complete` does it: each measured pair weighed by its own sensor noise
+/// in model space (`gonio_sparse::noise`, from the rig's sensor model and the pair's
+/// readings) on top of the prior's ρ_p, and readings clipped at full scale (1) fitted as
+/// lower bounds (`Completion::coefficients_censored`).
+fn complete_sensor(
+    prior: &Prior,
+    measured: &[usize],
+    meas: &[Vec<f32>],
+    sensor: &gonio_devices::hdr::SensorNoise,
+) -> Result<(Vec<Vec<f32>>, f64)> {
+    let p = prior.truncated(prior.components().min(measured.len()));
+    let space = p.space();
+    let noise: Vec<f64> = measured
+        .iter()
+        .map(|&q| gonio_sparse::noise::pair_noise(space, &meas[q], |x| sensor.variance(x)))
+        .collect();
+    let c = Completion::with_pair_noise(&p, measured, &noise)?;
+    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let (a, _clipped) = super::complete::coefficients_censored(&c, &refs, 1.0);
+    Ok((fill_from(&c, &a, measured, meas), psnr_of_mse(c.predicted_mse())))
 }
 
 /// Ours, joint across texels: the material's Gaussian fitted by EM from every texel's
@@ -511,7 +539,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
             });
         }
         if want("dense") {
-            let (rec, pred) = complete_map(&prior, &feasible, &meas, nv)?;
+            let (rec, pred) = complete_sensor(&prior, &feasible, &meas, &sensor)?;
             rows.push(Row {
                 noise: noisy,
                 method: "dense".into(),
@@ -531,7 +559,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 rows.push(match fit {
                     Some((n, plan)) => {
                         let m = &design[..n];
-                        let (rec, pred) = complete_map(&prior, m, &meas, nv)?;
+                        let (rec, pred) = complete_sensor(&prior, m, &meas, &sensor)?;
                         Row {
                             noise: noisy,
                             method: "ours".into(),
@@ -545,6 +573,30 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         }
                     }
                     None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            if want("ours-constant") {
+                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) => {
+                        let m = &design[..n];
+                        let (rec, pred) = complete_map(&prior, m, &meas, nv)?;
+                        Row {
+                            noise: noisy,
+                            method: "ours-constant".into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: n,
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: Some(pred),
+                            note: format!(
+                                "K = {}, one noise variance for every pair, clipped readings as values",
+                                prior.components().min(n)
+                            ),
+                        }
+                    }
+                    None => na(noisy, "ours-constant", f, budget, "no pair fits"),
                 });
             }
             if want("ours-auto") {
@@ -618,7 +670,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                     Ok(plan) => {
                         let mut m: Vec<usize> = plan.steps.iter().map(|s| s.index).collect();
                         m.sort_unstable();
-                        let (rec, pred) = complete_map(&prior, &m, &meas, nv)?;
+                        let (rec, pred) = complete_sensor(&prior, &m, &meas, &sensor)?;
                         Row {
                             noise: noisy,
                             method: "ours-motion".into(),
@@ -637,7 +689,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
             if want("adaptive") {
                 rows.push(match adaptive(&ctx, &prior, &meas, budget, nv, tuning)? {
                     Some(run) => {
-                        let (rec, _) = complete_map(&prior, &run.measured, &meas, nv)?;
+                        let (rec, _) = complete_sensor(&prior, &run.measured, &meas, &sensor)?;
                         Row {
                             noise: noisy,
                             method: "adaptive".into(),

@@ -15,7 +15,9 @@ use crate::compress::data::DatasetViews;
 use crate::plan::sparse::psnr_of_mse;
 use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_VERSION};
 use anyhow::{bail, Context, Result};
+use gonio_devices::hdr::HdrMode;
 use gonio_devices::image::RgbImage;
+use gonio_devices::rig::RigSpec;
 use gonio_sparse::complete::{holdout_check, Holdout};
 use gonio_sparse::joint::{self, JointOptions, JointReport};
 use gonio_sparse::{Completion, Conditioning, Prior};
@@ -42,6 +44,20 @@ pub struct CompleteArgs {
     /// out-of-basis variance in the MAP weights.
     #[arg(long, default_value_t = 0.0)]
     pub noise_codes: f64,
+    /// How measured pairs are weighed: `sensor` (each pair by its own sensor noise, from
+    /// the camera of the rig recorded in the manifest and the pair's readings: shot noise
+    /// grows with the signal and the gamma space stretches the dark end; docs/guide/sparse.md)
+    /// or `constant` (one variance for every pair: the prior's ρ_p plus --noise-codes).
+    /// `sensor` falls back to `constant`, with a warning, when the manifest has no rig.
+    #[arg(long, default_value = "sensor", value_parser = ["sensor", "constant"])]
+    pub noise_model: String,
+    /// Readings at or above this linear value were clipped at the sensor's full scale and
+    /// are fitted as lower bounds, not as values (a clipped highlight would drag the whole
+    /// texel's ABRDF down). `off` fits them as values. Default: 1 (the full scale of
+    /// `normalized_signal`) for single exposures, off for HDR datasets (their merged
+    /// values go above 1).
+    #[arg(long, value_name = "LEVEL|off")]
+    pub clip: Option<String>,
     #[arg(long)]
     pub force: bool,
     #[arg(long)]
@@ -72,6 +88,35 @@ pub fn coefficients(c: &Completion, images: &[&[f32]]) -> DMatrix<f64> {
     }
     out
 }
+
+/// [`coefficients`] for readings clipped at the sensor's full scale `full_scale` (linear):
+/// readings at or above it are lower bounds ([`Completion::coefficients_censored`]).
+/// Returns the coefficients and the number of clipped readings.
+pub fn coefficients_censored(c: &Completion, images: &[&[f32]], full_scale: f64) -> (DMatrix<f64>, usize) {
+    let space = c.prior.space();
+    let ceiling = space.forward(full_scale);
+    let m = images.first().map_or(0, |i| i.len());
+    let s = images.len();
+    let k = c.prior.components();
+    let chunks: Vec<(DMatrix<f64>, usize)> = (0..m.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|ci| {
+            let (a, b) = (ci * CHUNK, ((ci + 1) * CHUNK).min(m));
+            let y = DMatrix::<f64>::from_fn(s, b - a, |i, j| space.forward(images[i][a + j] as f64));
+            c.coefficients_censored(&y, ceiling, CENSORED_ITERATIONS)
+        })
+        .collect();
+    let mut out = DMatrix::<f64>::zeros(k, m);
+    let mut clipped = 0;
+    for (ci, (ch, n)) in chunks.iter().enumerate() {
+        out.columns_mut(ci * CHUNK, ch.ncols()).copy_from(ch);
+        clipped += n;
+    }
+    (out, clipped)
+}
+
+/// Fixed-point steps of the censored fit at most (it settles in a few on clipped peaks).
+const CENSORED_ITERATIONS: usize = 50;
 
 /// The predicted linear image of pair `p`.
 pub fn predict_image(c: &Completion, a: &DMatrix<f64>, p: usize) -> Vec<f32> {
@@ -150,6 +195,8 @@ struct CompleteJson {
     predicted_psnr_db: f64,
     black_texels: usize,
     saturated_texels: usize,
+    /// Readings at or above the clip level, fitted as lower bounds.
+    clipped_readings: usize,
     holdout: Option<Holdout>,
     warnings: Vec<String>,
 }
@@ -174,8 +221,6 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         }
     }
     let measured: Vec<usize> = (0..d).filter(|&p| by_index[p].is_some()).collect();
-    let c = Completion::new(&prior, &measured, noise_var(&prior, a.noise_codes))
-        .with_context(|| format!("completing {}", a.dataset.display()))?;
     let images: Vec<Vec<f32>> = measured
         .par_iter()
         .map(|&p| {
@@ -184,11 +229,50 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         })
         .collect::<Result<_>>()?;
     let refs: Vec<&[f32]> = images.iter().map(|v| v.as_slice()).collect();
+    let mut warnings = Vec::new();
+    let rig: Option<RigSpec> = serde_json::from_value(ds.header.rig.clone()).ok();
+    let sensor = match (a.noise_model.as_str(), &rig) {
+        ("sensor", Some(r)) => Some(r.hdr.clone().unwrap_or_default().noise(&r.camera, r.camera.gain)),
+        ("sensor", None) => {
+            warnings.push(format!(
+                "{}: the manifest records no rig, so its sensor's noise is unknown: every pair \
+                 weighed alike (--noise-model constant, --noise-codes {})",
+                a.dataset.display(),
+                a.noise_codes
+            ));
+            None
+        }
+        _ => None,
+    };
+    // Per measured pair: its measurement noise in model space.
+    let pair_noise: Vec<f64> = match &sensor {
+        Some(s) => refs
+            .iter()
+            .map(|img| gonio_sparse::noise::pair_noise(prior.space(), img, |x| s.variance(x)))
+            .collect(),
+        None => vec![(a.noise_codes / 255.0).powi(2); measured.len()],
+    };
+    let hdr = rig.as_ref().is_some_and(|r| r.hdr_mode() != HdrMode::Off);
+    let clip: Option<f64> = match a.clip.as_deref() {
+        Some("off") => None,
+        Some(v) => Some(
+            v.parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .with_context(|| format!("--clip {v}: use a positive linear level (e.g. 1) or off"))?,
+        ),
+        None if hdr => None,
+        None => Some(1.0),
+    };
+    let c = Completion::with_pair_noise(&prior, &measured, &pair_noise)
+        .with_context(|| format!("completing {}", a.dataset.display()))?;
     let texels = ds.texels();
     let (black, saturated) = count_ill(&refs, texels);
     let hold = holdout(&c, &refs, texels);
-    let coeffs = coefficients(&c, &refs);
-    let mut warnings = Vec::new();
+    let (coeffs, clipped) = match clip {
+        Some(level) => coefficients_censored(&c, &refs, level),
+        None => (coefficients(&c, &refs), 0),
+    };
     if let Some(h) = hold.as_ref().filter(|h| h.outside_prior) {
         warnings.push(format!(
             "material outside the prior: on {} held-back measured pairs the error is {:.1} × the \
@@ -226,6 +310,8 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         "measured": measured.len(),
         "conditioning": c.conditioning,
         "method": "per-texel MAP in the prior (ridge with the prior's eigenvalues), gamma space",
+        "noise_model": if sensor.is_some() { "sensor" } else { "constant" },
+        "clip": clip,
     });
     super::common::record_input(&mut completion, "from", &a.dataset, &a.out)?;
     extra.insert("completion".into(), completion);
@@ -250,10 +336,9 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         }
     }
     let mut order = measured.len();
-    let mut mse_sum = 0.0;
+    let mut mse_sum: f64 = pair_noise.iter().sum();
     for (p, rec) in by_index.iter().enumerate() {
         if rec.is_some() {
-            mse_sum += (a.noise_codes / 255.0).powi(2);
             continue;
         }
         let var = c.predicted_var(p);
@@ -281,6 +366,7 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         predicted_psnr_db,
         black_texels: black,
         saturated_texels: saturated,
+        clipped_readings: clipped,
         holdout: hold,
         warnings: warnings.clone(),
     };

@@ -137,8 +137,24 @@ fn prior_plan_complete_bench_and_refusals() {
     assert_eq!(rep["measured"], 40);
     assert_eq!(rep["predicted"], 144 - 40);
     assert!(rep["conditioning"]["map_condition"].as_f64().unwrap().is_finite());
+    assert!(rep["clipped_readings"].as_u64().is_some(), "{rep}");
     let (h2, recs2) = store::load(&full).unwrap();
     assert_eq!(h2.version, store::FORMAT_VERSION);
+    // Weighed by the recorded rig's sensor noise, clipped readings as lower bounds at 1.
+    assert_eq!(h2.extra["completion"]["noise_model"], "sensor", "{}", h2.extra);
+    assert_eq!(h2.extra["completion"]["clip"], 1.0, "{}", h2.extra);
+    refused(
+        &[
+            "complete",
+            s(&sparse),
+            "--prior",
+            s(&prior),
+            "--out",
+            s(&d.join("bad-clip")),
+            "--clip=-1",
+        ],
+        &["--clip -1", "positive"],
+    );
     assert_eq!(recs2.len(), 144);
     let by_index: std::collections::HashMap<usize, &store::MeasurementRecord> =
         records.iter().map(|r| (r.index, r)).collect();
