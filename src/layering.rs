@@ -149,7 +149,8 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "error",
             "exact",
             "rsvd",
-            // the readers and the dispatch over methods
+            // the readers, the registry of methods and the dispatch through it
+            "registry",
             "factor",
             "interp",
             "metrics",

@@ -450,7 +450,7 @@ fn merge_gbtf(parts: &[PathBuf], out: &Path, force: bool) -> Result<MergeReport,
         }
         let g = Gbtf::read(p)?;
         let shard = shard_of(p, g.header.source.get("shard"), "source.shard in its header")?;
-        if g.header.method != "pvmf" {
+        if g.header.method != gonio_btf::compress::CodecId::Pvmf.name() {
             return Err(part_err(
                 p,
                 format!(

@@ -1,13 +1,14 @@
 //! `gonio batch slurm`: write (and with `--submit` submit) a Slurm job array that runs a
 //! sharded command, plus a merge job that depends on it (see `crate::slurm`).
 
-use super::compress::MethodArg;
+use super::compress::shard_kind;
 use super::dataset::DatasetCommand;
 use super::sim::SimCommand;
 use super::{Cli, Command as Gonio};
 use crate::slurm::{self, RetryMode, ShardedKind, SlurmJob};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use gonio_btf::compress::Shard;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
@@ -163,16 +164,10 @@ fn sharded_kind(args: &[String]) -> Result<(ShardedKind, Option<Input>), String>
             Some((g.spec.clone(), "family spec")),
         ),
         Gonio::Compress(c) => {
-            let kind = match c.method {
-                Some(MethodArg::Pvmf) => ShardedKind::CompressPvmf,
-                Some(MethodArg::LocalPca) => ShardedKind::CompressRsvd {
-                    passes: gonio_btf::compress::local_pca::passes::PASSES,
-                },
-                // 2 + power iterations passes.
-                Some(MethodArg::Pca | MethodArg::Dfmf) => ShardedKind::CompressRsvd {
-                    passes: c.power_iters + 2,
-                },
-                _ => {
+            let kind = match c.method.map(|m| shard_kind(m, c)) {
+                Some(Shard::Views) => ShardedKind::CompressPvmf,
+                Some(Shard::Passes(passes)) => ShardedKind::CompressRsvd { passes },
+                Some(Shard::No) | None => {
                     return Err(
                         "`compress` is sharded for --method pvmf (by views), pca, dfmf and local-pca (by passes over the views)"
                             .into(),

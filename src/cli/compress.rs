@@ -6,7 +6,7 @@ use gonio_btf::compress::btf_ubo2014::{self, Precision};
 use gonio_btf::compress::dfmf::{self, ColorModel, DfmfParams};
 use gonio_btf::compress::interp::AnyModel;
 use gonio_btf::compress::target::Goal;
-use gonio_btf::compress::{self, DatasetViews, Method, Params};
+use gonio_btf::compress::{self, CodecId, DatasetViews, Method, Params, Shard};
 use gonio_devices::image::RgbImage;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -39,6 +39,67 @@ pub enum MethodArg {
     /// Chained matrix factorization per ABRDF: the GSHD product times a rank -c SVD of the
     /// residual (ABRDF / GSHD) in light × view form.
     Cmf,
+}
+
+impl MethodArg {
+    /// The registry's method (`gonio_btf::compress::registry`); the value's name is its
+    /// [`CodecId::name`] (test `method_values_are_the_registry_names`).
+    pub fn id(self) -> CodecId {
+        match self {
+            MethodArg::Pca => CodecId::Pca,
+            MethodArg::Pvmf => CodecId::Pvmf,
+            MethodArg::Dfmf => CodecId::Dfmf,
+            MethodArg::LocalPca => CodecId::LocalPca,
+            MethodArg::MedianCut => CodecId::MedianCut,
+            MethodArg::Homomorphic => CodecId::Homomorphic,
+            MethodArg::Nd => CodecId::Nd,
+            MethodArg::SvdJ => CodecId::SvdJ,
+            MethodArg::Gshd => CodecId::Gshd,
+            MethodArg::Cmf => CodecId::Cmf,
+        }
+    }
+}
+
+/// How `--shard` splits `--method` with these arguments (the registry's fact).
+pub(crate) fn shard_kind(method: MethodArg, args: &CompressArgs) -> Shard {
+    compress::codec(method.id()).shard(&knobs(args))
+}
+
+/// The method `--method` names, with its knobs from the command line (`components`: -c).
+fn method_of(m: MethodArg, args: &CompressArgs, components: usize) -> Method {
+    match m {
+        MethodArg::Pca => Method::Pca,
+        MethodArg::Pvmf => Method::Pvmf,
+        MethodArg::Dfmf => Method::Dfmf {
+            color_model: color_model(args.color_model),
+            chroma_components: args.chroma_components.unwrap_or(components),
+        },
+        MethodArg::LocalPca => Method::LocalPca {
+            clusters: args.clusters,
+            iters: args.iters,
+            subspace: args.subspace,
+            in_passes: args.in_passes,
+        },
+        MethodArg::MedianCut => Method::MedianCut {
+            boxes: args.boxes,
+            balanced: args.balanced,
+            min_error_cut: args.min_error_cut,
+        },
+        MethodArg::Homomorphic => Method::Homomorphic {
+            half_bins: args.half_bins,
+            sweeps: args.sweeps.unwrap_or(20),
+        },
+        MethodArg::Nd => Method::Nd,
+        MethodArg::SvdJ => Method::SvdJ,
+        MethodArg::Gshd => Method::Gshd {
+            theta_bins: args.half_bins,
+            sweeps: args.sweeps.unwrap_or(200),
+        },
+        MethodArg::Cmf => Method::Cmf {
+            theta_bins: args.half_bins,
+            sweeps: args.sweeps.unwrap_or(200),
+        },
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -264,8 +325,10 @@ pub(crate) struct TruthReport {
 }
 
 pub fn run(args: CompressArgs) -> Result<ExitCode> {
-    if let (Some(shard), Some(MethodArg::Pca | MethodArg::Dfmf | MethodArg::LocalPca)) = (args.shard, args.method) {
-        return shard_pass(&args, shard);
+    if let (Some(shard), Some(m)) = (args.shard, args.method) {
+        if let Shard::Passes(_) = shard_kind(m, &args) {
+            return shard_pass(&args, shard);
+        }
     }
     let r = compress_report(&args)?;
     if args.json {
@@ -306,19 +369,20 @@ fn shard_pass(args: &CompressArgs, shard: gonio_dataset::shard::Shard) -> Result
         (_, FormatArg::Btf) => anyhow::bail!("--format btf (UBO2014 DFMF) is written by --method dfmf only"),
         (m, FormatArg::Gbtf) => Output::Gbtf {
             params: Params {
-                method: match m {
-                    MethodArg::Pca => Method::Pca,
+                method: match method_of(m, args, c) {
                     // A sharded local PCA always runs the nine passes.
-                    MethodArg::LocalPca => Method::LocalPca {
-                        clusters: args.clusters,
-                        iters: args.iters,
-                        subspace: args.subspace,
+                    Method::LocalPca {
+                        clusters,
+                        iters,
+                        subspace,
+                        ..
+                    } => Method::LocalPca {
+                        clusters,
+                        iters,
+                        subspace,
                         in_passes: true,
                     },
-                    _ => Method::Dfmf {
-                        color_model: color_model(args.color_model),
-                        chroma_components: args.chroma_components.unwrap_or(c),
-                    },
+                    other => other,
                 },
                 components: c,
                 seed: args.seed,
@@ -419,7 +483,9 @@ fn record_dataset(gbtf: &mut compress::Gbtf, args: &CompressArgs) -> Result<()> 
 /// compress` report.
 pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     if args.shard.is_some()
-        && (!matches!(args.method, Some(MethodArg::Pvmf)) || args.target_psnr.is_some() || args.target_ratio.is_some())
+        && (args.method.map(|m| shard_kind(m, args)) != Some(Shard::Views)
+            || args.target_psnr.is_some()
+            || args.target_ratio.is_some())
     {
         anyhow::bail!(
             "--shard splits --method pvmf by views, and pca, dfmf and local-pca by passes over the views; \
@@ -458,38 +524,8 @@ pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
     };
     let params = Params {
         method: match method_arg {
-            MethodArg::Pca => Method::Pca,
-            MethodArg::Pvmf => Method::Pvmf,
             MethodArg::Dfmf if format == FormatArg::Btf => return dfmf_report(args, &ds, t0),
-            MethodArg::Dfmf => Method::Dfmf {
-                color_model: color_model(args.color_model),
-                chroma_components: args.chroma_components.unwrap_or(components),
-            },
-            MethodArg::LocalPca => Method::LocalPca {
-                clusters: args.clusters,
-                iters: args.iters,
-                subspace: args.subspace,
-                in_passes: args.in_passes,
-            },
-            MethodArg::MedianCut => Method::MedianCut {
-                boxes: args.boxes,
-                balanced: args.balanced,
-                min_error_cut: args.min_error_cut,
-            },
-            MethodArg::Homomorphic => Method::Homomorphic {
-                half_bins: args.half_bins,
-                sweeps: args.sweeps.unwrap_or(20),
-            },
-            MethodArg::Nd => Method::Nd,
-            MethodArg::SvdJ => Method::SvdJ,
-            MethodArg::Gshd => Method::Gshd {
-                theta_bins: args.half_bins,
-                sweeps: args.sweeps.unwrap_or(200),
-            },
-            MethodArg::Cmf => Method::Cmf {
-                theta_bins: args.half_bins,
-                sweeps: args.sweeps.unwrap_or(200),
-            },
+            m => method_of(m, args, components),
         },
         components,
         seed: args.seed,
@@ -560,22 +596,10 @@ fn report_base(args: &CompressArgs, ds: &DatasetViews, stored: u64, encode_secon
     }
 }
 
-/// The search's ladders for `--method` (`compress::target::ladders`) with the knobs given.
-fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
-    use compress::target::SearchMethod as S;
-    let method = method.map(|m| match m {
-        MethodArg::Pca => S::Pca,
-        MethodArg::Pvmf => S::Pvmf,
-        MethodArg::Dfmf => S::Dfmf,
-        MethodArg::LocalPca => S::LocalPca,
-        MethodArg::MedianCut => S::MedianCut,
-        MethodArg::Homomorphic => S::Homomorphic,
-        MethodArg::Nd => S::Nd,
-        MethodArg::SvdJ => S::SvdJ,
-        MethodArg::Gshd => S::Gshd,
-        MethodArg::Cmf => S::Cmf,
-    });
-    let knobs = compress::target::Knobs {
+/// The knobs of `gonio compress`'s options that the registry's ladders and shard passes
+/// read.
+pub(crate) fn knobs(args: &CompressArgs) -> compress::Knobs {
+    compress::Knobs {
         seed: args.seed,
         oversample: args.oversample,
         power_iters: args.power_iters,
@@ -586,8 +610,12 @@ fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
         min_error_cut: args.min_error_cut,
         half_bins: args.half_bins,
         sweeps: args.sweeps,
-    };
-    compress::target::ladders(method, &knobs)
+    }
+}
+
+/// The search's ladders for `--method` (`compress::target::ladders`) with the knobs given.
+fn ladders(method: Option<MethodArg>, args: &CompressArgs) -> Vec<Vec<Params>> {
+    compress::target::ladders(method.map(MethodArg::id), &knobs(args))
 }
 
 fn target_report(args: &CompressArgs, ds: &DatasetViews, goal: Goal, t0: Instant) -> Result<Report> {
@@ -639,7 +667,16 @@ fn target_report(args: &CompressArgs, ds: &DatasetViews, goal: Goal, t0: Instant
                 color_model,
                 chroma_components,
             } => format!(" ({}, chroma c = {chroma_components})", color_model.name()),
-            _ => String::new(),
+            Method::Pca
+            | Method::Pvmf
+            | Method::MedianCut { .. }
+            | Method::Homomorphic { .. }
+            | Method::Nd
+            | Method::SvdJ
+            | Method::Gshd { .. }
+            | Method::Cmf { .. }
+            | Method::Svbrdf { .. }
+            | Method::Gltf => String::new(),
         },
         best.bits,
         best.psnr_8bit_db.unwrap_or(f64::NAN),
@@ -884,4 +921,25 @@ pub fn reconstruct(args: ReconstructArgs) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::ValueEnum;
+
+    /// `--method` takes exactly the registry's encodable methods, under their names.
+    #[test]
+    fn method_values_are_the_registry_names() {
+        let values: Vec<(String, CodecId)> = MethodArg::value_variants()
+            .iter()
+            .map(|m| (m.to_possible_value().unwrap().get_name().to_string(), m.id()))
+            .collect();
+        for (name, id) in &values {
+            assert_eq!(name, id.name());
+        }
+        let mut ids: Vec<CodecId> = values.iter().map(|v| v.1).collect();
+        ids.sort();
+        assert_eq!(ids, compress::registry::encodable().collect::<Vec<_>>());
+    }
 }

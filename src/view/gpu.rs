@@ -33,7 +33,7 @@ use super::source::Source;
 use gonio_btf::compress::dfmf::{self, inverse3, ColorModel};
 use gonio_btf::compress::homomorphic;
 use gonio_btf::compress::interp::AnyModel;
-use gonio_btf::compress::{CompressedBtf, Method, Params};
+use gonio_btf::compress::{CodecId, CompressedBtf, Layout, Params};
 use serde_json::{json, Value};
 
 /// Linear sRGB (D65) → CIE XYZ: the matrix of `compress::dfmf` (IEC 61966-2-1); the unit
@@ -72,9 +72,9 @@ pub enum Kind {
 impl Kind {
     pub fn name(self) -> &'static str {
         match self {
-            Kind::Dfmf => "dfmf",
-            Kind::MedianCut => "median-cut",
-            Kind::Homomorphic => "homomorphic",
+            Kind::Dfmf => CodecId::Dfmf.name(),
+            Kind::MedianCut => CodecId::MedianCut.name(),
+            Kind::Homomorphic => CodecId::Homomorphic.name(),
         }
     }
 }
@@ -96,11 +96,16 @@ pub fn kind(src: &Source) -> Option<Kind> {
             model: AnyModel::Dfmf(_),
             ..
         } => Some(Kind::Dfmf),
-        _ => match gbtf(src)?.method() {
-            Method::Dfmf { .. } => Some(Kind::Dfmf),
-            Method::MedianCut { .. } => Some(Kind::MedianCut),
-            Method::Homomorphic { .. } => Some(Kind::Homomorphic),
-            _ => None,
+        _ => match gbtf(src)?.layout() {
+            Layout::ChannelFactors => Some(Kind::Dfmf),
+            Layout::Index { .. } => Some(Kind::MedianCut),
+            Layout::HalfVectorTables { .. } => Some(Kind::Homomorphic),
+            // PCA, PVMF and local PCA: `server::gpu_blocks`; the rest has no GPU decoder.
+            Layout::Basis
+            | Layout::ViewBases
+            | Layout::Clusters { .. }
+            | Layout::PerTexel
+            | Layout::AnalyticPerTexel => None,
         },
     }
 }
@@ -119,7 +124,7 @@ pub fn dfmf_factors(src: &Source) -> Option<DfmfFactors<'_>> {
         }),
         _ => {
             let m = gbtf(src)?;
-            if !matches!(m.method(), Method::Dfmf { .. }) {
+            if m.layout() != Layout::ChannelFactors {
                 return None;
             }
             let (model, c) = dfmf::channel_components(&Params::new(m.method(), m.components())).ok()?;
@@ -153,17 +158,31 @@ fn texel_half(src: &Source, k: Kind) -> bool {
     }
 }
 
+/// Half-vector bins of a homomorphic file (0 for other layouts, which have no bins).
 fn half_bins(m: &CompressedBtf) -> usize {
-    match m.method() {
-        Method::Homomorphic { half_bins, .. } => half_bins,
-        _ => 0,
+    match m.layout() {
+        Layout::HalfVectorTables { half_bins } => half_bins,
+        Layout::Basis
+        | Layout::ViewBases
+        | Layout::Clusters { .. }
+        | Layout::Index { .. }
+        | Layout::ChannelFactors
+        | Layout::PerTexel
+        | Layout::AnalyticPerTexel => 0,
     }
 }
 
+/// Boxes of a median-cut file (0 for other layouts, which have no boxes).
 fn boxes(m: &CompressedBtf) -> usize {
-    match m.method() {
-        Method::MedianCut { boxes, .. } => boxes,
-        _ => 0,
+    match m.layout() {
+        Layout::Index { boxes } => boxes,
+        Layout::Basis
+        | Layout::ViewBases
+        | Layout::Clusters { .. }
+        | Layout::ChannelFactors
+        | Layout::HalfVectorTables { .. }
+        | Layout::PerTexel
+        | Layout::AnalyticPerTexel => 0,
     }
 }
 

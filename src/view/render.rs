@@ -29,7 +29,7 @@
 
 use gonio_btf::compress::interp::{cross, direction_weights, dot, normalize, unit, BtfModel};
 use gonio_btf::compress::CompressError;
-use gonio_btf::compress::{CompressedBtf, Method};
+use gonio_btf::compress::{CompressedBtf, Layout};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -342,10 +342,15 @@ impl Factors<'_> {
 fn as_factors(model: &dyn BtfModel) -> Option<Factors<'_>> {
     let any = model.as_any()?;
     let m = any.downcast_ref::<CompressedBtf>()?;
-    let pvmf = match m.method() {
-        Method::Pvmf => true,
-        Method::Pca => false,
-        _ => return None,
+    let pvmf = match m.layout() {
+        Layout::ViewBases => true,
+        Layout::Basis => false,
+        Layout::Clusters { .. }
+        | Layout::Index { .. }
+        | Layout::ChannelFactors
+        | Layout::HalfVectorTables { .. }
+        | Layout::PerTexel
+        | Layout::AnalyticPerTexel => return None,
     };
     Some(Factors {
         pvmf,
@@ -370,7 +375,7 @@ mod tests {
     use super::*;
     use gonio_btf::compress::interp::reconstruct_at;
     use gonio_btf::compress::testdata::write_test_dataset;
-    use gonio_btf::compress::{compress, Params};
+    use gonio_btf::compress::{compress, Method, Params};
 
     fn model() -> (tempfile::TempDir, CompressedBtf) {
         let dir = tempfile::tempdir().unwrap();

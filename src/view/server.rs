@@ -31,7 +31,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
 use gonio_btf::compress::interp::{reconstruct_at, AnyModel, BtfModel};
-use gonio_btf::compress::{CompressedBtf, Method};
+use gonio_btf::compress::{CodecId, CompressedBtf, Layout};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::net::{IpAddr, SocketAddr};
@@ -533,11 +533,14 @@ fn gpu_kind(src: &Source) -> Option<&'static str> {
         Source::Model {
             model: AnyModel::Gbtf(m),
             ..
-        } => match m.method() {
-            Method::Pvmf => Some("pvmf"),
-            Method::Pca => Some("pca"),
-            Method::LocalPca { .. } => Some("local-pca"),
-            _ => super::gpu::kind(src).map(super::gpu::Kind::name),
+        } => match m.layout() {
+            // `gpu_blocks`, decoded by the page's shader named after the method.
+            Layout::Basis | Layout::ViewBases | Layout::Clusters { .. } => Some(m.method().name()),
+            Layout::Index { .. }
+            | Layout::ChannelFactors
+            | Layout::HalfVectorTables { .. }
+            | Layout::PerTexel
+            | Layout::AnalyticPerTexel => super::gpu::kind(src).map(super::gpu::Kind::name),
         },
         Source::Model { .. } => super::gpu::kind(src).map(super::gpu::Kind::name),
     }
@@ -554,8 +557,26 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         Source::Model {
             model: AnyModel::Dfmf(_),
             ..
-        } => ("dfmf", 0, 0),
+        } => (CodecId::Dfmf.name(), 0, 0),
         Source::Dataset(_) => ("raw", 0, 0),
+    };
+    // Columns of the GPU blocks (local PCA: 1, the coefficients, the cluster index) and
+    // clusters (1 but for local PCA).
+    let (gpu_cols, clusters) = match &*src {
+        Source::Model {
+            model: AnyModel::Gbtf(g),
+            ..
+        } => match g.layout() {
+            Layout::Clusters { clusters } => (components + 2, clusters),
+            Layout::Basis
+            | Layout::ViewBases
+            | Layout::Index { .. }
+            | Layout::ChannelFactors
+            | Layout::HalfVectorTables { .. }
+            | Layout::PerTexel
+            | Layout::AnalyticPerTexel => (components, 1),
+        },
+        Source::Model { .. } | Source::Dataset(_) => (components, 1),
     };
     let truth = match &*src {
         Source::Dataset(d) => d.views.dir.join("truth").is_dir(),
@@ -575,15 +596,8 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         "gpu": gpu_kind(&src),
         "components": components,
         "blocks": blocks,
-        // Columns of the GPU blocks (local PCA: 1, the coefficients, the cluster index).
-        "gpu_cols": if method == "local-pca" { components + 2 } else { components },
-        "clusters": match &*src {
-            Source::Model { model: AnyModel::Gbtf(g), .. } => match g.method() {
-                Method::LocalPca { clusters, .. } => clusters,
-                _ => 1,
-            },
-            _ => 1,
-        },
+        "gpu_cols": gpu_cols,
+        "clusters": clusters,
         "width": m.width(),
         "height": m.height(),
         "lights_deg": m.lights_deg(),
@@ -591,7 +605,7 @@ async fn info(State(st): State<Arc<AppState>>) -> ApiResult {
         "truth": truth,
         "model": st.model.as_ref().map(|m| match &**m {
             AnyModel::Gbtf(g) => g.method().name(),
-            AnyModel::Dfmf(_) => "dfmf",
+            AnyModel::Dfmf(_) => CodecId::Dfmf.name(),
         }),
         "measured_pairs": measured,
         "max_api_pixels": MAX_API_PIXELS,
@@ -674,10 +688,14 @@ async fn factors(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
 
 /// Number of [`gpu_blocks`] (without building them).
 fn gpu_block_count(m: &CompressedBtf) -> usize {
-    match m.method() {
-        Method::LocalPca { .. } => 2,
-        Method::Pvmf | Method::Pca => m.gbtf.blocks.len(),
-        _ => 0,
+    match m.layout() {
+        Layout::Clusters { .. } => 2,
+        Layout::Basis | Layout::ViewBases => m.gbtf.blocks.len(),
+        Layout::Index { .. }
+        | Layout::ChannelFactors
+        | Layout::HalfVectorTables { .. }
+        | Layout::PerTexel
+        | Layout::AnalyticPerTexel => 0,
     }
 }
 
@@ -689,8 +707,8 @@ fn gpu_block_count(m: &CompressedBtf) -> usize {
 fn gpu_blocks(m: &CompressedBtf) -> Vec<(std::borrow::Cow<'_, [f32]>, usize)> {
     use std::borrow::Cow;
     let c = m.components();
-    match m.method() {
-        Method::LocalPca { clusters: k, .. } => {
+    match m.layout() {
+        Layout::Clusters { clusters: k } => {
             let h = m.header();
             let (t, dims) = (h.width * h.height, h.lights_deg.len() * h.views_deg.len() * 3);
             let (cluster, coef, mean, basis) = (
@@ -715,8 +733,12 @@ fn gpu_blocks(m: &CompressedBtf) -> Vec<(std::borrow::Cow<'_, [f32]>, usize)> {
             }
             vec![(Cow::Owned(b0), c + 2), (Cow::Owned(b1), c + 2)]
         }
-        Method::Pvmf | Method::Pca => m.gbtf.blocks.iter().map(|b| (Cow::Borrowed(&b[..]), c)).collect(),
-        _ => Vec::new(),
+        Layout::Basis | Layout::ViewBases => m.gbtf.blocks.iter().map(|b| (Cow::Borrowed(&b[..]), c)).collect(),
+        Layout::Index { .. }
+        | Layout::ChannelFactors
+        | Layout::HalfVectorTables { .. }
+        | Layout::PerTexel
+        | Layout::AnalyticPerTexel => Vec::new(),
     }
 }
 
@@ -1095,7 +1117,14 @@ async fn abrdf(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
             .await;
         }
     }
-    let fast = matches!(gpu_kind(&src), Some("pvmf") | Some("pca"));
+    // PCA and PVMF: a texel's values are its basis row times the measurement rows.
+    let fast = match &*src {
+        Source::Model {
+            model: AnyModel::Gbtf(g),
+            ..
+        } => g.layout().has_bases(),
+        Source::Model { .. } | Source::Dataset(_) => false,
+    };
     if !fast && nl * nv * m.width() * m.height() * 3 > MAX_ABRDF_WORK {
         return Err(bad(format!(
             "an ABRDF of this source decodes {nl}×{nv} full images; too much work per click (compress it first)"
@@ -1114,7 +1143,7 @@ async fn abrdf(State(st): State<Arc<AppState>>, Query(q): Q) -> ApiResult {
             let b = &g.gbtf.blocks;
             for v in 0..nv {
                 for l in 0..nl {
-                    let (basis, rows, r0) = if g.method() == Method::Pvmf {
+                    let (basis, rows, r0) = if g.layout() == Layout::ViewBases {
                         (&b[2 * v], &b[2 * v + 1], l * 3)
                     } else {
                         (&b[0], &b[1], (v * nl + l) * 3)
@@ -1290,7 +1319,7 @@ async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
 mod tests {
     use super::*;
     use gonio_btf::compress::testdata::write_test_dataset;
-    use gonio_btf::compress::{compress, Params};
+    use gonio_btf::compress::{compress, Method, Params};
 
     /// `--model` refuses a file of another texture size or other directions and names
     /// what differs; the file compressed from the dataset fits.

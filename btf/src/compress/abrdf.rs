@@ -15,7 +15,7 @@
 use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{header_for, EncodeInfo, Params};
+use super::params::{header_for, Decode, EncodeInfo, Params};
 use faer::MatRef;
 use rayon::prelude::*;
 
@@ -392,4 +392,16 @@ pub fn products_image(
         }
     });
     out
+}
+
+/// [`reconstruct_products`] of a file with `j` terms per ABRDF (ND and SVD-J).
+#[derive(Debug)]
+pub struct ProductsDecoder {
+    pub j: usize,
+}
+
+impl Decode for ProductsDecoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct_products(g, self.j, light, view))
+    }
 }

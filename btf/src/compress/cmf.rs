@@ -30,8 +30,9 @@ use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::truncated_svd;
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Largest accepted `theta_bins` (`--half-bins`): 64 × 128 bins per factor already exceed
 /// the 6561 pairs of a Bonn ABRDF.
@@ -354,6 +355,89 @@ pub fn reconstruct(g: &Gbtf, theta_bins: usize, k: usize, light: usize, view: us
         }
     });
     out
+}
+
+/// GSHD in the registry (`super::registry`).
+pub struct GshdCodec;
+
+impl Codec for GshdCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Gshd
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[4, 8, 16]
+            .map(|b| {
+                let method = Method::Gshd {
+                    theta_bins: b,
+                    sweeps: knobs.sweeps.unwrap_or(200),
+                };
+                knobs.params(method, 1)
+            })
+            .to_vec()]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let (theta_bins, k) = validate(&g.header)?;
+        Ok(Opened {
+            method: Method::Gshd { theta_bins, sweeps: 0 },
+            components: k,
+            layout: Layout::PerTexel,
+            decoder: Arc::new(Decoder { theta_bins, k }),
+        })
+    }
+}
+
+/// CMF in the registry (`super::registry`).
+pub struct CmfCodec;
+
+impl Codec for CmfCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Cmf
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[1, 2, 4]
+            .map(|c| {
+                let method = Method::Cmf {
+                    theta_bins: knobs.half_bins.min(8),
+                    sweeps: knobs.sweeps.unwrap_or(200),
+                };
+                knobs.params(method, c)
+            })
+            .to_vec()]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let (theta_bins, k) = validate(&g.header)?;
+        Ok(Opened {
+            method: Method::Cmf { theta_bins, sweeps: 0 },
+            components: k,
+            layout: Layout::PerTexel,
+            decoder: Arc::new(Decoder { theta_bins, k }),
+        })
+    }
+}
+
+/// [`reconstruct`] of a GSHD (`k` = 0) or CMF file.
+#[derive(Debug)]
+struct Decoder {
+    theta_bins: usize,
+    k: usize,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct(g, self.theta_bins, self.k, light, view))
+    }
 }
 
 #[cfg(test)]

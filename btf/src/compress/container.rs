@@ -58,7 +58,8 @@ impl BlockInfo {
 /// The JSON header of a `.gbtf` file.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct GbtfHeader {
-    /// `"pca"`, `"pvmf"`, `"local-pca"`, `"median-cut"` or `"homomorphic"`.
+    /// The method's name (`CodecId::name`: `"pca"`, `"pvmf"`, `"local-pca"`, …).
+    /// `CompressedBtf::new` opens the file with the codec of that name.
     pub method: String,
     /// Method parameters (components, seed, oversampling, power iterations, …).
     pub params: serde_json::Value,

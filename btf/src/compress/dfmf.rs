@@ -30,10 +30,13 @@ use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
-use super::params::{header_for, EncodeInfo, Method, Params};
+use super::params::{
+    bad_file, header_for, Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard,
+};
 use super::rsvd::{Channel, Rsvd, ViewSource};
 use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// The ε of the reader's colour model 11 (`drr_eps` in `btf.hh`).
 pub const DRR_EPS: f32 = 1e-5;
@@ -615,6 +618,56 @@ pub fn from_gbtf(g: &Gbtf) -> Result<Dfmf, CompressError> {
     };
     d.validate()?;
     Ok(d)
+}
+
+/// DFMF stored as `.gbtf` in the registry (`super::registry`); its UBO2014 `.btf` is
+/// [`super::btf_ubo2014`].
+pub struct DfmfCodec;
+
+impl Codec for DfmfCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Dfmf
+    }
+    /// Perceptual DFMF: luminance c, chroma c / 4 (chroma varies less over directions).
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[8, 16, 32, 64]
+            .map(|c| {
+                let method = Method::Dfmf {
+                    color_model: ColorModel::Lab,
+                    chroma_components: (c / 4).max(1),
+                };
+                knobs.params(method, c)
+            })
+            .to_vec()]
+    }
+    fn shard(&self, knobs: &Knobs) -> Shard {
+        // Range sketch, projection and the power iterations.
+        Shard::Passes(2 + knobs.power_iters)
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress_gbtf(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let d = from_gbtf(g)?;
+        let params: Params = serde_json::from_value(g.header.params.clone())
+            .map_err(|e| bad_file(g, format!("parameters in the header: {e}")))?;
+        Ok(Opened {
+            method: params.method,
+            components: params.components,
+            layout: Layout::ChannelFactors,
+            decoder: Arc::new(Decoder(d)),
+        })
+    }
+}
+
+/// The factors as [`Dfmf`], which decodes them.
+#[derive(Debug)]
+struct Decoder(Dfmf);
+
+impl Decode for Decoder {
+    fn reconstruct(&self, _: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        self.0.reconstruct(light, view)
+    }
 }
 
 #[cfg(test)]

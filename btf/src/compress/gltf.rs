@@ -22,10 +22,11 @@
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{header_for, Method, Params};
+use super::params::{header_for, Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use super::svbrdf::Geometry;
 use gonio_devices::Direction;
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Parameters per texel: base colour RGB, metallic, roughness, normal x, normal y.
 pub const PARAMS: usize = 7;
@@ -160,6 +161,50 @@ pub fn reconstruct(g: &Gbtf, geometry: Option<Geometry>, light: usize, view: usi
         }
     });
     out
+}
+
+/// The per-texel glTF SVBRDF in the registry (`super::registry`): decoded here, written by
+/// `gonio fit` ([`encode`]), never by `gonio compress`.
+pub struct GltfCodec;
+
+impl Codec for GltfCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Gltf
+    }
+    fn ladder(&self, _: &Knobs) -> Vec<Vec<Params>> {
+        Vec::new()
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, _: &DatasetViews, _: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        Err(CompressError::Invalid(
+            "gltf: the per-texel glTF SVBRDF is fitted by `gonio fit DATASET --model gltf --per-texel --out \
+             F.gbtf`, not by gonio compress"
+                .into(),
+        ))
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let geometry = validate(g)?;
+        Ok(Opened {
+            method: Method::Gltf,
+            components: PARAMS,
+            layout: Layout::AnalyticPerTexel,
+            decoder: Arc::new(Decoder { geometry }),
+        })
+    }
+}
+
+/// [`reconstruct`] with the file's geometry.
+#[derive(Debug)]
+struct Decoder {
+    geometry: Option<Geometry>,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct(g, self.geometry, light, view))
+    }
 }
 
 #[cfg(test)]

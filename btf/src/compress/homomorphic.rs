@@ -35,8 +35,9 @@ use super::abrdf::{encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// ε under the logarithm, relative to the ABRDF channel's mean.
 pub const EPSILON: f64 = 1e-5;
@@ -353,6 +354,43 @@ pub fn reconstruct(g: &Gbtf, nh: usize, light: usize, view: usize) -> Vec<f32> {
         }
     }
     out
+}
+
+/// Homomorphic factorization in the registry (`super::registry`).
+pub struct HomomorphicCodec;
+
+impl Codec for HomomorphicCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Homomorphic
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        let method = Method::Homomorphic {
+            half_bins: knobs.half_bins,
+            sweeps: knobs.sweeps.unwrap_or(20),
+        };
+        vec![vec![knobs.params(method, 1)]]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let half_bins = validate(&g.header)?;
+        Ok(Opened {
+            method: Method::Homomorphic { half_bins, sweeps: 0 },
+            components: 0,
+            layout: Layout::HalfVectorTables { half_bins },
+            decoder: Arc::new(DirectionMajor::new(g, half_bins)),
+        })
+    }
+}
+
+impl Decode for DirectionMajor {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(DirectionMajor::reconstruct(self, &g.header, light, view))
+    }
 }
 
 #[cfg(test)]

@@ -28,7 +28,7 @@ use super::container::Gbtf;
 use super::dfmf::Dfmf;
 use super::error::CompressError;
 use super::factor::CompressedBtf;
-use super::params::Method;
+use super::params::Layout;
 use serde::Serialize;
 use std::path::Path;
 
@@ -129,9 +129,8 @@ impl BtfModel for CompressedBtf {
                 "a pair of {weights:?} is outside the {nl} × {nv} grid"
             )));
         }
-        let method = self.method();
-        // Row-blending needs the PCA/PVMF block layout; other methods blend images.
-        if c > 64 || !(method == Method::Pca || method == Method::Pvmf) {
+        // Row-blending needs the PCA/PVMF block layout; other layouts blend images.
+        if c > 64 || !self.layout().has_bases() {
             let mut out = vec![0f32; self.width() * self.height() * 3];
             for &(l, v, w) in weights {
                 for (o, x) in out.iter_mut().zip(CompressedBtf::reconstruct(self, l, v)?) {
@@ -153,7 +152,7 @@ impl BtfModel for CompressedBtf {
             }
             u
         };
-        if method == Method::Pca {
+        if self.layout() == Layout::Basis {
             let u = blend(&blocks[1], &mut weights.iter().map(|&(l, v, w)| (v * nl + l, w)));
             decode3(&blocks[0], c, &u, &mut out, 1.0);
         } else {
@@ -370,7 +369,7 @@ mod tests {
     use super::super::dfmf::{self, ColorModel, DfmfParams};
     use super::*;
     use crate::compress::testdata::write_test_dataset;
-    use crate::compress::{compress, Params};
+    use crate::compress::{compress, Method, Params};
     use gonio_acquire::rig::Rig;
     use gonio_devices::rig::RigSpec;
     use gonio_devices::Direction;

@@ -247,3 +247,49 @@ pub fn gram_truncated(a: MatRef<'_, f64>, c: usize) -> Result<Option<Factors>, C
 pub fn orthonormalize(y: &Mat<f64>) -> Mat<f64> {
     y.qr().compute_thin_Q()
 }
+
+/// The image `out[t, ch] = Σ_j us[t, j] · vrows[ch · c + j]` of a texel basis `us`
+/// (texels × c) and three rows of a measurement basis (`vrows`, 3 × c): the decoder of
+/// PCA's and PVMF's blocks.
+pub fn basis_times_rows(us: &[f32], vrows: &[f32], c: usize) -> Vec<f32> {
+    let (v0, rest) = vrows.split_at(c);
+    let (v1, v2) = rest.split_at(c);
+    let t = us.len() / c;
+    let mut out = vec![0f32; t * 3];
+    // LANES texels at once (3 · LANES independent sums, see `dfmf::Dfmf::decode_rows`);
+    // each sum runs in the order of a plain loop, so the bytes do not change.
+    const LANES: usize = 4;
+    let mut pxs = out.chunks_exact_mut(3 * LANES);
+    let mut rows = us.chunks_exact(c * LANES);
+    for (px, row) in (&mut pxs).zip(&mut rows) {
+        let mut s = [[0f32; 3]; LANES];
+        for j in 0..c {
+            let (x0, x1, x2) = (v0[j], v1[j], v2[j]);
+            for (i, a) in s.iter_mut().enumerate() {
+                let r = row[i * c + j];
+                a[0] += r * x0;
+                a[1] += r * x1;
+                a[2] += r * x2;
+            }
+        }
+        for (o, a) in px.chunks_exact_mut(3).zip(s) {
+            o.copy_from_slice(&a);
+        }
+    }
+    for (px, row) in pxs
+        .into_remainder()
+        .chunks_exact_mut(3)
+        .zip(rows.remainder().chunks_exact(c))
+    {
+        let (mut a, mut b, mut d) = (0f32, 0f32, 0f32);
+        for j in 0..c {
+            a += row[j] * v0[j];
+            b += row[j] * v1[j];
+            d += row[j] * v2[j];
+        }
+        px[0] = a;
+        px[1] = b;
+        px[2] = d;
+    }
+    out
+}

@@ -34,14 +34,15 @@
 //! `j·c + i` is eigen-ABRDF `i` of cluster `j`), with M = views · lights · 3 and column
 //! `(view · lights + light) · 3 + channel` as for PCA.
 
-use super::abrdf::{encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{check_indices, encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::{splitmix, truncated_svd, GaussianSketch, SketchKeying};
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use faer::Mat;
 use rayon::prelude::*;
+use std::sync::Arc;
 
 pub mod passes;
 
@@ -622,6 +623,60 @@ pub fn reconstruct(g: &Gbtf, k: usize, c: usize, light: usize, view: usize) -> V
         px[2] = b;
     }
     out
+}
+
+/// Local PCA in the registry (`super::registry`).
+pub struct LocalPcaCodec;
+
+impl Codec for LocalPcaCodec {
+    fn id(&self) -> CodecId {
+        CodecId::LocalPca
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        let method = |k: usize| Method::LocalPca {
+            clusters: k,
+            iters: knobs.iters,
+            subspace: knobs.subspace,
+            in_passes: knobs.in_passes,
+        };
+        [8, 32]
+            .map(|k| [2, 4, 8, 16].map(|c| knobs.params(method(k), c)).to_vec())
+            .to_vec()
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::Passes(passes::PASSES)
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let (k, c) = validate(&g.header)?;
+        check_indices(&g.blocks[0], k, "cluster")?;
+        Ok(Opened {
+            method: Method::LocalPca {
+                clusters: k,
+                iters: 0,
+                subspace: 0,
+                in_passes: false,
+            },
+            components: c,
+            layout: Layout::Clusters { clusters: k },
+            decoder: Arc::new(Decoder { k, c }),
+        })
+    }
+}
+
+/// [`reconstruct`] with the file's cluster and component counts.
+#[derive(Debug)]
+struct Decoder {
+    k: usize,
+    c: usize,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct(g, self.k, self.c, light, view))
+    }
 }
 
 #[cfg(test)]

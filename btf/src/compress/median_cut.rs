@@ -29,9 +29,10 @@ use super::abrdf::{check_indices, encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// A box of ABRDFs.
 struct Leaf {
@@ -391,6 +392,56 @@ pub fn generate(index_from: &Gbtf, brdfs_from: &Gbtf, map: BoxMap) -> Result<(Gb
         },
         box_map,
     ))
+}
+
+/// Median cut in the registry (`super::registry`).
+pub struct MedianCutCodec;
+
+impl Codec for MedianCutCodec {
+    fn id(&self) -> CodecId {
+        CodecId::MedianCut
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[64, 256, 1024, 4096]
+            .map(|b| {
+                let method = Method::MedianCut {
+                    boxes: b,
+                    balanced: knobs.balanced,
+                    min_error_cut: knobs.min_error_cut,
+                };
+                knobs.params(method, 1)
+            })
+            .to_vec()]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let boxes = validate(g)?;
+        Ok(Opened {
+            method: Method::MedianCut {
+                boxes,
+                balanced: false,
+                min_error_cut: false,
+            },
+            components: 0,
+            layout: Layout::Index { boxes },
+            decoder: Arc::new(Decoder),
+        })
+    }
+}
+
+/// [`reconstruct`].
+#[derive(Debug)]
+struct Decoder;
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct(g, light, view))
+    }
 }
 
 #[cfg(test)]

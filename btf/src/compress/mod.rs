@@ -15,11 +15,15 @@
 //! | DFMF | [`dfmf`] | `.btf` ([`btf_ubo2014`]) or `.gbtf` | per colour channel of a decorrelated model (RGB, log-YUV, CIELab: `.gbtf` only), one full-matrix factorization |
 //!
 //! **Floors.** The method files share a ground floor and never import each other:
-//! [`params`] (what a method is and reports, the common header), [`linalg`] (truncated
-//! SVD, Gram path, the one Gaussian sketch generator), [`abrdf`] (the ABRDF matrix of the
-//! per-texel methods and their shared encode frame), [`data`] (reading a dataset view by
-//! view), [`container`] and [`error`]. Only [`factor`] (dispatch of the `.gbtf` methods,
-//! [`CompressedBtf`]) and [`interp`] (any model, any direction) name method files.
+//! [`params`] (what a method is and reports, the [`Codec`] trait every method file
+//! implements, the [`Layout`] fact readers match on, the common header), [`linalg`]
+//! (truncated SVD, Gram path, the one Gaussian sketch generator), [`abrdf`] (the ABRDF
+//! matrix of the per-texel methods and their shared encode frame), [`data`] (reading a
+//! dataset view by view), [`container`] and [`error`]. [`registry`] is the one list of
+//! methods ([`codec`]: [`CodecId`] → its method file's [`Codec`]); [`factor`] ([`compress`],
+//! [`CompressedBtf`]), [`target`] and everything above `compress/` reach a method through
+//! it. A new method is one file plus its line in [`registry::codec`] (and its variants of
+//! [`Method`] and [`CodecId`], which the compiler asks for).
 //!
 //! * [`data`] streams a native dataset view by view: one `texels × (lights · 3)` linear
 //!   f32 matrix per view; unmeasured (skipped) pairs are filled with the nearest measured
@@ -100,6 +104,7 @@ pub mod nd;
 pub mod params;
 pub mod pca;
 pub mod pvmf;
+pub mod registry;
 pub mod rsvd;
 pub mod rsvd_shard;
 pub mod svbrdf;
@@ -118,4 +123,5 @@ pub use data::{DatasetViews, ViewMatrix};
 pub use error::CompressError;
 pub use factor::{compress, compress_pvmf_shard, find_direction, CompressedBtf};
 pub use metrics::{evaluate, peak_memory_bytes, ErrorStats, Evaluation};
-pub use params::{EncodeInfo, Method, Params, Stage};
+pub use params::{Codec, CodecId, EncodeInfo, Knobs, Layout, Method, Params, Shard, Stage};
+pub use registry::codec;

@@ -17,12 +17,13 @@
 //! Unlike the rank-1 SVD it needs no iteration or decomposition, one pass over the
 //! ABRDF; the rank-1 SVD is its least-squares optimum.
 
-use super::abrdf::{channel_matrix, encode_gbtf, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{channel_matrix, encode_gbtf, product_terms, Abrdfs, ProductsDecoder, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{bad_file, Codec, CodecId, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// The light factor `n` (`nl`) and view factor `N` (`nv`) of one channel matrix, in f64.
 pub fn factor(m: faer::MatRef<'_, f64>) -> (Vec<f64>, Vec<f64>) {
@@ -97,6 +98,36 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         (BlockInfo::new("view", t, nv * 3), view),
     ];
     Ok(encode_gbtf(ds, params, &a, blocks, &[("terms", 1.into())]))
+}
+
+/// ND in the registry (`super::registry`).
+pub struct NdCodec;
+
+impl Codec for NdCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Nd
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![vec![knobs.params(Method::Nd, 1)]]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let j = product_terms(&g.header)?;
+        if j != 1 {
+            return Err(bad_file(g, format!("{j} terms per ABRDF, ND stores one")));
+        }
+        Ok(Opened {
+            method: Method::Nd,
+            components: j,
+            layout: Layout::PerTexel,
+            decoder: Arc::new(ProductsDecoder { j }),
+        })
+    }
 }
 
 #[cfg(test)]

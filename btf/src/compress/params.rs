@@ -1,10 +1,15 @@
-//! The ground floor every method file shares: what a method is ([`Method`], [`Params`]),
-//! what an encode reports ([`EncodeInfo`], [`Stage`]) and the common `.gbtf` header
-//! ([`header_for`]). Method files import this; it imports no method file.
+//! The ground floor every method file shares: what a method is ([`Method`], [`Params`],
+//! [`CodecId`]), the one door every method implements ([`Codec`]: its knob ladder, encoder,
+//! decoder and the facts the readers match on, [`Layout`] and [`Shard`]), what an encode
+//! reports ([`EncodeInfo`], [`Stage`]) and the common `.gbtf` header ([`header_for`]).
+//! Method files import this; it imports no method file. The registry that maps a
+//! [`CodecId`] to its method file's [`Codec`] is `super::registry`.
 
-use super::container::{BlockInfo, GbtfHeader};
+use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
+use super::error::CompressError;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// Compression method.
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq)]
@@ -69,22 +74,233 @@ pub enum Method {
 }
 
 impl Method {
-    pub fn name(self) -> &'static str {
+    /// Which method this is, without its knobs.
+    pub fn id(self) -> CodecId {
         match self {
-            Method::Pca => "pca",
-            Method::Pvmf => "pvmf",
-            Method::LocalPca { .. } => "local-pca",
-            Method::MedianCut { .. } => "median-cut",
-            Method::Homomorphic { .. } => "homomorphic",
-            Method::Dfmf { .. } => "dfmf",
-            Method::Nd => "nd",
-            Method::SvdJ => "svd-j",
-            Method::Gshd { .. } => "gshd",
-            Method::Cmf { .. } => "cmf",
-            Method::Svbrdf { .. } => "svbrdf",
-            Method::Gltf => "gltf",
+            Method::Pca => CodecId::Pca,
+            Method::Pvmf => CodecId::Pvmf,
+            Method::LocalPca { .. } => CodecId::LocalPca,
+            Method::MedianCut { .. } => CodecId::MedianCut,
+            Method::Homomorphic { .. } => CodecId::Homomorphic,
+            Method::Dfmf { .. } => CodecId::Dfmf,
+            Method::Nd => CodecId::Nd,
+            Method::SvdJ => CodecId::SvdJ,
+            Method::Gshd { .. } => CodecId::Gshd,
+            Method::Cmf { .. } => CodecId::Cmf,
+            Method::Svbrdf { .. } => CodecId::Svbrdf,
+            Method::Gltf => CodecId::Gltf,
         }
     }
+    /// The method's name in `.gbtf` headers and on the command line ([`CodecId::name`]).
+    pub fn name(self) -> &'static str {
+        self.id().name()
+    }
+}
+
+/// A method without its knobs: the key of the registry (`super::registry::codec`). Every
+/// `match` on it is exhaustive, so a new method that misses a fact does not compile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum CodecId {
+    Pca,
+    Pvmf,
+    LocalPca,
+    MedianCut,
+    Homomorphic,
+    Dfmf,
+    Nd,
+    SvdJ,
+    Gshd,
+    Cmf,
+    Svbrdf,
+    Gltf,
+}
+
+impl CodecId {
+    /// Every method, in the order of [`CodecId`] (`registry::tests` checks that the list is
+    /// complete: each entry's index is its discriminant and [`CodecId::name`] is
+    /// exhaustive).
+    pub const ALL: [CodecId; 12] = [
+        CodecId::Pca,
+        CodecId::Pvmf,
+        CodecId::LocalPca,
+        CodecId::MedianCut,
+        CodecId::Homomorphic,
+        CodecId::Dfmf,
+        CodecId::Nd,
+        CodecId::SvdJ,
+        CodecId::Gshd,
+        CodecId::Cmf,
+        CodecId::Svbrdf,
+        CodecId::Gltf,
+    ];
+
+    /// The one table of method names: the `method` of a `.gbtf` header, the `--method`
+    /// value of `gonio compress` and the key of the file's `params.method` JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            CodecId::Pca => "pca",
+            CodecId::Pvmf => "pvmf",
+            CodecId::LocalPca => "local-pca",
+            CodecId::MedianCut => "median-cut",
+            CodecId::Homomorphic => "homomorphic",
+            CodecId::Dfmf => "dfmf",
+            CodecId::Nd => "nd",
+            CodecId::SvdJ => "svd-j",
+            CodecId::Gshd => "gshd",
+            CodecId::Cmf => "cmf",
+            CodecId::Svbrdf => "svbrdf",
+            CodecId::Gltf => "gltf",
+        }
+    }
+
+    /// The method named `name` ([`CodecId::name`]), if any.
+    pub fn from_name(name: &str) -> Option<CodecId> {
+        CodecId::ALL.into_iter().find(|c| c.name() == name)
+    }
+}
+
+/// How a method's `.gbtf` blocks are laid out: the fact the readers above the method files
+/// (row blending in `interp`, synthesis, the viewer's GPU decoders) match on, instead of
+/// method names. A method reuses a layout or adds one; adding one breaks the build of
+/// every exhaustive `match` that must learn it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// PCA: one texel basis `U·S` (texels × c) and one measurement basis `V`
+    /// (views · lights · 3 × c), row `(view · L + light) · 3 + channel`.
+    Basis,
+    /// PVMF: per view a texel basis (block `2v`, texels × c) and a light basis (block
+    /// `2v + 1`, lights · 3 × c).
+    ViewBases,
+    /// Local PCA: cluster index, coefficients (texels × c), cluster means and
+    /// eigen-ABRDFs (`clusters · c` rows of views · lights · 3).
+    Clusters { clusters: usize },
+    /// Median cut: index image (texels) and BRDF block (`boxes` rows of views · lights · 3).
+    Index { boxes: usize },
+    /// DFMF: per colour channel `u{ch}` (measurements × c) then `sxv{ch}` (texels × c).
+    ChannelFactors,
+    /// Homomorphic: per texel albedo and light, view and half-vector factor tables
+    /// (`half_bins` θ_h bins).
+    HalfVectorTables { half_bins: usize },
+    /// ND, SVD-J, GSHD, CMF: every block indexed by texel, read by the method's own decoder.
+    PerTexel,
+    /// SVBRDF and glTF: per texel parameters of an analytic model plus per-pair gain planes
+    /// over the sample's extent and the rig's geometry.
+    AnalyticPerTexel,
+}
+
+impl Layout {
+    /// PCA's and PVMF's layouts: an image is a texel basis times three rows of a
+    /// measurement basis, so readers may blend rows or read a texel's values directly.
+    pub fn has_bases(self) -> bool {
+        match self {
+            Layout::Basis | Layout::ViewBases => true,
+            Layout::Clusters { .. }
+            | Layout::Index { .. }
+            | Layout::ChannelFactors
+            | Layout::HalfVectorTables { .. }
+            | Layout::PerTexel
+            | Layout::AnalyticPerTexel => false,
+        }
+    }
+
+    /// Which of a file's `n_blocks` blocks are indexed by texel (what a synthesized texture
+    /// rearranges), or why the file cannot be synthesized from.
+    pub fn texel_blocks(self, n_blocks: usize) -> Result<Vec<bool>, &'static str> {
+        Ok(match self {
+            Layout::Basis => vec![true, false],
+            Layout::ViewBases => (0..n_blocks).map(|i| i % 2 == 0).collect(),
+            Layout::Clusters { .. } => vec![true, true, false, false],
+            Layout::Index { .. } => vec![true, false],
+            Layout::HalfVectorTables { .. } | Layout::PerTexel => vec![true; n_blocks],
+            // Per channel `u{ch}` (measurements) then `sxv{ch}` (texels).
+            Layout::ChannelFactors => (0..n_blocks).map(|i| i % 2 == 1).collect(),
+            Layout::AnalyticPerTexel => {
+                return Err(
+                    "an SVBRDF file (gonio fit --per-texel) holds gain planes over the sample's extent and the \
+                     rig's geometry, which a grown texture does not have; synthesize from the dataset or a \
+                     factorized .gbtf instead",
+                )
+            }
+        })
+    }
+}
+
+/// How `gonio compress --shard I/N` splits a method.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shard {
+    /// By views: each shard factorizes its views, `gonio merge` joins the files (PVMF).
+    Views,
+    /// By passes over the views (`rsvd_shard`), this many: each pass is split into shards.
+    Passes(usize),
+    /// Not split: compressed in one process.
+    No,
+}
+
+/// The knobs a method's ladder keeps as given (the ladders vary components, clusters,
+/// boxes or bins): `gonio compress`'s options of the same names.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Knobs {
+    pub seed: u64,
+    pub oversample: usize,
+    pub power_iters: usize,
+    /// Local PCA: alternation rounds, subspace, the encoder in passes.
+    pub iters: usize,
+    pub subspace: usize,
+    pub in_passes: bool,
+    /// Median cut.
+    pub balanced: bool,
+    pub min_error_cut: bool,
+    /// Homomorphic: half-vector bins; CMF: θ bins (at most 8).
+    pub half_bins: usize,
+    /// Homomorphic (default 20), GSHD and CMF (default 200).
+    pub sweeps: Option<usize>,
+}
+
+impl Knobs {
+    /// The parameters of `method` with `c` components and these knobs.
+    pub fn params(&self, method: Method, c: usize) -> Params {
+        Params {
+            seed: self.seed,
+            oversample: self.oversample,
+            power_iters: self.power_iters,
+            ..Params::new(method, c)
+        }
+    }
+}
+
+/// A method's decoder of one opened file: what `CompressedBtf::reconstruct` calls.
+pub trait Decode: std::fmt::Debug + Send + Sync {
+    /// The linear RGB image (interleaved, rows top to bottom) of grid pair (`light`,
+    /// `view`), already checked to be inside the grid.
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError>;
+}
+
+/// What [`Codec::open`] found in a file.
+#[derive(Clone, Debug)]
+pub struct Opened {
+    /// The method with the knobs the file records (the encoder's knobs that do not change
+    /// decoding may be left at 0).
+    pub method: Method,
+    /// Components (or terms, or parameters) per texel as the method counts them.
+    pub components: usize,
+    pub layout: Layout,
+    pub decoder: Arc<dyn Decode>,
+}
+
+/// One compression method: everything the rest of gonio needs to know about it. Each
+/// method file implements it; `super::registry::codec` is the one list of them.
+pub trait Codec: Sync {
+    fn id(&self) -> CodecId;
+    /// The ladders a `--target-psnr`/`--target-ratio` search climbs when `--method` names
+    /// this method: the method's knobs in order of growing file size. Empty: not encoded
+    /// by `gonio compress`.
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>>;
+    /// How `--shard` splits it with these knobs.
+    fn shard(&self, knobs: &Knobs) -> Shard;
+    /// Encode `ds` (`params.method` is this method, `params.components` ≥ 1).
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError>;
+    /// Check a file of this method (its header names it) and build its decoder.
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError>;
 }
 
 /// Colour model of the factorized channels (the `ColorModel` field of a DFMF file).
@@ -158,6 +374,34 @@ impl Params {
             power_iters: 2,
         }
     }
+}
+
+/// The error of a file whose header names a method but whose content fails that
+/// method's checks: `.gbtf METHOD: why`.
+pub fn bad_file(g: &Gbtf, why: impl std::fmt::Display) -> CompressError {
+    CompressError::Invalid(format!(".gbtf {}: {why}", g.header.method))
+}
+
+/// Check the RGB channels and the block shapes of a file whose first block has `c`
+/// columns (`want(texels, lights, views, c)`, PCA's and PVMF's bases) and return `c`.
+pub fn check_basis_blocks(
+    g: &Gbtf,
+    want: impl Fn(usize, usize, usize, usize) -> Vec<(usize, usize)>,
+) -> Result<usize, CompressError> {
+    let h = &g.header;
+    if h.channels != 3 {
+        return Err(bad_file(g, format!("{} channels, only RGB is supported", h.channels)));
+    }
+    let (t, nl, nv) = (h.width * h.height, h.lights_deg.len(), h.views_deg.len());
+    let c = h.blocks.first().map(|b| b.cols).unwrap_or(0);
+    let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
+    if got != want(t, nl, nv, c) || c == 0 {
+        return Err(bad_file(
+            g,
+            format!("block shapes {got:?} do not match the header's grid"),
+        ));
+    }
+    Ok(c)
 }
 
 /// What `compress::compress` saw besides the factors.

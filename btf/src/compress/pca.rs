@@ -6,10 +6,13 @@
 use super::container::{BlockInfo, Gbtf};
 use super::data::{DatasetViews, ViewMatrix};
 use super::error::CompressError;
-use super::linalg::{row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
-use super::params::{header_for, EncodeInfo, Params};
+use super::linalg::{basis_times_rows, row_major_f32, truncated_svd, GaussianSketch, SketchKeying};
+use super::params::{
+    check_basis_blocks, header_for, Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard,
+};
 use super::rsvd::{Channel, Rsvd, ViewSource};
 use faer::{Mat, MatRef};
+use std::sync::Arc;
 
 fn to_faer(v: &ViewMatrix) -> Mat<f64> {
     Mat::from_fn(v.rows, v.cols, |i, j| v.data[i * v.cols + j] as f64)
@@ -115,4 +118,46 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
     let (infos, blocks) = factors(params, &q[0], &b[0])?;
     let header = header_for(ds, params, std::mem::take(&mut cache.filled), infos);
     Ok((Gbtf { header, blocks }, info))
+}
+
+/// PCA in the registry (`super::registry`).
+pub struct PcaCodec;
+
+impl Codec for PcaCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Pca
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[4, 8, 16, 32, 64].map(|c| knobs.params(Method::Pca, c)).to_vec()]
+    }
+    fn shard(&self, knobs: &Knobs) -> Shard {
+        // Range sketch, projection and the power iterations.
+        Shard::Passes(2 + knobs.power_iters)
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let c = check_basis_blocks(g, |t, nl, nv, c| vec![(t, c), (nl * nv * 3, c)])?;
+        Ok(Opened {
+            method: Method::Pca,
+            components: c,
+            layout: Layout::Basis,
+            decoder: Arc::new(Decoder { c }),
+        })
+    }
+}
+
+/// The texel basis times the pair's three rows of the measurement basis.
+#[derive(Debug)]
+struct Decoder {
+    c: usize,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        let c = self.c;
+        let r = (view * g.header.lights_deg.len() + light) * 3;
+        Ok(basis_times_rows(&g.blocks[0], &g.blocks[1][r * c..(r + 3) * c], c))
+    }
 }

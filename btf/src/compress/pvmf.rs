@@ -7,8 +7,12 @@
 use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::linalg::{gram_truncated, row_major_f32, truncated_svd};
-use super::params::{header_for, EncodeInfo, Params, Stage};
+use super::linalg::{basis_times_rows, gram_truncated, row_major_f32, truncated_svd};
+use super::params::{
+    check_basis_blocks, header_for, Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard,
+    Stage,
+};
+use std::sync::Arc;
 
 /// PVMF. The reader runs on its own thread one view ahead of the factorization (bounded
 /// channel of one matrix), so decoding view `k + 1`'s EXRs overlaps with factorizing
@@ -93,4 +97,49 @@ pub fn compress_views(
     };
     let header = header_for(ds, params, filled, infos);
     Ok((Gbtf { header, blocks }, info))
+}
+
+/// PVMF in the registry (`super::registry`).
+pub struct PvmfCodec;
+
+impl Codec for PvmfCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Pvmf
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[1, 2, 4, 8, 16].map(|c| knobs.params(Method::Pvmf, c)).to_vec()]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::Views
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let c = check_basis_blocks(g, |t, nl, nv, c| (0..nv).flat_map(|_| [(t, c), (nl * 3, c)]).collect())?;
+        Ok(Opened {
+            method: Method::Pvmf,
+            components: c,
+            layout: Layout::ViewBases,
+            decoder: Arc::new(Decoder { c }),
+        })
+    }
+}
+
+/// Per view `v`: the texel basis (block `2v`) times the light's three rows of block `2v + 1`.
+#[derive(Debug)]
+struct Decoder {
+    c: usize,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        let c = self.c;
+        let vb = &g.blocks[2 * view + 1];
+        Ok(basis_times_rows(
+            &g.blocks[2 * view],
+            &vb[light * 3 * c..(light * 3 + 3) * c],
+            c,
+        ))
+    }
 }

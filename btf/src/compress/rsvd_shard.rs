@@ -46,7 +46,7 @@ use super::local_pca::{
     self,
     passes::{Finished as LocalFinished, Merged, Plan as LocalPlan, State as LocalState},
 };
-use super::params::{header_for, Method, Params};
+use super::params::{header_for, CodecId, Method, Params};
 use super::pca::{self, ViewCache};
 use super::rsvd::{PassOutput, Rsvd, ViewSource};
 use faer::Mat;
@@ -258,7 +258,15 @@ impl Job {
                             )));
                         }
                     }
-                    _ => {
+                    Method::Pvmf
+                    | Method::MedianCut { .. }
+                    | Method::Homomorphic { .. }
+                    | Method::Nd
+                    | Method::SvdJ
+                    | Method::Gshd { .. }
+                    | Method::Cmf { .. }
+                    | Method::Svbrdf { .. }
+                    | Method::Gltf => {
                         return Err(CompressError::Invalid(format!(
                             "method {} is not split into passes; --shard with --state splits pca, dfmf and local-pca \
                              (pvmf splits without --state)",
@@ -282,7 +290,7 @@ impl Job {
             sha,
         );
         if matches!(output, Output::Btf { .. }) {
-            header.method = "dfmf".into();
+            header.method = CodecId::Dfmf.name().into();
             header.params = serde_json::Value::Null;
         }
         if matches!(params.method, Method::LocalPca { .. }) {
@@ -356,7 +364,7 @@ impl Job {
     pub fn method(&self) -> &'static str {
         match &self.output {
             Output::Gbtf { params, .. } => params.method.name(),
-            Output::Btf { .. } => "dfmf",
+            Output::Btf { .. } => CodecId::Dfmf.name(),
         }
     }
 }

@@ -24,11 +24,12 @@
 use super::container::{BlockInfo, Gbtf, GbtfHeader};
 use super::data::DatasetViews;
 use super::error::CompressError;
-use super::params::{header_for, Method, Params};
+use super::params::{header_for, Codec, CodecId, Decode, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use gonio_devices::{Direction, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::f64::consts::{PI, SQRT_2};
+use std::sync::Arc;
 
 /// Parameters per lobe (γ, n, ks RGB).
 pub const PER_LOBE: usize = 5;
@@ -189,6 +190,51 @@ pub fn reconstruct(g: &Gbtf, lobes: usize, geometry: Option<Geometry>, light: us
         }
     });
     out
+}
+
+/// The per-texel Lafortune SVBRDF in the registry (`super::registry`): decoded here,
+/// written by `gonio fit` ([`encode`]), never by `gonio compress`.
+pub struct SvbrdfCodec;
+
+impl Codec for SvbrdfCodec {
+    fn id(&self) -> CodecId {
+        CodecId::Svbrdf
+    }
+    fn ladder(&self, _: &Knobs) -> Vec<Vec<Params>> {
+        Vec::new()
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, _: &DatasetViews, _: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        Err(CompressError::Invalid(
+            "svbrdf: the per-texel Lafortune SVBRDF is fitted by `gonio fit DATASET --model lafortune \
+             --per-texel --out F.gbtf`, not by gonio compress"
+                .into(),
+        ))
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let (lobes, geometry) = validate(g)?;
+        Ok(Opened {
+            method: Method::Svbrdf { lobes },
+            components: params_per_texel(lobes),
+            layout: Layout::AnalyticPerTexel,
+            decoder: Arc::new(Decoder { lobes, geometry }),
+        })
+    }
+}
+
+/// [`reconstruct`] with the file's lobes and geometry.
+#[derive(Debug)]
+struct Decoder {
+    lobes: usize,
+    geometry: Option<Geometry>,
+}
+
+impl Decode for Decoder {
+    fn reconstruct(&self, g: &Gbtf, light: usize, view: usize) -> Result<Vec<f32>, CompressError> {
+        Ok(reconstruct(g, self.lobes, self.geometry, light, view))
+    }
 }
 
 #[cfg(test)]

@@ -14,13 +14,14 @@
 //! `U·S`) and `view` (texels × views·J·3, `V`), column `(direction · J + j) · 3 + channel`
 //! ([`reconstruct_products`] decodes them).
 
-use super::abrdf::{channel_matrix, encode_gbtf, put_terms, Abrdfs, ABRDF_F32_BUDGET};
+use super::abrdf::{channel_matrix, encode_gbtf, product_terms, put_terms, Abrdfs, ProductsDecoder, ABRDF_F32_BUDGET};
 use super::container::{BlockInfo, Gbtf};
 use super::data::DatasetViews;
 use super::error::CompressError;
 use super::linalg::truncated_svd;
-use super::params::{EncodeInfo, Method, Params};
+use super::params::{Codec, CodecId, EncodeInfo, Knobs, Layout, Method, Opened, Params, Shard};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Factor blocks of all texels (row-major, as stored).
 pub struct Products {
@@ -96,6 +97,33 @@ pub fn compress(ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo)
         (BlockInfo::new("view", t, nv * j * 3), f.view),
     ];
     Ok(encode_gbtf(ds, params, &a, blocks, &[("terms", j.into())]))
+}
+
+/// SVD-J in the registry (`super::registry`).
+pub struct SvdJCodec;
+
+impl Codec for SvdJCodec {
+    fn id(&self) -> CodecId {
+        CodecId::SvdJ
+    }
+    fn ladder(&self, knobs: &Knobs) -> Vec<Vec<Params>> {
+        vec![[1, 2, 4, 8].map(|c| knobs.params(Method::SvdJ, c)).to_vec()]
+    }
+    fn shard(&self, _: &Knobs) -> Shard {
+        Shard::No
+    }
+    fn encode(&self, ds: &DatasetViews, params: &Params) -> Result<(Gbtf, EncodeInfo), CompressError> {
+        compress(ds, params)
+    }
+    fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
+        let j = product_terms(&g.header)?;
+        Ok(Opened {
+            method: Method::SvdJ,
+            components: j,
+            layout: Layout::PerTexel,
+            decoder: Arc::new(ProductsDecoder { j }),
+        })
+    }
 }
 
 #[cfg(test)]

@@ -24,7 +24,8 @@ use super::data::DatasetViews;
 use super::error::CompressError;
 use super::factor::{compress, CompressedBtf};
 use super::metrics::evaluate;
-use super::params::{ColorModel, Method, Params};
+use super::params::{CodecId, Params};
+use super::registry::codec;
 use serde::Serialize;
 
 /// Bit counts tried on every rung, smallest first. 6 bits is below the useful range for
@@ -40,122 +41,21 @@ pub enum Goal {
     Ratio(f64),
 }
 
-/// The method a search is restricted to (`--method` with a goal); without one, the
-/// default ladders ([`ladders`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SearchMethod {
-    Pca,
-    Pvmf,
-    Dfmf,
-    LocalPca,
-    MedianCut,
-    Homomorphic,
-    Nd,
-    SvdJ,
-    Gshd,
-    Cmf,
-}
+pub use super::params::Knobs;
 
-/// The knobs every rung keeps as given (the ladders vary components, clusters, boxes or
-/// bins): `gonio compress`'s options of the same names.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Knobs {
-    pub seed: u64,
-    pub oversample: usize,
-    pub power_iters: usize,
-    /// Local PCA: alternation rounds, subspace, the encoder in passes.
-    pub iters: usize,
-    pub subspace: usize,
-    pub in_passes: bool,
-    /// Median cut.
-    pub balanced: bool,
-    pub min_error_cut: bool,
-    /// Homomorphic: half-vector bins; CMF: θ bins (at most 8).
-    pub half_bins: usize,
-    /// Homomorphic (default 20), GSHD and CMF (default 200).
-    pub sweeps: Option<usize>,
-}
-
-/// The ladders a search climbs: each method's knobs in order of growing file size. PVMF,
-/// median cut and homomorphic factorization are left out of the default search (`None`):
-/// on the default sample their files are larger at every quality PCA or local PCA reach
-/// (docs/guide/compression.md); naming the method still searches them.
-pub fn ladders(method: Option<SearchMethod>, knobs: &Knobs) -> Vec<Vec<Params>> {
-    let p = |method, c| Params {
-        seed: knobs.seed,
-        oversample: knobs.oversample,
-        power_iters: knobs.power_iters,
-        ..Params::new(method, c)
-    };
-    let lpca = |k: usize| Method::LocalPca {
-        clusters: k,
-        iters: knobs.iters,
-        subspace: knobs.subspace,
-        in_passes: knobs.in_passes,
-    };
-    let pca: Vec<Params> = [4, 8, 16, 32, 64].map(|c| p(Method::Pca, c)).to_vec();
-    let local = |k: usize| -> Vec<Params> { [2, 4, 8, 16].map(|c| p(lpca(k), c)).to_vec() };
-    // Perceptual DFMF: luminance c, chroma c / 4 (chroma varies less over directions).
-    let lab: Vec<Params> = [8, 16, 32, 64]
-        .map(|c| {
-            p(
-                Method::Dfmf {
-                    color_model: ColorModel::Lab,
-                    chroma_components: (c / 4).max(1),
-                },
-                c,
-            )
-        })
-        .to_vec();
+/// The ladders a search climbs: each method's knobs in order of growing file size
+/// ([`Codec::ladder`](super::params::Codec::ladder) of the method `--method` names).
+/// Without one, PCA, perceptual DFMF and local PCA: PVMF, median cut and homomorphic
+/// factorization are left out of the default search, since on the default sample their
+/// files are larger at every quality PCA or local PCA reach (docs/guide/compression.md);
+/// naming the method still searches them.
+pub fn ladders(method: Option<CodecId>, knobs: &Knobs) -> Vec<Vec<Params>> {
     match method {
-        None => vec![pca, lab, local(8), local(32)],
-        Some(SearchMethod::Pca) => vec![pca],
-        Some(SearchMethod::LocalPca) => vec![local(8), local(32)],
-        Some(SearchMethod::Pvmf) => vec![[1, 2, 4, 8, 16].map(|c| p(Method::Pvmf, c)).to_vec()],
-        Some(SearchMethod::MedianCut) => vec![[64, 256, 1024, 4096]
-            .map(|b| {
-                p(
-                    Method::MedianCut {
-                        boxes: b,
-                        balanced: knobs.balanced,
-                        min_error_cut: knobs.min_error_cut,
-                    },
-                    1,
-                )
-            })
-            .to_vec()],
-        Some(SearchMethod::Homomorphic) => vec![vec![p(
-            Method::Homomorphic {
-                half_bins: knobs.half_bins,
-                sweeps: knobs.sweeps.unwrap_or(20),
-            },
-            1,
-        )]],
-        Some(SearchMethod::Dfmf) => vec![lab],
-        Some(SearchMethod::Nd) => vec![vec![p(Method::Nd, 1)]],
-        Some(SearchMethod::SvdJ) => vec![[1, 2, 4, 8].map(|c| p(Method::SvdJ, c)).to_vec()],
-        Some(SearchMethod::Gshd) => vec![[4, 8, 16]
-            .map(|b| {
-                p(
-                    Method::Gshd {
-                        theta_bins: b,
-                        sweeps: knobs.sweeps.unwrap_or(200),
-                    },
-                    1,
-                )
-            })
-            .to_vec()],
-        Some(SearchMethod::Cmf) => vec![[1, 2, 4]
-            .map(|c| {
-                p(
-                    Method::Cmf {
-                        theta_bins: knobs.half_bins.min(8),
-                        sweeps: knobs.sweeps.unwrap_or(200),
-                    },
-                    c,
-                )
-            })
-            .to_vec()],
+        None => [CodecId::Pca, CodecId::Dfmf, CodecId::LocalPca]
+            .into_iter()
+            .flat_map(|id| codec(id).ladder(knobs))
+            .collect(),
+        Some(id) => codec(id).ladder(knobs),
     }
 }
 
@@ -409,18 +309,7 @@ mod tests {
         let default = ladders(None, &knobs);
         let names: Vec<&str> = default.iter().map(|l| l[0].method.name()).collect();
         assert_eq!(names, ["pca", "dfmf", "local-pca", "local-pca"]);
-        for m in [
-            SearchMethod::Pca,
-            SearchMethod::Pvmf,
-            SearchMethod::Dfmf,
-            SearchMethod::LocalPca,
-            SearchMethod::MedianCut,
-            SearchMethod::Homomorphic,
-            SearchMethod::Nd,
-            SearchMethod::SvdJ,
-            SearchMethod::Gshd,
-            SearchMethod::Cmf,
-        ] {
+        for m in super::super::registry::encodable() {
             let ls = ladders(Some(m), &knobs);
             assert!(!ls.is_empty() && ls.iter().all(|l| !l.is_empty()), "{m:?}");
             for l in ls.iter().chain(&default) {
@@ -431,7 +320,7 @@ mod tests {
                 assert!(l.windows(2).all(|w| w[0].components <= w[1].components), "{m:?}");
             }
         }
-        let lpca = &ladders(Some(SearchMethod::LocalPca), &knobs)[1][0];
+        let lpca = &ladders(Some(CodecId::LocalPca), &knobs)[1][0];
         assert!(matches!(
             lpca.method,
             Method::LocalPca {

@@ -669,7 +669,7 @@ fn method_files_import_only_the_ground_floor() {
                 "svbrdf",
             ],
         ),
-        ("params", include_str!("params.rs"), &["data", "container"]),
+        ("params", include_str!("params.rs"), &["data", "container", "error"]),
         ("linalg", include_str!("linalg.rs"), &["error"]),
         ("exact", include_str!("exact.rs"), &["error", "linalg"]),
         ("rsvd", include_str!("rsvd.rs"), &["error", "exact", "linalg"]),

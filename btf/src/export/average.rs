@@ -71,7 +71,7 @@ impl AverageBrdf {
             .and_then(|d| d.as_str())
             .unwrap_or("DATASET");
         let refit = format!("gonio fit {dataset} --model gltf --per-texel --out {}", path.display());
-        if g.header.method != "gltf" {
+        if g.header.method != crate::compress::CodecId::Gltf.name() {
             return Err(input(format!(
                 "a `{}` file; the averaged-BRDF formats take a glTF fit: `{refit}`",
                 g.header.method

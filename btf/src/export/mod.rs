@@ -177,7 +177,7 @@ impl Material {
             path: path.display().to_string(),
             reason,
         };
-        if g.header.method != "gltf" {
+        if g.header.method != crate::compress::CodecId::Gltf.name() {
             return Err(input(format!(
                 "a `{}` file; the renderers' formats take the glTF model's per-texel fit: `gonio fit DATASET \
                  --model gltf --per-texel --out F.gbtf` (or give the dataset to gonio export)",
@@ -447,7 +447,7 @@ pub struct UnitIrradiance {
 impl UnitIrradiance {
     /// `g` must be a glTF `.gbtf` (method `gltf`).
     pub fn new(g: Gbtf) -> Result<UnitIrradiance, crate::compress::CompressError> {
-        if g.header.method != "gltf" {
+        if g.header.method != crate::compress::CodecId::Gltf.name() {
             return Err(crate::compress::CompressError::Invalid(format!(
                 "a `{}` file: only a glTF fit (`gonio fit --model gltf --per-texel`) is a material to light",
                 g.header.method

@@ -9,7 +9,7 @@ use super::output::{self, Written};
 use super::{SynthError, TexelMap};
 use crate::compress::dfmf::Dfmf;
 use crate::compress::interp::BtfModel;
-use crate::compress::{CompressedBtf, Method};
+use crate::compress::{CompressedBtf, Layout};
 use std::path::Path;
 
 // One value per run, never in a collection: the size difference costs nothing.
@@ -52,15 +52,14 @@ impl Exemplar {
     pub fn compact(&self) -> bool {
         match self {
             Exemplar::Dfmf(_) => true,
-            Exemplar::Gbtf(m) => !matches!(
-                m.method(),
-                Method::Pvmf
-                    | Method::Homomorphic { .. }
-                    | Method::Nd
-                    | Method::SvdJ
-                    | Method::Gshd { .. }
-                    | Method::Cmf { .. }
-            ),
+            Exemplar::Gbtf(m) => match m.layout() {
+                Layout::Basis
+                | Layout::Clusters { .. }
+                | Layout::Index { .. }
+                | Layout::ChannelFactors
+                | Layout::AnalyticPerTexel => true,
+                Layout::ViewBases | Layout::HalfVectorTables { .. } | Layout::PerTexel => false,
+            },
         }
     }
     pub fn embed(&self) -> Result<Embedding, SynthError> {

@@ -23,7 +23,7 @@
 use super::{FeatureImage, SynthError};
 use crate::compress::dfmf::{ColorModel, Dfmf};
 use crate::compress::interp::BtfModel;
-use crate::compress::{CompressedBtf, Method};
+use crate::compress::{CompressedBtf, Layout};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::evd::{self_adjoint_evd, self_adjoint_evd_scratch, ComputeEigenvectors};
 use faer::{Mat, Par};
@@ -151,8 +151,8 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
     let (w, ht) = (h.width, h.height);
     let t = w * ht;
     let blocks = &model.gbtf.blocks;
-    let (dims, data, kind) = match model.method() {
-        Method::Pca => {
+    let (dims, data, kind) = match model.layout() {
+        Layout::Basis => {
             let c = model.components();
             let (m, r) = isometry(&gram_cols(&blocks[1], c), c)?;
             let mut data = vec![0f32; t * r];
@@ -161,7 +161,7 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
                 .for_each(|(z, u)| apply(&m, r, c, u, z));
             (r, data, "exact")
         }
-        Method::Pvmf => {
+        Layout::ViewBases => {
             let c = model.components();
             let nv = h.views_deg.len();
             let isos = (0..nv)
@@ -178,7 +178,7 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             });
             (dims, data, "exact")
         }
-        Method::LocalPca { clusters, .. } => {
+        Layout::Clusters { clusters } => {
             let c = model.components();
             let d = h.lights_deg.len() * h.views_deg.len() * 3;
             let n = clusters * (c + 1);
@@ -202,8 +202,8 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             (r, data, "exact")
         }
         // DFMF stored as `.gbtf` (e.g. CIELab): the same factor embedding as a `.btf`.
-        Method::Dfmf { .. } => return embed_dfmf(&crate::compress::dfmf::from_gbtf(&model.gbtf)?),
-        Method::MedianCut { boxes, .. } => {
+        Layout::ChannelFactors => return embed_dfmf(&crate::compress::dfmf::from_gbtf(&model.gbtf)?),
+        Layout::Index { boxes } => {
             let d = h.lights_deg.len() * h.views_deg.len() * 3;
             let (m, r) = isometry(&gram_rows(&blocks[1], boxes, d), boxes)?;
             let mut data = vec![0f32; t * r];
@@ -214,7 +214,8 @@ pub fn embed(model: &CompressedBtf) -> Result<Embedding, SynthError> {
             });
             (r, data, "exact")
         }
-        _ => {
+        // Factors only the method's decoder reads: embed sampled decoded images.
+        Layout::HalfVectorTables { .. } | Layout::PerTexel | Layout::AnalyticPerTexel => {
             let (nl, nv) = (h.lights_deg.len(), h.views_deg.len());
             let total = nl * nv;
             let n = total.min(SAMPLED_PAIRS);
@@ -418,7 +419,7 @@ pub fn principal(e: &FeatureImage, choice: KChoice) -> Result<Features, SynthErr
 mod tests {
     use super::super::testutil;
     use super::*;
-    use crate::compress::{compress, Params};
+    use crate::compress::{compress, Method, Params};
 
     /// ABRDF of texel `t` decoded image by image.
     fn abrdf(m: &CompressedBtf, t: usize) -> Vec<f64> {

@@ -23,33 +23,16 @@ use super::{SynthError, TexelMap};
 use crate::compress::btf_ubo2014::{self, Precision};
 use crate::compress::container::{BlockInfo, GbtfStreamWriter};
 use crate::compress::dfmf::{ChannelFactors, Dfmf};
-use crate::compress::{CompressedBtf, GbtfHeader, Method};
+use crate::compress::{CompressedBtf, GbtfHeader};
 use std::path::{Path, PathBuf};
 
 /// Which blocks of the exemplar's file are indexed by texel, or why the model cannot be
-/// synthesized from.
+/// synthesized from (its layout's [`Layout::texel_blocks`](crate::compress::Layout::texel_blocks)).
 pub fn texel_blocks(model: &CompressedBtf) -> Result<Vec<bool>, SynthError> {
-    let h = model.header();
-    let nb = h.blocks.len();
-    Ok(match model.method() {
-        Method::Pca => vec![true, false],
-        Method::Pvmf => (0..nb).map(|i| i % 2 == 0).collect(),
-        Method::LocalPca { .. } => vec![true, true, false, false],
-        Method::MedianCut { .. } => vec![true, false],
-        Method::Homomorphic { .. } | Method::Nd | Method::SvdJ | Method::Gshd { .. } | Method::Cmf { .. } => {
-            vec![true; nb]
-        }
-        // Per channel `u{ch}` (measurements) then `sxv{ch}` (texels).
-        Method::Dfmf { .. } => (0..nb).map(|i| i % 2 == 1).collect(),
-        Method::Svbrdf { .. } | Method::Gltf => {
-            return Err(SynthError::Invalid(
-                "an SVBRDF file (gonio fit --per-texel) holds gain planes over the sample's extent and the \
-                 rig's geometry, which a grown texture does not have; synthesize from the dataset or a \
-                 factorized .gbtf instead"
-                    .into(),
-            ))
-        }
-    })
+    model
+        .layout()
+        .texel_blocks(model.header().blocks.len())
+        .map_err(|why| SynthError::Invalid(why.into()))
 }
 
 /// The sidecar path for an output file.
@@ -324,7 +307,7 @@ mod tests {
     use super::super::{features, synthesize, testutil, SynthMethod, SynthParams};
     use super::*;
     use crate::compress::interp::BtfModel;
-    use crate::compress::{compress, Gbtf, Params};
+    use crate::compress::{compress, Gbtf, Method, Params};
 
     /// For every model kind: the written file reads back as a model whose every image is
     /// the exemplar's image gathered through the texel map, and the streamed bytes equal
