@@ -71,6 +71,20 @@ pub trait Axis: Send + Sync {
         })
     }
 
+    /// Start a move that follows `trajectory` phase by phase (its times from now, its
+    /// positions absolute; it begins at rest where the axis stands): a fly-scan flight with a
+    /// velocity profile per gap (see [`crate::motion::Trajectory::flight`]). Axes whose
+    /// controller cannot stream a profile refuse (the default): the planner flies them at
+    /// one velocity per flight ([`Axis::start_move_at`]).
+    async fn start_trajectory(&self, trajectory: &crate::motion::Trajectory) -> Result<(), DeviceError> {
+        let _ = trajectory;
+        Err(DeviceError::Rejected {
+            device: self.name().to_string(),
+            command: "start_trajectory".into(),
+            reason: "this axis' backend cannot follow a velocity profile; fly-scan flies it at one velocity".into(),
+        })
+    }
+
     /// Who the controller says it is (model or device id, firmware): what `gonio devices
     /// check` prints so a lab sees the hardware it is about to run on. An axis that cannot
     /// tell answers with its name (the default).

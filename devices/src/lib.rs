@@ -35,4 +35,4 @@ pub use camera::{Camera, CameraConfig, Frame, FrameMeta, Intrinsics};
 pub use error::DeviceError;
 pub use geometry::{Direction, Vec3};
 pub use light::{LampReading, Light};
-pub use motion::MotionModel;
+pub use motion::{MotionModel, Trajectory};

@@ -29,6 +29,9 @@ struct AxisState {
     /// How late the stage follows the current move's profile (s): the injected lag of a
     /// velocity-commanded move ([`SimAxis::with_flight_lag`]), 0 otherwise.
     lag: f64,
+    /// The phases of a profiled move (`start_trajectory`): the position follows them
+    /// instead of the trapezoid.
+    trajectory: Option<Arc<gonio_devices::Trajectory>>,
 }
 
 /// A simulated motor stage.
@@ -62,6 +65,7 @@ impl SimAxis {
                 t_end: 0.0,
                 velocity: motion.max_velocity,
                 lag: 0.0,
+                trajectory: None,
             }),
             mech: None,
             flight_lag: 0.0,
@@ -159,6 +163,7 @@ impl SimAxis {
             t_end: now + dt + lag,
             velocity,
             lag,
+            trajectory: None,
         };
         Ok(())
     }
@@ -176,6 +181,10 @@ impl SimAxis {
     pub fn position_at(&self, t: f64) -> f64 {
         let s = self.state.lock().expect("axis state poisoned");
         let t = t - s.t_start - s.lag;
+        if let Some(tr) = &s.trajectory {
+            // Past its last knot the trajectory is at its target exactly.
+            return tr.position_at(t);
+        }
         let d = s.target - s.start;
         let motion = MotionModel {
             max_velocity: s.velocity,
@@ -215,6 +224,7 @@ impl Axis for SimAxis {
             t_end: end,
             velocity: self.motion.max_velocity,
             lag: 0.0,
+            trajectory: None,
         };
         drop(s);
         if let Some(m) = &self.mech {
@@ -227,6 +237,44 @@ impl Axis for SimAxis {
     }
     async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
         self.start_profile(target, velocity, self.flight_lag)
+    }
+    async fn start_trajectory(&self, trajectory: &gonio_devices::Trajectory) -> Result<(), DeviceError> {
+        for k in &trajectory.knots {
+            check_limits(&self.name, self.limits, k.x, "start_trajectory")?;
+        }
+        let m = self.motion;
+        let fast = trajectory
+            .knots
+            .iter()
+            .any(|k| k.v.abs() > m.max_velocity * (1.0 + 1e-9) || k.a.abs() > m.acceleration * (1.0 + 1e-9));
+        if fast || !(trajectory.end.is_finite() && trajectory.end >= 0.0) {
+            return Err(DeviceError::Rejected {
+                device: self.name.clone(),
+                command: "start_trajectory".into(),
+                reason: "the profile exceeds the axis' velocity or acceleration".into(),
+            });
+        }
+        let from = self.position_now();
+        self.mech_fold(from);
+        let now = self.clock.now();
+        let mut s = self.state.lock().expect("axis state poisoned");
+        if !s.homed {
+            return Err(DeviceError::NotHomed {
+                device: self.name.clone(),
+                command: "start_trajectory".into(),
+            });
+        }
+        *s = AxisState {
+            homed: true,
+            start: from,
+            target: trajectory.target(),
+            t_start: now,
+            t_end: now + trajectory.end + self.flight_lag,
+            velocity: m.max_velocity,
+            lag: self.flight_lag,
+            trajectory: Some(Arc::new(trajectory.clone())),
+        };
+        Ok(())
     }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
         let end = self.state.lock().expect("axis state poisoned").t_end;
@@ -244,6 +292,7 @@ impl Axis for SimAxis {
         s.t_end = now;
         s.velocity = self.motion.max_velocity;
         s.lag = 0.0;
+        s.trajectory = None;
         Ok(())
     }
     async fn position(&self) -> Result<f64, DeviceError> {

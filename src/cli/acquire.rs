@@ -116,7 +116,7 @@ pub fn run(args: AcquireArgs) -> Result<ExitCode> {
 async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
     let session = match &args.resume {
         Some(dir) => {
-            if args.fly.fly || args.fly.blur_deg.is_some() {
+            if args.fly.fly || args.fly.blur_deg.is_some() || args.fly.fly_constant_velocity {
                 anyhow::bail!(
                     "--resume {}: --fly and --blur-deg shape a new acquisition's plan; a resumed one flies as its \
                      plan.json says: drop them",

@@ -53,6 +53,10 @@ pub struct FlyBenchArgs {
     /// Write the PSNR-against-rig-time plot (SVG) to this file.
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Fly at one constant velocity per flight instead of a velocity profile per gap (the
+    /// plans before per-gap profiles), for comparison.
+    #[arg(long)]
+    pub fly_constant_velocity: bool,
     #[arg(long)]
     pub json: bool,
 }
@@ -136,7 +140,11 @@ pub fn run(a: FlyBenchArgs) -> Result<ExitCode> {
     }];
     let mut readout_bound = 0.0;
     for &b in &bounds {
-        let p = base.clone().into_fly(&rig, &opts, FlyOptions::new(b)?)?;
+        let p = base.clone().into_fly(
+            &rig,
+            &opts,
+            FlyOptions::new(b)?.with_constant_velocity(a.fly_constant_velocity),
+        )?;
         let f = p.fly.as_ref().expect("a fly plan records its figures");
         readout_bound = f.readout_bound_s;
         plans.push(PlanRow {
@@ -191,7 +199,9 @@ pub fn run(a: FlyBenchArgs) -> Result<ExitCode> {
                     options: opts.clone(),
                     isotropic: false,
                     sparse: None,
-                    fly: b.map(FlyOptions::new).transpose()?,
+                    fly: b
+                        .map(|b| FlyOptions::new(b).map(|f| f.with_constant_velocity(a.fly_constant_velocity)))
+                        .transpose()?,
                 },
                 settings: RunSettings {
                     width: a.size,

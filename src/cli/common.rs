@@ -106,15 +106,19 @@ impl SweepArgs {
 /// `--fly [--blur-deg B]`, shared by `gonio plan`, `gonio acquire` and the benches.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct FlyArgs {
-    /// Fly-scan: expose while the lamp moves through each light ring at constant velocity
-    /// (camera and sample stand still), instead of stopping at every pair
-    /// (docs/results/rig-time.md).
+    /// Fly-scan: expose while the lamp moves through each light ring (camera and sample
+    /// stand still), instead of stopping at every pair; the lamp holds a constant velocity
+    /// through each exposure and speeds up between distant poses (docs/results/rig-time.md).
     #[arg(long)]
     pub fly: bool,
     /// With --fly: the light direction one exposure may sweep, in degrees (0, 10]; it sets
     /// each ring's velocity. Default 0.5.
     #[arg(long, value_name = "DEG")]
     pub blur_deg: Option<f64>,
+    /// With --fly: one constant velocity per flight (as serial stages fly) instead of a
+    /// velocity profile per gap; for comparison.
+    #[arg(long)]
+    pub fly_constant_velocity: bool,
 }
 
 impl FlyArgs {
@@ -122,9 +126,14 @@ impl FlyArgs {
     pub fn options(&self) -> Result<Option<gonio_acquire::plan::fly::FlyOptions>> {
         use gonio_acquire::plan::fly::{FlyOptions, DEFAULT_BLUR_DEG};
         match (self.fly, self.blur_deg) {
-            (false, None) => Ok(None),
+            (false, None) if !self.fly_constant_velocity => Ok(None),
             (false, Some(b)) => anyhow::bail!("--blur-deg {b} applies to fly-scan: add --fly"),
-            (true, b) => Ok(Some(FlyOptions::new(b.unwrap_or(DEFAULT_BLUR_DEG))?)),
+            (false, None) => {
+                anyhow::bail!("--fly-constant-velocity applies to fly-scan: add --fly")
+            }
+            (true, b) => Ok(Some(
+                FlyOptions::new(b.unwrap_or(DEFAULT_BLUR_DEG))?.with_constant_velocity(self.fly_constant_velocity),
+            )),
         }
     }
 }

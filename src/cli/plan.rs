@@ -97,6 +97,9 @@ pub fn run(args: PlanArgs) -> Result<ExitCode> {
             println!("{}", serde_json::to_string(&j)?);
         } else {
             super::sparse::print_summary(&plan, info);
+            if let Some(f) = &plan.fly {
+                print_fly(f, plan.durations.canonical_s);
+            }
         }
         return Ok(ExitCode::SUCCESS);
     }
@@ -254,5 +257,24 @@ fn print_fly(f: &gonio_acquire::plan::fly::FlyInfo, canonical: f64) {
     );
     for (why, n) in &f.stop_and_go_reasons {
         println!("      stop and go {n:>5} × {why}");
+    }
+    if let Some(nk) = &f.not_kept {
+        println!(
+            "    (the fly order kept out: {:.0} s, {} segments / {} pairs in flight; stop and go: {})",
+            nk.fly_s,
+            nk.flown_segments,
+            nk.flown_pairs,
+            nk.stop_and_go_reasons
+                .iter()
+                .map(|(k, n)| format!("{n} × {k}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    if !f.velocity_profile.is_empty() {
+        match &f.constant_velocity_reason {
+            Some(why) => println!("    velocity profile {} ({why})", f.velocity_profile),
+            None => println!("    velocity profile {}", f.velocity_profile),
+        }
     }
 }

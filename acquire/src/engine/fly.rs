@@ -79,6 +79,43 @@ fn interpolate((ta, xa): (f64, f64), (tb, xb): (f64, f64), t: f64) -> f64 {
     }
 }
 
+/// The per-gap profile of a segment (see `gonio_devices::motion::Trajectory::flight`), from
+/// its steps' poses, exposure velocities and offsets and the axis' motion.
+fn segment_trajectory(
+    rig: &Rig,
+    seg: &[(usize, &Step)],
+) -> Result<gonio_devices::Trajectory, gonio_devices::DeviceError> {
+    let f0 = seg[0].1.flight.as_ref().expect("a segment's steps are flown");
+    let axis = f0.axis;
+    let spec = &rig.spec.axes[axis];
+    let m = spec.motion();
+    let mut poses = Vec::with_capacity(seg.len());
+    let mut speeds = Vec::with_capacity(seg.len());
+    let mut offsets = Vec::with_capacity(seg.len());
+    for (_, st) in seg {
+        let f = st.flight.as_ref().expect("a segment's steps are flown");
+        poses.push(st.axes_deg[axis].to_radians());
+        speeds.push(f.velocity_deg_s.abs().to_radians());
+        offsets.push(f.exposure_offset_s);
+    }
+    gonio_devices::Trajectory::flight(
+        f0.kickoff_deg.to_radians(),
+        &poses,
+        &speeds,
+        &offsets,
+        rig.spec.camera.exposure_s.max(0.0),
+        m.acceleration,
+        m.max_velocity,
+        m.settle_time,
+        f0.stop_deg.to_radians(),
+    )
+    .ok_or_else(|| gonio_devices::DeviceError::Rejected {
+        device: spec.name.clone(),
+        command: "start_trajectory".into(),
+        reason: "the segment's per-gap profile is inconsistent (a gap cannot last its planned time)".into(),
+    })
+}
+
 fn degs(q: &[f64]) -> Vec<f64> {
     q.iter().map(|x| x.to_degrees()).collect()
 }
@@ -112,11 +149,23 @@ pub(super) async fn drive_segment(
         kick = kick.max(e + readout - f0.exposure_offset_s);
     }
     rig.wait_until(kick).await;
+    // A per-gap flight follows the profile the planner timed, rebuilt from the segment's
+    // steps before the kickoff (the same numbers on every run of the plan).
+    let trajectory = if f0.per_gap {
+        Some(segment_trajectory(rig, seg).map_err(device(index0))?)
+    } else {
+        None
+    };
     let before = rig.time();
-    rig.axes[axis]
-        .start_move_at(f0.stop_deg.to_radians(), f0.velocity_deg_s.abs().to_radians())
-        .await
-        .map_err(device(index0))?;
+    match &trajectory {
+        Some(tr) => rig.axes[axis].start_trajectory(tr).await,
+        None => {
+            rig.axes[axis]
+                .start_move_at(f0.stop_deg.to_radians(), f0.velocity_deg_s.abs().to_radians())
+                .await
+        }
+    }
+    .map_err(device(index0))?;
     // The controller starts the move when the command arrives, inside the exchange: the
     // middle of the round trip is the kickoff every exposure is timed from.
     let after = rig.time();
@@ -128,7 +177,6 @@ pub(super) async fn drive_segment(
     // the flight only the moving axis is read (each read is a serial round trip on a real
     // rig, and the still ones cannot have moved).
     let q_still = q_read;
-    let velocity = f0.velocity_deg_s.to_radians();
     let exposure_s = rig.spec.camera.exposure_s.max(0.0);
     // A mixed rig (serial stages, simulated camera) renders on its shadow world's virtual
     // clock: the flyer paces its exposures on the wall clock, as a real camera takes them.
@@ -144,6 +192,9 @@ pub(super) async fn drive_segment(
         }
         let index = step.index;
         let f = step.flight.as_ref().expect("a segment's steps are flown");
+        // The axis holds this velocity through the exposure (the segment's one velocity, or
+        // this pose's own in a per-gap flight).
+        let velocity = f.velocity_deg_s.to_radians();
         let t_cap = Instant::now();
         let planned_start = kick + f.exposure_offset_s;
         rig.wait_until(planned_start - round_trip).await;

@@ -36,6 +36,7 @@
 use super::order::{self, Node, OrderOptions};
 use super::{node_for, Durations, Plan, PlanError, Step};
 use gonio_devices::kinematics::{self, Kinematics};
+use gonio_devices::motion::{flight_end, gap_cruise_speed, gap_min_time};
 use gonio_devices::rig::RigSpec;
 use gonio_devices::serial::FlightProfile;
 use gonio_devices::{Direction, MotionModel};
@@ -57,6 +58,10 @@ pub const POSE_TOLERANCE_DEG: f64 = 0.05;
 pub struct FlyOptions {
     /// Light direction swept during one exposure, at most (degrees, in (0, 10]).
     pub blur_deg: f64,
+    /// Fly every flight at one constant velocity even where the axis could follow a
+    /// velocity profile per gap (`--fly-constant-velocity`: the plans before per-gap
+    /// profiles, for comparison).
+    pub constant_velocity: bool,
 }
 
 impl FlyOptions {
@@ -69,7 +74,18 @@ impl FlyOptions {
                 ),
             });
         }
-        Ok(FlyOptions { blur_deg })
+        Ok(FlyOptions {
+            blur_deg,
+            constant_velocity: false,
+        })
+    }
+
+    /// The same bound, flown at one constant velocity per flight.
+    pub fn with_constant_velocity(self, constant: bool) -> FlyOptions {
+        FlyOptions {
+            constant_velocity: constant,
+            ..self
+        }
     }
 }
 
@@ -81,7 +97,9 @@ pub struct StepFlight {
     /// The axis that moves (index in the rig file's order); every other axis stands still
     /// at the step's `axes_deg`.
     pub axis: usize,
-    /// Signed velocity of the moving axis through the segment (degrees/s).
+    /// Signed velocity of the moving axis during this step's exposure (degrees/s): the
+    /// segment's one velocity in a constant-velocity flight; this pose's own in a per-gap
+    /// one (`per_gap`).
     pub velocity_deg_s: f64,
     /// Where the moving axis starts, at rest, and where it stops (degrees).
     pub kickoff_deg: f64,
@@ -90,6 +108,18 @@ pub struct StepFlight {
     pub exposure_offset_s: f64,
     /// Light direction swept during the exposure (degrees).
     pub light_sweep_deg: f64,
+    /// A velocity profile per gap: the axis holds `velocity_deg_s` through this exposure
+    /// only and, between two exposures, ramps (at the axis' acceleration, up to its maximum
+    /// velocity) to one cruise velocity and down (or up) to the next pose's, arriving as its
+    /// exposure starts (`gonio_devices::motion::Trajectory::flight` rebuilds the profile from
+    /// the segment's steps). Absent (`false`, plans before it): one constant velocity
+    /// through the segment.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub per_gap: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// The fly-scan part of a plan (`plan.json` → `fly`).
@@ -120,6 +150,27 @@ pub struct FlyInfo {
     /// of the sample during one (pixels; 0 while only the lamp moves).
     pub max_light_sweep_deg: f64,
     pub max_image_blur_px: f64,
+    /// How flights move between exposures: `per_gap` (a velocity profile per gap: speed up
+    /// between distant poses) or `constant` (one velocity per flight); empty in plans made
+    /// before per-gap profiles (constant).
+    #[serde(default)]
+    pub velocity_profile: String,
+    /// Why flights keep one constant velocity (a serial stage flies one commanded move).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub constant_velocity_reason: Option<String>,
+    /// When the stop-and-go plan was kept (`whole_plan_faster_stop_and_go`): the fly order
+    /// it beat, as planned (its time, what it flew and why the rest was stop and go).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub not_kept: Option<NotKept>,
+}
+
+/// The fly order of a plan that kept stop and go (`FlyInfo::not_kept`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct NotKept {
+    pub fly_s: f64,
+    pub flown_segments: usize,
+    pub flown_pairs: usize,
+    pub stop_and_go_reasons: BTreeMap<String, usize>,
 }
 
 /// One unit of the flown order: a single stop-and-go pose or a flown segment.
@@ -134,11 +185,18 @@ enum Item {
         steps: Vec<usize>,
         base: Vec<f64>,
         values: Vec<f64>,
-        /// Speed (radians/s, > 0).
-        speed: f64,
-        /// Run-up and run-out lengths (radians).
+        /// Speed of each pose's exposure (radians/s, > 0), pass order; all equal in a
+        /// constant-velocity flight.
+        speeds: Vec<f64>,
+        /// Per-gap flights: time from one exposure's end to the next one's start (s), pass
+        /// order. Empty: a constant-velocity flight (one move at `speeds[0]`).
+        gaps: Vec<f64>,
+        /// Run-up and run-out lengths (radians), and theirs when flown the other way (a
+        /// per-gap flight starts and ends at its end poses' own speeds).
         run_up: f64,
         run_out: f64,
+        rev_run_up: f64,
+        rev_run_out: f64,
     },
 }
 
@@ -152,6 +210,8 @@ struct Setup<'a> {
     fly_motion: MotionModel,
     /// The controller's rounding of a flight's velocity (serial axes; `None`: simulated).
     profile: Option<FlightProfile>,
+    /// One constant velocity per flight was asked for (`FlyOptions::constant_velocity`).
+    constant_asked: bool,
     axis: usize,
     light_axes: Vec<usize>,
     exposure: f64,
@@ -250,6 +310,7 @@ impl Plan {
             motions: rig.axes.iter().map(|a| a.motion()).collect(),
             fly_motion,
             profile,
+            constant_asked: fly.constant_velocity,
             axis,
             light_axes: (0..rig.axes.len())
                 .filter(|&i| rig.axes[i].role.starts_with("light_"))
@@ -289,6 +350,9 @@ impl Plan {
                 stop_and_go_overlapped_s: plan.durations.optimized_s,
                 max_light_sweep_deg: 0.0,
                 max_image_blur_px: 0.0,
+                velocity_profile: s.velocity_profile().into(),
+                constant_velocity_reason: s.constant_velocity_reason(),
+                not_kept: None,
             });
             plan.plan_time_s += t0.elapsed().as_secs_f64();
             return Ok(plan);
@@ -322,12 +386,21 @@ impl Plan {
             stop_and_go_overlapped_s: base.durations.optimized_s,
             max_light_sweep_deg: max_sweep,
             max_image_blur_px: max_image,
+            velocity_profile: s.velocity_profile().into(),
+            constant_velocity_reason: s.constant_velocity_reason(),
+            not_kept: None,
         };
         let mut plan = base;
         if fly_s >= plan.durations.optimized_s {
             // At a tight bound the rings fly so slowly that the whole stop-and-go plan (whose
             // order the optimiser chose over every pair) is faster: keep it, and say so.
             let mut info = info;
+            info.not_kept = Some(NotKept {
+                fly_s: info.fly_s,
+                flown_segments: info.flown_segments,
+                flown_pairs: info.flown_pairs,
+                stop_and_go_reasons: std::mem::take(&mut info.stop_and_go_reasons),
+            });
             info.stop_and_go_reasons = BTreeMap::from([("whole_plan_faster_stop_and_go".to_string(), n)]);
             info.flown_segments = 0;
             info.flown_pairs = 0;
@@ -358,6 +431,121 @@ fn same(a: f64, b: f64) -> bool {
 }
 
 impl Setup<'_> {
+    /// Per-gap profiles fly where the axis follows a profile (the simulated stage); a
+    /// serial stage flies one commanded velocity per flight.
+    fn per_gap(&self) -> bool {
+        self.profile.is_none() && !self.constant_asked
+    }
+
+    fn velocity_profile(&self) -> &'static str {
+        if self.per_gap() {
+            "per_gap"
+        } else {
+            "constant"
+        }
+    }
+
+    fn constant_velocity_reason(&self) -> Option<String> {
+        (!self.per_gap()).then(|| {
+            let a = &self.rig.axes[self.axis];
+            if self.profile.is_none() {
+                return "asked: --fly-constant-velocity".to_string();
+            }
+            format!(
+                "serial_stage: axis `{}` (backend `{}`) flies one move at one commanded velocity per flight",
+                a.name, a.backend
+            )
+        })
+    }
+
+    /// Length the axis travels from rest until the first exposure starts at speed `v`
+    /// (acceleration, settle at cruise, half an exposure), and after the last one ends.
+    fn run_up(&self, v: f64) -> f64 {
+        let m = self.fly_motion;
+        v * v / (2.0 * m.acceleration) + v * m.settle_time + v * self.exposure / 2.0
+    }
+
+    fn run_out(&self, v: f64) -> f64 {
+        v * self.exposure / 2.0 + v * v / (2.0 * self.fly_motion.acceleration)
+    }
+
+    /// Per-gap speeds (each pose's own blur bound and the axis' maximum) and the time of
+    /// every gap: the fastest profile between two exposures, never shorter than the
+    /// readout. Candidates: those speeds; them capped by the frame-rate bound of their gaps
+    /// (close poses, where a gap cannot change speed in its length); the constant velocity
+    /// `w` through every exposure (still speeding up between them). The quickest feasible
+    /// one is flown.
+    fn per_gap_speeds(&self, values: &[f64], rates: &[f64], w: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+        let m = self.fly_motion;
+        let (a, vmax, e) = (m.acceleration, m.max_velocity, self.exposure);
+        let n = values.len();
+        let own: Vec<f64> = rates
+            .iter()
+            .map(|&r| {
+                if e > 0.0 && r > 1e-12 {
+                    vmax.min(self.blur_rad / (e * r))
+                } else {
+                    vmax
+                }
+            })
+            .collect();
+        let frame = e + self.readout;
+        let gap_len = |k: usize| (values[k + 1] - values[k]).abs();
+        let capped: Vec<f64> = (0..n)
+            .map(|k| {
+                let mut v = own[k];
+                if frame > 0.0 {
+                    if k > 0 {
+                        v = v.min(gap_len(k - 1) / frame);
+                    }
+                    if k + 1 < n {
+                        v = v.min(gap_len(k) / frame);
+                    }
+                }
+                v
+            })
+            .collect();
+        let gaps_of = |sp: &[f64]| -> Option<Vec<f64>> {
+            let mut gaps = Vec::with_capacity(n.saturating_sub(1));
+            for k in 0..n - 1 {
+                let d = gap_len(k) - (sp[k] + sp[k + 1]) * e / 2.0;
+                let t = gap_min_time(d, sp[k], sp[k + 1], a, vmax)?.max(self.readout);
+                gap_cruise_speed(d, sp[k], sp[k + 1], a, vmax, t)?;
+                gaps.push(t);
+            }
+            Some(gaps)
+        };
+        // Of the feasible candidates, the quickest flight (faster exposures are not always
+        // quicker: where the readout paces the gaps, they only lengthen the run-up and
+        // run-out).
+        let mut best: Option<(f64, Vec<f64>, Vec<f64>)> = None;
+        for sp in [own, capped, vec![w; n]] {
+            if sp.iter().any(|v| !(v.is_finite() && *v > 1e-9)) {
+                continue;
+            }
+            if let Some(g) = gaps_of(&sp) {
+                let o = self.offsets(&sp, &g);
+                let t = flight_end(o[n - 1], e, sp[n - 1], a, m.settle_time);
+                if !matches!(&best, Some((bt, _, _)) if t >= *bt - 1e-12) {
+                    best = Some((t, sp, g));
+                }
+            }
+        }
+        best.map(|(_, sp, g)| (sp, g))
+    }
+
+    /// Start of each exposure after the kickoff (s) of a per-gap flight.
+    fn offsets(&self, speeds: &[f64], gaps: &[f64]) -> Vec<f64> {
+        let m = self.fly_motion;
+        let mut o = Vec::with_capacity(speeds.len());
+        o.push(speeds[0] / m.acceleration + m.settle_time);
+        for g in gaps {
+            let last = o[o.len() - 1];
+            o.push(last + self.exposure + g);
+        }
+        o
+    }
+
     fn is_light(&self, i: usize) -> bool {
         self.light_axes.contains(&i)
     }
@@ -630,7 +818,8 @@ impl Setup<'_> {
         if min_gap <= 1e-9 {
             return Err("repeated_pose");
         }
-        let rate = run.iter().map(|(_, q)| self.sweep_rate(q)).fold(0.0, f64::max);
+        let rates: Vec<f64> = run.iter().map(|(_, q)| self.sweep_rate(q)).collect();
+        let rate = rates.iter().copied().fold(0.0, f64::max);
         let frame = self.exposure + self.readout;
         let mut speed = m.max_velocity;
         if frame > 0.0 {
@@ -646,12 +835,29 @@ impl Setup<'_> {
         if !(speed.is_finite() && speed > 1e-9) {
             return Err("blur_bound");
         }
-        let run_up = speed * speed / (2.0 * m.acceleration) + speed * m.settle_time + speed * self.exposure / 2.0;
-        let run_out = speed * self.exposure / 2.0 + speed * speed / (2.0 * m.acceleration);
+        let (speeds, gaps) = match self.per_gap() {
+            true => self
+                .per_gap_speeds(&values, &rates, speed)
+                .unwrap_or_else(|| (vec![speed; values.len()], Vec::new())),
+            false => (vec![speed; values.len()], Vec::new()),
+        };
+        let (run_up, run_out) = if gaps.is_empty() {
+            // One constant velocity: the formulas the serial stages' flights were timed with.
+            let up = speed * speed / (2.0 * m.acceleration) + speed * m.settle_time + speed * self.exposure / 2.0;
+            let out = speed * self.exposure / 2.0 + speed * speed / (2.0 * m.acceleration);
+            ((up, out), (up, out))
+        } else {
+            let (first, last) = (speeds[0], speeds[speeds.len() - 1]);
+            (
+                (self.run_up(first), self.run_out(last)),
+                (self.run_up(last), self.run_out(first)),
+            )
+        };
+        let ((run_up, run_out), (rev_run_up, rev_run_out)) = (run_up, run_out);
         let lim = self.rig.axes[ax].limits();
         let (lo, hi) = (values[0], values[values.len() - 1]);
         let fwd_ok = lim.contains(lo - run_up) && lim.contains(hi + run_out);
-        let rev_ok = lim.contains(hi + run_up) && lim.contains(lo - run_out);
+        let rev_ok = lim.contains(hi + rev_run_up) && lim.contains(lo - rev_run_out);
         if !fwd_ok && !rev_ok {
             return Err("axis_limit");
         }
@@ -659,9 +865,12 @@ impl Setup<'_> {
             steps: run.iter().map(|(i, _)| *i).collect(),
             base: run[0].1.clone(),
             values,
-            speed,
+            speeds,
+            gaps,
             run_up,
             run_out,
+            rev_run_up,
+            rev_run_out,
         };
         // Flown only when faster than stop and go over the same poses.
         let fly = self.flight_time(&item);
@@ -682,7 +891,8 @@ impl Setup<'_> {
     fn flight_time(&self, it: &Item) -> f64 {
         let Item::Flight {
             values,
-            speed,
+            speeds,
+            gaps,
             run_up,
             run_out,
             ..
@@ -690,8 +900,20 @@ impl Setup<'_> {
         else {
             return 0.0;
         };
-        let mut m = self.fly_motion;
-        m.max_velocity = *speed;
+        let m = self.fly_motion;
+        if !gaps.is_empty() {
+            let offsets = self.offsets(speeds, gaps);
+            let v = speeds[speeds.len() - 1];
+            return flight_end(
+                offsets[offsets.len() - 1],
+                self.exposure,
+                v,
+                m.acceleration,
+                m.settle_time,
+            );
+        }
+        let mut m = m;
+        m.max_velocity = speeds[0];
         let span = (values[values.len() - 1] - values[0]).abs();
         m.move_time(run_up + span + run_out)
     }
@@ -765,10 +987,18 @@ impl Setup<'_> {
                     steps: members,
                     base: bq,
                     values,
-                    speed,
+                    speeds,
+                    gaps,
                     run_up,
                     ..
                 } => {
+                    let per_gap = !gaps.is_empty();
+                    let offsets = if per_gap {
+                        self.offsets(speeds, gaps)
+                    } else {
+                        Vec::new()
+                    };
+                    let speed = &speeds[0];
                     let dir = pass_direction(values);
                     let mut kick = resolve(bq, &cur);
                     kick[self.axis] = values[0] - dir * run_up;
@@ -788,7 +1018,12 @@ impl Setup<'_> {
                     let stop_deg = exit[self.axis].to_degrees();
                     let mut prev_start: Option<f64> = None;
                     for (k, &si) in members.iter().enumerate() {
-                        let offset = first_offset + (values[k] - values[0]).abs() / speed;
+                        let offset = if per_gap {
+                            offsets[k]
+                        } else {
+                            first_offset + (values[k] - values[0]).abs() / speed
+                        };
+                        let speed = speeds[k];
                         let start = kickoff + offset;
                         let mut q = kick.clone();
                         q[self.axis] = values[k];
@@ -816,6 +1051,7 @@ impl Setup<'_> {
                             stop_deg,
                             exposure_offset_s: offset,
                             light_sweep_deg: (sweep * 1e9).round() / 1e9,
+                            per_gap,
                         });
                         prev_start = Some(start);
                         last_end = Some(start + self.exposure);
@@ -901,19 +1137,27 @@ fn reversed(it: Item) -> Item {
             mut steps,
             base,
             mut values,
-            speed,
+            mut speeds,
+            mut gaps,
             run_up,
             run_out,
+            rev_run_up,
+            rev_run_out,
         } => {
             steps.reverse();
             values.reverse();
+            speeds.reverse();
+            gaps.reverse();
             Item::Flight {
                 steps,
                 base,
                 values,
-                speed,
-                run_up,
-                run_out,
+                speeds,
+                gaps,
+                run_up: rev_run_up,
+                run_out: rev_run_out,
+                rev_run_up: run_up,
+                rev_run_out: run_out,
             }
         }
         s => s,
@@ -934,5 +1178,91 @@ fn pass_direction(values: &[f64]) -> f64 {
         1.0
     } else {
         -1.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::PlanOptions;
+    use gonio_dataset::sweep::Sweep;
+    use gonio_devices::Trajectory;
+
+    /// Bonn's ring of 24 at 75° with every third light left out (scattered poses, as a
+    /// sparse design leaves them) and a ring of 12 at 45°, seen from one view.
+    fn rings() -> Sweep {
+        let mut lights = vec![Direction::from_degrees(45.0, 0.0)];
+        lights.extend((1..12).map(|k| Direction::from_degrees(45.0, 30.0 * k as f64)));
+        lights.extend(
+            (0..24)
+                .filter(|k| k % 3 != 1)
+                .map(|k| Direction::from_degrees(75.0, 15.0 * k as f64)),
+        );
+        Sweep {
+            name: "rings".into(),
+            lights,
+            views: vec![Direction::from_degrees(30.0, 0.0)],
+        }
+    }
+
+    #[test]
+    fn per_gap_flights_respect_the_readout_the_blur_bound_and_the_axis() {
+        let rig = RigSpec::default_rig();
+        let opts = PlanOptions {
+            kicks: 200,
+            ..Default::default()
+        };
+        let base = Plan::build(&rig, &rings(), &opts).unwrap();
+        let plan = base.into_fly(&rig, &opts, FlyOptions::new(0.5).unwrap()).unwrap();
+        let fly = plan.fly.as_ref().unwrap();
+        assert_eq!(fly.velocity_profile, "per_gap");
+        assert_eq!(fly.flown_segments, 2, "{fly:?}");
+        assert!(fly.max_light_sweep_deg <= 0.5 + 1e-6, "{fly:?}");
+        let spec = &rig.axes.iter().find(|a| a.role == "light_azimuth").unwrap();
+        let m = spec.motion();
+        let e = rig.camera.exposure_s;
+        let readout = rig.camera.overlapped_readout_s().unwrap();
+        let flown: Vec<&Step> = plan.steps.iter().filter(|s| s.flight.is_some()).collect();
+        for seg in 0..fly.flown_segments {
+            let steps: Vec<&Step> = flown
+                .iter()
+                .copied()
+                .filter(|s| s.flight.as_ref().unwrap().segment == seg)
+                .collect();
+            let fs: Vec<&StepFlight> = steps.iter().map(|s| s.flight.as_ref().unwrap()).collect();
+            assert!(fs.iter().all(|f| f.per_gap));
+            for w in steps.windows(2) {
+                assert!(
+                    w[1].capture_start_s - w[0].capture_start_s - e >= readout - 1e-9,
+                    "consecutive exposures are a readout apart"
+                );
+            }
+            for f in &fs {
+                assert!(f.velocity_deg_s.abs().to_radians() <= m.max_velocity * (1.0 + 1e-12));
+            }
+            // The profile the engine rebuilds passes every pose mid-exposure.
+            let ax = fs[0].axis;
+            let tr = Trajectory::flight(
+                fs[0].kickoff_deg.to_radians(),
+                &steps.iter().map(|s| s.axes_deg[ax].to_radians()).collect::<Vec<_>>(),
+                &fs.iter()
+                    .map(|f| f.velocity_deg_s.abs().to_radians())
+                    .collect::<Vec<_>>(),
+                &fs.iter().map(|f| f.exposure_offset_s).collect::<Vec<_>>(),
+                e,
+                m.acceleration,
+                m.max_velocity,
+                m.settle_time,
+                fs[0].stop_deg.to_radians(),
+            )
+            .unwrap();
+            for (s, f) in steps.iter().zip(&fs) {
+                let x = tr.position_at(f.exposure_offset_s + e / 2.0).to_degrees();
+                assert!((x - s.axes_deg[ax]).abs() < 1e-6, "{x} vs {}", s.axes_deg[ax]);
+            }
+            assert!(tr.knots.iter().all(|k| k.v.abs() <= m.max_velocity * (1.0 + 1e-9)));
+            assert!(tr.knots.iter().all(|k| k.a.abs() <= m.acceleration * (1.0 + 1e-12)));
+        }
+        assert!(plan.durations.optimized_s < fly.stop_and_go_overlapped_s);
     }
 }

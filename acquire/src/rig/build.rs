@@ -292,6 +292,9 @@ impl Axis for MirroredAxis {
     async fn start_move_at(&self, target: f64, velocity: f64) -> Result<(), DeviceError> {
         self.real.start_move_at(target, velocity).await
     }
+    async fn start_trajectory(&self, trajectory: &gonio_devices::Trajectory) -> Result<(), DeviceError> {
+        self.real.start_trajectory(trajectory).await
+    }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
         let p = self.real.wait_idle().await?;
         self.mirror(p).await?;
