@@ -15,6 +15,9 @@
 //! * [`adaptive`]: rounds of measurement — leave-one-out residuals of the measured pairs,
 //!   interpolated over the pair geometry, say where the prior fails; the next pairs are
 //!   chosen by the design's gain plus that residual, and the predicted error includes it.
+//! * [`noise`]: a sensor's noise in the model's value space, per measured pair (the
+//!   completion weighs each pair by it; clipped readings are fitted as lower bounds by
+//!   [`Completion::coefficients_censored`]).
 //! * [`joint`]: the alternative across texels — EM for the material's own Gaussian in the
 //!   prior's coefficient space; measured against the per-texel MAP (no better: the prior's
 //!   span, not the estimate, limits the completion; docs/guide/sparse.md).
