@@ -311,13 +311,9 @@ fn complete_sensor(
     sensor: &gonio_devices::hdr::SensorNoise,
 ) -> Result<(Vec<Vec<f32>>, f64)> {
     let p = prior.truncated(prior.components().min(measured.len()));
-    let space = p.space();
-    let noise: Vec<f64> = measured
-        .iter()
-        .map(|&q| gonio_sparse::noise::pair_noise(space, &meas[q], |x| sensor.variance(x)))
-        .collect();
-    let c = Completion::with_pair_noise(&p, measured, &noise)?;
     let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let noise = super::complete::sensor_pair_noise(p.space(), &refs, sensor);
+    let c = Completion::with_pair_noise(&p, measured, &noise)?;
     let (a, _clipped) = super::complete::coefficients_censored(&c, &refs, 1.0);
     Ok((fill_from(&c, &a, measured, meas), psnr_of_mse(c.predicted_mse())))
 }

@@ -89,6 +89,19 @@ pub fn coefficients(c: &Completion, images: &[&[f32]]) -> DMatrix<f64> {
     out
 }
 
+/// Each measured image's noise in model space under the sensor's model
+/// (`gonio_sparse::noise::pair_noise`), in the order of `images`.
+pub fn sensor_pair_noise(
+    space: gonio_sparse::ValueSpace,
+    images: &[&[f32]],
+    sensor: &gonio_devices::hdr::SensorNoise,
+) -> Vec<f64> {
+    images
+        .iter()
+        .map(|img| gonio_sparse::noise::pair_noise(space, img, |x| sensor.variance(x)))
+        .collect()
+}
+
 /// [`coefficients`] for readings clipped at the sensor's full scale `full_scale` (linear):
 /// readings at or above it are lower bounds ([`Completion::coefficients_censored`]).
 /// Returns the coefficients and the number of clipped readings.
@@ -246,10 +259,7 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
     };
     // Per measured pair: its measurement noise in model space.
     let pair_noise: Vec<f64> = match &sensor {
-        Some(s) => refs
-            .iter()
-            .map(|img| gonio_sparse::noise::pair_noise(prior.space(), img, |x| s.variance(x)))
-            .collect(),
+        Some(s) => sensor_pair_noise(prior.space(), &refs, s),
         None => vec![(a.noise_codes / 255.0).powi(2); measured.len()],
     };
     let hdr = rig.as_ref().is_some_and(|r| r.hdr_mode() != HdrMode::Off);
