@@ -144,6 +144,21 @@ impl SimAxis {
             max_velocity: velocity,
             ..self.motion
         };
+        self.begin_move("move_abs", |from, now| AxisState {
+            homed: true,
+            start: from,
+            target,
+            t_start: now,
+            t_end: now + motion.move_time(target - from) + lag,
+            velocity,
+            lag,
+            trajectory: None,
+        })
+    }
+
+    /// The start every move shares: fold the mechanics at the current position, refuse an
+    /// axis that is not homed (naming `command`), then set the move `state(from, now)`.
+    fn begin_move(&self, command: &str, state: impl FnOnce(f64, f64) -> AxisState) -> Result<(), DeviceError> {
         let from = self.position_now();
         self.mech_fold(from);
         let now = self.clock.now();
@@ -151,20 +166,10 @@ impl SimAxis {
         if !s.homed {
             return Err(DeviceError::NotHomed {
                 device: self.name.clone(),
-                command: "move_abs".into(),
+                command: command.into(),
             });
         }
-        let dt = motion.move_time(target - from);
-        *s = AxisState {
-            homed: true,
-            start: from,
-            target,
-            t_start: now,
-            t_end: now + dt + lag,
-            velocity,
-            lag,
-            trajectory: None,
-        };
+        *s = state(from, now);
         Ok(())
     }
 
@@ -254,17 +259,7 @@ impl Axis for SimAxis {
                 reason: "the profile exceeds the axis' velocity or acceleration".into(),
             });
         }
-        let from = self.position_now();
-        self.mech_fold(from);
-        let now = self.clock.now();
-        let mut s = self.state.lock().expect("axis state poisoned");
-        if !s.homed {
-            return Err(DeviceError::NotHomed {
-                device: self.name.clone(),
-                command: "start_trajectory".into(),
-            });
-        }
-        *s = AxisState {
+        self.begin_move("start_trajectory", |from, now| AxisState {
             homed: true,
             start: from,
             target: trajectory.target(),
@@ -273,8 +268,7 @@ impl Axis for SimAxis {
             velocity: m.max_velocity,
             lag: self.flight_lag,
             trajectory: Some(Arc::new(trajectory.clone())),
-        };
-        Ok(())
+        })
     }
     async fn wait_idle(&self) -> Result<f64, DeviceError> {
         let end = self.state.lock().expect("axis state poisoned").t_end;
