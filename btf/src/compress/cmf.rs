@@ -382,13 +382,7 @@ impl Codec for GshdCodec {
         compress(ds, params)
     }
     fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
-        let (theta_bins, k) = validate(&g.header)?;
-        Ok(Opened {
-            method: Method::Gshd { theta_bins, sweeps: 0 },
-            components: k,
-            layout: Layout::PerTexel,
-            decoder: Arc::new(Decoder { theta_bins, k }),
-        })
+        open(g, |theta_bins| Method::Gshd { theta_bins, sweeps: 0 })
     }
 }
 
@@ -417,14 +411,19 @@ impl Codec for CmfCodec {
         compress(ds, params)
     }
     fn open(&self, g: &Gbtf) -> Result<Opened, CompressError> {
-        let (theta_bins, k) = validate(&g.header)?;
-        Ok(Opened {
-            method: Method::Cmf { theta_bins, sweeps: 0 },
-            components: k,
-            layout: Layout::PerTexel,
-            decoder: Arc::new(Decoder { theta_bins, k }),
-        })
+        open(g, |theta_bins| Method::Cmf { theta_bins, sweeps: 0 })
     }
+}
+
+/// Open a GSHD or CMF file (one format; `method` names which, from its θ bins).
+fn open(g: &Gbtf, method: impl FnOnce(usize) -> Method) -> Result<Opened, CompressError> {
+    let (theta_bins, k) = validate(&g.header)?;
+    Ok(Opened {
+        method: method(theta_bins),
+        components: k,
+        layout: Layout::PerTexel,
+        decoder: Arc::new(Decoder { theta_bins, k }),
+    })
 }
 
 /// [`reconstruct`] of a GSHD (`k` = 0) or CMF file.
