@@ -39,6 +39,11 @@ pub struct Completion<'a> {
     post: DMatrix<f64>,
     /// K: added to every texel's coefficients (`m − W U_S m` for a prior mean m ≠ 0).
     offset: DVector<f64>,
+    /// For [`Self::log_evidence`], set by the per-pair builds: each measured pair's total
+    /// variance σ_s² and `log det C` of the measured values' covariance
+    /// `C = U_S Λ U_Sᵀ + diag(σ_s²)` (by the determinant lemma:
+    /// `Σ log σ_s² + Σ log λ_j + log det(U_SᵀDU_S + Λ⁻¹)`).
+    evidence: Option<(Vec<f64>, f64)>,
     pub conditioning: Conditioning,
 }
 
@@ -220,8 +225,13 @@ impl<'a> Completion<'a> {
         for (i, mut col) in w.column_iter_mut().enumerate() {
             col /= sd[i];
         }
+        let log_det = var.iter().map(|v| v.max(1e-12).ln()).sum::<f64>()
+            + prior.variances.iter().map(|l| l.ln()).sum::<f64>()
+            + 2.0 * chol.l_dirty().diagonal().iter().map(|d| d.ln()).sum::<f64>();
         let post = chol.inverse();
-        Self::finish(prior, measured, noise_var, w, post, cond, ls_cond)
+        let mut c = Self::finish(prior, measured, noise_var, w, post, cond, ls_cond)?;
+        c.evidence = Some((var.iter().map(|v| v.max(1e-12)).collect(), log_det));
+        Ok(c)
     }
 
     /// MAP: `(U_SᵀU_S + σ² C⁻¹)`, where `regularize(p, σ²)` adds `σ² C⁻¹` to `p`.
@@ -271,6 +281,7 @@ impl<'a> Completion<'a> {
             w,
             post,
             offset: DVector::zeros(k),
+            evidence: None,
             conditioning: Conditioning {
                 measured_pairs: measured.len(),
                 components: k,
@@ -335,6 +346,45 @@ impl<'a> Completion<'a> {
             }
         }
         (a, clipped)
+    }
+
+    /// Log marginal likelihood of each column of `y` (S × M, model space, rows in the order
+    /// of `measured`) under this prior and the per-pair variances, given its coefficients
+    /// `a` (from [`Self::coefficients`] or [`Self::coefficients_censored`]):
+    /// `−½ (rᵀC⁻¹r + log det C + S log 2π)` with `r = y_S − μ_S`, where by Woodbury
+    /// `rᵀC⁻¹r = rᵀD(r − U_S â)`. It is how well a prior explains a texel's readings, its
+    /// span and its spread together: the evidence a mixture chooses its member by.
+    /// Non-finite readings count as their prediction. Only for completions built with
+    /// per-pair variances ([`Self::with_pair_noise`], or a prior with ρ_p).
+    pub fn log_evidence(&self, y: &DMatrix<f64>, a: &DMatrix<f64>) -> Result<Vec<f64>, SparseError> {
+        let (var, log_det) = self.evidence.as_ref().ok_or_else(|| {
+            SparseError::Invalid("the evidence needs a completion built with per-pair variances".into())
+        })?;
+        if y.nrows() != self.measured.len() || a.ncols() != y.ncols() || a.nrows() != self.prior.components() {
+            return Err(SparseError::Invalid(format!(
+                "evidence of {} × {} values with {} × {} coefficients for {} pairs and {} components",
+                y.nrows(),
+                y.ncols(),
+                a.nrows(),
+                a.ncols(),
+                self.measured.len(),
+                self.prior.components()
+            )));
+        }
+        let s = self.measured.len() as f64;
+        let konst = log_det + s * (2.0 * std::f64::consts::PI).ln();
+        Ok((0..y.ncols())
+            .map(|j| {
+                let mut quad = 0.0;
+                for (i, &p) in self.measured.iter().enumerate() {
+                    let fit = (self.prior.basis.row(p) * a.column(j))[(0, 0)];
+                    let v = y[(i, j)];
+                    let r = if v.is_finite() { v - self.prior.mean[p] } else { fit };
+                    quad += r * (r - fit) / var[i];
+                }
+                -0.5 * (quad + konst)
+            })
+            .collect())
     }
 
     /// The leverage of each measured pair (diagonal of the hat matrix `U_S W`, in the order

@@ -36,6 +36,7 @@ pub mod adaptive;
 pub mod complete;
 pub mod design;
 pub mod joint;
+pub mod mixture;
 pub mod noise;
 pub mod prior;
 

@@ -79,7 +79,8 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-constant, ours-auto, ours-joint, ours-motion, adaptive, project, product, pca-ls, dense;
+    /// Only these methods (ours, ours-constant, ours-auto, ours-joint, ours-motion, adaptive, mixture, mixture+global,
+    /// project, product, pca-ls, dense;
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
     pub methods: Vec<String>,
@@ -93,6 +94,10 @@ pub struct SparseBenchArgs {
     /// Method `adaptive`: seconds charged per analysis (as `gonio acquire --round-allowance`).
     #[arg(long)]
     pub round_allowance: Option<f64>,
+    /// Method `mixture`: a prior mixture (`gonio prior build --clusters C`, a .gmix file)
+    /// that completes `ours`'s design, each texel in the member of largest evidence.
+    #[arg(long)]
+    pub mixture: Option<PathBuf>,
     #[arg(long)]
     pub plot: Option<PathBuf>,
     #[arg(long)]
@@ -316,6 +321,60 @@ fn complete_sensor(
     let c = Completion::with_pair_noise(&p, measured, &noise)?;
     let (a, _clipped) = super::complete::coefficients_censored(&c, &refs, 1.0);
     Ok((fill_from(&c, &a, measured, meas), psnr_of_mse(c.predicted_mse())))
+}
+
+/// Ours with a prior mixture: the same sensor noise and censored fit as
+/// [`complete_sensor`] in every member, each texel completed in the member whose log
+/// evidence (over its three channels) is largest. Returns the images and how many texels
+/// each member completed.
+fn complete_mixture(
+    mix: &gonio_sparse::mixture::Mixture,
+    global: Option<&Prior>,
+    measured: &[usize],
+    meas: &[Vec<f32>],
+    sensor: &gonio_devices::hdr::SensorNoise,
+) -> Result<(Vec<Vec<f32>>, Vec<usize>)> {
+    let mut members: Vec<Prior> = mix
+        .members
+        .iter()
+        .map(|p| p.truncated(p.components().min(measured.len())))
+        .collect();
+    let mut log_weights = mix.log_weights();
+    // `mixture+global`: the global prior as one more member, with half the weight.
+    if let Some(g) = global {
+        members.push(g.truncated(g.components().min(measured.len())));
+        log_weights.iter_mut().for_each(|w| *w += 0.5f64.ln());
+        log_weights.push(0.5f64.ln());
+    }
+    let space = members[0].space();
+    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+    let noise = super::complete::sensor_pair_noise(space, &refs, sensor);
+    let fit = gonio_sparse::mixture::MixtureFit::new(&members, log_weights, measured, &noise)?;
+    let m = refs.first().map_or(0, |i| i.len());
+    let y = nalgebra::DMatrix::<f64>::from_fn(refs.len(), m, |i, j| space.forward(refs[i][j] as f64));
+    let ceiling = space.forward(1.0);
+    let (coeffs, choice) = fit.choose(&y, 3, |c, y| c.coefficients_censored(y, ceiling, 50).0)?;
+    let mut counts = vec![0usize; members.len()];
+    choice.iter().for_each(|&c| counts[c] += 1);
+    let mut is_m = vec![false; members[0].dims()];
+    measured.iter().for_each(|&i| is_m[i] = true);
+    let images = (0..members[0].dims())
+        .into_par_iter()
+        .map(|q| {
+            if is_m[q] {
+                return meas[q].clone();
+            }
+            (0..m)
+                .map(|j| {
+                    let c = choice[j / 3];
+                    let p = &members[c];
+                    let v = (p.basis.row(q) * coeffs[c].column(j))[(0, 0)] + p.mean[q];
+                    space.inverse(v) as f32
+                })
+                .collect()
+        })
+        .collect();
+    Ok((images, counts))
 }
 
 /// Ours, joint across texels: the material's Gaussian fitted by EM from every texel's
@@ -569,6 +628,33 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         }
                     }
                     None => na(noisy, "ours", f, budget, "no pair fits"),
+                });
+            }
+            for method in ["mixture", "mixture+global"].into_iter().filter(|m| want(m)) {
+                let path = a
+                    .mixture
+                    .as_ref()
+                    .ok_or_else(|| anyhow::anyhow!("method `mixture` needs --mixture FILE.gmix"))?;
+                let mix = gonio_sparse::mixture::Mixture::load(path)?;
+                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
+                rows.push(match fit {
+                    Some((n, plan)) => {
+                        let m = &design[..n];
+                        let global = (method == "mixture+global").then_some(&prior);
+                        let (rec, counts) = complete_mixture(&mix, global, m, &meas, &sensor)?;
+                        Row {
+                            noise: noisy,
+                            method: method.into(),
+                            fraction: f,
+                            budget_s: budget,
+                            pairs: n,
+                            planned_s: plan.durations.optimized_s,
+                            psnr_db: Some(psnr(&truth, &rec)),
+                            predicted_psnr_db: None,
+                            note: format!("{} members, texels per member {counts:?}", counts.len()),
+                        }
+                    }
+                    None => na(noisy, method, f, budget, "no pair fits"),
                 });
             }
             if want("ours-constant") {

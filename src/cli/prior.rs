@@ -76,6 +76,16 @@ pub struct BuildArgs {
     /// Seed of the randomized SVD's sketch.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Learn a mixture of this many priors instead of one (a `.gmix` file): the training
+    /// ABRDFs are clustered by k-means on their first `--features` coefficients, and each
+    /// cluster gets its own prior of at most `--components` components (with held-out
+    /// figures from the held-out rows that fall in it). `gonio bench sparse --mixture`
+    /// completes each texel in the member whose evidence is largest.
+    #[arg(long, value_name = "C")]
+    pub clusters: Option<usize>,
+    /// With --clusters: global coefficients describing an ABRDF for the clustering.
+    #[arg(long, default_value_t = 16, requires = "clusters")]
+    pub features: usize,
     #[arg(long)]
     pub force: bool,
     #[arg(long)]
@@ -295,8 +305,57 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
     let holdout = a
         .holdout
         .map(|_| (held_rows.as_slice(), held_sources, a.holdout_variances));
+    if let Some(clusters) = a.clusters {
+        let opts = gonio_sparse::mixture::MixtureOptions {
+            clusters,
+            components: a.components,
+            features: a.features,
+            seed: a.seed,
+        };
+        let mix = gonio_sparse::mixture::Mixture::learn(meta, &rows, holdout, opts)?;
+        return write_mixture(&mix, &a.out, a.json);
+    }
     let prior = Prior::learn_with_holdout(meta, &rows, holdout, a.components, a.seed)?;
     write_prior(&prior, &a.out, a.json)
+}
+
+fn write_mixture(mix: &gonio_sparse::mixture::Mixture, out: &Path, json: bool) -> Result<ExitCode> {
+    let bytes = mix.to_bytes()?;
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)?;
+    }
+    crate::store::atomic::write_atomic(out, &bytes, None).with_context(|| format!("writing {}", out.display()))?;
+    if json {
+        let members: Vec<_> = mix
+            .members
+            .iter()
+            .zip(&mix.header.members)
+            .map(|(p, e)| {
+                serde_json::json!({
+                    "weight": e.weight, "rows": e.rows, "held_rows": e.held_rows,
+                    "components": p.components(), "residual_var": p.header.residual_var,
+                })
+            })
+            .collect();
+        println!(
+            "{}",
+            serde_json::json!({ "out": out.display().to_string(), "bytes": bytes.len(), "members": members })
+        );
+    } else {
+        println!("{}: a mixture of {} priors", out.display(), mix.members.len());
+        for (i, (p, e)) in mix.members.iter().zip(&mix.header.members).enumerate() {
+            println!(
+                "  member {i}: weight {:.3} ({} ABRDFs, {} held out), K = {}, ρ = {:.3e}",
+                e.weight,
+                e.rows,
+                e.held_rows,
+                p.components(),
+                p.header.residual_var
+            );
+        }
+        println!("  wrote {} bytes", bytes.len());
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn holdout(a: HoldoutArgs) -> Result<ExitCode> {

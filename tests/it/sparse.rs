@@ -74,6 +74,29 @@ fn prior_plan_complete_bench_and_refusals() {
         std::fs::read(&prior2).unwrap(),
         "prior bytes depend on the thread count"
     );
+    // A mixture of priors (`--clusters`): the same bytes at any thread count too.
+    let mix = d.join("m.gmix");
+    let mix2 = d.join("m2.gmix");
+    for (out, threads) in [(&mix, "1"), (&mix2, "2")] {
+        let mut a = args.clone();
+        a.extend([
+            "--clusters",
+            "2",
+            "--components",
+            "6",
+            "--texels",
+            "64",
+            "--out",
+            s(out),
+        ]);
+        let o = gonio(&a, Some(threads));
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    assert_eq!(
+        std::fs::read(&mix).unwrap(),
+        std::fs::read(&mix2).unwrap(),
+        "mixture bytes depend on the thread count"
+    );
 
     // A held-out sample's truth; a sparse plan; the sparse dataset made from the truth.
     let truth = d.join("truth");
@@ -197,13 +220,25 @@ fn prior_plan_complete_bench_and_refusals() {
         "--noise",
         "off",
         "--methods",
-        "ours,pca-ls",
+        "ours,pca-ls,mixture",
+        "--mixture",
+        s(&mix),
         "--plan-kicks",
         "200",
         "--json",
     ]))
     .unwrap();
     assert_eq!(bench["label"], "held-out");
+    // The mixture completes every texel in one of its members (a finite PSNR).
+    assert!(
+        bench["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|r| r["method"] == "mixture")
+            .all(|r| r["psnr_db"].as_f64().is_some_and(|v| v.is_finite() && v > 10.0)),
+        "{bench}"
+    );
     for f in [0.15, 0.3] {
         let get = |m: &str| {
             bench["rows"]
