@@ -5,6 +5,11 @@ use crate::compress::testdata::{self, hash};
 /// A glTF `.gbtf` over the test dataset: texel 0's base colour 1.2 (to be clamped), texel
 /// 1 flagged as not converged; `calibrated` sets `source.calibrated_by`.
 fn file(dir: &Path, calibrated: bool) -> Gbtf {
+    file_with(dir, calibrated, 0.0)
+}
+
+/// [`file`] with anisotropy vectors of length up to `aniso` (0: isotropic).
+fn file_with(dir: &Path, calibrated: bool, aniso: f32) -> Gbtf {
     let ds = testdata::write(&dir.join("ds"), |_, _, _, _| 0.1);
     let (t, pairs) = (ds.texels(), ds.n_lights() * ds.n_views());
     let mut params: Vec<f32> = (0..t * PARAMS)
@@ -12,6 +17,7 @@ fn file(dir: &Path, calibrated: bool) -> Gbtf {
             3 => hash(i, 2),
             4 => 0.3 + 0.5 * hash(i, 3),
             5 | 6 => 0.3 * (hash(i, 4) - 0.5),
+            7 | 8 => aniso * (hash(i, 5) - 0.5),
             _ => 0.1 + 0.8 * hash(i, 1),
         })
         .collect();
@@ -138,6 +144,7 @@ fn with_average(dir: &Path, normal: [f64; 2]) -> Gbtf {
         metallic: 0.1,
         roughness: 0.4,
         normal,
+        anisotropy: [0.0, 0.0],
         rel_rms: 0.05,
         observations: 100,
         dataset_journal_sha256: Some("ab".repeat(32)),
@@ -447,4 +454,60 @@ fn sixteen_bit_textures_decode_to_the_maps() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("--bit-depth 12"), "{e}");
+}
+
+/// KHR_materials_anisotropy: an anisotropic fit's glTF lists the extension and carries a
+/// fourth (linear) texture whose RG is the direction and B the strength; an isotropic fit
+/// writes neither; the formats without anisotropy warn, naming what is lost, and write the
+/// isotropic roughness √(α_t α_b)^½.
+#[test]
+fn anisotropy_is_written_to_gltf_and_approximated_elsewhere() {
+    let tmp = tempfile::tempdir().unwrap();
+    let iso = Material::from_gbtf(&file(tmp.path(), true), Path::new("f.gbtf"), &opts(None)).unwrap();
+    let r = write(&iso, Format::Gltf, &tmp.path().join("iso")).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&r.files[0]).unwrap()).unwrap();
+    assert!(doc.get("extensionsUsed").is_none() && doc["materials"][0].get("extensions").is_none());
+    assert_eq!(doc["images"].as_array().unwrap().len(), 3);
+    assert!(r.warnings.iter().all(|w| !w.contains("anisotrop")), "{:?}", r.warnings);
+
+    let g = file_with(&tmp.path().join("a"), true, 1.2);
+    let m = Material::from_gbtf(&g, Path::new("a.gbtf"), &opts(None)).unwrap();
+    assert_eq!(m.anisotropic_texels(), m.anisotropy.len());
+    let r = write(&m, Format::Gltf, &tmp.path().join("aniso")).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&r.files[0]).unwrap()).unwrap();
+    assert_eq!(doc["extensionsUsed"], serde_json::json!(["KHR_materials_anisotropy"]));
+    let ext = &doc["materials"][0]["extensions"]["KHR_materials_anisotropy"];
+    assert_eq!(ext["anisotropyTexture"]["index"], 3);
+    assert_eq!(doc["textures"][3]["source"], 3);
+    assert_eq!(doc["images"][3]["uri"], "textures/anisotropy.png");
+    let png = image::open(tmp.path().join("aniso/textures/anisotropy.png"))
+        .unwrap()
+        .to_rgb8();
+    for t in [0usize, 5, 17] {
+        let (x, y) = ((t % m.width) as u32, (t / m.width) as u32);
+        let px = png.get_pixel(x, y).0.map(|c| c as f64 / 255.0);
+        let a = m.anisotropy[t].map(|c| c as f64);
+        let (s, phi) = gonio_brdf::gltf::anisotropy_of(a);
+        assert!((px[2] - s).abs() <= 0.5 / 255.0 + 1e-6, "{px:?} {s}");
+        let (dx, dy) = (2.0 * px[0] - 1.0, 2.0 * px[1] - 1.0);
+        assert!(
+            (dx - phi.cos()).abs() < 0.01 && (dy - phi.sin()).abs() < 0.01,
+            "{px:?} {phi}"
+        );
+    }
+    let glb = write(&m, Format::Gltf, &tmp.path().join("aniso.glb")).unwrap();
+    assert!(glb.files[0].is_file());
+    for f in [Format::Usd, Format::Mitsuba] {
+        let r = write(&m, f, &tmp.path().join(format!("a-{}", f.name()))).unwrap();
+        let w = r.warnings.iter().find(|w| w.contains("anisotropic")).unwrap();
+        assert!(
+            w.contains(f.name()) && w.contains("lost") && w.contains("isotropic"),
+            "{w}"
+        );
+    }
+    let mut iso = m.clone();
+    iso.make_isotropic(Format::Usd).unwrap();
+    let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[3] as f64, m.anisotropy[3].map(|c| c as f64));
+    assert!(((iso.roughness[3] as f64).powi(4) - at * ab).abs() < 1e-5);
+    assert_eq!(iso.anisotropic_texels(), 0);
 }
