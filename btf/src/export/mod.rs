@@ -190,10 +190,17 @@ impl Material {
             *r = ((at * ab).sqrt().sqrt()).clamp(0.0, 1.0) as f32;
             *a = [0.0, 0.0];
         }
+        let why = match format {
+            Format::Materialx => {
+                "gonio does not write standard_surface's specular_anisotropy and specular_rotation yet"
+            }
+            Format::Mitsuba => "Mitsuba's principled has anisotropy only along the tangent, not per-texel directions",
+            _ => "the format has no anisotropy",
+        };
         Some(format!(
-            "{n} of {} texels are anisotropic (KHR_materials_anisotropy, strength up to {strongest:.3}); --format {} \
-             has no anisotropy, so their elongated highlight and its direction are lost: written as the best \
-             isotropic GGX, roughness² = √(α_t α_b) (the same peak height and highlight area)",
+            "{n} of {} texels are anisotropic (KHR_materials_anisotropy, strength up to {strongest:.3}); --format {}: \
+             {why}, so their elongated highlight and its direction are lost: written as the best isotropic GGX, \
+             roughness² = √(α_t α_b) (the same peak height and highlight area)",
             self.anisotropy.len(),
             format.name()
         ))
