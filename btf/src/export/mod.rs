@@ -191,9 +191,6 @@ impl Material {
             *a = [0.0, 0.0];
         }
         let why = match format {
-            Format::Materialx => {
-                "gonio does not write standard_surface's specular_anisotropy and specular_rotation yet"
-            }
             Format::Mitsuba => "Mitsuba's principled has anisotropy only along the tangent, not per-texel directions",
             _ => "the format has no anisotropy",
         };
@@ -369,7 +366,12 @@ pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, E
     let mut iso;
     let mut m = m;
     let mut warnings = m.warnings.clone();
-    if matches!(format, Format::Usd | Format::Mitsuba | Format::Materialx) && m.anisotropic_texels() > 0 {
+    if format == Format::Materialx {
+        if let Some(w) = materialx::clamped_anisotropy(m) {
+            warnings.push(w);
+        }
+    }
+    if matches!(format, Format::Usd | Format::Mitsuba) && m.anisotropic_texels() > 0 {
         iso = m.clone();
         if let Some(w) = iso.make_isotropic(format) {
             warnings.push(w);

@@ -505,6 +505,33 @@ fn anisotropy_is_written_to_gltf_and_approximated_elsewhere() {
             "{w}"
         );
     }
+    // MaterialX: exact through specular_anisotropy and specular_rotation (MaterialX's
+    // roughness_anisotropy and its clockwise rotate3d), no anisotropy warning.
+    let r = write(&m, Format::Materialx, &tmp.path().join("a-mtlx")).unwrap();
+    assert!(r.warnings.iter().all(|w| !w.contains("lost")), "{:?}", r.warnings);
+    let text = std::fs::read_to_string(&r.files[0]).unwrap();
+    assert!(
+        text.contains("name=\"specular_anisotropy\" type=\"float\" nodegraph"),
+        "{text}"
+    );
+    assert!(tmp.path().join("a-mtlx/textures/specular_rotation.png").is_file());
+    for t in 0..m.anisotropy.len() {
+        let a = m.anisotropy[t].map(|c| c as f64);
+        let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[t] as f64, a);
+        let (r, an, rot) = materialx::standard_surface_anisotropy(m.roughness[t] as f64, a);
+        if 1.0 - ab / at > materialx::MAX_ANISOTROPY {
+            continue;
+        }
+        let aspect = (1.0 - an).sqrt();
+        assert!((r * r / aspect - at).abs() < 1e-9 && (r * r * aspect - ab).abs() < 1e-9);
+        // The tangent turned clockwise by rot·360° (mx_rotationMatrix · v) is the direction φ.
+        let (_, phi) = gonio_brdf::gltf::anisotropy_of(a);
+        let turn = -rot * std::f64::consts::TAU;
+        assert!(
+            (turn.cos() * phi.cos() + turn.sin() * phi.sin()).abs() > 1.0 - 1e-9,
+            "{rot} {phi}"
+        );
+    }
     let mut iso = m.clone();
     iso.make_isotropic(Format::Usd).unwrap();
     let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[3] as f64, m.anisotropy[3].map(|c| c as f64));
