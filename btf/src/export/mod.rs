@@ -112,11 +112,7 @@ impl Format {
             (Format::Gltf, Some(e)) => Err(bad(format!(
                 "--format gltf writes one .glb file or a folder (no extension); `.{e}` is neither"
             ))),
-            (Format::Usd, Some("usdz")) => Err(bad(
-                "--format usd writes a folder (material.usda and its textures); .usdz is not supported yet: give a \
-                 folder name"
-                    .into(),
-            )),
+            (Format::Usd, Some("usdz")) => Ok(Layout::File),
             (f, Some(e)) => Err(bad(format!(
                 "--format {} writes a folder (the document and its textures); give a name without the `.{e}` \
                  extension",
@@ -382,7 +378,8 @@ pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, E
         (Format::Gltf, Layout::File) => vec![gltf::write_glb(m, out)?],
         (Format::Gltf, Layout::Folder) => gltf::write_folder(m, out)?,
         (Format::Materialx, _) => materialx::write(m, out)?,
-        (Format::Usd, _) => usd::write(m, out)?,
+        (Format::Usd, Layout::File) => vec![usd::write_usdz(m, out)?],
+        (Format::Usd, Layout::Folder) => usd::write(m, out)?,
         (Format::Mitsuba, _) => mitsuba::write(m, out)?,
         (Format::RglBsdf | Format::Merl, _) => {
             return Err(ExportError::Output {

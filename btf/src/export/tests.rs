@@ -47,7 +47,7 @@ fn wrong_extensions_are_refused_before_any_work() {
     for (f, p) in [
         (Format::Gltf, "x.usda"),
         (Format::Materialx, "x.mtlx"),
-        (Format::Usd, "x.usdz"),
+        (Format::Usd, "x.usd"),
         (Format::Mitsuba, "x.glb"),
     ] {
         let e = f.check_out(Path::new(p)).unwrap_err().to_string();
@@ -537,4 +537,44 @@ fn anisotropy_is_written_to_gltf_and_approximated_elsewhere() {
     let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[3] as f64, m.anisotropy[3].map(|c| c as f64));
     assert!(((iso.roughness[3] as f64).powi(4) - at * ab).abs() < 1e-5);
     assert_eq!(iso.anisotropic_texels(), 0);
+}
+
+/// `--format usd OUT.usdz`: one zip, stored, the `.usda` first, every file's data 64-byte
+/// aligned, the same bytes twice, no parts folder left behind.
+#[test]
+fn usdz_is_a_stored_aligned_zip() {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = Material::from_gbtf(&file(tmp.path(), true), Path::new("f.gbtf"), &opts(None)).unwrap();
+    assert_eq!(Format::Usd.check_out(Path::new("a.usdz")).unwrap(), Layout::File);
+    let out = tmp.path().join("m.usdz");
+    let r = write(&m, Format::Usd, &out).unwrap();
+    assert_eq!(r.files, vec![out.clone()]);
+    let bytes = std::fs::read(&out).unwrap();
+    let again = tmp.path().join("again.usdz");
+    write(&m, Format::Usd, &again).unwrap();
+    assert_eq!(std::fs::read(&again).unwrap(), bytes);
+    assert!(!tmp.path().join(".m.usdz.parts").exists());
+    // Walk the local headers.
+    let (mut at, mut names) = (0usize, Vec::new());
+    let u16_at = |b: &[u8], i: usize| u16::from_le_bytes([b[i], b[i + 1]]) as usize;
+    let u32_at = |b: &[u8], i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+    while u32_at(&bytes, at) == 0x0403_4b50 {
+        assert_eq!(u16_at(&bytes, at + 8), 0, "stored");
+        let (size, nl, el) = (
+            u32_at(&bytes, at + 18),
+            u16_at(&bytes, at + 26),
+            u16_at(&bytes, at + 28),
+        );
+        let data = at + 30 + nl + el;
+        assert_eq!(data % 64, 0);
+        assert_eq!(
+            crc32fast::hash(&bytes[data..data + size]),
+            u32_at(&bytes, at + 14) as u32
+        );
+        names.push(String::from_utf8(bytes[at + 30..at + 30 + nl].to_vec()).unwrap());
+        at = data + size;
+    }
+    assert_eq!(names[0], "material.usda");
+    assert!(names.contains(&"textures/base_color.png".to_string()), "{names:?}");
+    assert_eq!(names.len(), 5);
 }
