@@ -83,7 +83,8 @@ for n in wallpaper gltf-checker; do
   # interpreter and the script absolute), as the other import checks.
   py=$(realpath -ms "$GONIO_PYTHON")
   checker=$(realpath -m tests/interop/check_material_export.py)
-  (cd / && "$py" "$checker" "$e-materialx" "$e-usd")
+  "$gonio" export "$e.gbtf" --format usd "$e.usdz" > /dev/null
+  (cd / && "$py" "$checker" "$e-materialx" "$e-usd" "$e.usdz")
   mkdir -p "$e-renders"
   "$GONIO_PYTHON" tests/interop/mitsuba_export.py "$gonio" "$e.gbtf" "$e-mitsuba" "$e-renders"
 done
