@@ -16,6 +16,14 @@
 //!   specular lobe, which is what the composed Mitsuba scene of `gonio export --format
 //!   mitsuba` evaluates term by term (see docs/guide/export.md).
 //!
+//! **Anisotropy** (`KHR_materials_anisotropy`). A strength `s ∈ [0, 1]` and a direction at
+//! angle `φ` counter-clockwise from the tangent (+x = u) towards the bitangent (+y = v)
+//! widen the lobe along that direction: `α_t = mix(α, 1, s²)` along it, `α_b = α` across
+//! it (anisotropic GGX, Smith's G separable as above). Stored and fitted as the vector
+//! `a = s·(cos 2φ, sin 2φ)` ([`anisotropy_vector`]): a direction and its opposite are the
+//! same lobe, `s² = |a|²` is smooth at `a = 0` (no singular direction at isotropy), and
+//! texels average as vectors. `a = [0, 0]` is the isotropic model exactly.
+//!
 //! **Normal.** A texel's shading normal `n = (n_x, n_y, √(1 − n_x² − n_y²))` in the
 //! sample's tangent frame (+x = u, +y = v: glTF's tangent-space convention with +Y up)
 //! tilts the frame. [`eval`] returns the *macro-surface* BRDF, the value a gonioreflectometer
@@ -35,16 +43,77 @@ pub const MAX_NORMAL_XY: f64 = 0.95;
 /// The dielectric normal-incidence reflectance of glTF's metallic-roughness model (ior 1.5).
 pub const DIELECTRIC_F0: f64 = 0.04;
 
-/// The BRDF in the frame of the shading normal (normal +z).
+/// The anisotropy vector `s·(cos 2φ, sin 2φ)` of strength `s` (clamped to [0, 1]) and
+/// direction `rotation` = φ (radians, counter-clockwise from the tangent +x).
+#[inline]
+pub fn anisotropy_vector(strength: f64, rotation: f64) -> [f64; 2] {
+    let s = if strength.is_finite() {
+        strength.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let r = if rotation.is_finite() { 2.0 * rotation } else { 0.0 };
+    [s * r.cos(), s * r.sin()]
+}
+
+/// Strength (`|a|`, at most 1) and direction φ ∈ (−π/2, π/2] (radians, counter-clockwise
+/// from the tangent) of anisotropy vector `a`; `(0, 0)` for `a = 0`.
+#[inline]
+pub fn anisotropy_of(a: [f64; 2]) -> (f64, f64) {
+    let s = (a[0] * a[0] + a[1] * a[1]).sqrt();
+    if !(s > 0.0 && s.is_finite()) {
+        return (0.0, 0.0);
+    }
+    let mut phi = 0.5 * a[1].atan2(a[0]);
+    if phi <= -std::f64::consts::FRAC_PI_2 {
+        phi += std::f64::consts::PI;
+    }
+    (s.min(1.0), phi)
+}
+
+/// `(α_t, α_b)` of roughness `roughness` and anisotropy vector `a`: `α = roughness²`
+/// (at least [`crate::MIN_ROUGHNESS`]), `α_t = mix(α, 1, s²)`, `α_b = α`.
+#[inline]
+pub fn alphas(roughness: f64, a: [f64; 2]) -> (f64, f64) {
+    let alpha = (roughness * roughness).max(crate::MIN_ROUGHNESS);
+    let s2 = (a[0] * a[0] + a[1] * a[1]).min(1.0);
+    let s2 = if s2.is_finite() { s2 } else { 0.0 };
+    (alpha + (1.0 - alpha) * s2, alpha)
+}
+
+/// The BRDF in the frame of the shading normal (normal +z), isotropic.
 #[inline]
 pub fn eval_local(base_color: &Rgb, metallic: f64, roughness: f64, l: Vec3, v: Vec3) -> Rgb {
+    eval_local_aniso(base_color, metallic, roughness, [0.0, 0.0], l, v)
+}
+
+/// The BRDF in the frame of the shading normal (normal +z, tangent +x) with anisotropy
+/// vector `anisotropy` (see the module docs).
+#[inline]
+pub fn eval_local_aniso(
+    base_color: &Rgb,
+    metallic: f64,
+    roughness: f64,
+    anisotropy: [f64; 2],
+    l: Vec3,
+    v: Vec3,
+) -> Rgb {
     if l.z <= 0.0 || v.z <= 0.0 {
         return [0.0; 3];
     }
     let m = metallic.clamp(0.0, 1.0);
     let mut out = base_color.map(|c| (1.0 - m) * c * std::f64::consts::FRAC_1_PI);
-    let a = (roughness * roughness).max(crate::MIN_ROUGHNESS);
-    if let Some((s, h)) = dg_over_4(Distribution::Ggx, Masking::Separable, l, v, a, a) {
+    let (at, ab) = alphas(roughness, anisotropy);
+    let (l, v) = if at == ab {
+        (l, v)
+    } else {
+        // Into the frame whose +x is the direction of anisotropy.
+        let (_, phi) = anisotropy_of(anisotropy);
+        let (s, c) = phi.sin_cos();
+        let r = |w: Vec3| Vec3::new(c * w.x + s * w.y, -s * w.x + c * w.y, w.z);
+        (r(l), r(v))
+    };
+    if let Some((s, h)) = dg_over_4(Distribution::Ggx, Masking::Separable, l, v, at, ab) {
         if s > 0.0 {
             let w = (1.0 - v.dot(h).abs().min(1.0)).max(0.0);
             let w5 = w * w * w * w * w;
@@ -79,15 +148,23 @@ pub fn frame(n: Vec3) -> (Vec3, Vec3) {
     (t, n.cross(t))
 }
 
-/// The macro-surface BRDF (1/sr) of a texel with shading normal `normal` (see the module
-/// docs); `normal = [0, 0]` is [`eval_local`].
+/// The macro-surface BRDF (1/sr) of a texel with shading normal `normal` and anisotropy
+/// vector `anisotropy` (see the module docs); `normal = [0, 0]` is [`eval_local_aniso`].
 #[inline]
-pub fn eval(base_color: &Rgb, metallic: f64, roughness: f64, normal: [f64; 2], l: Vec3, v: Vec3) -> Rgb {
+pub fn eval(
+    base_color: &Rgb,
+    metallic: f64,
+    roughness: f64,
+    normal: [f64; 2],
+    anisotropy: [f64; 2],
+    l: Vec3,
+    v: Vec3,
+) -> Rgb {
     if l.z <= 0.0 || v.z <= 0.0 {
         return [0.0; 3];
     }
     if normal == [0.0, 0.0] {
-        return eval_local(base_color, metallic, roughness, l, v);
+        return eval_local_aniso(base_color, metallic, roughness, anisotropy, l, v);
     }
     let n = normal_vector(normal);
     let (nl, nv) = (n.dot(l), n.dot(v));
@@ -96,7 +173,7 @@ pub fn eval(base_color: &Rgb, metallic: f64, roughness: f64, normal: [f64; 2], l
     }
     let (t, b) = frame(n);
     let local = |w: Vec3| Vec3::new(t.dot(w), b.dot(w), n.dot(w));
-    let f = eval_local(base_color, metallic, roughness, local(l), local(v));
+    let f = eval_local_aniso(base_color, metallic, roughness, anisotropy, local(l), local(v));
     let k = nl / l.z;
     f.map(|x| x * k)
 }
@@ -142,8 +219,8 @@ mod tests {
     fn normals_tilt_the_frame() {
         let (l, v) = (dir(40.0, 10.0), dir(30.0, 200.0));
         let nrm = [0.2, -0.1];
-        let a = eval(&[0.3, 0.4, 0.5], 0.2, 0.5, nrm, l, v);
-        let b = eval(&[0.3, 0.4, 0.5], 0.2, 0.5, nrm, v, l);
+        let a = eval(&[0.3, 0.4, 0.5], 0.2, 0.5, nrm, [0.0; 2], l, v);
+        let b = eval(&[0.3, 0.4, 0.5], 0.2, 0.5, nrm, [0.0; 2], v, l);
         for c in 0..3 {
             // f·cos is what is reciprocal for the macro-surface value: f(l,v) l_z = f_n (n·l)
             let (x, y) = (
@@ -152,9 +229,67 @@ mod tests {
             );
             assert!((x - y).abs() < 1e-12 * x, "{x} {y}");
         }
-        assert_eq!(eval(&[0.5; 3], 0.0, 0.5, [0.9, 0.0], dir(80.0, 180.0), v), [0.0; 3]);
-        let tilt = eval(&[0.5; 3], 0.0, 1.0, [0.3, 0.0], dir(45.0, 0.0), dir(0.0, 0.0));
-        let flat = eval(&[0.5; 3], 0.0, 1.0, [0.0, 0.0], dir(45.0, 0.0), dir(0.0, 0.0));
+        assert_eq!(
+            eval(&[0.5; 3], 0.0, 0.5, [0.9, 0.0], [0.0; 2], dir(80.0, 180.0), v),
+            [0.0; 3]
+        );
+        let tilt = eval(&[0.5; 3], 0.0, 1.0, [0.3, 0.0], [0.0; 2], dir(45.0, 0.0), dir(0.0, 0.0));
+        let flat = eval(&[0.5; 3], 0.0, 1.0, [0.0, 0.0], [0.0; 2], dir(45.0, 0.0), dir(0.0, 0.0));
         assert!(tilt[0] > flat[0], "{tilt:?} {flat:?}");
+    }
+
+    /// `KHR_materials_anisotropy`: `α_t = mix(α, 1, s²)` along the direction, `α_b = α`
+    /// across it, the library's anisotropic GGX lobe in that frame; a direction and its
+    /// opposite are one lobe; strength 0 is the isotropic model; the vector round-trips.
+    #[test]
+    fn anisotropy_follows_the_extension() {
+        let (s, phi, r) = (0.6f64, 0.5f64, 0.3f64);
+        let a = anisotropy_vector(s, phi);
+        let (s2, phi2) = anisotropy_of(a);
+        assert!((s2 - s).abs() < 1e-12 && (phi2 - phi).abs() < 1e-12, "{s2} {phi2}");
+        let (at, ab) = alphas(r, a);
+        assert!((ab - r * r).abs() < 1e-15);
+        assert!((at - (r * r * (1.0 - s * s) + s * s)).abs() < 1e-12);
+        let (l, v) = (dir(40.0, 10.0), dir(30.0, 200.0));
+        let (sn, cs) = phi.sin_cos();
+        let rot = |w: Vec3| Vec3::new(cs * w.x + sn * w.y, -sn * w.x + cs * w.y, w.z);
+        let (d, h) = dg_over_4(Distribution::Ggx, Masking::Separable, rot(l), rot(v), at, ab).unwrap();
+        let w5 = (1.0 - rot(v).dot(h)).powi(5);
+        let f = eval(&[0.9, 0.5, 0.1], 1.0, r, [0.0; 2], a, l, v);
+        let want = (0.9 + 0.1 * w5) * d;
+        assert!((f[0] - want).abs() <= 1e-12 * want, "{f:?} {want}");
+        let opposite = anisotropy_vector(s, phi + std::f64::consts::PI);
+        let g = eval(&[0.9, 0.5, 0.1], 1.0, r, [0.0; 2], opposite, l, v);
+        assert!((g[0] - f[0]).abs() <= 1e-9 * f[0]);
+        assert_eq!(
+            eval(&[0.5; 3], 0.3, r, [0.1, 0.0], [0.0; 2], l, v),
+            eval(&[0.5; 3], 0.3, r, [0.1, 0.0], anisotropy_vector(0.0, 1.0), l, v)
+        );
+        // Reciprocal with a tilted normal too (as in `normals_tilt_the_frame`).
+        let n = normal_vector([0.2, -0.1]);
+        let x = eval(&[0.3; 3], 0.2, r, [0.2, -0.1], a, l, v)[0] * l.z / n.dot(l);
+        let y = eval(&[0.3; 3], 0.2, r, [0.2, -0.1], a, v, l)[0] * v.z / n.dot(v);
+        assert!((x - y).abs() < 1e-12 * x, "{x} {y}");
+        // Along the direction the highlight is wider: off-mirror in-plane along φ is brighter
+        // than the same offset across it.
+        let along = eval(
+            &[0.0; 3],
+            1.0,
+            0.2,
+            [0.0; 2],
+            anisotropy_vector(0.7, 0.0),
+            dir(30.0, 180.0),
+            dir(40.0, 0.0),
+        );
+        let across = eval(
+            &[0.0; 3],
+            1.0,
+            0.2,
+            [0.0; 2],
+            anisotropy_vector(0.7, 0.0),
+            dir(30.0, 270.0),
+            dir(40.0, 90.0),
+        );
+        assert!(along[0] > 2.0 * across[0], "{along:?} {across:?}");
     }
 }

@@ -160,13 +160,19 @@ pub enum BrdfModel {
     },
     /// glTF 2.0's metallic-roughness material (see [`gltf`]): Lambert + GGX
     /// (α = roughness²) with Schlick's Fresnel, `F0 = mix(0.04, base_color, metallic)`,
-    /// and an optional shading normal (tangent-plane components `[n_x, n_y]`).
+    /// an optional shading normal (tangent-plane components `[n_x, n_y]`) and
+    /// `KHR_materials_anisotropy` (strength in [0, 1], rotation in radians counter-clockwise
+    /// from the tangent +x; `α_t = mix(α, 1, strength²)`, `α_b = α`).
     Gltf {
         base_color: Rgb,
         metallic: f64,
         roughness: f64,
         #[serde(default)]
         normal: [f64; 2],
+        #[serde(default)]
+        anisotropy_strength: f64,
+        #[serde(default)]
+        anisotropy_rotation: f64,
     },
 }
 
@@ -266,7 +272,17 @@ impl BrdfModel {
                 metallic,
                 roughness,
                 normal,
-            } => gltf::eval(base_color, *metallic, *roughness, *normal, l, v),
+                anisotropy_strength,
+                anisotropy_rotation,
+            } => gltf::eval(
+                base_color,
+                *metallic,
+                *roughness,
+                *normal,
+                gltf::anisotropy_vector(*anisotropy_strength, *anisotropy_rotation),
+                l,
+                v,
+            ),
         }
     }
 
@@ -501,8 +517,24 @@ impl BrdfModel {
                 metallic,
                 roughness,
                 normal,
+                anisotropy_strength,
+                anisotropy_rotation,
             } => {
                 unit("base_color", base_color)?;
+                if !(anisotropy_strength.is_finite() && (0.0..=1.0).contains(anisotropy_strength)) {
+                    return Err(bad(
+                        "anisotropy_strength",
+                        anisotropy_strength.to_string(),
+                        "valid range is 0 ..= 1".into(),
+                    ));
+                }
+                if !anisotropy_rotation.is_finite() {
+                    return Err(bad(
+                        "anisotropy_rotation",
+                        anisotropy_rotation.to_string(),
+                        "a finite angle (radians)".into(),
+                    ));
+                }
                 if !(metallic.is_finite() && (0.0..=1.0).contains(metallic)) {
                     return Err(bad("metallic", metallic.to_string(), "valid range is 0 ..= 1".into()));
                 }
@@ -678,12 +710,19 @@ pub fn list_models() -> Vec<ModelInfo> {
         ModelInfo {
             name: "gltf",
             summary: "glTF 2.0 metallic-roughness: f = (1 − m) c/π + F D G1 G1/(4 cos cos), GGX with α = roughness², \
-                      Schlick F with F0 = mix(0.04, c, m), optional shading normal. Reciprocal.",
+                      Schlick F with F0 = mix(0.04, c, m), optional shading normal and KHR_materials_anisotropy \
+                      (α_t = mix(α, 1, s²) along the rotation, α_b = α). Reciprocal.",
             params: vec![
                 p("base_color", "base colour (linear)", UNIT),
                 p("metallic", "metalness", "0..=1"),
                 p("roughness", "perceptual roughness (α = roughness²)", "0.01..=1"),
                 p("normal", "shading normal's tangent-plane components [n_x, n_y] (default [0, 0])", "|n| ≤ 0.95"),
+                p("anisotropy_strength", "KHR_materials_anisotropy strength s (default 0)", "0..=1"),
+                p(
+                    "anisotropy_rotation",
+                    "direction of α_t, radians counter-clockwise from the tangent +x (default 0)",
+                    "any",
+                ),
             ],
         },
     ]

@@ -55,8 +55,8 @@ pub struct ExportArgs {
     pub dir: PathBuf,
     #[arg(long, value_enum)]
     pub format: ExportFormat,
-    /// Output file (a directory for --format zarr, materialx, usd, mitsuba; a .glb or a
-    /// directory for gltf).
+    /// Output file (a directory for --format zarr, materialx, mitsuba; a .glb or a
+    /// directory for gltf; a .usdz or a directory for usd).
     pub out: PathBuf,
     /// Material formats: texture side in texels (default: the fit's resolution); rgl-bsdf:
     /// the side of its grids (default 64).

@@ -133,6 +133,8 @@ fn store_average_fit(
         metallic,
         roughness,
         normal,
+        anisotropy_strength,
+        anisotropy_rotation,
     } = report.brdf
     else {
         return Ok(());
@@ -151,6 +153,7 @@ fn store_average_fit(
         metallic,
         roughness,
         normal,
+        anisotropy: gonio_brdf::gltf::anisotropy_vector(anisotropy_strength, anisotropy_rotation),
         rel_rms: report.rel_rms,
         observations: report.observations,
         dataset_journal_sha256: sha,
@@ -371,6 +374,21 @@ fn print_text(o: &Output) {
         "  residual: relative RMS (cosine-weighted) {:.4}, log RMS {:.4}",
         r.rel_rms, r.log_rms
     );
+    if let Some(a) = &r.anisotropy {
+        println!(
+            "  anisotropy (KHR_materials_anisotropy): relative RMS {:.4} isotropic, {:.4} anisotropic (strength \
+             {:.3} at {:.1}°): {}",
+            a.isotropic_rel_rms,
+            a.anisotropic_rel_rms,
+            a.strength,
+            a.rotation_deg,
+            if a.kept {
+                format!("kept (≥ {:.0} % lower)", 100.0 * a.margin)
+            } else {
+                format!("not kept (needs ≥ {:.0} % lower)", 100.0 * a.margin)
+            }
+        );
+    }
     print_bands("by max(θ_l, θ_v):", &r.by_elevation);
     print_bands("by θ_h (distance from the mirror direction):", &r.by_half_angle);
     if r.failures.is_empty() {
@@ -398,6 +416,11 @@ fn print_text(o: &Output) {
             t.fit_seconds,
             t.decode_ms_per_image
         );
+        if let (Some(n), Some(iso)) = (t.summary.anisotropic_texels, t.summary.mean_rel_rms_isotropic) {
+            println!(
+                "    {n} texels anisotropic (KHR_materials_anisotropy); mean relative RMS without anisotropy {iso:.4}"
+            );
+        }
         for (reason, n) in &t.summary.stops {
             println!("    {n} texels: {reason}");
         }

@@ -8,14 +8,18 @@
   `UsdPreviewSurface`, every `UsdUVTexture` resolves its file to an existing PNG, and the
   layer's customLayerData holds the provenance.
 
-Usage: check_material_export.py MATERIALX_DIR USD_DIR
+- USDZ (optional third argument, `gonio export --format usd OUT.usdz`): the same checks on
+  the package, whose textures resolve inside it; every file is stored (not compressed) with
+  its data 64-byte aligned, and `material.usda` comes first.
+
+Usage: check_material_export.py MATERIALX_DIR USD_DIR [USDZ_FILE]
 """
 import json
 import os
 import sys
 
 import MaterialX as mx
-from pxr import Usd, UsdShade
+from pxr import Sdf, Usd, UsdShade
 
 
 def check_materialx(folder):
@@ -38,7 +42,12 @@ def check_materialx(folder):
             f = n.getInput("file").getValueString()
             assert os.path.isfile(os.path.join(folder, f)), f"{path}: image {n.getName()}: {f} missing"
             files.append(f)
-    assert len(files) == 4, files
+    # An anisotropic fit (KHR_materials_anisotropy) adds specular_anisotropy and
+    # specular_rotation, both fed by images.
+    assert len(files) in (4, 6), files
+    if len(files) == 6:
+        want = {"specular_anisotropy", "specular_rotation"}
+        assert want <= connected, f"{path}: anisotropy inputs fed by the node graph: {connected}"
     prov = json.loads(doc.getDocString())
     assert prov["generator"].startswith("gonio"), prov
     print(f"materialx {mx.__version__}: {path}: validate() passes, standard_surface fed by {len(files)} images, "
@@ -46,7 +55,16 @@ def check_materialx(folder):
 
 
 def check_usd(folder):
-    path = os.path.join(folder, "material.usda")
+    usdz = folder.endswith(".usdz")
+    path = folder if usdz else os.path.join(folder, "material.usda")
+    if usdz:
+        z = Sdf.ZipFile.Open(path)
+        names = list(z.GetFileNames())
+        assert names and names[0] == "material.usda", f"{path}: entries {names}"
+        for n in names:
+            info = z.GetFileInfo(n)
+            assert info.compressionMethod == 0 and info.dataOffset % 64 == 0, f"{path}: {n}: {info.dataOffset}"
+        inside = set(names)
     stage = Usd.Stage.Open(path)
     assert stage, path
     prov = json.loads(stage.GetRootLayer().customLayerData["gonio_provenance"])
@@ -64,7 +82,11 @@ def check_usd(folder):
         if shader.GetIdAttr().Get() != "UsdUVTexture":
             continue
         asset = shader.GetInput("file").Get()
-        assert asset.resolvedPath and os.path.isfile(asset.resolvedPath), f"{path}: {prim.GetPath()}: {asset.path} unresolved"
+        if usdz:
+            # Resolved inside the package: `PATH[textures/x.png]`.
+            assert asset.resolvedPath and asset.path in inside, f"{path}: {prim.GetPath()}: {asset.path} unresolved"
+        else:
+            assert asset.resolvedPath and os.path.isfile(asset.resolvedPath), f"{path}: {prim.GetPath()}: {asset.path} unresolved"
         textures += 1
     assert textures == 4, textures
     print(f"usd-core: {path}: opened, UsdPreviewSurface bound, {textures} UsdUVTexture files resolved, provenance present")
@@ -73,3 +95,5 @@ def check_usd(folder):
 if __name__ == "__main__":
     check_materialx(sys.argv[1])
     check_usd(sys.argv[2])
+    if len(sys.argv) > 3:
+        check_usd(sys.argv[3])

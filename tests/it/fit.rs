@@ -340,13 +340,17 @@ fn per_texel_gltf_fit_finds_both_materials_and_exports() {
     let t = &v["per_texel"];
     assert_eq!(t["texels"], 64);
     assert_eq!(t["not_converged"], 0, "{t}");
+    // Two isotropic materials: the anisotropy test keeps no texel anisotropic.
+    assert_eq!(t["anisotropic_texels"], 0, "{t}");
+    assert_eq!(v["fit"]["anisotropy"]["kept"], false, "{}", v["fit"]);
     let g = Gbtf::read(&out).unwrap();
     assert_eq!(g.header.method, "gltf");
     assert!(g.header.source["calibrated_by"].is_string());
     let truth = [([0.50, 0.30, 0.20], 0.0, 0.6), ([0.90, 0.70, 0.40], 1.0, 0.5)];
     let mut found = [false; 2];
     for tx in 0..64 {
-        let p = &g.blocks[0][tx * 7..tx * 7 + 7];
+        let p = &g.blocks[0][tx * 9..tx * 9 + 9];
+        assert_eq!((p[7], p[8]), (0.0, 0.0), "texel {tx}: anisotropy {p:?}");
         let hit = truth.iter().position(|(base, metallic, rough)| {
             (p[3] as f64 - metallic).abs() < 0.1
                 && (p[4] as f64 - rough).abs() < 0.05 * rough
@@ -402,6 +406,14 @@ fn per_texel_gltf_fit_finds_both_materials_and_exports() {
         assert_eq!(r["texture_texels"], serde_json::json!([16, 16]));
         let doc = if doc.is_empty() { o.clone() } else { o.join(doc) };
         assert!(doc.is_file(), "{format}: {}", doc.display());
+        if name == "gltf" {
+            let text = std::fs::read_to_string(&doc).unwrap();
+            assert!(
+                !text.contains("KHR_materials_anisotropy"),
+                "an isotropic fit writes no anisotropy"
+            );
+            assert!(!o.join("textures/anisotropy.png").exists());
+        }
     }
     // A dataset is fitted first (calibrated by its white standard), then exported.
     let (_, white) = renders();

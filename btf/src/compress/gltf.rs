@@ -6,7 +6,10 @@
 //! **Blocks.**
 //! - `params` (texels × [`PARAMS`]): base colour RGB (linear), metallic, roughness
 //!   (α = roughness²), the shading normal's tangent-plane components `n_x`, `n_y`
-//!   (tangent frame +x = u, +y = v; the layout of `fit::Family` for `gltf`).
+//!   (tangent frame +x = u, +y = v; the layout of `fit::Family` for `gltf`), and the
+//!   `KHR_materials_anisotropy` vector `s·(cos 2φ, sin 2φ)` (`gonio_brdf::gltf`; 0 where
+//!   the texel is isotropic). Files written before anisotropy have the first
+//!   [`PARAMS_ISOTROPIC`] columns only and decode as isotropic.
 //! - `gain` (pairs × 9): as in [`super::svbrdf`], per channel the plane that turns a BRDF
 //!   value into the dataset's units; all zero for a pair without a fit (decodes to 0).
 //! - `quality` (texels × 2): the texel's residual (cosine-weighted relative RMS of the
@@ -28,8 +31,12 @@ use gonio_devices::Direction;
 use rayon::prelude::*;
 use std::sync::Arc;
 
-/// Parameters per texel: base colour RGB, metallic, roughness, normal x, normal y.
-pub const PARAMS: usize = 7;
+/// Parameters per texel: base colour RGB, metallic, roughness, normal x, normal y,
+/// anisotropy x, anisotropy y.
+pub const PARAMS: usize = 9;
+
+/// Parameters per texel of a file written before anisotropy (no anisotropy columns).
+pub const PARAMS_ISOTROPIC: usize = 7;
 
 /// One texel's material, read from the `params` block.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -38,20 +45,35 @@ pub struct Texel {
     pub metallic: f64,
     pub roughness: f64,
     pub normal: [f64; 2],
+    /// `s·(cos 2φ, sin 2φ)` (`gonio_brdf::gltf::anisotropy_of` gives strength and angle).
+    pub anisotropy: [f64; 2],
 }
 
 impl Texel {
+    /// From a row of [`PARAMS`] (or [`PARAMS_ISOTROPIC`]) values.
     pub fn of(p: &[f32]) -> Texel {
         Texel {
             base_color: [p[0] as f64, p[1] as f64, p[2] as f64],
             metallic: p[3] as f64,
             roughness: p[4] as f64,
             normal: [p[5] as f64, p[6] as f64],
+            anisotropy: match p.get(7..9) {
+                Some(a) => [a[0] as f64, a[1] as f64],
+                None => [0.0, 0.0],
+            },
         }
     }
     /// BRDF (1/sr) at unit `l`, `v` (sample frame).
     pub fn eval(&self, l: gonio_devices::Vec3, v: gonio_devices::Vec3) -> [f64; 3] {
-        gonio_brdf::gltf::eval(&self.base_color, self.metallic, self.roughness, self.normal, l, v)
+        gonio_brdf::gltf::eval(
+            &self.base_color,
+            self.metallic,
+            self.roughness,
+            self.normal,
+            self.anisotropy,
+            l,
+            v,
+        )
     }
 }
 
@@ -118,11 +140,15 @@ pub fn validate(g: &Gbtf) -> Result<Option<Geometry>, CompressError> {
     }
     let (t, pairs) = (h.width * h.height, h.lights_deg.len() * h.views_deg.len());
     let got: Vec<(usize, usize)> = h.blocks.iter().map(|b| (b.rows, b.cols)).collect();
-    if got != [(t, PARAMS), (pairs, 9), (t, 2)] || h.channels != 3 {
+    let shapes = |np: usize| [(t, np), (pairs, 9), (t, 2)];
+    if (got != shapes(PARAMS) && got != shapes(PARAMS_ISOTROPIC)) || h.channels != 3 {
         return Err(bad(format!(
-            "block shapes {got:?} do not match {t} texels × {PARAMS} parameters, {pairs} pairs × 9 gains and \
-             {t} texels × 2 quality values"
+            "block shapes {got:?} do not match {t} texels × {PARAMS} (or {PARAMS_ISOTROPIC}) parameters, {pairs} \
+             pairs × 9 gains and {t} texels × 2 quality values"
         )));
+    }
+    if g.blocks.iter().zip(&h.blocks).any(|(b, i)| b.len() != i.rows * i.cols) {
+        return Err(bad("a block's length does not match its shape".into()));
     }
     if let Some(i) = g.blocks.iter().flatten().position(|x| !x.is_finite()) {
         return Err(bad(format!("value {i} is not finite")));
@@ -130,9 +156,16 @@ pub fn validate(g: &Gbtf) -> Result<Option<Geometry>, CompressError> {
     Ok(geometry)
 }
 
+/// Parameters per texel of a file that passed [`validate`]: [`PARAMS`] or
+/// [`PARAMS_ISOTROPIC`].
+pub fn params_per_texel(g: &Gbtf) -> usize {
+    g.header.blocks[0].cols
+}
+
 /// Texel `t`'s material of a file that passed [`validate`].
 pub fn texel(g: &Gbtf, t: usize) -> Texel {
-    Texel::of(&g.blocks[0][t * PARAMS..(t + 1) * PARAMS])
+    let np = params_per_texel(g);
+    Texel::of(&g.blocks[0][t * np..(t + 1) * np])
 }
 
 /// Image (`light`, `view`) of a file that passed [`validate`]: interleaved linear RGB.
@@ -188,7 +221,7 @@ impl Codec for GltfCodec {
         let geometry = validate(g)?;
         Ok(Opened {
             method: Method::Gltf,
-            components: PARAMS,
+            components: params_per_texel(g),
             layout: Layout::AnalyticPerTexel,
             decoder: Arc::new(Decoder { geometry }),
         })
@@ -225,6 +258,7 @@ mod tests {
                 3 => hash(i, 2),
                 4 => 0.2 + 0.6 * hash(i, 3),
                 5 | 6 => 0.2 * (hash(i, 4) - 0.5),
+                7 | 8 => 0.6 * (hash(i, 5) - 0.5),
                 _ => 0.1 + 0.8 * hash(i, 1),
             })
             .collect();
@@ -251,6 +285,8 @@ mod tests {
                 metallic: p[3] as f64,
                 roughness: p[4] as f64,
                 normal: [p[5] as f64, p[6] as f64],
+                anisotropy_strength: gonio_brdf::gltf::anisotropy_of([p[7] as f64, p[8] as f64]).0,
+                anisotropy_rotation: gonio_brdf::gltf::anisotropy_of([p[7] as f64, p[8] as f64]).1,
             }
             .eval(l, v);
             for c in 0..3 {

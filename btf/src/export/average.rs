@@ -39,6 +39,10 @@ pub struct AverageFit {
     pub roughness: f64,
     /// The shading normal's tangent-plane components `[n_x, n_y]`.
     pub normal: [f64; 2],
+    /// The `KHR_materials_anisotropy` vector `s·(cos 2φ, sin 2φ)` (`gonio_brdf::gltf`);
+    /// absent (0) in files written before anisotropy.
+    #[serde(default)]
+    pub anisotropy: [f64; 2],
     /// Cosine-weighted relative RMS of the fit against the averaged data.
     pub rel_rms: f64,
     pub observations: usize,
@@ -85,7 +89,12 @@ impl AverageBrdf {
         };
         let fit: AverageFit =
             serde_json::from_value(v.clone()).map_err(|e| input(format!("`source.average_fit` in the header: {e}")))?;
-        let finite = fit.base_color.iter().chain(&fit.normal).all(|x| x.is_finite())
+        let finite = fit
+            .base_color
+            .iter()
+            .chain(&fit.normal)
+            .chain(&fit.anisotropy)
+            .all(|x| x.is_finite())
             && fit.metallic.is_finite()
             && fit.roughness.is_finite();
         if fit.model != "gltf" || !finite || fit.roughness <= 0.0 {
@@ -112,6 +121,16 @@ impl AverageBrdf {
                 fit.normal[0], fit.normal[1]
             ));
         }
+        let (strength, rotation) = gonio_brdf::gltf::anisotropy_of(fit.anisotropy);
+        if strength > 0.0 {
+            let (at, ab) = gonio_brdf::gltf::alphas(fit.roughness, fit.anisotropy);
+            warnings.push(format!(
+                "the averaged fit is anisotropic (KHR_materials_anisotropy strength {strength:.3} at {:.1}°: α \
+                 {at:.4} along, {ab:.4} across); the format holds an isotropic BRDF, so the export is its mean \
+                 over {ROTATIONS} rotations about the normal (the direction and the elongated highlight are lost)",
+                rotation.to_degrees()
+            ));
+        }
         let provenance = serde_json::json!({
             "generator": concat!("gonio ", env!("CARGO_PKG_VERSION")),
             "source": {
@@ -127,6 +146,8 @@ impl AverageBrdf {
                 "metallic": fit.metallic,
                 "roughness": fit.roughness,
                 "normal": fit.normal,
+                "anisotropy_strength": anisotropy_of_fit(&fit).0,
+                "anisotropy_rotation_rad": anisotropy_of_fit(&fit).1,
                 "tilt_deg": tilt,
                 "rel_rms": fit.rel_rms,
                 "observations": fit.observations,
@@ -144,8 +165,10 @@ impl AverageBrdf {
     /// The isotropic BRDF (1/sr) at unit `l`, `v` (sample frame, pointing away).
     pub fn eval(&self, l: Vec3, v: Vec3) -> [f64; 3] {
         let f = &self.fit;
-        let one = |l: Vec3, v: Vec3| gonio_brdf::gltf::eval(&f.base_color, f.metallic, f.roughness, f.normal, l, v);
-        if f.normal == [0.0, 0.0] {
+        let one = |l: Vec3, v: Vec3| {
+            gonio_brdf::gltf::eval(&f.base_color, f.metallic, f.roughness, f.normal, f.anisotropy, l, v)
+        };
+        if f.normal == [0.0, 0.0] && f.anisotropy == [0.0, 0.0] {
             // Rotation-invariant already: the mean of 36 equal values is the value.
             return one(l, v);
         }
@@ -159,6 +182,10 @@ impl AverageBrdf {
         }
         sum.map(|s| s / ROTATIONS as f64)
     }
+}
+
+fn anisotropy_of_fit(f: &AverageFit) -> (f64, f64) {
+    gonio_brdf::gltf::anisotropy_of(f.anisotropy)
 }
 
 /// The tilt (degrees) of a normal of tangent-plane components `n`.

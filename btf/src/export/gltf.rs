@@ -3,6 +3,12 @@
 //! metallic-roughness (G = roughness, B = metallic) and tangent-space normal textures.
 //! A folder holds `material.gltf`, `material.bin` and `textures/`; a `.glb` holds the same
 //! JSON with the geometry and the PNGs in its binary chunk. Provenance in `asset.extras`.
+//!
+//! An anisotropic fit adds `KHR_materials_anisotropy` (in `extensionsUsed`, not required:
+//! a viewer without it shows the isotropic base): `anisotropyStrength` 1, `anisotropyRotation`
+//! 0 and an `anisotropyTexture` (linear PNG: RG the direction `(cos φ, sin φ)` in tangent
+//! space from [−1, 1] to [0, 1], B the strength), with the quad's tangent +X = u. A fit
+//! without anisotropic texels writes no extension and no fourth texture.
 
 use super::{io, texture, ExportError, Material};
 use serde_json::{json, Value};
@@ -64,7 +70,31 @@ fn document(m: &Material, parts: &[(usize, usize); 5], buffer: Value, images: Ve
     if let Some(o) = extras.as_object_mut() {
         o.insert("texture_tile_m".into(), json!(m.size_mm / 1000.0));
     }
-    json!({
+    let mut material = json!({
+        "name": "gonio-fit",
+        "pbrMetallicRoughness": {
+            "baseColorTexture": {"index": 0},
+            "metallicRoughnessTexture": {"index": 1},
+            "metallicFactor": 1.0,
+            "roughnessFactor": 1.0
+        },
+        "normalTexture": {"index": 2, "scale": 1.0}
+    });
+    let mut textures = vec![
+        json!({"sampler": 0, "source": 0}),
+        json!({"sampler": 0, "source": 1}),
+        json!({"sampler": 0, "source": 2}),
+    ];
+    let anisotropic = images.len() > 3;
+    if anisotropic {
+        textures.push(json!({"sampler": 0, "source": 3}));
+        material["extensions"] = json!({ANISOTROPY: {
+            "anisotropyStrength": 1.0,
+            "anisotropyRotation": 0.0,
+            "anisotropyTexture": {"index": 3}
+        }});
+    }
+    let mut doc = json!({
         "asset": {"version": "2.0", "generator": concat!("gonio ", env!("CARGO_PKG_VERSION")), "extras": extras},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
@@ -82,29 +112,33 @@ fn document(m: &Material, parts: &[(usize, usize); 5], buffer: Value, images: Ve
         ],
         "bufferViews": buffer_views,
         "buffers": [buffer],
-        "materials": [{
-            "name": "gonio-fit",
-            "pbrMetallicRoughness": {
-                "baseColorTexture": {"index": 0},
-                "metallicRoughnessTexture": {"index": 1},
-                "metallicFactor": 1.0,
-                "roughnessFactor": 1.0
-            },
-            "normalTexture": {"index": 2, "scale": 1.0}
-        }],
+        "materials": [material],
         // Nearest: one texel of the fit per texel of the render, as `gonio render` samples.
         "samplers": [{"magFilter": 9728, "minFilter": 9728, "wrapS": 10497, "wrapT": 10497}],
-        "textures": [{"sampler": 0, "source": 0}, {"sampler": 0, "source": 1}, {"sampler": 0, "source": 2}],
+        "textures": textures,
         "images": images
-    })
+    });
+    if anisotropic {
+        doc["extensionsUsed"] = json!([ANISOTROPY]);
+    }
+    doc
 }
 
-fn pngs(m: &Material) -> Result<[(&'static str, Vec<u8>); 3], ExportError> {
-    Ok([
+/// The extension an anisotropic fit writes.
+pub const ANISOTROPY: &str = "KHR_materials_anisotropy";
+
+/// The textures: base colour, metallic-roughness, normal, and the anisotropy texture when
+/// any texel is anisotropic.
+fn pngs(m: &Material) -> Result<Vec<(&'static str, Vec<u8>)>, ExportError> {
+    let mut out = vec![
         ("base_color.png", texture::base_color_png(m)?),
         ("metallic_roughness.png", texture::metallic_roughness_png(m)?),
         ("normal.png", texture::normal_png(m)?),
-    ])
+    ];
+    if m.anisotropic_texels() > 0 {
+        out.push(("anisotropy.png", texture::anisotropy_png(m)?));
+    }
+    Ok(out)
 }
 
 /// `OUT/material.gltf`, `OUT/material.bin`, `OUT/textures/*.png`.

@@ -112,11 +112,7 @@ impl Format {
             (Format::Gltf, Some(e)) => Err(bad(format!(
                 "--format gltf writes one .glb file or a folder (no extension); `.{e}` is neither"
             ))),
-            (Format::Usd, Some("usdz")) => Err(bad(
-                "--format usd writes a folder (material.usda and its textures); .usdz is not supported yet: give a \
-                 folder name"
-                    .into(),
-            )),
+            (Format::Usd, Some("usdz")) => Ok(Layout::File),
             (f, Some(e)) => Err(bad(format!(
                 "--format {} writes a folder (the document and its textures); give a name without the `.{e}` \
                  extension",
@@ -155,12 +151,53 @@ pub struct Material {
     pub roughness: Vec<f32>,
     /// Unit tangent-space normals (+z out of the surface).
     pub normal: Vec<[f32; 3]>,
+    /// The `KHR_materials_anisotropy` vector `s·(cos 2φ, sin 2φ)` per texel
+    /// (`gonio_brdf::gltf`), resampled as a vector; all 0 for an isotropic fit.
+    pub anisotropy: Vec<[f32; 2]>,
     /// The sample's side (mm): the size of one texture tile.
     pub size_mm: f64,
     pub provenance: serde_json::Value,
     pub warnings: Vec<String>,
     /// Bits per PNG sample of the textures: 8 or 16.
     pub bit_depth: u8,
+}
+
+impl Material {
+    /// Texels with a non-zero anisotropy strength.
+    pub fn anisotropic_texels(&self) -> usize {
+        self.anisotropy.iter().filter(|a| a[0] != 0.0 || a[1] != 0.0).count()
+    }
+
+    /// The best isotropic approximation of the anisotropic texels, for the formats without
+    /// anisotropy (`usd`, `mitsuba`): the roughness whose α is the geometric mean
+    /// `√(α_t α_b)` of the two, the isotropic GGX lobe of the same peak height
+    /// (`D(0) = 1/(π α_t α_b)`) and the same solid angle of the highlight. Returns the
+    /// warning that names what is lost; `None` when no texel is anisotropic.
+    pub fn make_isotropic(&mut self, format: Format) -> Option<String> {
+        let n = self.anisotropic_texels();
+        if n == 0 {
+            return None;
+        }
+        let mut strongest = 0.0f64;
+        for (r, a) in self.roughness.iter_mut().zip(self.anisotropy.iter_mut()) {
+            let v = [a[0] as f64, a[1] as f64];
+            let (at, ab) = gonio_brdf::gltf::alphas(*r as f64, v);
+            strongest = strongest.max(gonio_brdf::gltf::anisotropy_of(v).0);
+            *r = ((at * ab).sqrt().sqrt()).clamp(0.0, 1.0) as f32;
+            *a = [0.0, 0.0];
+        }
+        let why = match format {
+            Format::Mitsuba => "Mitsuba's principled has anisotropy only along the tangent, not per-texel directions",
+            _ => "the format has no anisotropy",
+        };
+        Some(format!(
+            "{n} of {} texels are anisotropic (KHR_materials_anisotropy, strength up to {strongest:.3}); --format {}: \
+             {why}, so their elongated highlight and its direction are lost: written as the best isotropic GGX, \
+             roughness² = √(α_t α_b) (the same peak height and highlight area)",
+            self.anisotropy.len(),
+            format.name()
+        ))
+    }
 }
 
 /// Whether a `.gbtf`'s values are calibrated: BRDF values, or calibrated by a white standard.
@@ -221,6 +258,7 @@ impl Material {
             metallic: Vec::with_capacity(n),
             roughness: Vec::with_capacity(n),
             normal: Vec::with_capacity(n),
+            anisotropy: Vec::with_capacity(n),
             size_mm: g.header.source.get("sample").map_or(60.0, |s| s.get_size_mm()),
             provenance: serde_json::Value::Null,
             warnings: Vec::new(),
@@ -228,7 +266,8 @@ impl Material {
         };
         for j in 0..oh {
             for i in 0..ow {
-                let p = texture::bilinear(&g.blocks[0], gltf_file::PARAMS, w, h, i, j, ow, oh);
+                let np = gltf_file::params_per_texel(g);
+                let p = texture::bilinear(&g.blocks[0], np, w, h, i, j, ow, oh);
                 let mut over = false;
                 let bc = [0, 1, 2].map(|c| {
                     let x = p[c];
@@ -241,6 +280,10 @@ impl Material {
                 m.roughness.push(p[4].clamp(0.0, 1.0) as f32);
                 let nv = gonio_brdf::gltf::normal_vector([p[5], p[6]]);
                 m.normal.push([nv.x as f32, nv.y as f32, nv.z as f32]);
+                m.anisotropy.push(match p.get(7..9) {
+                    Some(a) => [a[0] as f32, a[1] as f32],
+                    None => [0.0, 0.0],
+                });
             }
         }
         if clamped > 0 {
@@ -277,6 +320,7 @@ impl Material {
             "base_color_texels_clamped": clamped,
             "not_converged_texels": failed,
             "normal_map": "tangent space, +X = u (right), +Y = up in the image (OpenGL), n/2 + 1/2",
+            "anisotropic_texels": m.anisotropic_texels(),
             "png_bit_depth": opts.bit_depth,
         });
         m.warnings = warnings;
@@ -314,11 +358,28 @@ pub struct ExportReport {
 /// Write `m` as `format` to `out` (checked by [`Format::check_out`] first).
 pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, ExportError> {
     let layout = format.check_out(out)?;
+    // Formats without anisotropy get the best isotropic approximation, with a warning.
+    let mut iso;
+    let mut m = m;
+    let mut warnings = m.warnings.clone();
+    if format == Format::Materialx {
+        if let Some(w) = materialx::clamped_anisotropy(m) {
+            warnings.push(w);
+        }
+    }
+    if matches!(format, Format::Usd | Format::Mitsuba) && m.anisotropic_texels() > 0 {
+        iso = m.clone();
+        if let Some(w) = iso.make_isotropic(format) {
+            warnings.push(w);
+        }
+        m = &iso;
+    }
     let files = match (format, layout) {
         (Format::Gltf, Layout::File) => vec![gltf::write_glb(m, out)?],
         (Format::Gltf, Layout::Folder) => gltf::write_folder(m, out)?,
         (Format::Materialx, _) => materialx::write(m, out)?,
-        (Format::Usd, _) => usd::write(m, out)?,
+        (Format::Usd, Layout::File) => vec![usd::write_usdz(m, out)?],
+        (Format::Usd, Layout::Folder) => usd::write(m, out)?,
         (Format::Mitsuba, _) => mitsuba::write(m, out)?,
         (Format::RglBsdf | Format::Merl, _) => {
             return Err(ExportError::Output {
@@ -338,7 +399,7 @@ pub fn write(m: &Material, format: Format, out: &Path) -> Result<ExportReport, E
         bytes,
         texture_texels: [m.width, m.height],
         size_mm: m.size_mm,
-        warnings: m.warnings.clone(),
+        warnings,
     })
 }
 

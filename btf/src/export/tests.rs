@@ -5,6 +5,11 @@ use crate::compress::testdata::{self, hash};
 /// A glTF `.gbtf` over the test dataset: texel 0's base colour 1.2 (to be clamped), texel
 /// 1 flagged as not converged; `calibrated` sets `source.calibrated_by`.
 fn file(dir: &Path, calibrated: bool) -> Gbtf {
+    file_with(dir, calibrated, 0.0)
+}
+
+/// [`file`] with anisotropy vectors of length up to `aniso` (0: isotropic).
+fn file_with(dir: &Path, calibrated: bool, aniso: f32) -> Gbtf {
     let ds = testdata::write(&dir.join("ds"), |_, _, _, _| 0.1);
     let (t, pairs) = (ds.texels(), ds.n_lights() * ds.n_views());
     let mut params: Vec<f32> = (0..t * PARAMS)
@@ -12,6 +17,7 @@ fn file(dir: &Path, calibrated: bool) -> Gbtf {
             3 => hash(i, 2),
             4 => 0.3 + 0.5 * hash(i, 3),
             5 | 6 => 0.3 * (hash(i, 4) - 0.5),
+            7 | 8 => aniso * (hash(i, 5) - 0.5),
             _ => 0.1 + 0.8 * hash(i, 1),
         })
         .collect();
@@ -41,7 +47,7 @@ fn wrong_extensions_are_refused_before_any_work() {
     for (f, p) in [
         (Format::Gltf, "x.usda"),
         (Format::Materialx, "x.mtlx"),
-        (Format::Usd, "x.usdz"),
+        (Format::Usd, "x.usd"),
         (Format::Mitsuba, "x.glb"),
     ] {
         let e = f.check_out(Path::new(p)).unwrap_err().to_string();
@@ -138,6 +144,7 @@ fn with_average(dir: &Path, normal: [f64; 2]) -> Gbtf {
         metallic: 0.1,
         roughness: 0.4,
         normal,
+        anisotropy: [0.0, 0.0],
         rel_rms: 0.05,
         observations: 100,
         dataset_journal_sha256: Some("ab".repeat(32)),
@@ -447,4 +454,127 @@ fn sixteen_bit_textures_decode_to_the_maps() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("--bit-depth 12"), "{e}");
+}
+
+/// KHR_materials_anisotropy: an anisotropic fit's glTF lists the extension and carries a
+/// fourth (linear) texture whose RG is the direction and B the strength; an isotropic fit
+/// writes neither; the formats without anisotropy warn, naming what is lost, and write the
+/// isotropic roughness √(α_t α_b)^½.
+#[test]
+fn anisotropy_is_written_to_gltf_and_approximated_elsewhere() {
+    let tmp = tempfile::tempdir().unwrap();
+    let iso = Material::from_gbtf(&file(tmp.path(), true), Path::new("f.gbtf"), &opts(None)).unwrap();
+    let r = write(&iso, Format::Gltf, &tmp.path().join("iso")).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&r.files[0]).unwrap()).unwrap();
+    assert!(doc.get("extensionsUsed").is_none() && doc["materials"][0].get("extensions").is_none());
+    assert_eq!(doc["images"].as_array().unwrap().len(), 3);
+    assert!(r.warnings.iter().all(|w| !w.contains("anisotrop")), "{:?}", r.warnings);
+
+    let g = file_with(&tmp.path().join("a"), true, 1.2);
+    let m = Material::from_gbtf(&g, Path::new("a.gbtf"), &opts(None)).unwrap();
+    assert_eq!(m.anisotropic_texels(), m.anisotropy.len());
+    let r = write(&m, Format::Gltf, &tmp.path().join("aniso")).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&r.files[0]).unwrap()).unwrap();
+    assert_eq!(doc["extensionsUsed"], serde_json::json!(["KHR_materials_anisotropy"]));
+    let ext = &doc["materials"][0]["extensions"]["KHR_materials_anisotropy"];
+    assert_eq!(ext["anisotropyTexture"]["index"], 3);
+    assert_eq!(doc["textures"][3]["source"], 3);
+    assert_eq!(doc["images"][3]["uri"], "textures/anisotropy.png");
+    let png = image::open(tmp.path().join("aniso/textures/anisotropy.png"))
+        .unwrap()
+        .to_rgb8();
+    for t in [0usize, 5, 17] {
+        let (x, y) = ((t % m.width) as u32, (t / m.width) as u32);
+        let px = png.get_pixel(x, y).0.map(|c| c as f64 / 255.0);
+        let a = m.anisotropy[t].map(|c| c as f64);
+        let (s, phi) = gonio_brdf::gltf::anisotropy_of(a);
+        assert!((px[2] - s).abs() <= 0.5 / 255.0 + 1e-6, "{px:?} {s}");
+        let (dx, dy) = (2.0 * px[0] - 1.0, 2.0 * px[1] - 1.0);
+        assert!(
+            (dx - phi.cos()).abs() < 0.01 && (dy - phi.sin()).abs() < 0.01,
+            "{px:?} {phi}"
+        );
+    }
+    let glb = write(&m, Format::Gltf, &tmp.path().join("aniso.glb")).unwrap();
+    assert!(glb.files[0].is_file());
+    for f in [Format::Usd, Format::Mitsuba] {
+        let r = write(&m, f, &tmp.path().join(format!("a-{}", f.name()))).unwrap();
+        let w = r.warnings.iter().find(|w| w.contains("anisotropic")).unwrap();
+        assert!(
+            w.contains(f.name()) && w.contains("lost") && w.contains("isotropic"),
+            "{w}"
+        );
+    }
+    // MaterialX: exact through specular_anisotropy and specular_rotation (MaterialX's
+    // roughness_anisotropy and its clockwise rotate3d), no anisotropy warning.
+    let r = write(&m, Format::Materialx, &tmp.path().join("a-mtlx")).unwrap();
+    assert!(r.warnings.iter().all(|w| !w.contains("lost")), "{:?}", r.warnings);
+    let text = std::fs::read_to_string(&r.files[0]).unwrap();
+    assert!(
+        text.contains("name=\"specular_anisotropy\" type=\"float\" nodegraph"),
+        "{text}"
+    );
+    assert!(tmp.path().join("a-mtlx/textures/specular_rotation.png").is_file());
+    for t in 0..m.anisotropy.len() {
+        let a = m.anisotropy[t].map(|c| c as f64);
+        let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[t] as f64, a);
+        let (r, an, rot) = materialx::standard_surface_anisotropy(m.roughness[t] as f64, a);
+        if 1.0 - ab / at > materialx::MAX_ANISOTROPY {
+            continue;
+        }
+        let aspect = (1.0 - an).sqrt();
+        assert!((r * r / aspect - at).abs() < 1e-9 && (r * r * aspect - ab).abs() < 1e-9);
+        // The tangent turned clockwise by rot·360° (mx_rotationMatrix · v) is the direction φ.
+        let (_, phi) = gonio_brdf::gltf::anisotropy_of(a);
+        let turn = -rot * std::f64::consts::TAU;
+        assert!(
+            (turn.cos() * phi.cos() + turn.sin() * phi.sin()).abs() > 1.0 - 1e-9,
+            "{rot} {phi}"
+        );
+    }
+    let mut iso = m.clone();
+    iso.make_isotropic(Format::Usd).unwrap();
+    let (at, ab) = gonio_brdf::gltf::alphas(m.roughness[3] as f64, m.anisotropy[3].map(|c| c as f64));
+    assert!(((iso.roughness[3] as f64).powi(4) - at * ab).abs() < 1e-5);
+    assert_eq!(iso.anisotropic_texels(), 0);
+}
+
+/// `--format usd OUT.usdz`: one zip, stored, the `.usda` first, every file's data 64-byte
+/// aligned, the same bytes twice, no parts folder left behind.
+#[test]
+fn usdz_is_a_stored_aligned_zip() {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = Material::from_gbtf(&file(tmp.path(), true), Path::new("f.gbtf"), &opts(None)).unwrap();
+    assert_eq!(Format::Usd.check_out(Path::new("a.usdz")).unwrap(), Layout::File);
+    let out = tmp.path().join("m.usdz");
+    let r = write(&m, Format::Usd, &out).unwrap();
+    assert_eq!(r.files, vec![out.clone()]);
+    let bytes = std::fs::read(&out).unwrap();
+    let again = tmp.path().join("again.usdz");
+    write(&m, Format::Usd, &again).unwrap();
+    assert_eq!(std::fs::read(&again).unwrap(), bytes);
+    assert!(!tmp.path().join(".m.usdz.parts").exists());
+    // Walk the local headers.
+    let (mut at, mut names) = (0usize, Vec::new());
+    let u16_at = |b: &[u8], i: usize| u16::from_le_bytes([b[i], b[i + 1]]) as usize;
+    let u32_at = |b: &[u8], i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+    while u32_at(&bytes, at) == 0x0403_4b50 {
+        assert_eq!(u16_at(&bytes, at + 8), 0, "stored");
+        let (size, nl, el) = (
+            u32_at(&bytes, at + 18),
+            u16_at(&bytes, at + 26),
+            u16_at(&bytes, at + 28),
+        );
+        let data = at + 30 + nl + el;
+        assert_eq!(data % 64, 0);
+        assert_eq!(
+            crc32fast::hash(&bytes[data..data + size]),
+            u32_at(&bytes, at + 14) as u32
+        );
+        names.push(String::from_utf8(bytes[at + 30..at + 30 + nl].to_vec()).unwrap());
+        at = data + size;
+    }
+    assert_eq!(names[0], "material.usda");
+    assert!(names.contains(&"textures/base_color.png".to_string()), "{names:?}");
+    assert_eq!(names.len(), 5);
 }

@@ -107,3 +107,19 @@ pub fn normal_png(m: &Material) -> Result<Vec<u8>, ExportError> {
     let v: Vec<f32> = m.normal.iter().flat_map(|n| n.map(|c| 0.5 * c + 0.5)).collect();
     encode_bits(m.width, m.height, &v, 3, m.bit_depth)
 }
+
+/// `KHR_materials_anisotropy`'s texture: RG the direction `(cos φ, sin φ)` in tangent space
+/// mapped from [−1, 1] to [0, 1], B the strength; linear. An isotropic texel is direction +x,
+/// strength 0.
+pub fn anisotropy_png(m: &Material) -> Result<Vec<u8>, ExportError> {
+    let v: Vec<f32> = m
+        .anisotropy
+        .iter()
+        .flat_map(|a| {
+            let (s, phi) = gonio_brdf::gltf::anisotropy_of([a[0] as f64, a[1] as f64]);
+            let (sn, cs) = phi.sin_cos();
+            [0.5 * cs as f32 + 0.5, 0.5 * sn as f32 + 0.5, s as f32]
+        })
+        .collect();
+    encode_bits(m.width, m.height, &v, 3, m.bit_depth)
+}

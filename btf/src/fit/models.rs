@@ -13,7 +13,11 @@
 //! - **Rough conductor**: GGX, isotropic α, complex index `η + ik` per channel, tint 1.
 //! - **glTF** (metallic-roughness, `gonio_brdf::gltf`): base colour RGB, metallic,
 //!   roughness (α = roughness²) and the shading normal's tangent-plane components
-//!   `n_x`, `n_y` (0 for a flat texel; what a normal map stores).
+//!   `n_x`, `n_y` (0 for a flat texel; what a normal map stores), then the
+//!   `KHR_materials_anisotropy` vector `a = s·(cos 2φ, sin 2φ)` (`gonio_brdf::gltf`: smooth
+//!   at isotropy, where a strength-and-angle pair has no defined angle). The isotropic
+//!   fit ([`Family::gltf_isotropic`]) has the first 7 only; anisotropy is added where the
+//!   data say so (`super::select_anisotropy`).
 //!
 //! Scale parameters (exponent, roughness) move in log coordinates: their effect is
 //! multiplicative over six decades.
@@ -121,6 +125,10 @@ pub const GLTF_ROUGHNESS_MIN: f64 = 0.01;
 /// A normal's tangent-plane components: at most a 45° tilt each way (|n_x| ≤ 0.7).
 pub const GLTF_NORMAL_MAX: f64 = 0.7;
 
+/// Parameters of the isotropic glTF family (base colour RGB, metallic, roughness, normal
+/// x, y); the full family adds the anisotropy vector's two.
+pub const GLTF_ISOTROPIC_PARAMS: usize = 7;
+
 /// A family with its lobe count: the parameter layout.
 #[derive(Clone, Debug, Serialize)]
 pub struct Family {
@@ -188,9 +196,19 @@ impl Family {
                 p.push(ParamSpec::log("roughness", GLTF_ROUGHNESS_MIN, 1.0));
                 p.push(ParamSpec::lin("normal.x", -GLTF_NORMAL_MAX, GLTF_NORMAL_MAX));
                 p.push(ParamSpec::lin("normal.y", -GLTF_NORMAL_MAX, GLTF_NORMAL_MAX));
+                p.push(ParamSpec::lin("anisotropy.x", -1.0, 1.0));
+                p.push(ParamSpec::lin("anisotropy.y", -1.0, 1.0));
             }
         }
         Family { kind, lobes, params: p }
+    }
+
+    /// The glTF family without anisotropy: the first [`GLTF_ISOTROPIC_PARAMS`] parameters
+    /// of `Family::new(ModelKind::Gltf, 1)` (its model has anisotropy 0).
+    pub fn gltf_isotropic() -> Family {
+        let mut f = Family::new(ModelKind::Gltf, 1);
+        f.params.truncate(GLTF_ISOTROPIC_PARAMS);
+        f
     }
 
     pub fn n_params(&self) -> usize {
@@ -257,12 +275,18 @@ impl Family {
                 specular_tint: [1.0; 3],
                 masking: Masking::Separable,
             },
-            ModelKind::Gltf => BrdfModel::Gltf {
-                base_color: rgb_at(0),
-                metallic: v[3],
-                roughness: v[4],
-                normal: [v[5], v[6]],
-            },
+            ModelKind::Gltf => {
+                let a = if v.len() > 8 { [v[7], v[8]] } else { [0.0, 0.0] };
+                let (anisotropy_strength, anisotropy_rotation) = gonio_brdf::gltf::anisotropy_of(a);
+                BrdfModel::Gltf {
+                    base_color: rgb_at(0),
+                    metallic: v[3],
+                    roughness: v[4],
+                    normal: [v[5], v[6]],
+                    anisotropy_strength,
+                    anisotropy_rotation,
+                }
+            }
         }
     }
 
@@ -328,6 +352,8 @@ impl Family {
                 v.push(if metal { 1.0 } else { 0.0 });
                 v.push(ALPHAS[(i / 2) % ALPHAS.len()].sqrt());
                 v.extend([0.0, 0.0]);
+                // anisotropy (when the family has it): none
+                v.resize(self.n_params(), 0.0);
             }
         }
         self.params.iter().zip(&v).map(|(s, v)| s.to_x(*v)).collect()

@@ -25,7 +25,10 @@
 
 use super::data::Loaded;
 use super::lm::{LmOptions, Stop};
-use super::{check_observations, drop_saturated, fit_from, Family, FitError, FitReport, ModelKind, Scales, Space};
+use super::{
+    check_observations, drop_saturated, fit_from, select_anisotropy, Family, FitError, FitReport, ModelKind, Scales,
+    Space, ANISOTROPY_START,
+};
 use crate::compress::interp::BtfModel;
 use crate::compress::CompressError;
 use rayon::prelude::*;
@@ -75,6 +78,14 @@ pub struct TexelSummary {
     pub not_converged_texels: Vec<usize>,
     /// Bytes of the SVBRDF as f32 (parameters + per-pair gains).
     pub bytes: usize,
+    /// glTF only: texels whose anisotropic fit passed the test (`super::ANISOTROPY_MARGIN`)
+    /// and keep `KHR_materials_anisotropy`; the others have none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub anisotropic_texels: Option<usize>,
+    /// glTF only: the mean over texels of the isotropic fit's relative RMS (`mean_rel_rms`
+    /// is that of the kept fits), the residual without anisotropy.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mean_rel_rms_isotropic: Option<f64>,
 }
 
 /// Fit every texel of `loaded`, starting from `average` (the fit of the averaged BRDF with
@@ -94,6 +105,11 @@ pub fn fit_texels(
         });
     }
     let family = Family::new(average.model, average.lobes);
+    let gltf = average.model == ModelKind::Gltf;
+    // glTF: each texel fits the isotropic model, then the anisotropy test from its result
+    // with the average's anisotropy as the start (or two orthogonal directions when the
+    // average has none), so a texel is anisotropic only where its own data say so.
+    let iso_family = if gltf { Family::gltf_isotropic() } else { family.clone() };
     let x0: Vec<f64> = family
         .params
         .iter()
@@ -105,22 +121,38 @@ pub fn fit_texels(
         ..Default::default()
     };
     let np = family.n_params();
-    let results: Vec<(Vec<f64>, Option<Stop>, f64)> = (0..loaded.texels())
+    let x0_iso = x0[..iso_family.n_params()].to_vec();
+    let aniso_starts: Vec<[f64; 2]> = match x0.get(7..9) {
+        Some(a) if a[0] != 0.0 || a[1] != 0.0 => vec![[a[0], a[1]]],
+        _ => vec![[ANISOTROPY_START, 0.0], [-ANISOTROPY_START, 0.0]],
+    };
+    // (solver coordinates, stop, relative RMS kept, isotropic relative RMS, anisotropic)
+    type TexelResult = (Vec<f64>, Option<Stop>, f64, f64, bool);
+    let results: Vec<TexelResult> = (0..loaded.texels())
         .into_par_iter()
         .map(|t| {
             let obs = loaded.texel(t);
             if check_observations(&obs, "texel").is_err() {
-                return (x0.clone(), None, 0.0);
+                return (x0.clone(), None, 0.0, 0.0, false);
             }
             let (kept, _) = drop_saturated(&obs);
             if kept.len() < 3 {
-                return (x0.clone(), None, 0.0);
+                return (x0.clone(), None, 0.0, 0.0, false);
             }
             let scales = Scales::of(&kept);
-            let r = fit_from(&family, &kept, space, &scales, &x0, &opts);
-            let model = family.model(&family.values(&r.params));
-            let d = super::diagnose(&model, &kept, &scales);
-            (r.params, Some(r.stop), d.rel_rms)
+            let r = fit_from(&iso_family, &kept, space, &scales, &x0_iso, &opts);
+            let model = iso_family.model(&iso_family.values(&r.params));
+            let rel = super::diagnose(&model, &kept, &scales).rel_rms;
+            if !gltf || !r.cost.is_finite() {
+                let mut x = r.params;
+                x.resize(np, 0.0);
+                return (x, Some(r.stop), rel, rel, false);
+            }
+            let (x, run, test) = select_anisotropy(&kept, space, &scales, &r.params, rel, &aniso_starts, &opts);
+            match run {
+                Some(a) => (x, Some(a.stop), test.anisotropic_rel_rms, rel, true),
+                None => (x, Some(r.stop), rel, rel, false),
+            }
         })
         .collect();
     let mut params = Vec::with_capacity(loaded.texels() * np);
@@ -134,7 +166,13 @@ pub fn fit_texels(
     rels.sort_by(f64::total_cmp);
     let median = rels.get(rels.len() / 2).copied().unwrap_or(0.0);
     let outlier = |rel: f64| rel > 2.0 * median && rel > 0.05;
-    for (t, (x, stop, rel)) in results.iter().enumerate() {
+    let anisotropic = results.iter().filter(|r| r.4).count();
+    let iso_sum: f64 = results
+        .iter()
+        .filter(|r| r.1.is_some() && r.3.is_finite())
+        .map(|r| r.3)
+        .sum();
+    for (t, (x, stop, rel, _, _)) in results.iter().enumerate() {
         let values = family.values(x);
         params.extend(values.iter().map(|v| *v as f32));
         match stop {
@@ -184,6 +222,8 @@ pub fn fit_texels(
         not_converged: fit.failed.len(),
         not_converged_texels: fit.failed.iter().take(100).copied().collect(),
         bytes: fit.bytes(),
+        anisotropic_texels: gltf.then_some(anisotropic),
+        mean_rel_rms_isotropic: gltf.then(|| iso_sum / (loaded.texels() - empty).max(1) as f64),
     };
     Ok((fit, summary))
 }
