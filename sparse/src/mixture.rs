@@ -90,14 +90,7 @@ impl Mixture {
         holdout: Option<(&[f32], Vec<TrainingSource>, bool)>,
         opts: MixtureOptions,
     ) -> Result<Mixture, SparseError> {
-        let d = meta.lights_deg.len() * meta.views_deg.len();
-        if d == 0 || !rows.len().is_multiple_of(d) {
-            return Err(SparseError::Invalid(format!(
-                "training rows: {} values is not a multiple of the sweep's {d} pairs",
-                rows.len()
-            )));
-        }
-        let n = rows.len() / d;
+        let (d, n) = crate::prior::training_shape(&meta, rows)?;
         if opts.clusters < 2 {
             return Err(SparseError::Invalid(
                 "a mixture needs at least 2 clusters (one is the plain prior: leave --clusters out)".into(),
@@ -435,13 +428,16 @@ mod tests {
     #[test]
     fn members_learn_their_cluster_and_completion_chooses_by_evidence() {
         let (meta, a) = toy(9, 400, 4, 31);
-        let (_, b) = toy(9, 400, 4, 77);
         let d = 81;
         // Family B: the same kind of ABRDFs, mirrored over the pairs (a different shape).
-        let b: Vec<f32> = b
-            .chunks(d)
-            .flat_map(|r| r.iter().rev().map(|v| (v * 0.6 + 0.2).min(1.0)).collect::<Vec<f32>>())
-            .collect();
+        let family_b = |n: usize, seed: u64| -> Vec<f32> {
+            toy(9, n, 4, seed)
+                .1
+                .chunks(d)
+                .flat_map(|r| r.iter().rev().map(|v| (v * 0.6 + 0.2).min(1.0)).collect::<Vec<f32>>())
+                .collect()
+        };
+        let b = family_b(400, 77);
         let mut rows = a.clone();
         rows.extend_from_slice(&b);
         let opts = MixtureOptions {
@@ -463,11 +459,7 @@ mod tests {
         assert!(m.header.members.iter().all(|e| e.rows >= 300), "{:?}", m.header.members);
         // Test texels from both families.
         let (_, ta) = toy(9, 20, 4, 32);
-        let (_, tb) = toy(9, 20, 4, 78);
-        let tb: Vec<f32> = tb
-            .chunks(d)
-            .flat_map(|r| r.iter().rev().map(|v| (v * 0.6 + 0.2).min(1.0)).collect::<Vec<f32>>())
-            .collect();
+        let tb = family_b(20, 78);
         let mut test = ta.clone();
         test.extend_from_slice(&tb);
         let cols = test.len() / d;

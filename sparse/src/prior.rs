@@ -126,6 +126,19 @@ pub struct Prior {
     pub pair_residual_var: Option<Vec<f64>>,
 }
 
+/// Pairs per ABRDF (D) and ABRDFs (n) of training `rows` over `meta`'s sweep; refused when
+/// the values do not divide into whole rows.
+pub(crate) fn training_shape(meta: &PriorMeta, rows: &[f32]) -> Result<(usize, usize), SparseError> {
+    let d = meta.lights_deg.len() * meta.views_deg.len();
+    if d == 0 || !rows.len().is_multiple_of(d) {
+        return Err(SparseError::Invalid(format!(
+            "training rows: {} values is not a multiple of the sweep's {d} pairs",
+            rows.len()
+        )));
+    }
+    Ok((d, rows.len() / d))
+}
+
 impl Prior {
     pub fn dims(&self) -> usize {
         self.header.dims
@@ -153,14 +166,7 @@ impl Prior {
         components: usize,
         seed: u64,
     ) -> Result<Prior, SparseError> {
-        let d = meta.lights_deg.len() * meta.views_deg.len();
-        if d == 0 || !rows.len().is_multiple_of(d) {
-            return Err(SparseError::Invalid(format!(
-                "training rows: {} values is not a multiple of the sweep's {d} pairs",
-                rows.len()
-            )));
-        }
-        let n = rows.len() / d;
+        let (d, n) = training_shape(&meta, rows)?;
         if components == 0 {
             return Err(SparseError::Invalid("--components must be at least 1".into()));
         }

@@ -565,6 +565,16 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         levels: sensor.max_dn,
     };
     let want = |m: &str| a.methods.iter().any(|x| x == m);
+    // Methods `mixture` and `mixture+global`: the mixture, loaded once.
+    let mixture = if want("mixture") || want("mixture+global") {
+        let path = a
+            .mixture
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("methods `mixture` and `mixture+global` need --mixture FILE.gmix"))?;
+        Some(gonio_sparse::mixture::Mixture::load(path).with_context(|| format!("--mixture {}", path.display()))?)
+    } else {
+        None
+    };
     let mut rows = Vec::new();
     for &noisy in &noises {
         let meas: Vec<Vec<f32>> = if noisy {
@@ -631,17 +641,14 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 });
             }
             for method in ["mixture", "mixture+global"].into_iter().filter(|m| want(m)) {
-                let path = a
-                    .mixture
-                    .as_ref()
-                    .ok_or_else(|| anyhow::anyhow!("method `mixture` needs --mixture FILE.gmix"))?;
-                let mix = gonio_sparse::mixture::Mixture::load(path)?;
+                // Loaded above whenever a mixture method is wanted.
+                let Some(mix) = mixture.as_ref() else { break };
                 let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
                 rows.push(match fit {
                     Some((n, plan)) => {
                         let m = &design[..n];
                         let global = (method == "mixture+global").then_some(&prior);
-                        let (rec, counts) = complete_mixture(&mix, global, m, &meas, &sensor)?;
+                        let (rec, counts) = complete_mixture(mix, global, m, &meas, &sensor)?;
                         Row {
                             noise: noisy,
                             method: method.into(),

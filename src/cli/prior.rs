@@ -321,10 +321,7 @@ fn build(a: BuildArgs) -> Result<ExitCode> {
 
 fn write_mixture(mix: &gonio_sparse::mixture::Mixture, out: &Path, json: bool) -> Result<ExitCode> {
     let bytes = mix.to_bytes()?;
-    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)?;
-    }
-    crate::store::atomic::write_atomic(out, &bytes, None).with_context(|| format!("writing {}", out.display()))?;
+    write_file(out, &bytes)?;
     if json {
         let members: Vec<_> = mix
             .members
@@ -376,12 +373,17 @@ fn holdout(a: HoldoutArgs) -> Result<ExitCode> {
     write_prior(&out, &a.out, a.json)
 }
 
-fn write_prior(prior: &Prior, out: &Path, json: bool) -> Result<ExitCode> {
-    let bytes = prior.to_bytes()?;
+/// Write a prior's or mixture's bytes atomically, creating the folder.
+fn write_file(out: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)?;
     }
-    crate::store::atomic::write_atomic(out, &bytes, None).with_context(|| format!("writing {}", out.display()))?;
+    crate::store::atomic::write_atomic(out, bytes, None).with_context(|| format!("writing {}", out.display()))
+}
+
+fn write_prior(prior: &Prior, out: &Path, json: bool) -> Result<ExitCode> {
+    let bytes = prior.to_bytes()?;
+    write_file(out, &bytes)?;
     if json {
         let j = BuildJson {
             out: out.display().to_string(),
