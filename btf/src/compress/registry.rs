@@ -163,7 +163,9 @@ mod tests {
                 svbrdf::encode(ds, 1, params, gain, None).unwrap()
             }
             CodecId::Gltf => {
-                let texel = [0.5f32, 0.4, 0.3, 0.0, 0.5, 0.0, 0.0];
+                // Isotropic: the anisotropy vector (the last two of `gltf::PARAMS`) is zero.
+                let texel = [0.5f32, 0.4, 0.3, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0];
+                assert_eq!(texel.len(), gltf::PARAMS);
                 let params: Vec<f32> = (0..t).flat_map(|_| texel).collect();
                 gltf::encode(ds, params, gain, vec![0.0; t * 2], None).unwrap()
             }
