@@ -216,11 +216,6 @@ impl Mixture {
         Ok(Mixture { header, members })
     }
 
-    pub fn save(&self, path: &Path) -> Result<(), SparseError> {
-        std::fs::write(path, self.to_bytes()?)?;
-        Ok(())
-    }
-
     pub fn load(path: &Path) -> Result<Mixture, SparseError> {
         let bytes = std::fs::read(path)?;
         Self::from_bytes(&bytes, &path.display().to_string())
