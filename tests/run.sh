@@ -10,17 +10,28 @@ if [ -x "$GONIO_VENV/bin/python" ]; then
   export GONIO_PYTHON="$GONIO_VENV/bin/python"
 fi
 
+# Wall time per stage, printed as each stage starts and at the end: CI's budget is
+# about 50 minutes in all (installs included), so every stage's share is visible in the log.
+t_start=$(date +%s)
+t_prev=$t_start
+stage() {
+  local now
+  now=$(date +%s)
+  echo "== $* (previous stage $((now - t_prev)) s, total $((now - t_start)) s)"
+  t_prev=$now
+}
+
 # Disk use, printed between stages: a full disk is a CI failure of its own.
 disk() { echo "disk: target $(du -sh target 2>/dev/null | cut -f1), free $(df -h --output=avail . | tail -1 | tr -d ' ')"; }
 
-echo "== cargo fmt --check"
+stage "cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy (warnings denied)"
+stage "cargo clippy (warnings denied)"
 cargo clippy --workspace --all-targets -- -D warnings
 # A build that leaves out the default features (Zarr export) must still build and lint:
 # "no dependency is paid for by a build that does not use it" holds only if it compiles.
 # Library and binary only: the tests assume the default features.
-echo "== cargo clippy -p gonio --no-default-features (lib, bins): the lab build"
+stage "cargo clippy -p gonio --no-default-features (lib, bins): the lab build"
 cargo clippy -p gonio --no-default-features --lib --bins -- -D warnings
 # The lab build (acquisition only) links no faer, no zarrs and no axum: the crate cut and
 # the features hold that, this checks it (ARCHITECTURE.md, "Crates").
@@ -30,23 +41,30 @@ if [ -n "$lab_heavy" ]; then
   exit 1
 fi
 echo "lab build: $(cargo tree -p gonio --no-default-features -e normal --prefix none | sort -u | wc -l) crates, no faer/zarrs/axum"
-echo "== cargo test"
-cargo test --workspace
+# The campaign modules of tests/it run once, in the figures stage below (one thread, their
+# table rows printed): the workspace run skips them instead of running them twice.
+campaigns=(campaign_kill9:: campaign_faults:: serial_drivers:: campaign_camera_faults:: calibration_faults::)
+skips=()
+for c in "${campaigns[@]}"; do skips+=(--skip "$c"); done
+stage "cargo test"
+cargo test --workspace -- "${skips[@]}"
 disk
-echo "== campaign figures (kill -9, storage and serial faults)"
-# (one test thread: the rows of a table must not interleave; -q prints progress dots
-# in front of a row, hence grep -o)
-cargo test -q -p gonio --test it -- campaign_kill9:: campaign_faults:: serial_drivers:: --nocapture \
-  --test-threads=1 2>&1 | grep -oE "(kill9|faults): .*" || true
-# Camera faults (simulated camera's injected faults vs the rig's capture policy, in
-# acquisitions and calibrations): more rows of the same table.
-cargo test -q -p gonio --test it -- campaign_camera_faults:: calibration_faults:: --nocapture --test-threads=1 2>&1 \
-  | grep -oE "faults: .*" || true
-echo "== soak (emulated Zaber chain over a pty, real-time pacing)"
+stage "campaign figures (kill -9, storage, serial and camera faults)"
+# One test thread: the rows of a table must not interleave. -q prints progress dots in
+# front of a row, hence grep -o. A failing campaign test fails the run, with its output.
+campaign_log=$(mktemp)
+if ! cargo test -q -p gonio --test it -- "${campaigns[@]}" --nocapture --test-threads=1 >"$campaign_log" 2>&1; then
+  cat "$campaign_log" >&2
+  echo "campaign tests failed (output above)" >&2
+  exit 1
+fi
+grep -oE "(kill9|faults): .*" "$campaign_log" || true
+rm -f "$campaign_log"
+stage "soak (emulated Zaber chain over a pty, real-time pacing)"
 bash tests/campaigns/soak.sh
-echo "== interop"
+stage "interop"
 bash tests/interop/run.sh
-echo "== slurm (sharded sim btf and PVMF through a one-node Slurm)"
+stage "slurm (sharded sim btf and PVMF through a one-node Slurm)"
 if command -v sbatch >/dev/null && command -v slurmctld >/dev/null && [ "$(id -u)" = 0 ]; then
   bash tests/slurm/run.sh
 elif [ -n "${CI:-}" ]; then
@@ -55,7 +73,7 @@ elif [ -n "${CI:-}" ]; then
 else
   echo "slurm: skipped (needs root and apt-get install slurmctld slurmd slurm-client munge; run .ci/run)"
 fi
-echo "== browser (gonio view in headless chromium)"
+stage "browser (gonio view in headless chromium)"
 bash tests/browser/run.sh
 
 # --- Lab cameras: the GenICam backend (feature `genicam`) against Debian's fake GigE Vision
@@ -69,7 +87,7 @@ bash tests/browser/run.sh
 # elsewhere a script whose prerequisites are missing is skipped with a notice (and its
 # feature is left out of the shared build).
 disk
-echo "== lab cameras (genicam, gphoto2): one lab build with both features"
+stage "lab cameras (genicam, gphoto2): one lab build with both features"
 lab_features=()
 if [ -n "${CI:-}" ] || { command -v arv-fake-gv-camera-0.8 >/dev/null && pkg-config --exists aravis-0.8 2>/dev/null; }; then
   lab_features+=(genicam)
@@ -89,7 +107,7 @@ echo "lab cameras: $(($(date +%s) - lab_start)) s wall (features: ${GONIO_LAB_FE
 # libclang (the `v4l2` feature's bindgen). Mandatory under CI; elsewhere skipped with a
 # notice when those are missing.
 disk
-echo "== vivid (V4L2 backend in a VM)"
+stage "vivid (V4L2 backend in a VM)"
 if command -v apt-get >/dev/null && { [ -n "$(ls /usr/lib/llvm-*/lib/libclang-[0-9]*.so* 2>/dev/null)" ] || [ -n "${LIBCLANG_PATH:-}" ]; }; then
   bash tests/vivid/run.sh
 elif [ -n "${CI:-}" ]; then
@@ -99,3 +117,4 @@ else
   echo "vivid: skipped (needs apt-get and libclang-dev; run .ci/run)"
 fi
 disk
+stage "done"
