@@ -586,6 +586,16 @@ impl RigSpec {
         self.hdr.as_ref().map_or(crate::hdr::HdrMode::Off, |h| h.mode())
     }
 
+    /// The noise model of this rig's camera at its gain (the `[hdr]` section's sensor
+    /// figures where it has them, else the camera's options, else the defaults): what a
+    /// completion weighs each measured pair by.
+    pub fn sensor_noise(&self) -> crate::hdr::SensorNoise {
+        self.hdr
+            .clone()
+            .unwrap_or_default()
+            .noise(&self.camera, self.camera.gain)
+    }
+
     /// Planned time of one measurement's captures, the HDR bracket's extra exposures
     /// included (the camera's `capture_time` without `[hdr]`).
     pub fn planned_capture_time(&self) -> f64 {

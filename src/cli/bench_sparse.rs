@@ -776,7 +776,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 });
             }
             if want("adaptive") {
-                rows.push(match adaptive(&ctx, &prior, &meas, budget, nv, tuning)? {
+                rows.push(match adaptive(&ctx, &prior, &meas, budget, nv, &sensor, tuning)? {
                     Some(run) => {
                         let (rec, _) = complete_sensor(&prior, &run.measured, &meas, &sensor)?;
                         Row {
@@ -941,9 +941,10 @@ fn adaptive(
     meas: &[Vec<f32>],
     budget: f64,
     nv: f64,
+    sensor: &gonio_devices::hdr::SensorNoise,
     tuning: gonio_acquire::plan::adaptive::AdaptiveTuning,
 ) -> Result<Option<AdaptiveRun>> {
-    use gonio_acquire::plan::adaptive::{analysis_texels, AdaptiveRequest, AdaptiveStop};
+    use gonio_acquire::plan::adaptive::{analysis_row, analysis_texels, AdaptiveRequest, AdaptiveStop};
     let stop = AdaptiveStop::new(None, Some(budget))?;
     let req = AdaptiveRequest {
         prior,
@@ -968,11 +969,14 @@ fn adaptive(
         let ad = plan.adaptive().expect("adaptive plan");
         let mut measured = ad.chosen();
         measured.sort_unstable();
-        let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| {
-            space.forward(meas[measured[i]][3 * pick[j / 3] + j % 3] as f64)
-        });
+        let rows: Vec<(Vec<f64>, f64)> = measured
+            .iter()
+            .map(|&p| analysis_row(&meas[p], &pick, space, sensor))
+            .collect();
+        let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), pick.len() * 3, |i, j| rows[i].0[j]);
+        let noise: Vec<f64> = rows.iter().map(|r| r.1).collect();
         let t = std::time::Instant::now();
-        let added = plan.adaptive_next(ctx.rig, ctx.sweep, &ctx.opts, prior, &measured, &values)?;
+        let added = plan.adaptive_next(ctx.rig, ctx.sweep, &ctx.opts, prior, &measured, &values, &noise)?;
         compute += t.elapsed().as_secs_f64();
         if !added {
             break;

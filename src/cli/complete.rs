@@ -245,7 +245,7 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
     let mut warnings = Vec::new();
     let rig: Option<RigSpec> = serde_json::from_value(ds.header.rig.clone()).ok();
     let sensor = match (a.noise_model.as_str(), &rig) {
-        ("sensor", Some(r)) => Some(r.hdr.clone().unwrap_or_default().noise(&r.camera, r.camera.gain)),
+        ("sensor", Some(r)) => Some(r.sensor_noise()),
         ("sensor", None) => {
             warnings.push(format!(
                 "{}: the manifest records no rig, so its sensor's noise is unknown: every pair \

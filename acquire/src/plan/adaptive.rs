@@ -24,9 +24,10 @@ use super::sparse::{fit_prefix, psnr_of_mse, SparseDesign, SparseRequest, Sparse
 pub use super::sparse::{AdaptiveInfo, AdaptiveRound, AdaptiveStop};
 use super::{Plan, PlanError, PlanOptions};
 use gonio_dataset::sweep::Sweep;
+use gonio_devices::hdr::SensorNoise;
 use gonio_devices::rig::RigSpec;
 use gonio_sparse::adaptive::{next_round, PairGeometry};
-use gonio_sparse::Prior;
+use gonio_sparse::{Prior, ValueSpace};
 use nalgebra::DMatrix;
 
 /// Share of a rig budget that the first (A-optimal) round spends; each later round spends
@@ -105,6 +106,23 @@ fn invalid(message: String) -> PlanError {
 pub fn analysis_texels(total: usize, n: usize) -> Vec<usize> {
     let n = n.min(total).max(1);
     (0..n).map(|i| ((2 * i + 1) * total) / (2 * n)).collect()
+}
+
+/// One measured image (interleaved RGB, linear) as the analysis reads it: its values at the
+/// texels `pick` ([`analysis_texels`]; texel-major, then channel; in the prior's value
+/// space) and its measurement noise in that space under the rig's sensor model
+/// ([`gonio_sparse::noise::pair_noise`] over the same readings). Both callers of
+/// [`Plan::adaptive_next`] (the session and the bench) read images through this, so the
+/// bench's rounds are the acquisition's.
+pub fn analysis_row(image: &[f32], pick: &[usize], space: ValueSpace, sensor: &SensorNoise) -> (Vec<f64>, f64) {
+    let readings: Vec<f32> = pick
+        .iter()
+        .flat_map(|&t| (0..3).map(move |c| 3 * t + c))
+        .map(|i| image.get(i).copied().unwrap_or(0.0))
+        .collect();
+    let values = readings.iter().map(|&r| space.forward(r as f64)).collect();
+    let noise = gonio_sparse::noise::pair_noise(space, &readings, |x| sensor.variance(x));
+    (values, noise)
 }
 
 impl Plan {
@@ -209,9 +227,14 @@ impl Plan {
     }
 
     /// After every chosen pair is measured: analyse and append the next round, or mark the
-    /// run finished. `measured` are the pairs with values (in any order) and `values` their
-    /// values at the analysis texels (rows in the order of `measured`, model space).
+    /// run finished. `measured` are the pairs with values (in any order), `values` their
+    /// values at the analysis texels (rows in the order of `measured`, model space) and
+    /// `pair_noise` each one's measurement noise in model space
+    /// ([`analysis_row`], from the rig's sensor model).
     /// Returns `true` when a round was added (write `plan.json`, then run it).
+    // Each argument is one input of the analysis; the values and their noise come together
+    // from one reader ([`analysis_row`]) in both callers.
+    #[allow(clippy::too_many_arguments)]
     pub fn adaptive_next(
         &mut self,
         rig: &RigSpec,
@@ -220,6 +243,7 @@ impl Plan {
         prior: &Prior,
         measured: &[usize],
         values: &DMatrix<f64>,
+        pair_noise: &[f64],
     ) -> Result<bool, PlanError> {
         let offset = self.durations.optimized_s;
         let first_step = self.steps.len();
@@ -276,6 +300,7 @@ impl Plan {
             &candidates,
             measured,
             values,
+            pair_noise,
             ad.noise_var,
             ad.residual_weight,
             n_max,

@@ -23,7 +23,9 @@ use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadErro
 use crate::develop::rectify::RectifyParams;
 use crate::develop::Developer;
 use crate::engine::{self, EngineError, Observer, RunOptions};
-use crate::plan::adaptive::{analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop, AdaptiveTuning};
+use crate::plan::adaptive::{
+    analysis_row, analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop, AdaptiveTuning,
+};
 use crate::plan::sparse::{units_key, SparseDesign, SparseRequest, SparseTarget};
 use crate::plan::{Plan, PlanError, PlanOptions};
 use crate::rig::{Rig, RigBuildError};
@@ -594,6 +596,9 @@ impl Session {
         // The analysis texels' values of every pair read so far: each round reads only the
         // images measured since the last one.
         let mut analysis_cache = AnalysisCache::default();
+        // The adaptive analysis weighs each measured pair by its noise under this sensor
+        // model, as `gonio complete` does.
+        let sensor = rig_spec.sensor_noise();
         let plan_shard = loop {
             let done_now: HashSet<usize> = done
                 .iter()
@@ -669,8 +674,8 @@ impl Session {
                 message: "an adaptive plan without its prior".into(),
             })?;
             let t = std::time::Instant::now();
-            let (measured, values) =
-                adaptive_values(&dataset, &plan, prior, &mut analysis_cache).map_err(|e| SessionError::Invalid {
+            let (measured, values, noise) = adaptive_values(&dataset, &plan, prior, &sensor, &mut analysis_cache)
+                .map_err(|e| SessionError::Invalid {
                     dir: name.clone(),
                     message: format!("reading the measured values for the next round: {e}"),
                 })?;
@@ -684,7 +689,7 @@ impl Session {
                 seed: ad.plan_seed,
             };
             let added = plan
-                .adaptive_next(&rig_spec, &sweep, &popts, prior, &measured, &values)
+                .adaptive_next(&rig_spec, &sweep, &popts, prior, &measured, &values, &noise)
                 .map_err(SessionError::Plan)?;
             analysis_wall_s += t.elapsed().as_secs_f64();
             tracing::info!(
@@ -764,12 +769,15 @@ fn add_reports(mut a: engine::RunReport, b: engine::RunReport) -> engine::RunRep
 #[derive(Default)]
 struct AnalysisCache {
     texels: Option<usize>,
-    values: std::collections::HashMap<usize, Vec<f64>>,
+    /// Per pair: its values at the analysis texels and its measurement noise
+    /// ([`crate::plan::adaptive::analysis_row`]).
+    values: std::collections::HashMap<usize, (Vec<f64>, f64)>,
 }
 
-/// The measured pairs of an adaptive plan's rounds and their values at the analysis texels
+/// The measured pairs of an adaptive plan's rounds, their values at the analysis texels
 /// (rows in the order of the returned pairs, columns texel-major then channel, in the
-/// prior's value space). Pairs without an image (failed, skipped) are left out.
+/// prior's value space) and each pair's measurement noise under `sensor`. Pairs without an
+/// image (failed, skipped) are left out.
 ///
 /// Reads only the images `cache` does not hold yet, and keeps only the analysis texels of
 /// each (not the image): at 256² the analysis once read every measured image again each
@@ -778,8 +786,9 @@ fn adaptive_values(
     dataset: &Dataset,
     plan: &Plan,
     prior: &gonio_sparse::Prior,
+    sensor: &gonio_devices::hdr::SensorNoise,
     cache: &mut AnalysisCache,
-) -> Result<(Vec<usize>, nalgebra::DMatrix<f64>), String> {
+) -> Result<AnalysisInput, String> {
     use rayon::prelude::*;
     let ad: &AdaptiveInfo = plan.adaptive().ok_or("not an adaptive plan")?;
     let mut image_of = std::collections::HashMap::new();
@@ -798,19 +807,14 @@ fn adaptive_values(
         .copied()
         .filter(|p| !cache.values.contains_key(p))
         .collect();
-    let read: Vec<(usize, usize, Vec<f64>)> = new
+    let read: Vec<(usize, usize, (Vec<f64>, f64))> = new
         .par_iter()
         .map(|&p| {
             let path = dir.join(&image_of[&p]);
             let img = store::exr_io::read_exr(&path).map_err(|e| format!("{}: {e}", path.display()))?;
             let texels = img.data.len() / 3;
             let pick = analysis_texels(texels, n_texels);
-            let v = pick
-                .iter()
-                .flat_map(|&t| (0..3).map(move |c| (t, c)))
-                .map(|(t, c)| space.forward(img.data[3 * t + c] as f64))
-                .collect();
-            Ok((p, texels, v))
+            Ok((p, texels, analysis_row(&img.data, &pick, space, sensor)))
         })
         .collect::<Result<_, String>>()?;
     for (p, texels, v) in read {
@@ -822,10 +826,15 @@ fn adaptive_values(
         }
         cache.values.insert(p, v);
     }
-    let cols = measured.first().map_or(0, |p| cache.values[p].len());
-    let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), cols, |i, j| cache.values[&measured[i]][j]);
-    Ok((measured, values))
+    let cols = measured.first().map_or(0, |p| cache.values[p].0.len());
+    let values = nalgebra::DMatrix::<f64>::from_fn(measured.len(), cols, |i, j| cache.values[&measured[i]].0[j]);
+    let noise = measured.iter().map(|p| cache.values[p].1).collect();
+    Ok((measured, values, noise))
 }
+
+/// What [`adaptive_values`] returns: the measured pairs, their values at the analysis
+/// texels and their measurement noise, in the same order.
+type AnalysisInput = (Vec<usize>, nalgebra::DMatrix<f64>, Vec<f64>);
 
 /// Load the results for rig `rig` and describe them in the header: `calibration` = the
 /// applied ids (comma-separated), `values` and `extra.value_unit` = the unit of the stored
