@@ -114,7 +114,15 @@ const SIMULATOR_ALLOWED: &[&str] = &["rig", "session", "cli", "synth", "calibrat
 const FOLDERS: &[(&str, &[&str])] = &[
     (
         "store",
-        &["atomic", "error", "export", "journal", "manifest", "provenance"],
+        &[
+            "atomic",
+            "error",
+            "export",
+            "journal",
+            "manifest",
+            "provenance",
+            "reference",
+        ],
     ),
     ("store/export", &["entry", "npy", "ubo2003"]),
     ("rig", &["backends", "capture"]),

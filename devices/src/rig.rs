@@ -426,6 +426,9 @@ impl Default for LampWarmup {
     }
 }
 
+/// The default settle time of a light after switching (s, `light.options.settle_s`).
+pub const DEFAULT_LIGHT_SETTLE_S: f64 = 1.0;
+
 /// The default relative drift that warns (2 %).
 pub const DEFAULT_LAMP_DRIFT: f64 = 0.02;
 
@@ -460,6 +463,42 @@ impl RigSpec {
             drift_threshold,
             output_exponent,
         })
+    }
+
+    /// Seconds the light needs after being switched before a frame is taken
+    /// (`light.options.settle_s`, in [0, 600]; default [`DEFAULT_LIGHT_SETTLE_S`]): the
+    /// drift references switch it off for their dark frame and on again, and pay this
+    /// twice in rig time. A lamp that measures also waits for its warm-up after switching
+    /// on (see [`LampWarmup`]).
+    pub fn light_settle_s(&self) -> Result<f64, OptionError> {
+        let Some(v) = self.light.options.get("settle_s") else {
+            return Ok(DEFAULT_LIGHT_SETTLE_S);
+        };
+        option_number(v)
+            .filter(|x| (0.0..=600.0).contains(x))
+            .ok_or_else(|| OptionError {
+                key: "light.options.settle_s".into(),
+                value: v.to_string(),
+                message: "must be seconds in [0, 600] the light needs after switching".into(),
+            })
+    }
+
+    /// Simulator only: the simulated lamp's output drift per hour of rig time
+    /// (`light.options.drift_per_hour`, relative, in [-0.9, 10]; default 0): its radiant
+    /// intensity is multiplied by 1 + drift × hours. Its measured voltage and current do
+    /// not follow (an optical drift the lamp monitor cannot see), so only re-measured
+    /// references reveal it.
+    pub fn sim_light_drift_per_hour(&self) -> Result<f64, OptionError> {
+        let Some(v) = self.light.options.get("drift_per_hour") else {
+            return Ok(0.0);
+        };
+        option_number(v)
+            .filter(|x| (-0.9..=10.0).contains(x))
+            .ok_or_else(|| OptionError {
+                key: "light.options.drift_per_hour".into(),
+                value: v.to_string(),
+                message: "must be a relative change per hour in [-0.9, 10], e.g. 0.05 for +5 %/h".into(),
+            })
     }
 
     /// The lamp warm-up options (see [`LampWarmup`]): `warmup_tolerance` in (0, 0.5)

@@ -316,6 +316,9 @@ pub struct SimLight {
     /// Nominal voltage and current at full intensity, reported as the read-back when the
     /// rig file gives them (`light.options.voltage`, `current`); `None`: measures nothing.
     nominal: Option<gonio_devices::LampReading>,
+    /// Output drift per hour of rig time (`light.options.drift_per_hour`; 0: none): the
+    /// radiant intensity is multiplied by 1 + drift × hours. The read-back does not follow.
+    drift_per_hour: f64,
 }
 
 #[async_trait]
@@ -420,11 +423,31 @@ pub enum Roi {
 }
 
 impl SimWorld {
+    /// The lamp as the camera sees it now: switched as set, with its output drift at the
+    /// rig clock's time (`light.options.drift_per_hour`).
     fn point_light(&self, q: &[f64]) -> PointLight {
         let (on, k) = *self.light.state.lock().expect("light poisoned");
+        let d = self.light.drift_per_hour;
+        let drift = if d == 0.0 {
+            1.0
+        } else {
+            1.0 + d * self.clock.now() / 3600.0
+        };
         PointLight {
             position: self.kinematics.light_position(q),
-            intensity: if on { k * self.light_intensity_w_sr } else { 0.0 },
+            intensity: if on { k * drift * self.light_intensity_w_sr } else { 0.0 },
+            radius: self.lamp_radius_mm,
+        }
+    }
+
+    /// The lamp of the ground truth: on at full intensity, without drift, whatever the
+    /// light is doing right now (the store thread renders a measurement's truth while the
+    /// drive loop may already have switched the light off for a dark frame). The truth is
+    /// what the sample is under the nominal lamp; a drift is an error against it.
+    fn truth_light(&self, q: &[f64]) -> PointLight {
+        PointLight {
+            position: self.kinematics.light_position(q),
+            intensity: self.light_intensity_w_sr,
             radius: self.lamp_radius_mm,
         }
     }
@@ -473,7 +496,7 @@ impl SimWorld {
     /// clipped, no noise, no vignetting), rectified to `width × height` texels.
     pub fn truth(&self, q: &[f64], width: usize, height: usize) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
-        let light = self.point_light(q);
+        let light = self.truth_light(q);
         // Traced once per camera position, shaded per light: the same bytes as
         // `render_truth`, which traces every time.
         let rad = self.truth_radiance(pose.position, width, height, &light);
@@ -496,7 +519,7 @@ impl SimWorld {
     /// truths are still being rendered).
     pub fn truth_at(&self, q: &[f64], width: usize, height: usize, exposure_s: f64, gain: f64) -> RgbImage {
         let pose = self.kinematics.camera_pose(q);
-        let light = self.point_light(q);
+        let light = self.truth_light(q);
         let rad = self.truth_radiance(pose.position, width, height, &light);
         let mut sensor = self.sensor.lock().expect("sensor poisoned").clone();
         sensor.exposure_s = exposure_s;
@@ -929,9 +952,11 @@ pub fn build_sim_rig(spec: &RigSpec, renderer: Arc<Renderer>, opts: &SimOptions)
     } else {
         None
     };
+    let drift_per_hour = spec.sim_light_drift_per_hour().map_err(|e| option_error(spec, e))?;
     let light = Arc::new(SimLight {
         state: Mutex::new((false, 0.0)),
         nominal,
+        drift_per_hour,
     });
     let world = Arc::new(SimWorld {
         axes: axes.clone(),
@@ -1035,6 +1060,7 @@ mod tests {
         let light = |nominal| super::SimLight {
             state: std::sync::Mutex::new((false, 0.0)),
             nominal,
+            drift_per_hour: 0.0,
         };
         let plain = light(None);
         plain.set(true, 1.0).await.unwrap();

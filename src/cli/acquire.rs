@@ -3,7 +3,9 @@
 use super::common::{load_sample, parse_size, RigArgs, SweepArgs, IMAGE_SIDES};
 use anyhow::{Context, Result};
 use gonio_acquire::engine::{Observer, RunEvent};
-use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session, SparsePlan, Summary};
+use gonio_acquire::session::{
+    NewSession, PlanRequest, ReferenceSettings, RunRequest, RunSettings, Session, SparsePlan, Summary,
+};
 use gonio_devices::hdr::HdrMode;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -98,6 +100,27 @@ pub struct AcquireArgs {
     pub sparse: super::sparse::SparseArgs,
     #[command(flatten)]
     pub fly: super::common::FlyArgs,
+    /// Re-measure a reference pair and a dark frame (light off, same exposure) before the
+    /// first measurement, whenever at least MINUTES of rig time have passed since the last
+    /// one (at a measurement boundary), and when the run ends; stored in references.jsonl
+    /// and reference/, so optical drift is tracked (the summary's largest drift) and
+    /// correctable (`gonio dataset drift DIR --correct --out NEW`). MINUTES: finite, > 0.
+    /// Kept in the manifest: --resume continues the schedule.
+    #[arg(long, value_name = "MINUTES", allow_hyphen_values = true, conflicts_with = "resume")]
+    pub reference_every: Option<f64>,
+    /// The reference pair as LIGHT_INDEX,VIEW_INDEX into the sweep (a pair the plan
+    /// measures); default: the plan's first measured pair.
+    #[arg(long, value_name = "LIGHT,VIEW", value_parser = parse_pair, requires = "reference_every")]
+    pub reference_pair: Option<[usize; 2]>,
+}
+
+fn parse_pair(s: &str) -> std::result::Result<[usize; 2], String> {
+    let bad = || format!("{s:?}: give LIGHT_INDEX,VIEW_INDEX, two indices into the sweep, e.g. 0,3");
+    let (l, v) = s.split_once(',').ok_or_else(bad)?;
+    Ok([
+        l.trim().parse().map_err(|_| bad())?,
+        v.trim().parse().map_err(|_| bad())?,
+    ])
 }
 
 fn parse_hdr(s: &str) -> std::result::Result<HdrMode, String> {
@@ -193,7 +216,7 @@ async fn run_async(args: AcquireArgs) -> Result<ExitCode> {
         Arc::new(move |e: &RunEvent<'_>| match e {
             RunEvent::Started { to_do, .. } => bar.set_length(*to_do as u64),
             RunEvent::Captured { .. } => bar.inc(1),
-            RunEvent::Stored { .. } => {}
+            RunEvent::Stored { .. } | RunEvent::Reference { .. } => {}
         })
     };
     let req = RunRequest {
@@ -297,6 +320,10 @@ fn new_session(args: &AcquireArgs) -> Result<NewSession> {
             seed: args.seed,
             raw: args.raw,
             store_truth: args.store_truth,
+            reference: args.reference_every.map(|every_min| ReferenceSettings {
+                every_min,
+                pair: args.reference_pair,
+            }),
         },
         calibration: args.calibration.clone(),
         shard: args.shard,
@@ -369,6 +396,27 @@ fn print_summary(s: &Summary) {
         println!(
             "fly-scan       {} frames exposed in flight, {} retaken stop and go",
             f.flown, f.retaken_stop_and_go
+        );
+    }
+    if let Some(r) = &s.references {
+        println!(
+            "references     {} in the dataset ({} this run, every {} min, pair {},{}), {:.1} s of rig time this run; \
+             largest drift {:.2} %{}",
+            r.count,
+            r.this_run,
+            r.every_min,
+            r.pair[0],
+            r.pair[1],
+            r.overhead_s,
+            r.largest_drift * 100.0,
+            if r.drift_warnings > 0 {
+                format!(
+                    " ({} beyond the threshold: correct with `gonio dataset drift --correct`)",
+                    r.drift_warnings
+                )
+            } else {
+                String::new()
+            }
         );
     }
     let t = &s.stage_seconds;

@@ -160,6 +160,7 @@ fn bench(
             seed: None,
             raw: false,
             store_truth: a.store_truth,
+            reference: None,
         },
         calibration: None,
         shard: None,

@@ -211,6 +211,7 @@ pub fn run(a: FlyBenchArgs) -> Result<ExitCode> {
                     seed: None,
                     raw: false,
                     store_truth: false,
+                    reference: None,
                 },
                 calibration: None,
                 shard: None,

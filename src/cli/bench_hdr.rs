@@ -122,6 +122,7 @@ pub fn run(args: HdrBenchArgs) -> Result<ExitCode> {
                 seed: None,
                 raw: false,
                 store_truth: true,
+                reference: None,
             },
             calibration: None,
             shard: None,

@@ -1,5 +1,6 @@
 //! `gonio dataset generate`: a family of synthetic datasets with their labels (see
-//! `crate::synth::family`).
+//! `crate::synth::family`); `gonio dataset drift`: a dataset's drift references and a
+//! drift-corrected copy (`gonio_dataset::store::drift`).
 
 use crate::synth::family::Family;
 use anyhow::{Context, Result};
@@ -15,6 +16,29 @@ pub enum DatasetCommand {
     /// Check a family directory: every member complete and made from its family.toml; names
     /// the missing ones (exit status 1 when any is). The merge step of a sharded run.
     Check(CheckArgs),
+    /// The drift references of an acquisition (`gonio acquire --reference-every`): the
+    /// reference pair's level per channel against the first reference, over rig time.
+    /// With --correct --out NEW: a corrected copy (each measurement's signal divided by the
+    /// reference ratio interpolated in rig time, the dark level kept); the original is
+    /// never modified.
+    Drift(DriftArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct DriftArgs {
+    /// The dataset directory.
+    pub dataset: PathBuf,
+    /// Write a drift-corrected copy to --out.
+    #[arg(long, requires = "out")]
+    pub correct: bool,
+    /// Directory of the corrected copy (a new dataset).
+    #[arg(long, requires = "correct")]
+    pub out: Option<PathBuf>,
+    /// Replace a gonio dataset at --out.
+    #[arg(long, requires = "correct")]
+    pub force: bool,
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -53,7 +77,81 @@ pub fn run(c: DatasetCommand) -> Result<ExitCode> {
     match c {
         DatasetCommand::Generate(a) => generate(a),
         DatasetCommand::Check(a) => check(a),
+        DatasetCommand::Drift(a) => drift(a),
     }
+}
+
+fn drift(a: DriftArgs) -> Result<ExitCode> {
+    use gonio_dataset::store::drift;
+    if let (true, Some(out)) = (a.correct, &a.out) {
+        let r = drift::correct(&a.dataset, out, a.force).with_context(|| {
+            format!(
+                "writing a drift-corrected copy of {} to {}",
+                a.dataset.display(),
+                out.display()
+            )
+        })?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&r)?);
+        } else {
+            println!(
+                "{}: {} measurements corrected with {} references (factors R {:.4}..{:.4}, G {:.4}..{:.4}, B {:.4}..{:.4}), \
+                 {} records without an image copied",
+                r.out.display(),
+                r.corrected,
+                r.references,
+                r.factor_min[0],
+                r.factor_max[0],
+                r.factor_min[1],
+                r.factor_max[1],
+                r.factor_min[2],
+                r.factor_max[2],
+                r.copied_without_image
+            );
+            if let (Some(b), Some(c), Some(mb), Some(mc)) = (
+                r.truth_psnr_before_db,
+                r.truth_psnr_after_db,
+                r.truth_rel_mae_before,
+                r.truth_rel_mae_after,
+            ) {
+                println!(
+                    "vs. stored truth: PSNR {b:.2} dB before, {c:.2} dB after; relative mean abs error {:.2} % before, {:.2} % after",
+                    mb * 100.0,
+                    mc * 100.0
+                );
+            }
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let s = drift::series(&a.dataset)
+        .with_context(|| format!("reading the drift references of {}", a.dataset.display()))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        println!(
+            "{}: {} references, largest drift {:.2} %",
+            s.dir.display(),
+            s.references.len(),
+            s.largest_drift * 100.0
+        );
+        println!("   #  run  rig time (s)  after  ratio R   ratio G   ratio B   mean R     mean G     mean B");
+        for r in &s.references {
+            println!(
+                "{:4} {:4} {:13.1} {:>6}  {:.5}   {:.5}   {:.5}   {:.6}   {:.6}   {:.6}",
+                r.number,
+                r.run,
+                r.rig_time_s,
+                r.after_index.map_or("-".to_string(), |i| i.to_string()),
+                r.ratio[0],
+                r.ratio[1],
+                r.ratio[2],
+                r.mean[0],
+                r.mean[1],
+                r.mean[2]
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn check(a: CheckArgs) -> Result<ExitCode> {

@@ -439,8 +439,17 @@ fn print_verify(r: &store::VerifyReport) {
         r.raw_ok,
         r.bytes_hashed
     );
+    if r.references_ok > 0 {
+        println!(
+            "{} drift references (reference and dark frame) match their SHA-256",
+            r.references_ok
+        );
+    }
     for d in &r.damaged {
         println!("damaged or missing: record {d}");
+    }
+    if let Some((line, why)) = &r.references_torn_line {
+        println!("the last line ({line}) of references.jsonl is torn: {why} (a resume removes it)");
     }
     if !r.orphans.is_empty() {
         println!(

@@ -79,7 +79,7 @@ pub struct Cli {
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Run an acquisition (default: simulated rig, default sample, Bonn 81 × 81 sweep).
-    Acquire(acquire::AcquireArgs),
+    Acquire(Box<acquire::AcquireArgs>),
     /// Plan a sweep for a rig without moving anything.
     Plan(plan::PlanArgs),
     /// Export a dataset to an interchange format.
@@ -164,7 +164,7 @@ pub fn init_logging(verbose: u8, quiet: bool) {
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
-        Command::Acquire(a) => acquire::run(a),
+        Command::Acquire(a) => acquire::run(*a),
         Command::Plan(a) => plan::run(a),
         Command::Export(a) => export::run(a),
         Command::Verify(a) => export::verify(a),

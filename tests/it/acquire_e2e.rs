@@ -37,6 +37,7 @@ fn counting() -> (Observer, Arc<[AtomicUsize; 3]>) {
             RunEvent::Started { .. } => 0,
             RunEvent::Captured { .. } => 1,
             RunEvent::Stored { .. } => 2,
+            RunEvent::Reference { .. } => return,
         };
         m[k].fetch_add(1, Ordering::SeqCst);
     });
@@ -72,6 +73,7 @@ async fn reduced_sweep_end_to_end_with_resume() {
             seed: None,
             raw: false,
             store_truth: true,
+            reference: None,
         },
         calibration: None,
         shard: None,
@@ -185,6 +187,7 @@ async fn readout_overlapping_the_move_saves_what_the_plan_says_and_changes_no_im
                 seed: None,
                 raw: false,
                 store_truth: false,
+                reference: None,
             },
             calibration: None,
             shard: None,

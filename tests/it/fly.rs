@@ -56,6 +56,7 @@ fn session(dir: &Path, fly: Option<f64>, sample: &str) -> NewSession {
             seed: None,
             raw: false,
             store_truth: false,
+            reference: None,
         },
         calibration: None,
         shard: None,

@@ -21,6 +21,7 @@ mod campaign_faults;
 mod campaign_kill9;
 mod determinism;
 mod devices_check;
+mod drift_references;
 mod fit;
 mod fly;
 mod fuzz_import;

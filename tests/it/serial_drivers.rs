@@ -580,6 +580,7 @@ mod fly_scan {
                 seed: Some(3),
                 raw: false,
                 store_truth: false,
+                reference: None,
             },
             calibration: None,
             shard: None,

@@ -17,12 +17,13 @@
 mod fly;
 pub mod lamp;
 pub mod metrics;
+pub mod reference;
 
 use crate::develop::rectify::HomographySource;
 use crate::develop::{DevelopError, Developer};
 use crate::plan::{Plan, Step, StepStatus};
 use crate::rig::{BracketNotes, CaptureNotes, CapturePolicy, Rig};
-use gonio_dataset::store::{Dataset, LampRecord, MeasurementRecord, MeasurementStatus, StoreError};
+use gonio_dataset::store::{Dataset, LampRecord, MeasurementRecord, MeasurementStatus, ReferenceRecord, StoreError};
 use gonio_devices::hdr::{HdrMode, HdrSpec};
 use gonio_devices::image::RgbImage;
 use gonio_devices::{CameraConfig, DeviceError, Direction, Frame};
@@ -66,6 +67,10 @@ pub struct RunOptions {
     pub truth: bool,
     /// Also store the ground truth as `truth/NNNNN.exr` (the exact rectified BTF).
     pub store_truth: bool,
+    /// Re-measure a reference pair and a dark frame during the run ([`reference`]).
+    pub references: Option<reference::ReferencePlan>,
+    /// When this process last took a reference (carried across adaptive rounds).
+    pub reference_schedule: reference::Schedule,
 }
 
 /// What the engine reports while it runs, to whoever watches (a progress bar, a web
@@ -79,6 +84,8 @@ pub enum RunEvent<'a> {
     Captured { index: usize },
     /// A measurement is stored (its image in place, its journal line synced).
     Stored { record: &'a MeasurementRecord },
+    /// A drift reference is stored (its images in place, its line synced).
+    Reference { record: &'a ReferenceRecord },
 }
 
 /// Receives [`RunEvent`]s.
@@ -107,6 +114,23 @@ pub struct RunReport {
     /// The lamp supply's identity (`*IDN?`), for lights whose supply measures.
     #[serde(default)]
     pub lamp_identity: Option<String>,
+    /// Drift references this run took (`--reference-every`).
+    #[serde(default)]
+    pub references: ReferenceStats,
+}
+
+/// What the drift references of one run did.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ReferenceStats {
+    /// References stored this run.
+    pub taken: usize,
+    /// Rig seconds they took (moves, exposures, the light's settle times).
+    pub overhead_s: f64,
+    /// References whose drift (any channel, against the dataset's first) exceeded the
+    /// threshold.
+    pub warnings: usize,
+    /// Rig time of the last reference of this process (the schedule's state).
+    pub last_at: Option<f64>,
 }
 
 /// Where the wall time goes, summed over all measurements of a run.
@@ -122,6 +146,12 @@ pub struct StageSeconds {
     pub truth: f64,
     /// Store thread: encoding and durably writing image and journal line.
     pub store: f64,
+}
+
+/// What the drive loop hands the store thread, in order.
+enum Work {
+    Measure(Box<Job>),
+    Reference(Box<reference::ReferenceJob>),
 }
 
 /// A captured frame on its way to the store thread.
@@ -199,7 +229,12 @@ pub async fn run(
         to_do: todo.len(),
         already_done,
     });
-    let (tx, rx) = tokio::sync::mpsc::channel::<Job>(2);
+    let (tx, rx) = tokio::sync::mpsc::channel::<Work>(2);
+    // Drift references: the dataset-wide number of the next one, and the schedule.
+    let mut next_reference = dataset.references().last().map_or(0, |r| r.number + 1);
+    let mut schedule = opts.reference_schedule;
+    let mut reference_overhead = 0.0;
+    let mut measured_since_reference = false;
     let failed = Arc::new(AtomicBool::new(false));
     let store = {
         let rig = rig.clone();
@@ -246,6 +281,26 @@ pub async fn run(
         let Some((policy, camera_config)) = &setup else {
             break;
         };
+        if let Some(rp) = opts
+            .references
+            .as_ref()
+            .filter(|rp| schedule.due(rig.time(), rp.every_s))
+        {
+            match take_reference(&rig, rp, next_reference, policy, camera_config, &lamp, &tx).await {
+                Ok(Some(spent)) => {
+                    next_reference += 1;
+                    reference_overhead += spent;
+                    schedule.last_at = Some(rig.time());
+                    last_end = Some(rig.time());
+                }
+                Ok(None) => break, // store thread ended (failed): its error is reported below
+                Err(e) => {
+                    drive_err = Some(e);
+                    break;
+                }
+            }
+        }
+        measured_since_reference = true;
         let (order, step) = todo[k];
         // A flown segment is one step of the drive loop: its poses still to measure, flown
         // together; a pause waits for the segment's end.
@@ -327,10 +382,25 @@ pub async fn run(
                 camera_temperature_c,
             };
             let index = job.step.index;
-            if tx.send(job).await.is_err() {
+            if tx.send(Work::Measure(Box::new(job))).await.is_err() {
                 break; // store thread ended (failed): its error is reported below
             }
             observer(&RunEvent::Captured { index });
+        }
+    }
+    // A closing reference, so the run's last measurements lie between two references.
+    if let (Some(rp), Some((policy, camera_config)), None, false) =
+        (&opts.references, &setup, &drive_err, failed.load(Ordering::SeqCst))
+    {
+        if measured_since_reference {
+            match take_reference(&rig, rp, next_reference, policy, camera_config, &lamp, &tx).await {
+                Ok(Some(spent)) => {
+                    reference_overhead += spent;
+                    schedule.last_at = Some(rig.time());
+                }
+                Ok(None) => {}
+                Err(e) => drive_err = Some(e),
+            }
         }
     }
     if setup.is_some() {
@@ -370,8 +440,45 @@ pub async fn run(
             },
             lamp_drift_warnings: lamp.warnings(),
             lamp_identity,
+            references: ReferenceStats {
+                taken: stats.references,
+                overhead_s: reference_overhead,
+                warnings: stats.reference_warnings,
+                last_at: schedule.last_at,
+            },
         },
     ))
+}
+
+/// Drive one drift reference and hand it to the store thread. `Ok(None)`: the store
+/// thread has ended (its error is reported by the caller); else the rig seconds it took.
+async fn take_reference(
+    rig: &Rig,
+    rp: &reference::ReferencePlan,
+    number: usize,
+    policy: &CapturePolicy,
+    camera_config: &CameraConfig,
+    lamp: &lamp::LampWatch,
+    tx: &tokio::sync::mpsc::Sender<Work>,
+) -> Result<Option<f64>, EngineError> {
+    let (mut job, spent) = reference::drive(rig, rp, number, policy, camera_config).await?;
+    job.output_correction = match (rig.lamp_monitor.output_exponent, lamp.reference(), job.reading) {
+        (Some(k), Some(r0), Some(r)) if r0.current_a > 0.0 && r.current_a > 0.0 => {
+            Some((r.current_a / r0.current_a).powf(k))
+        }
+        _ => None,
+    };
+    tracing::info!(
+        reference = number,
+        rig_time_s = job.rig_time,
+        seconds = spent,
+        "drift reference: pair {} and a dark frame",
+        rp.step.index
+    );
+    if tx.send(Work::Reference(Box::new(job))).await.is_err() {
+        return Ok(None);
+    }
+    Ok(Some(spent))
 }
 
 /// After the rig is prepared (lamp on, settled): the lamp's reference reading and its
@@ -475,6 +582,8 @@ struct StoreStats {
     error: ErrorAccumulator,
     markers: usize,
     pose: usize,
+    references: usize,
+    reference_warnings: usize,
 }
 
 type StoreResult = Result<(Dataset, StoreStats), Box<(Dataset, EngineError)>>;
@@ -482,7 +591,7 @@ type StoreResult = Result<(Dataset, StoreStats), Box<(Dataset, EngineError)>>;
 fn store_loop(
     rig: Arc<Rig>,
     mut dataset: Dataset,
-    mut rx: tokio::sync::mpsc::Receiver<Job>,
+    mut rx: tokio::sync::mpsc::Receiver<Work>,
     opts: RunOptions,
     failed: Arc<AtomicBool>,
     observer: Observer,
@@ -494,6 +603,8 @@ fn store_loop(
         error: ErrorAccumulator::default(),
         markers: 0,
         pose: 0,
+        references: 0,
+        reference_warnings: 0,
     };
     let (width, height) = (developer.params().width, developer.params().height);
     let noise = rig
@@ -508,7 +619,31 @@ fn store_loop(
     // The previous measurement, developed, whose files and journal line are written while
     // this one develops (see `commit`).
     let mut pending: Option<Pending> = None;
-    while let Some(job) = rx.blocking_recv() {
+    while let Some(work) = rx.blocking_recv() {
+        let job = match work {
+            Work::Measure(job) => *job,
+            Work::Reference(r) => {
+                // The measurement before it is committed first: the reference's place in
+                // the journal (`stored_before`) is then exact.
+                if let Some(p) = pending.take() {
+                    match commit(&mut dataset, p, &observer) {
+                        Ok(t) => {
+                            stats.times.store += t;
+                            stats.stored += 1;
+                        }
+                        Err(e) => return fail(dataset, e),
+                    }
+                }
+                match store_reference(&rig, &mut dataset, &developer, *r, &opts, &observer) {
+                    Ok(warned) => {
+                        stats.references += 1;
+                        stats.reference_warnings += warned as usize;
+                    }
+                    Err(e) => return fail(dataset, e),
+                }
+                continue;
+            }
+        };
         let index = job.step.index;
         let pose = rig.kinematics.camera_pose(&job.q_read);
         // The lamp position from the same (corrected) kinematics as the camera pose.
@@ -665,6 +800,74 @@ fn store_loop(
         }
     }
     Ok((dataset, stats))
+}
+
+/// Develop a reference and its dark frame with the measurements' chain, take the mean of
+/// their difference, store both (`Dataset::store_reference`) and tell the observer.
+/// Returns whether its drift exceeded the threshold (logged as a warning).
+fn store_reference(
+    rig: &Rig,
+    dataset: &mut Dataset,
+    developer: &Developer,
+    job: reference::ReferenceJob,
+    opts: &RunOptions,
+    observer: &Observer,
+) -> Result<bool, EngineError> {
+    let index = job.step.index;
+    let pose = rig.kinematics.camera_pose(&job.q_read);
+    let lamp = rig.kinematics.light_position(&job.q_read);
+    let develop = |frame: &Frame| match developer.develop(frame, &pose, lamp, job.exposure_scale) {
+        Ok(d) => {
+            let mut img = d.rectified.image;
+            if let Some(f) = job.output_correction {
+                let k = (1.0 / f) as f32;
+                img.data.iter_mut().for_each(|v| *v *= k);
+            }
+            Ok(img)
+        }
+        Err(DevelopError::Rectify(message)) => Err(EngineError::Rectify { index, message }),
+        Err(source) => Err(EngineError::Calibration { index, source }),
+    };
+    let (image, dark) = rayon::join(|| develop(&job.frame), || develop(&job.dark));
+    let (image, dark) = (image?, dark?);
+    let rec = ReferenceRecord {
+        number: 0,
+        run: 0,
+        rig_time_s: job.rig_time,
+        duration_s: job.duration_s,
+        stored_before: 0,
+        after_index: None,
+        pair_index: index,
+        light_deg: job.step.light_deg,
+        view_deg: job.step.view_deg,
+        exposure_s: job.frame.meta.exposure,
+        gain: job.frame.meta.gain,
+        mean: reference::dark_subtracted_mean(&image, &dark),
+        ratio: [1.0; 3],
+        image: String::new(),
+        image_sha256: String::new(),
+        dark: String::new(),
+        dark_sha256: String::new(),
+    };
+    let stored = dataset
+        .store_reference(rec, &image, &dark)
+        .map_err(|source| EngineError::Store { index, source })?;
+    let threshold = opts.references.as_ref().map_or(f64::INFINITY, |r| r.drift_threshold);
+    let warned = stored.drift() > threshold;
+    if warned {
+        tracing::warn!(
+            reference = stored.number,
+            "optical drift beyond {:.1} %: the reference pair reads {:.4} / {:.4} / {:.4} (R/G/B) of the first reference; \
+             `gonio dataset drift {} --correct --out NEW` corrects it",
+            threshold * 100.0,
+            stored.ratio[0],
+            stored.ratio[1],
+            stored.ratio[2],
+            dataset.dir().display()
+        );
+    }
+    observer(&RunEvent::Reference { record: &stored });
+    Ok(warned)
 }
 
 /// A developed measurement on its way to the dataset.

@@ -17,7 +17,7 @@ mod summary;
 
 pub mod preflight;
 pub use preflight::Preflight;
-pub use summary::{peak_rss_mib, AdaptiveSummary, Summary};
+pub use summary::{peak_rss_mib, AdaptiveSummary, ReferenceSummary, Summary};
 
 use crate::calibrate::apply::{load_dir, load_files, AppliedCalibration, LoadError, LoadedResult};
 use crate::develop::rectify::RectifyParams;
@@ -27,7 +27,7 @@ use crate::plan::adaptive::{
     analysis_row, analysis_texels, AdaptiveInfo, AdaptiveRequest, AdaptiveStop, AdaptiveTuning,
 };
 use crate::plan::sparse::{units_key, SparseDesign, SparseRequest, SparseTarget};
-use crate::plan::{Plan, PlanError, PlanOptions};
+use crate::plan::{Plan, PlanError, PlanOptions, Step};
 use crate::rig::{Rig, RigBuildError};
 use gonio_dataset::shard::ShardInfo;
 use gonio_dataset::store::{self, Dataset, ManifestHeader, StoreError};
@@ -106,6 +106,60 @@ pub struct RunSettings {
     pub raw: bool,
     #[serde(default)]
     pub store_truth: bool,
+    /// Drift references (`--reference-every`, `--reference-pair`); the manifest keeps
+    /// them, so `--resume` continues the same schedule. Absent: none (and the manifest's
+    /// bytes are those of a run without the feature).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<ReferenceSettings>,
+}
+
+/// When and what the drift references measure (see `crate::engine::reference`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReferenceSettings {
+    /// Minutes of rig time between references (`--reference-every`), finite and > 0.
+    pub every_min: f64,
+    /// The reference pair as [light index, view index] into the sweep
+    /// (`--reference-pair`); `None` asks for the plan's first measured step, and the
+    /// created dataset records which pair that was.
+    #[serde(default)]
+    pub pair: Option<[usize; 2]>,
+}
+
+impl ReferenceSettings {
+    /// The reference pair's step of `plan`, checking the settings (the flag names are
+    /// the CLI's: the settings come from there or from a manifest they wrote).
+    pub fn resolve(&self, plan: &Plan) -> Result<(Step, [usize; 2]), String> {
+        if !(self.every_min.is_finite() && self.every_min > 0.0) {
+            return Err(format!(
+                "--reference-every {}: must be a finite number of minutes > 0 (e.g. 30); \
+                 leave the flag out to take no references",
+                self.every_min
+            ));
+        }
+        let step = match self.pair {
+            None => plan.steps.first().ok_or_else(|| {
+                "--reference-every: the plan measures no pair, so there is no reference pair".to_string()
+            })?,
+            Some([l, v]) => {
+                if l >= plan.light_count || v * plan.light_count.max(1) >= plan.pairs.max(1) {
+                    return Err(format!(
+                        "--reference-pair {l},{v}: the sweep has light indices 0..{} and view indices 0..{}",
+                        plan.light_count,
+                        plan.pairs / plan.light_count.max(1)
+                    ));
+                }
+                let index = v * plan.light_count + l;
+                plan.steps.iter().find(|s| s.index == index).ok_or_else(|| {
+                    format!(
+                        "--reference-pair {l},{v}: pair {index} is not measured by this plan (skipped as \
+                         infeasible, or left out by a sparse design); choose a measured pair, or leave the \
+                         flag out for the plan's first"
+                    )
+                })?
+            }
+        };
+        Ok((step.clone(), [step.light_index, step.view_index]))
+    }
 }
 
 /// How to plan a new session.
@@ -357,6 +411,27 @@ impl Session {
                 .into_fly(&rig, &new.plan.options, fly)
                 .map_err(SessionError::Plan)?,
         };
+        // Drift references: the pair resolved in the final plan and recorded, so a resumed
+        // run measures the same one.
+        let mut settings = settings;
+        if let Some(r) = settings.reference.as_mut() {
+            let invalid = |message: String| SessionError::Invalid {
+                dir: out.clone(),
+                message,
+            };
+            if new.shard.is_some() {
+                return Err(invalid(
+                    "--reference-every with --shard: each shard would track its own drift and `gonio merge` \
+                     does not join references; acquire with references in one process"
+                        .into(),
+                ));
+            }
+            let (_, pair) = r.resolve(&plan).map_err(invalid)?;
+            rig.light_settle_s()
+                .map_err(|e| invalid(format!("rig `{}`: {e}", rig.name)))?;
+            r.pair = Some(pair);
+            header.extra["run_settings"] = serde_json::json!(settings);
+        }
         let dataset = Dataset::create(&new.out, &header, new.force).map_err(|source| SessionError::Create {
             dir: out.clone(),
             source: Box::new(source),
@@ -576,11 +651,38 @@ impl Session {
             corrections,
             truth_k,
         );
-        let opts = RunOptions {
+        let references = match &settings.reference {
+            None => None,
+            Some(r) => {
+                let invalid = |message: String| SessionError::Invalid {
+                    dir: name.clone(),
+                    message,
+                };
+                let (step, _) = r.resolve(&plan).map_err(invalid)?;
+                Some(engine::reference::ReferencePlan {
+                    every_s: r.every_min * 60.0,
+                    step,
+                    // One home for the setting, `light.options.settle_s`: a driver that
+                    // switches a real lamp waits it itself (the HMP supply does); the
+                    // simulated lamp does not, so the engine charges it to the rig clock.
+                    settle_s: if rig_spec.light.backend == "sim" {
+                        rig_spec
+                            .light_settle_s()
+                            .map_err(|e| invalid(format!("rig `{}`: {e}", rig_spec.name)))?
+                    } else {
+                        0.0
+                    },
+                    drift_threshold: rig.lamp_monitor.drift_threshold,
+                })
+            }
+        };
+        let mut opts = RunOptions {
             developer: Arc::new(developer),
             raw_frames: settings.raw,
             truth: settings.truth,
             store_truth: settings.store_truth,
+            references,
+            reference_schedule: Default::default(),
         };
         let store_err = |what: String, source: StoreError| SessionError::Store {
             dir: name.clone(),
@@ -654,6 +756,7 @@ impl Session {
                 source: Box::new(source),
             })?;
             dataset = ds;
+            opts.reference_schedule.last_at = report.references.last_at;
             report.already_done -= others.len().min(report.already_done);
             if let Some(l) = limit_left.as_mut() {
                 *l = l.saturating_sub(report.stored_this_run);
@@ -713,6 +816,13 @@ impl Session {
             calibration.as_deref(),
         );
         summary.fly = summary::FlySummary::from_records(dataset.records());
+        if let Some(r) = &settings.reference {
+            summary.references = Some(summary::ReferenceSummary::new(
+                r,
+                dataset.references(),
+                &report.references,
+            ));
+        }
         if let Some(ad) = plan.adaptive() {
             summary.complete &= ad.finished.is_some();
             summary.adaptive = Some(summary::AdaptiveSummary::new(ad, analysis_wall_s));
@@ -761,6 +871,10 @@ fn add_reports(mut a: engine::RunReport, b: engine::RunReport) -> engine::RunRep
     if b.lamp_identity.is_some() {
         a.lamp_identity = b.lamp_identity;
     }
+    a.references.taken += b.references.taken;
+    a.references.overhead_s += b.references.overhead_s;
+    a.references.warnings += b.references.warnings;
+    a.references.last_at = b.references.last_at.or(a.references.last_at);
     a
 }
 
@@ -990,6 +1104,7 @@ mod tests {
                 seed: None,
                 raw: false,
                 store_truth: false,
+                reference: None,
             },
             calibration: None,
             shard: None,

@@ -64,6 +64,46 @@ pub struct Summary {
     /// and go (`gonio acquire --fly`), over the whole dataset (resumed runs included).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fly: Option<FlySummary>,
+    /// Drift references (`gonio acquire --reference-every`): how many, their cost and the
+    /// largest drift, over the whole dataset (resumed runs included).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub references: Option<ReferenceSummary>,
+}
+
+/// What the drift references found (see `crate::engine::reference`).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct ReferenceSummary {
+    /// Minutes of rig time between references.
+    pub every_min: f64,
+    /// The reference pair: [light index, view index] into the sweep.
+    pub pair: [usize; 2],
+    /// References in the dataset, and taken by this run.
+    pub count: usize,
+    pub this_run: usize,
+    /// Rig seconds this run's references took (moves, exposures, light settle times).
+    pub overhead_s: f64,
+    /// Largest relative change of any channel against the first reference (0.03 = 3 %).
+    pub largest_drift: f64,
+    /// References whose drift exceeded the threshold (`light.options.drift_threshold`).
+    pub drift_warnings: usize,
+}
+
+impl ReferenceSummary {
+    pub fn new(
+        settings: &super::ReferenceSettings,
+        all: &[gonio_dataset::store::ReferenceRecord],
+        run: &crate::engine::ReferenceStats,
+    ) -> ReferenceSummary {
+        ReferenceSummary {
+            every_min: settings.every_min,
+            pair: settings.pair.unwrap_or_default(),
+            count: all.len(),
+            this_run: run.taken,
+            overhead_s: run.overhead_s,
+            largest_drift: all.iter().map(|r| r.drift()).fold(0.0, f64::max),
+            drift_warnings: run.warnings,
+        }
+    }
 }
 
 /// What a fly-scan did, read from the journal's records (`extra.flight`).
@@ -179,6 +219,7 @@ impl Summary {
             lamp_identity: report.lamp_identity.clone(),
             adaptive: None,
             fly: None,
+            references: None,
         }
     }
 }

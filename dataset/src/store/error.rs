@@ -113,6 +113,10 @@ pub enum StoreError {
         reason: String,
     },
 
+    /// The images or values handed to `Dataset::store_reference` are inconsistent.
+    #[error("cannot store a drift reference in {}: {reason} (the dataset is unchanged)", path.display())]
+    InvalidReference { path: PathBuf, reason: String },
+
     /// The header handed to `Dataset::create` is inconsistent.
     #[error("invalid manifest header for {}: {reason}", path.display())]
     InvalidHeader { path: PathBuf, reason: String },

@@ -18,6 +18,8 @@
 
 use super::error::StoreError;
 use super::manifest::MeasurementRecord;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 use std::fs::File;
 use std::io::{Seek, SeekFrom, Write};
 use std::path::Path;
@@ -27,8 +29,9 @@ const MIDDLE: &[u8] = b"\",\"rec\":";
 /// Bytes before the payload: prefix, 8 hex digits, middle.
 const HEAD_LEN: usize = PREFIX.len() + 8 + MIDDLE.len();
 
-/// Serialise a record as one journal line, newline included.
-pub fn encode_line(rec: &MeasurementRecord) -> Result<Vec<u8>, serde_json::Error> {
+/// Serialise a record as one journal line, newline included. Generic so other append-only
+/// files of a dataset (`references.jsonl`) share the line format and its CRC.
+pub fn encode_line<T: Serialize>(rec: &T) -> Result<Vec<u8>, serde_json::Error> {
     let payload = serde_json::to_vec(rec)?;
     let crc = crc32fast::hash(&payload);
     let mut line = Vec::with_capacity(HEAD_LEN + payload.len() + 2);
@@ -41,7 +44,7 @@ pub fn encode_line(rec: &MeasurementRecord) -> Result<Vec<u8>, serde_json::Error
 }
 
 /// Parse one line (without its newline).
-pub fn decode_line(line: &[u8]) -> Result<MeasurementRecord, String> {
+pub fn decode_line<T: DeserializeOwned>(line: &[u8]) -> Result<T, String> {
     if line.len() < HEAD_LEN + 1 || !line.starts_with(PREFIX) {
         return Err("not a journal line (missing {\"crc\":\"…\",\"rec\": prefix)".into());
     }
@@ -71,20 +74,30 @@ pub struct TornTail {
     pub reason: String,
 }
 
-/// Result of reading a whole journal.
-#[derive(Debug, Default)]
-pub struct Scan {
+/// Result of reading a whole journal (of measurement records unless said otherwise).
+#[derive(Debug)]
+pub struct Scan<T = MeasurementRecord> {
     /// Valid records in file order, with their 1-based line numbers.
-    pub records: Vec<(usize, MeasurementRecord)>,
+    pub records: Vec<(usize, T)>,
     /// The last line, if damaged (crash mid-append).
     pub torn: Option<TornTail>,
     /// The last line is valid but its newline is missing.
     pub missing_newline: bool,
 }
 
+impl<T> Default for Scan<T> {
+    fn default() -> Self {
+        Scan {
+            records: Vec::new(),
+            torn: None,
+            missing_newline: false,
+        }
+    }
+}
+
 /// Read and check every line. Damage on the last line is reported in
 /// [`Scan::torn`]; damage anywhere else is [`StoreError::CorruptJournal`].
-pub fn scan(path: &Path, dataset: &Path) -> Result<Scan, StoreError> {
+pub fn scan<T: DeserializeOwned>(path: &Path, dataset: &Path) -> Result<Scan<T>, StoreError> {
     let bytes = match std::fs::read(path) {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -100,7 +113,7 @@ pub fn scan(path: &Path, dataset: &Path) -> Result<Scan, StoreError> {
     scan_bytes(&bytes, path)
 }
 
-pub(crate) fn scan_bytes(bytes: &[u8], path: &Path) -> Result<Scan, StoreError> {
+pub(crate) fn scan_bytes<T: DeserializeOwned>(bytes: &[u8], path: &Path) -> Result<Scan<T>, StoreError> {
     let mut scan = Scan::default();
     let mut lines: Vec<(u64, &[u8])> = Vec::new();
     let mut start = 0usize;
@@ -188,14 +201,14 @@ mod tests {
         // Valid JSON as a whole, as promised.
         let v: serde_json::Value = serde_json::from_slice(body).unwrap();
         assert_eq!(v["rec"]["index"], 7);
-        assert_eq!(decode_line(body).unwrap(), rec);
+        assert_eq!(decode_line::<MeasurementRecord>(body).unwrap(), rec);
         // Flip one digit inside the payload: still JSON, but the CRC catches it.
         let mut damaged = body.to_vec();
         let pos = damaged.windows(9).position(|w| w == b"\"index\":7").unwrap();
         damaged[pos + 8] = b'8';
-        let err = decode_line(&damaged).unwrap_err();
+        let err = decode_line::<MeasurementRecord>(&damaged).unwrap_err();
         assert!(err.contains("CRC mismatch"), "{err}");
         // Cut short.
-        assert!(decode_line(&body[..body.len() / 2]).is_err());
+        assert!(decode_line::<MeasurementRecord>(&body[..body.len() / 2]).is_err());
     }
 }

@@ -13,6 +13,8 @@
 //!   plan.json         the executed plan (written once at creation; `--resume` follows it)
 //!   truth/NNNNN.exr   optional exact rectified ground truth of simulated rigs (`--store-truth`)
 //!   calibration/KIND.json  copies of the calibration results applied (`--calibration`)
+//!   references.jsonl  optional drift references (`--reference-every`), see `reference.rs`
+//!   reference/NNNNN.exr, reference/NNNNN-dark.exr  their reference and dark images
 //! ```
 //!
 //! [`Dataset`] writes every one of these files (one writer): the plan as opaque bytes (the
@@ -63,6 +65,7 @@
 //! JPEGs for interop tests (`tests/interop/check_ubo2003.py`).
 
 pub mod atomic;
+pub mod drift;
 mod error;
 pub mod export;
 pub mod exr_io;
@@ -70,6 +73,7 @@ pub mod import_ubo2003;
 mod journal;
 mod manifest;
 pub mod provenance;
+pub mod reference;
 pub mod verify;
 
 #[cfg(test)]
@@ -82,6 +86,7 @@ pub use export::{
 };
 pub use exr_io::{decode_exr, encode_exr, read_exr, write_exr, COMPRESSION as EXR_COMPRESSION};
 pub use manifest::{LampRecord, ManifestHeader, MeasurementRecord, MeasurementStatus};
+pub use reference::{ReferenceRecord, REFERENCES_FILE, REFERENCE_DIR};
 pub use verify::{verify, VerifyReport};
 
 use atomic::{remove_temp_files, sync_dir, sync_parent, write_atomic, DirLock, TMP_PREFIX};
@@ -153,6 +158,9 @@ pub struct RecoveryReport {
     pub dropped: Vec<(usize, String)>,
     /// Files without a journal line, removed.
     pub orphans_removed: Vec<PathBuf>,
+    /// Drift references dropped because a file was missing or damaged, or their line was
+    /// torn: (number, problem). The resumed run takes a reference of its own at its start.
+    pub references_dropped: Vec<(usize, String)>,
     /// Leftover temporary files, removed.
     pub temp_removed: Vec<PathBuf>,
 }
@@ -177,6 +185,12 @@ pub struct Dataset {
     /// Set when a failed journal append could not be rolled back.
     poisoned: Option<String>,
     recovery: RecoveryReport,
+    /// Drift references stored so far (`references.jsonl`), in order.
+    references: Vec<ReferenceRecord>,
+    /// `references.jsonl`, opened at the first reference of this process.
+    ref_journal: Option<Appender>,
+    /// This process's run number (see [`ReferenceRecord::run`]).
+    run: usize,
     _lock: DirLock,
 }
 
@@ -308,6 +322,9 @@ impl Dataset {
             manifest_complete: false,
             poisoned: None,
             recovery: RecoveryReport::default(),
+            references: Vec::new(),
+            ref_journal: None,
+            run: 0,
             _lock: lock,
         })
     }
@@ -324,7 +341,12 @@ impl Dataset {
         let mut report = RecoveryReport::default();
 
         // 1. Temporary files: nobody else writes (we hold the lock), so they are debris.
-        for sub in [dir.to_path_buf(), dir.join(IMAGES_DIR), dir.join(RAW_DIR)] {
+        for sub in [
+            dir.to_path_buf(),
+            dir.join(IMAGES_DIR),
+            dir.join(RAW_DIR),
+            dir.join(REFERENCE_DIR),
+        ] {
             report.temp_removed.extend(remove_temp_files(&sub, Some(dir))?);
         }
         for p in &report.temp_removed {
@@ -429,6 +451,9 @@ impl Dataset {
             }
         }
 
+        let (references, ref_journal) = resume_references(dir, &mut report)?;
+        let run = references.last().map_or(0, |r| r.run + 1);
+
         let header = manifest.header.clone();
         let ds = Dataset {
             dir: dir.to_path_buf(),
@@ -439,6 +464,9 @@ impl Dataset {
             manifest_complete: manifest.complete,
             poisoned: None,
             recovery: report,
+            references,
+            ref_journal,
+            run,
             _lock: lock,
         };
         Ok((ds, header, kept))
@@ -585,6 +613,131 @@ impl Dataset {
         self.indices.insert(rec.index);
         self.records.push(rec.clone());
         Ok(rec)
+    }
+
+    /// Store a drift reference (see [`reference`]): the reference pair's developed image
+    /// and the dark frame's, renamed into place, then its line appended to
+    /// `references.jsonl` and fsynced. The store fills in `number`, `run`,
+    /// `stored_before`, `after_index`, `ratio` (against the first reference) and the
+    /// files; the caller gives the rest. On error nothing is recorded.
+    pub fn store_reference(
+        &mut self,
+        mut rec: ReferenceRecord,
+        image: &RgbImage,
+        dark: &RgbImage,
+    ) -> Result<ReferenceRecord, StoreError> {
+        let dir = self.dir.clone();
+        let ds = Some(dir.as_path());
+        if let Some(reason) = &self.poisoned {
+            return Err(StoreError::Poisoned {
+                path: dir,
+                reason: reason.clone(),
+            });
+        }
+        let (w, h) = (self.header.image_width, self.header.image_height);
+        for (what, img) in [("reference", image), ("dark frame", dark)] {
+            if img.width != w || img.height != h || img.data.len() != w * h * 3 {
+                return Err(StoreError::InvalidReference {
+                    path: dir.clone(),
+                    reason: format!(
+                        "its {what} is {}×{} with {} values; the dataset's images are {w}×{h} RGB",
+                        img.width,
+                        img.height,
+                        img.data.len()
+                    ),
+                });
+            }
+        }
+        if !rec.mean.iter().all(|m| m.is_finite()) {
+            return Err(StoreError::InvalidReference {
+                path: dir.clone(),
+                reason: format!("its mean {:?} is not finite", rec.mean),
+            });
+        }
+        rec.number = self.references.last().map_or(0, |r| r.number + 1);
+        rec.run = self.run;
+        rec.stored_before = self.records.len();
+        rec.after_index = self.records.iter().rev().find(|r| r.image.is_some()).map(|r| r.index);
+        let first = self.references.first().map_or(rec.mean, |r| r.mean);
+        rec.ratio = std::array::from_fn(|c| if first[c] != 0.0 { rec.mean[c] / first[c] } else { 1.0 });
+        let rdir = dir.join(REFERENCE_DIR);
+        if !rdir.is_dir() {
+            fs::create_dir_all(&rdir).ctx("creating directory", &rdir, ds)?;
+            sync_dir(&dir, ds)?;
+        }
+        let mut written: Vec<PathBuf> = Vec::new();
+        let result = (|| -> Result<(), StoreError> {
+            for (rel, img, sha) in [
+                (reference::reference_rel_path(rec.number), image, &mut rec.image_sha256),
+                (reference::dark_rel_path(rec.number), dark, &mut rec.dark_sha256),
+            ] {
+                let path = dir.join(&rel);
+                let bytes = encode_exr(img, &path)?;
+                *sha = sha256_hex(&bytes);
+                write_atomic(&path, &bytes, ds)?;
+                written.push(path);
+            }
+            Ok(())
+        })();
+        let remove_written = |written: &[PathBuf]| {
+            for p in written {
+                let _ = fs::remove_file(p);
+            }
+        };
+        if let Err(e) = result {
+            remove_written(&written);
+            return Err(e);
+        }
+        rec.image = reference::reference_rel_path(rec.number);
+        rec.dark = reference::dark_rel_path(rec.number);
+        let rpath = dir.join(REFERENCES_FILE);
+        let line = match encode_line(&rec) {
+            Ok(l) => l,
+            Err(source) => {
+                remove_written(&written);
+                return Err(StoreError::Json { path: rpath, source });
+            }
+        };
+        if self.ref_journal.is_none() {
+            let opened = OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .open(&rpath)
+                .and_then(|f| {
+                    let len = f.metadata()?.len();
+                    Appender::new(f, len)
+                });
+            match opened {
+                Ok(a) => {
+                    sync_dir(&dir, ds)?;
+                    self.ref_journal = Some(a);
+                }
+                Err(e) => {
+                    remove_written(&written);
+                    return Err(StoreError::io("opening", &rpath, ds, e));
+                }
+            }
+        }
+        let appender = self.ref_journal.as_mut().expect("opened above");
+        if let Err((e, rolled_back)) = appender.append(&line) {
+            remove_written(&written);
+            if !rolled_back {
+                self.poisoned = Some(format!(
+                    "appending to {} failed ({e}) and the partial line could not be removed",
+                    rpath.display()
+                ));
+            }
+            return Err(StoreError::io("appending to", &rpath, ds, e));
+        }
+        self.references.push(rec.clone());
+        Ok(rec)
+    }
+
+    /// Drift references stored so far (including those found by `resume`), in order.
+    pub fn references(&self) -> &[ReferenceRecord] {
+        &self.references
     }
 
     /// Mark the dataset complete: rewrite `manifest.json` atomically with the header,
@@ -779,6 +932,148 @@ fn remove_orphans(dir: &Path, sub: &str, ext: &str, referenced: &HashSet<String>
         fs::remove_file(p).ctx("removing", p, Some(dir))?;
     }
     Ok(orphans)
+}
+
+/// Check a reference's files: where the store puts them and hashing as recorded.
+pub(crate) fn check_reference_files(dir: &Path, r: &ReferenceRecord) -> Option<String> {
+    for (rel, sha, expected, what) in [
+        (
+            &r.image,
+            &r.image_sha256,
+            reference::reference_rel_path(r.number),
+            "reference image",
+        ),
+        (
+            &r.dark,
+            &r.dark_sha256,
+            reference::dark_rel_path(r.number),
+            "dark frame",
+        ),
+    ] {
+        if *rel != expected {
+            return Some(format!("{what} path {rel:?} is not {expected:?}"));
+        }
+        match fs::read(dir.join(rel)) {
+            Ok(bytes) if sha256_hex(&bytes) == *sha => {}
+            Ok(_) => return Some(format!("{what} {rel} does not match its SHA-256")),
+            Err(e) => return Some(format!("{what} {rel} cannot be read: {e}")),
+        }
+    }
+    None
+}
+
+/// Files in `reference/` named like reference files (`<digits>.exr`, `<digits>-dark.exr`)
+/// that no record refers to.
+pub(crate) fn find_reference_orphans(dir: &Path, records: &[ReferenceRecord]) -> Result<Vec<PathBuf>, StoreError> {
+    let referenced: HashSet<String> = records.iter().flat_map(|r| [r.image.clone(), r.dark.clone()]).collect();
+    let d = dir.join(REFERENCE_DIR);
+    let entries = match fs::read_dir(&d) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(StoreError::io("listing", &d, Some(dir), e)),
+    };
+    let mut out = Vec::new();
+    for entry in entries {
+        let entry = entry.ctx("listing", &d, Some(dir))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(stem) = name.strip_suffix(".exr") else {
+            continue;
+        };
+        let stem = stem.strip_suffix("-dark").unwrap_or(stem);
+        if name.starts_with(TMP_PREFIX) || stem.is_empty() || !stem.bytes().all(|b| b.is_ascii_digit()) {
+            continue;
+        }
+        if !referenced.contains(&format!("{REFERENCE_DIR}/{name}")) {
+            out.push(entry.path());
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// `resume`'s repair of the drift references: cut a torn last line, drop references
+/// whose files are missing or damaged (rewriting the file without them), remove image
+/// files without a line. Returns the kept references and the open file to append to.
+fn resume_references(
+    dir: &Path,
+    report: &mut RecoveryReport,
+) -> Result<(Vec<ReferenceRecord>, Option<Appender>), StoreError> {
+    let rpath = dir.join(REFERENCES_FILE);
+    let scan: journal::Scan<ReferenceRecord> = match fs::read(&rpath) {
+        Ok(bytes) => journal::scan_bytes(&bytes, &rpath)?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => journal::Scan::default(),
+        Err(e) => return Err(StoreError::io("reading", &rpath, Some(dir), e)),
+    };
+    if let Some(t) = &scan.torn {
+        tracing::warn!(file = %rpath.display(), line = t.line, reason = %t.reason,
+            "resume: the last reference line is torn (crash while appending); removing it");
+        report
+            .references_dropped
+            .push((scan.records.len(), format!("torn line {}: {}", t.line, t.reason)));
+    }
+    let mut kept: Vec<ReferenceRecord> = Vec::new();
+    let mut changed = scan.torn.is_some() || scan.missing_newline;
+    for (_, r) in scan.records {
+        let expected = kept.last().map_or(0, |k| k.number + 1);
+        let problem = if r.number != expected {
+            Some(format!("its number {} is not the next one ({expected})", r.number))
+        } else {
+            check_reference_files(dir, &r)
+        };
+        match problem {
+            None => kept.push(r),
+            Some(p) => {
+                tracing::warn!(reference = r.number, problem = %p, "resume: dropping the drift reference");
+                report.references_dropped.push((r.number, p));
+                changed = true;
+            }
+        }
+    }
+    let orphans = find_reference_orphans(dir, &kept)?;
+    for p in &orphans {
+        tracing::warn!(file = %p.display(), "resume: removing a reference file that has no line");
+        fs::remove_file(p).ctx("removing", p, Some(dir))?;
+    }
+    report.orphans_removed.extend(orphans);
+    if !rpath.exists() {
+        return Ok((kept, None));
+    }
+    let mut len = fs::metadata(&rpath).ctx("reading", &rpath, Some(dir))?.len();
+    if changed {
+        let mut bytes = Vec::new();
+        for r in &kept {
+            bytes.extend(encode_line(r).map_err(|source| StoreError::Json {
+                path: rpath.clone(),
+                source,
+            })?);
+        }
+        write_atomic(&rpath, &bytes, Some(dir))?;
+        len = bytes.len() as u64;
+    }
+    let file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&rpath)
+        .ctx("opening", &rpath, Some(dir))?;
+    let appender = Appender::new(file, len).ctx("opening", &rpath, Some(dir))?;
+    Ok((kept, Some(appender)))
+}
+
+/// The drift references of the dataset at `dir` (read-only; a torn last line is ignored
+/// with a warning, as [`load`] does for the journal). Empty without `references.jsonl`.
+pub fn load_references(dir: &Path) -> Result<Vec<ReferenceRecord>, StoreError> {
+    let rpath = dir.join(REFERENCES_FILE);
+    let bytes = match fs::read(&rpath) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(StoreError::io("reading", &rpath, Some(dir), e)),
+    };
+    let scan: journal::Scan<ReferenceRecord> = journal::scan_bytes(&bytes, &rpath)?;
+    if let Some(t) = &scan.torn {
+        tracing::warn!(file = %rpath.display(), line = t.line, reason = %t.reason,
+            "ignoring the torn last reference line");
+    }
+    Ok(scan.records.into_iter().map(|(_, r)| r).collect())
 }
 
 /// Encode a raw frame as a 16-bit RGB PNG (values unscaled).

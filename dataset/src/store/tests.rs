@@ -347,7 +347,7 @@ fn duplicate_journal_entries_keep_the_first() {
     assert_eq!(journal_lines(&dir).len(), 3);
     // A duplicate line written by other means: the first is kept.
     let lines = journal_lines(&dir);
-    let mut dup = journal::decode_line(lines[1].as_bytes()).unwrap();
+    let mut dup = journal::decode_line::<MeasurementRecord>(lines[1].as_bytes()).unwrap();
     dup.order = 99;
     let mut f = OpenOptions::new().append(true).open(dir.join(JOURNAL_FILE)).unwrap();
     f.write_all(&journal::encode_line(&dup).unwrap()).unwrap();
@@ -845,4 +845,85 @@ fn force_replaces_the_debris_of_an_interrupted_create() {
         Dataset::create(&d, &header(8, 8), true),
         Err(StoreError::NotADataset { .. })
     ));
+}
+
+fn reference_rec(mean: f64, t: f64) -> ReferenceRecord {
+    ReferenceRecord {
+        number: 0,
+        run: 0,
+        rig_time_s: t,
+        duration_s: 5.0,
+        stored_before: 0,
+        after_index: None,
+        pair_index: 0,
+        light_deg: [0.0, 0.0],
+        view_deg: [30.0, 0.0],
+        exposure_s: 0.05,
+        gain: 1.0,
+        mean: [mean; 3],
+        ratio: [1.0; 3],
+        image: String::new(),
+        image_sha256: String::new(),
+        dark: String::new(),
+        dark_sha256: String::new(),
+    }
+}
+
+/// Drift references: stored after their files, numbered, placed in the journal, their
+/// ratio against the first; resume removes a reference's files without a line and cuts a
+/// torn line, numbers the next run; verify re-hashes them; the factors interpolate in rig
+/// time between references of one run and hold across a run boundary.
+#[test]
+fn references_are_stored_resumed_verified_and_interpolated() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    let mut ds = three(&dir);
+    let img = gradient(16, 8, 1);
+    let dark = gradient(16, 8, 2);
+    let a = ds.store_reference(reference_rec(0.5, 10.0), &img, &dark).unwrap();
+    assert_eq!((a.number, a.run, a.stored_before, a.ratio), (0, 0, 3, [1.0; 3]));
+    let b = ds.store_reference(reference_rec(0.55, 20.0), &img, &dark).unwrap();
+    assert_eq!(b.number, 1);
+    assert!((b.ratio[0] - 1.1).abs() < 1e-12 && (b.drift() - 0.1).abs() < 1e-12);
+    drop(ds);
+    // A reference killed between its files and its line, and a torn line.
+    std::fs::copy(dir.join("reference/00001.exr"), dir.join("reference/00002.exr")).unwrap();
+    let mut f = OpenOptions::new().append(true).open(dir.join(REFERENCES_FILE)).unwrap();
+    f.write_all(b"{\"crc\":\"0000").unwrap();
+    drop(f);
+    let v = verify(&dir).unwrap();
+    assert_eq!(v.references_ok, 2);
+    assert!(
+        v.references_torn_line.is_some() && v.orphans.len() == 1 && v.is_ok(),
+        "{v}"
+    );
+    let (mut ds, _, _) = Dataset::resume(&dir).unwrap();
+    assert_eq!(ds.references().len(), 2);
+    assert!(!dir.join("reference/00002.exr").exists());
+    assert_eq!(ds.recovery().references_dropped.len(), 1);
+    let c = ds.store_reference(reference_rec(0.5, 1.0), &img, &dark).unwrap();
+    assert_eq!((c.number, c.run), (2, 1), "the resumed run numbers on");
+    assert!(verify(&dir).unwrap().is_clean());
+    assert_eq!(load_references(&dir).unwrap().len(), 3);
+
+    // Factors: records at journal positions 0..3 lie before reference 0 (stored_before 3).
+    let mut refs = load_references(&dir).unwrap();
+    refs[0].stored_before = 1;
+    refs[1].stored_before = 3;
+    refs[2].stored_before = 3;
+    let mut records: Vec<MeasurementRecord> = (0..4)
+        .map(|i| {
+            let mut r = rec(i, i, [0.0, 0.0], [0.0, 0.0]);
+            r.image = Some(image_rel_path(i));
+            r.rig_time_s = 5.0 * i as f64;
+            r
+        })
+        .collect();
+    records[1].rig_time_s = 15.0;
+    let f = drift::factors(&records, &refs);
+    assert_eq!(f[0].as_ref().unwrap().references, [0, 0], "before any: the first");
+    let mid = f[1].as_ref().unwrap();
+    assert_eq!(mid.references, [0, 1]);
+    assert!((mid.weight - 0.5).abs() < 1e-12 && (mid.ratio[0] - 1.05).abs() < 1e-12);
+    assert_eq!(f[3].as_ref().unwrap().references, [2, 2]);
 }

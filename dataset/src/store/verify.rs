@@ -7,7 +7,11 @@
 use super::atomic::TMP_PREFIX;
 use super::error::StoreError;
 use super::manifest::{read_manifest, MeasurementStatus};
-use super::{check_record_files, dedupe, find_orphans, journal, IMAGES_DIR, JOURNAL_FILE, RAW_DIR};
+use super::reference::{ReferenceRecord, REFERENCES_FILE, REFERENCE_DIR};
+use super::{
+    check_record_files, check_reference_files, dedupe, find_orphans, find_reference_orphans, journal, IMAGES_DIR,
+    JOURNAL_FILE, RAW_DIR,
+};
 use rayon::prelude::*;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -42,6 +46,17 @@ pub struct VerifyReport {
     pub torn_line: Option<(usize, String)>,
     /// The manifest says complete but its records differ from the journal's.
     pub manifest_stale: bool,
+    /// Drift references in `references.jsonl` (`--reference-every`) whose two images
+    /// matched their SHA-256.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub references_ok: usize,
+    /// The last line of `references.jsonl` is torn: (line, reason).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub references_torn_line: Option<(usize, String)>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 impl VerifyReport {
@@ -54,7 +69,11 @@ impl VerifyReport {
 
     /// [`is_ok`](Self::is_ok) and no debris at all.
     pub fn is_clean(&self) -> bool {
-        self.is_ok() && self.orphans.is_empty() && self.temp_files.is_empty() && self.torn_line.is_none()
+        self.is_ok()
+            && self.orphans.is_empty()
+            && self.temp_files.is_empty()
+            && self.torn_line.is_none()
+            && self.references_torn_line.is_none()
     }
 }
 
@@ -74,6 +93,9 @@ impl std::fmt::Display for VerifyReport {
             self.raw_ok,
             self.bytes_hashed as f64 / 1e6
         )?;
+        if self.references_ok > 0 {
+            write!(f, "; {} drift references verified", self.references_ok)?;
+        }
         for d in &self.damaged {
             write!(f, "\n  damaged: {d}")?;
         }
@@ -88,6 +110,9 @@ impl std::fmt::Display for VerifyReport {
         }
         if let Some((line, reason)) = &self.torn_line {
             write!(f, "\n  torn last journal line {line}: {reason}")?;
+        }
+        if let Some((line, reason)) = &self.references_torn_line {
+            write!(f, "\n  torn last line {line} of {REFERENCES_FILE}: {reason}")?;
         }
         for p in &self.orphans {
             write!(f, "\n  orphan (no journal line): {}", p.display())?;
@@ -158,7 +183,30 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, StoreError> {
         .collect();
     rep.orphans.extend(find_orphans(dir, IMAGES_DIR, "exr", &referenced)?);
     rep.orphans.extend(find_orphans(dir, RAW_DIR, "png", &referenced)?);
-    for sub in [dir.to_path_buf(), dir.join(IMAGES_DIR), dir.join(RAW_DIR)] {
+    // Drift references: every line's two images, and their orphans.
+    let rpath = dir.join(REFERENCES_FILE);
+    let refs: Vec<ReferenceRecord> = match std::fs::read(&rpath) {
+        Ok(bytes) => {
+            let scan: journal::Scan<ReferenceRecord> = journal::scan_bytes(&bytes, &rpath)?;
+            rep.references_torn_line = scan.torn.as_ref().map(|t| (t.line, t.reason.clone()));
+            scan.records.into_iter().map(|(_, r)| r).collect()
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(StoreError::io("reading", &rpath, Some(dir), e)),
+    };
+    for r in &refs {
+        match check_reference_files(dir, r) {
+            Some(p) => rep.damaged.push(format!("reference {}: {p}", r.number)),
+            None => rep.references_ok += 1,
+        }
+    }
+    rep.orphans.extend(find_reference_orphans(dir, &refs)?);
+    for sub in [
+        dir.to_path_buf(),
+        dir.join(IMAGES_DIR),
+        dir.join(RAW_DIR),
+        dir.join(REFERENCE_DIR),
+    ] {
         if let Ok(entries) = std::fs::read_dir(&sub) {
             for e in entries.flatten() {
                 if e.file_name().to_string_lossy().starts_with(TMP_PREFIX) {

@@ -1,0 +1,309 @@
+//! `gonio dataset drift`: the drift references' series, and a drift-corrected copy.
+//!
+//! A measurement between references a and b (by its place in the journal, see
+//! [`ReferenceRecord::stored_before`]) of the same run gets the ratio interpolated
+//! linearly in rig time, r = (1 − w)·r_a + w·r_b, w = (t − t_a)/(t_b − t_a) clamped to
+//! [0, 1], and the dark frame d interpolated with the same w, per texel. A measurement
+//! whose next reference belongs to another run (the run was killed before its closing
+//! reference: a resumed rig's clock restarts, so times of two runs do not compare) keeps
+//! its last reference's ratio; one before any reference, the first reference's.
+//!
+//! The stored values include the dark signal unless a dark calibration was applied (then
+//! the developed dark frames are ≈ 0), so the correction scales the signal only:
+//! v' = (v − d) / r + d, per channel. The copy keeps the dataset's unit and dark level.
+//!
+//! The original is never modified: the copy is a new dataset (`Dataset::create`, every
+//! file written atomically), its records carry `extra.drift_correction` (the factor per
+//! channel and the references it came from), its manifest `extra.drift_correction` (the
+//! source and the method). Raw frames are left out (they are the camera's numbers, not
+//! corrected values); stored truths, the plan and calibration copies are copied, so the
+//! copy can be compared with the truth and resumed readers find what they expect.
+
+use super::error::StoreError;
+use super::journal;
+use super::manifest::{read_manifest, MeasurementRecord, MeasurementStatus};
+use super::reference::ReferenceRecord;
+use super::{dedupe, load_references, read_exr, Dataset, JOURNAL_FILE, PLAN_FILE};
+use gonio_devices::image::RgbImage;
+use serde::Serialize;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// Why a drift series or correction could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum DriftError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(
+        "{}: no drift references (references.jsonl is missing or empty); acquire with \
+         `gonio acquire --reference-every MINUTES` to track drift",
+        dir.display()
+    )]
+    NoReferences { dir: PathBuf },
+    #[error("--out {}: it is the source dataset itself; the original is never modified, choose another directory", out.display())]
+    SameDirectory { out: PathBuf },
+}
+
+/// The factor of one measurement: the interpolated ratio and where it came from.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Factor {
+    /// Per channel: stored value's signal / the first reference's level.
+    pub ratio: [f64; 3],
+    /// The references interpolated between (equal when one was used alone).
+    pub references: [usize; 2],
+    /// Weight of the second reference.
+    pub weight: f64,
+}
+
+/// The factor of every record (journal order) from the references.
+pub fn factors(records: &[MeasurementRecord], refs: &[ReferenceRecord]) -> Vec<Option<Factor>> {
+    records
+        .iter()
+        .enumerate()
+        .map(|(pos, r)| {
+            r.image.as_ref()?;
+            let a = refs.iter().rev().find(|x| x.stored_before <= pos);
+            let b = refs.iter().find(|x| x.stored_before > pos);
+            let one = |x: &ReferenceRecord| Factor {
+                ratio: x.ratio,
+                references: [x.number, x.number],
+                weight: 0.0,
+            };
+            Some(match (a, b) {
+                (Some(a), Some(b)) if a.run == b.run => {
+                    let span = b.rig_time_s - a.rig_time_s;
+                    let w = if span > 0.0 {
+                        ((r.rig_time_s - a.rig_time_s) / span).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                    Factor {
+                        ratio: std::array::from_fn(|c| (1.0 - w) * a.ratio[c] + w * b.ratio[c]),
+                        references: [a.number, b.number],
+                        weight: w,
+                    }
+                }
+                (Some(a), _) => one(a),
+                (None, Some(b)) => one(b),
+                (None, None) => return None,
+            })
+        })
+        .collect()
+}
+
+/// The records of a dataset's journal in journal order (first occurrence of each index).
+fn journal_records(dir: &Path) -> Result<Vec<MeasurementRecord>, StoreError> {
+    let scan: journal::Scan = journal::scan(&dir.join(JOURNAL_FILE), dir)?;
+    Ok(dedupe(scan.records).0)
+}
+
+/// The drift series of a dataset (`gonio dataset drift DIR`).
+#[derive(Clone, Debug, Serialize)]
+pub struct DriftSeries {
+    pub dir: PathBuf,
+    pub references: Vec<ReferenceRecord>,
+    /// Largest relative change of any channel against the first reference.
+    pub largest_drift: f64,
+    /// Measurements with an image, and the range of their factors (per channel min, max).
+    pub measurements: usize,
+    pub factor_min: [f64; 3],
+    pub factor_max: [f64; 3],
+}
+
+/// Read the references of the dataset at `dir` and the factors they give.
+pub fn series(dir: &Path) -> Result<DriftSeries, DriftError> {
+    read_manifest(dir)?;
+    let references = load_references(dir)?;
+    if references.is_empty() {
+        return Err(DriftError::NoReferences { dir: dir.to_path_buf() });
+    }
+    let records = journal_records(dir)?;
+    let f: Vec<Factor> = factors(&records, &references).into_iter().flatten().collect();
+    let mut factor_min = [f64::INFINITY; 3];
+    let mut factor_max = [f64::NEG_INFINITY; 3];
+    for x in &f {
+        for c in 0..3 {
+            factor_min[c] = factor_min[c].min(x.ratio[c]);
+            factor_max[c] = factor_max[c].max(x.ratio[c]);
+        }
+    }
+    Ok(DriftSeries {
+        dir: dir.to_path_buf(),
+        largest_drift: references.iter().map(|r| r.drift()).fold(0.0, f64::max),
+        references,
+        measurements: f.len(),
+        factor_min,
+        factor_max,
+    })
+}
+
+/// What [`correct`] did.
+#[derive(Clone, Debug, Serialize)]
+pub struct CorrectReport {
+    pub source: PathBuf,
+    pub out: PathBuf,
+    pub corrected: usize,
+    /// Records copied without an image (skipped pairs).
+    pub copied_without_image: usize,
+    pub references: usize,
+    pub factor_min: [f64; 3],
+    pub factor_max: [f64; 3],
+    /// With stored truths (`--store-truth`): PSNR (dB, values clamped to [0, 1]) of the
+    /// images against them before and after the correction.
+    pub truth_psnr_before_db: Option<f64>,
+    pub truth_psnr_after_db: Option<f64>,
+    /// With stored truths: the relative mean absolute error Σ|x − t| / Σ|t| before and
+    /// after. A drift is a bias of every texel; PSNR, weighted to the largest errors
+    /// (edges, highlights), sees it less.
+    pub truth_rel_mae_before: Option<f64>,
+    pub truth_rel_mae_after: Option<f64>,
+}
+
+/// Errors against a truth, values clamped to [0, 1] as the acquisition's truth error:
+/// summed squared error, summed absolute error, summed |truth|.
+#[derive(Clone, Copy, Default)]
+struct Sums {
+    sq: f64,
+    abs: f64,
+    truth: f64,
+    n: usize,
+}
+
+impl Sums {
+    fn add(&mut self, a: &RgbImage, t: &RgbImage) {
+        for (x, y) in a.data.iter().zip(&t.data) {
+            let (x, y) = (x.clamp(0.0, 1.0) as f64, y.clamp(0.0, 1.0) as f64);
+            self.sq += (x - y) * (x - y);
+            self.abs += (x - y).abs();
+            self.truth += y;
+        }
+        self.n += a.data.len();
+    }
+
+    fn psnr(&self) -> Option<f64> {
+        (self.n > 0).then(|| -10.0 * (self.sq / self.n as f64).max(1e-30).log10())
+    }
+
+    fn rel_mae(&self) -> Option<f64> {
+        (self.n > 0 && self.truth > 0.0).then(|| self.abs / self.truth)
+    }
+}
+
+/// Write a drift-corrected copy of the dataset at `src` to `out` (see the module docs).
+/// `force` replaces a gonio dataset at `out`.
+pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, DriftError> {
+    if let (Ok(a), Ok(b)) = (src.canonicalize(), out.canonicalize()) {
+        if a == b {
+            return Err(DriftError::SameDirectory { out: out.to_path_buf() });
+        }
+    }
+    let manifest = read_manifest(src)?;
+    let refs = load_references(src)?;
+    if refs.is_empty() {
+        return Err(DriftError::NoReferences { dir: src.to_path_buf() });
+    }
+    let records = journal_records(src)?;
+    let factors = factors(&records, &refs);
+    let mut header = manifest.header.clone();
+    header.raw_frames = false;
+    header.extra["drift_correction"] = serde_json::json!({
+        "source_references": refs.len(),
+        "method": "v' = (v - d) / r + d per channel; r and the dark frame d interpolated linearly \
+                   in rig time between the references around each measurement",
+    });
+    let mut ds = Dataset::create(out, &header, force)?;
+    let plan_path = src.join(PLAN_FILE);
+    match std::fs::read(&plan_path) {
+        Ok(plan) => ds.write_plan(&plan)?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(StoreError::io("reading", &plan_path, Some(src), e).into()),
+    }
+    if let Some(list) = manifest.header.extra.get("calibrations").and_then(|v| v.as_array()) {
+        for e in list {
+            if let (Some(kind), Some(file)) = (
+                e.get("kind").and_then(|k| k.as_str()),
+                e.get("file").and_then(|f| f.as_str()),
+            ) {
+                let path = src.join(file);
+                let bytes = std::fs::read(&path).map_err(|e| StoreError::io("reading", &path, Some(src), e))?;
+                ds.store_calibration_copy(kind, &bytes)?;
+            }
+        }
+    }
+    let mut darks: HashMap<usize, RgbImage> = HashMap::new();
+    let mut dark = |n: usize| -> Result<RgbImage, StoreError> {
+        if let Some(d) = darks.get(&n) {
+            return Ok(d.clone());
+        }
+        let d = read_exr(&src.join(&refs[n].dark))?;
+        darks.insert(n, d.clone());
+        Ok(d)
+    };
+    let mut report = CorrectReport {
+        source: src.to_path_buf(),
+        out: out.to_path_buf(),
+        corrected: 0,
+        copied_without_image: 0,
+        references: refs.len(),
+        factor_min: [f64::INFINITY; 3],
+        factor_max: [f64::NEG_INFINITY; 3],
+        truth_psnr_before_db: None,
+        truth_psnr_after_db: None,
+        truth_rel_mae_before: None,
+        truth_rel_mae_after: None,
+    };
+    let (mut before, mut after) = (Sums::default(), Sums::default());
+    for (rec, f) in records.into_iter().zip(factors) {
+        let (Some(rel), Some(f)) = (rec.image.clone(), f) else {
+            report.copied_without_image += 1;
+            ds.store(rec, None, None)?;
+            continue;
+        };
+        let mut img = read_exr(&src.join(&rel))?;
+        let original = img.clone();
+        let predicted = matches!(rec.status, MeasurementStatus::Predicted { .. });
+        if !predicted {
+            let (da, db) = (dark(f.references[0])?, dark(f.references[1])?);
+            let w = f.weight as f32;
+            for (i, v) in img.data.iter_mut().enumerate() {
+                let d = (1.0 - w) * da.data[i] + w * db.data[i];
+                *v = (*v - d) / f.ratio[i % 3] as f32 + d;
+            }
+            for c in 0..3 {
+                report.factor_min[c] = report.factor_min[c].min(f.ratio[c]);
+                report.factor_max[c] = report.factor_max[c].max(f.ratio[c]);
+            }
+        }
+        let mut rec = rec;
+        rec.extra["drift_correction"] = serde_json::json!({
+            "factor": if predicted { [1.0; 3] } else { f.ratio },
+            "references": f.references,
+            "weight": f.weight,
+        });
+        if let Some(t) = rec
+            .extra
+            .get("truth_image")
+            .and_then(|t| t.as_str())
+            .map(str::to_string)
+        {
+            let truth = read_exr(&src.join(&t))?;
+            before.add(&original, &truth);
+            after.add(&img, &truth);
+            ds.store_truth(rec.index, &truth)?;
+        }
+        ds.store(rec, Some(&img), None)?;
+        report.corrected += 1;
+    }
+    report.truth_psnr_before_db = before.psnr();
+    report.truth_psnr_after_db = after.psnr();
+    report.truth_rel_mae_before = before.rel_mae();
+    report.truth_rel_mae_after = after.rel_mae();
+    if manifest.complete {
+        let mut summary = manifest.summary.clone();
+        if summary.is_object() {
+            summary["drift_corrected"] = serde_json::json!(true);
+        }
+        ds.finish(&summary)?;
+    }
+    Ok(report)
+}
