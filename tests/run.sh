@@ -81,14 +81,24 @@ bash tests/browser/run.sh
 # emulated Zaber stages checked against the fake's pattern, the fake killed mid-run) and the
 # gphoto2 backend (feature `gphoto2`) against libgphoto2's vusb virtual camera
 # (tests/gphoto2/: the backend's tests, capture/download/delete/decode, an acquisition).
-# One build for both: the two scripts build with the same features (GONIO_LAB_FEATURES), so
-# the lab build of gonio, the backends' lint and gonio-devices' test build are compiled
-# once, by the first script, and the second finds them fresh. Mandatory under CI;
+# One build for all three camera backends: the scripts build with the same features
+# (GONIO_LAB_FEATURES), so the lab build of gonio, the backends' lint and gonio-devices'
+# test build are compiled once, by the first script, and the others (gphoto2, then the
+# V4L2 stage below) find them fresh. The V4L2 stage once built gonio a second time with
+# the default features plus `v4l2`, for nothing its VM runs needs. Mandatory under CI;
 # elsewhere a script whose prerequisites are missing is skipped with a notice (and its
 # feature is left out of the shared build).
 disk
-stage "lab cameras (genicam, gphoto2): one lab build with both features"
+stage "lab cameras (genicam, gphoto2): one lab build with every camera feature"
+# The V4L2 stage's prerequisites (below): apt-get for its VM's packages, libclang for the
+# `v4l2` feature's bindgen.
+vivid_ready() {
+  command -v apt-get >/dev/null && { [ -n "$(ls /usr/lib/llvm-*/lib/libclang-[0-9]*.so* 2>/dev/null)" ] || [ -n "${LIBCLANG_PATH:-}" ]; }
+}
 lab_features=()
+if vivid_ready; then
+  lab_features+=(v4l2)
+fi
 if [ -n "${CI:-}" ] || { command -v arv-fake-gv-camera-0.8 >/dev/null && pkg-config --exists aravis-0.8 2>/dev/null; }; then
   lab_features+=(genicam)
 fi
@@ -108,7 +118,7 @@ echo "lab cameras: $(($(date +%s) - lab_start)) s wall (features: ${GONIO_LAB_FE
 # notice when those are missing.
 disk
 stage "vivid (V4L2 backend in a VM)"
-if command -v apt-get >/dev/null && { [ -n "$(ls /usr/lib/llvm-*/lib/libclang-[0-9]*.so* 2>/dev/null)" ] || [ -n "${LIBCLANG_PATH:-}" ]; }; then
+if vivid_ready; then
   bash tests/vivid/run.sh
 elif [ -n "${CI:-}" ]; then
   echo "vivid: apt-get or libclang missing under CI (.ci/run installs libclang-dev)" >&2

@@ -4,7 +4,7 @@
 #
 #  1. builds gonio (the lab build) with `--features genicam` once and lints the backend
 #     with the feature on (the workspace lint of tests/run.sh has it off). With
-#     GONIO_LAB_FEATURES (tests/run.sh sets `genicam,gphoto2`) every cargo command here
+#     GONIO_LAB_FEATURES (tests/run.sh sets `v4l2,genicam,gphoto2`) every cargo command here
 #     uses those features instead, as tests/gphoto2/run.sh does: whichever script runs
 #     second finds the lab build, the lint and the test build fresh;
 #  2. the backend's unit tests and devices/tests/genicam_fake.rs (exposure read-back, the

@@ -7,7 +7,7 @@
 # libgphoto2 2.5.34 that has it. So:
 #  1. builds and lints gonio-devices with --features gphoto2 against the system
 #     libgphoto2-dev (the headers and the link). With GONIO_LAB_FEATURES (tests/run.sh sets
-#     `genicam,gphoto2`) every cargo command here uses those features instead, as
+#     `v4l2,genicam,gphoto2`) every cargo command here uses those features instead, as
 #     tests/genicam/run.sh does, so the two share one lab build of gonio, one lint and one
 #     test build of gonio-devices;
 #  2. `pip download gphoto2==2.6.4 --no-deps` into a temporary folder and unpacks it

@@ -120,6 +120,20 @@ KERNEL=$TREE/boot/vmlinuz-$KVER
 MODDIR=$TREE/lib/modules/$KVER
 
 # --- 2. gonio's check program ------------------------------------------------------------
+# Features: GONIO_LAB_FEATURES when it has `v4l2` (tests/run.sh: the lab build of the
+# camera stage before this one, in the same target dir, so every build below is fresh but
+# the check program); else `v4l2` alone, with gonio's default features.
+LAB=""
+case ",${GONIO_LAB_FEATURES:-}," in
+  *,v4l2,*) LAB=1 ;;
+esac
+if [ -n "$LAB" ]; then
+  FEATURES=$GONIO_LAB_FEATURES
+  GONIO_BUILD=(-p gonio --no-default-features --features "$FEATURES")
+else
+  FEATURES=v4l2
+  GONIO_BUILD=(-p gonio --features v4l2)
+fi
 # Locally a separate target dir keeps target/debug/gonio the default build. Under CI this is
 # the last step, so it shares target/: the dependencies tests/run.sh already built are not
 # built a second time (that took over 10 minutes of a CI run). GONIO_VIVID_TARGET_DIR overrides.
@@ -127,13 +141,15 @@ if [ -n "${GONIO_VIVID_TARGET_DIR:-}" ]; then
   export CARGO_TARGET_DIR=$GONIO_VIVID_TARGET_DIR
 elif [ -n "${CI:-}" ]; then
   export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target}
+elif [ -n "$LAB" ]; then
+  export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$ROOT/target/lab}
 else
   export CARGO_TARGET_DIR=$ROOT/target/v4l2
 fi
-log "building v4l2_check (feature v4l2, target dir $CARGO_TARGET_DIR)"
-cargo build -q -p gonio-devices --features v4l2 --example v4l2_check || die "cargo build of v4l2_check failed (needs libclang-dev)"
+log "building v4l2_check (features $FEATURES, target dir $CARGO_TARGET_DIR)"
+cargo build -q -p gonio-devices --features "$FEATURES" --example v4l2_check || die "cargo build of v4l2_check failed (needs libclang-dev)"
 # The backend's host-side unit tests (conversions, MJPEG, freshness rule, error mapping).
-unit=$(cargo test -q -p gonio-devices --features v4l2 --lib v4l2:: 2>&1) || {
+unit=$(cargo test -q -p gonio-devices --features "$FEATURES" --lib v4l2:: 2>&1) || {
   echo "$unit" | tail -40 >&2
   die "v4l2 unit tests failed"
 }
@@ -145,8 +161,8 @@ CHECK=$CARGO_TARGET_DIR/debug/examples/v4l2_check
 # feature; VIVID_ACQUIRE=0 skips them.
 GONIO_BIN=""
 if [ "${VIVID_ACQUIRE:-1}" != 0 ]; then
-  log "building gonio --features v4l2 (target dir $CARGO_TARGET_DIR)"
-  cargo build -q --bin gonio --features v4l2 || die "cargo build of gonio --features v4l2 failed"
+  log "building ${GONIO_BUILD[*]} (target dir $CARGO_TARGET_DIR)"
+  cargo build -q "${GONIO_BUILD[@]}" --bin gonio || die "cargo build ${GONIO_BUILD[*]} --bin gonio failed"
   GONIO_BIN=$CARGO_TARGET_DIR/debug/gonio
 fi
 
