@@ -114,6 +114,40 @@ pub const PLAN_FILE: &str = "plan.json";
 pub const TRUTH_DIR: &str = "truth";
 pub const CALIBRATION_DIR: &str = "calibration";
 
+/// Remove the files written for a record that will not be recorded (best effort: only its
+/// line makes a file part of the dataset, and resume removes orphans).
+fn remove_files(paths: &[PathBuf]) {
+    for p in paths {
+        let _ = fs::remove_file(p);
+    }
+}
+
+/// The last step of storing a record (a measurement's in `journal.jsonl`, a drift
+/// reference's in `references.jsonl`) whose files `written` are already renamed into place:
+/// append its line to `appender` (the file `path`) and fsync. On failure the files are
+/// removed, so nothing is recorded; a partial line that could not be rolled back poisons
+/// the store, which then refuses every further write.
+fn append_record_line(
+    appender: &mut Appender,
+    line: &[u8],
+    path: &Path,
+    ds: Option<&Path>,
+    written: &[PathBuf],
+    poisoned: &mut Option<String>,
+) -> Result<(), StoreError> {
+    if let Err((e, rolled_back)) = appender.append(line) {
+        remove_files(written);
+        if !rolled_back {
+            *poisoned = Some(format!(
+                "appending to {} failed ({e}) and the partial line could not be removed",
+                path.display()
+            ));
+        }
+        return Err(StoreError::io("appending to", path, ds, e));
+    }
+    Ok(())
+}
+
 /// Relative path of the stored ground truth of measurement `index`.
 pub fn truth_rel_path(index: usize) -> String {
     format!("{TRUTH_DIR}/{index:05}.exr")
@@ -582,13 +616,8 @@ impl Dataset {
             }
             Ok(())
         })();
-        let remove_written = |written: &[PathBuf]| {
-            for p in written {
-                let _ = fs::remove_file(p);
-            }
-        };
         if let Err(e) = result {
-            remove_written(&written);
+            remove_files(&written);
             return Err(e);
         }
 
@@ -596,20 +625,11 @@ impl Dataset {
         let line = match encode_line(&rec) {
             Ok(l) => l,
             Err(source) => {
-                remove_written(&written);
+                remove_files(&written);
                 return Err(StoreError::Json { path: jpath, source });
             }
         };
-        if let Err((e, rolled_back)) = self.journal.append(&line) {
-            remove_written(&written);
-            if !rolled_back {
-                self.poisoned = Some(format!(
-                    "appending to {} failed ({e}) and the partial line could not be removed",
-                    jpath.display()
-                ));
-            }
-            return Err(StoreError::io("appending to", &jpath, ds, e));
-        }
+        append_record_line(&mut self.journal, &line, &jpath, ds, &written, &mut self.poisoned)?;
         self.indices.insert(rec.index);
         self.records.push(rec.clone());
         Ok(rec)
@@ -679,13 +699,8 @@ impl Dataset {
             }
             Ok(())
         })();
-        let remove_written = |written: &[PathBuf]| {
-            for p in written {
-                let _ = fs::remove_file(p);
-            }
-        };
         if let Err(e) = result {
-            remove_written(&written);
+            remove_files(&written);
             return Err(e);
         }
         rec.image = reference::reference_rel_path(rec.number);
@@ -694,7 +709,7 @@ impl Dataset {
         let line = match encode_line(&rec) {
             Ok(l) => l,
             Err(source) => {
-                remove_written(&written);
+                remove_files(&written);
                 return Err(StoreError::Json { path: rpath, source });
             }
         };
@@ -715,22 +730,13 @@ impl Dataset {
                     self.ref_journal = Some(a);
                 }
                 Err(e) => {
-                    remove_written(&written);
+                    remove_files(&written);
                     return Err(StoreError::io("opening", &rpath, ds, e));
                 }
             }
         }
         let appender = self.ref_journal.as_mut().expect("opened above");
-        if let Err((e, rolled_back)) = appender.append(&line) {
-            remove_written(&written);
-            if !rolled_back {
-                self.poisoned = Some(format!(
-                    "appending to {} failed ({e}) and the partial line could not be removed",
-                    rpath.display()
-                ));
-            }
-            return Err(StoreError::io("appending to", &rpath, ds, e));
-        }
+        append_record_line(appender, &line, &rpath, ds, &written, &mut self.poisoned)?;
         self.references.push(rec.clone());
         Ok(rec)
     }
