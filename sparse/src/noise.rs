@@ -66,23 +66,11 @@ mod tests {
     #[test]
     fn gamma_variance_follows_the_curve_and_stays_finite_at_black() {
         let g = |x: f64| x.max(0.0).powf(1.0 / 2.2);
-        // Deterministic normal draws (Box–Muller on a splitmix sequence).
-        let mut state = 7u64;
-        let mut uni = || {
-            state = state.wrapping_add(0x9e3779b97f4a7c15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58476d1ce4e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d049bb133111eb);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let mut normal = || {
-            let (a, b) = (uni().max(1e-300), uni());
-            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-        };
+        let mut rng = crate::Normal::new(7);
         for &x in &[0.0, 1e-4, 0.01, 0.2, 0.9] {
             let v = sensor(x);
             let n = 20000;
-            let draws: Vec<f64> = (0..n).map(|_| g(x + v.sqrt() * normal())).collect();
+            let draws: Vec<f64> = (0..n).map(|_| g(x + v.sqrt() * rng.sample())).collect();
             let mean = draws.iter().sum::<f64>() / n as f64;
             let mc = draws.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / n as f64;
             let ours = model_var(ValueSpace::Gamma, x, v);
