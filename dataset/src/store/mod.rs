@@ -907,6 +907,18 @@ pub(crate) fn find_orphans(
     ext: &str,
     referenced: &HashSet<String>,
 ) -> Result<Vec<PathBuf>, StoreError> {
+    find_orphans_named(dir, sub, ext, &[], referenced)
+}
+
+/// [`find_orphans`] for store files whose stem may also end in one of `suffixes`
+/// (`<digits><suffix>.<ext>`, as a reference's `-dark` frame).
+fn find_orphans_named(
+    dir: &Path,
+    sub: &str,
+    ext: &str,
+    suffixes: &[&str],
+    referenced: &HashSet<String>,
+) -> Result<Vec<PathBuf>, StoreError> {
     let d = dir.join(sub);
     let entries = match fs::read_dir(&d) {
         Ok(e) => e,
@@ -920,6 +932,7 @@ pub(crate) fn find_orphans(
         let Some(stem) = name.strip_suffix(&format!(".{ext}")) else {
             continue;
         };
+        let stem = suffixes.iter().find_map(|s| stem.strip_suffix(s)).unwrap_or(stem);
         if name.starts_with(TMP_PREFIX) || stem.is_empty() || !stem.bytes().all(|b| b.is_ascii_digit()) {
             continue;
         }
@@ -972,29 +985,7 @@ pub(crate) fn check_reference_files(dir: &Path, r: &ReferenceRecord) -> Option<S
 /// that no record refers to.
 pub(crate) fn find_reference_orphans(dir: &Path, records: &[ReferenceRecord]) -> Result<Vec<PathBuf>, StoreError> {
     let referenced: HashSet<String> = records.iter().flat_map(|r| [r.image.clone(), r.dark.clone()]).collect();
-    let d = dir.join(REFERENCE_DIR);
-    let entries = match fs::read_dir(&d) {
-        Ok(e) => e,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(e) => return Err(StoreError::io("listing", &d, Some(dir), e)),
-    };
-    let mut out = Vec::new();
-    for entry in entries {
-        let entry = entry.ctx("listing", &d, Some(dir))?;
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let Some(stem) = name.strip_suffix(".exr") else {
-            continue;
-        };
-        let stem = stem.strip_suffix("-dark").unwrap_or(stem);
-        if name.starts_with(TMP_PREFIX) || stem.is_empty() || !stem.bytes().all(|b| b.is_ascii_digit()) {
-            continue;
-        }
-        if !referenced.contains(&format!("{REFERENCE_DIR}/{name}")) {
-            out.push(entry.path());
-        }
-    }
-    out.sort();
-    Ok(out)
+    find_orphans_named(dir, REFERENCE_DIR, "exr", &["-dark"], &referenced)
 }
 
 /// `resume`'s repair of the drift references: cut a torn last line, drop references

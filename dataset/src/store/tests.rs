@@ -888,18 +888,23 @@ fn references_are_stored_resumed_verified_and_interpolated() {
     drop(ds);
     // A reference killed between its files and its line, and a torn line.
     std::fs::copy(dir.join("reference/00001.exr"), dir.join("reference/00002.exr")).unwrap();
+    std::fs::copy(
+        dir.join("reference/00001-dark.exr"),
+        dir.join("reference/00002-dark.exr"),
+    )
+    .unwrap();
     let mut f = OpenOptions::new().append(true).open(dir.join(REFERENCES_FILE)).unwrap();
     f.write_all(b"{\"crc\":\"0000").unwrap();
     drop(f);
     let v = verify(&dir).unwrap();
     assert_eq!(v.references_ok, 2);
     assert!(
-        v.references_torn_line.is_some() && v.orphans.len() == 1 && v.is_ok(),
+        v.references_torn_line.is_some() && v.orphans.len() == 2 && v.is_ok(),
         "{v}"
     );
     let (mut ds, _, _) = Dataset::resume(&dir).unwrap();
     assert_eq!(ds.references().len(), 2);
-    assert!(!dir.join("reference/00002.exr").exists());
+    assert!(!dir.join("reference/00002.exr").exists() && !dir.join("reference/00002-dark.exr").exists());
     assert_eq!(ds.recovery().references_dropped.len(), 1);
     let c = ds.store_reference(reference_rec(0.5, 1.0), &img, &dark).unwrap();
     assert_eq!((c.number, c.run), (2, 1), "the resumed run numbers on");
