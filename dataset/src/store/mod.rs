@@ -114,6 +114,20 @@ pub const PLAN_FILE: &str = "plan.json";
 pub const TRUTH_DIR: &str = "truth";
 pub const CALIBRATION_DIR: &str = "calibration";
 
+/// Rewrite a journal-format file (`journal.jsonl`, `references.jsonl`) atomically with only
+/// the `records` that `resume` keeps; returns the new length, where appending continues.
+fn rewrite_lines<T: serde::Serialize>(path: &Path, records: &[T], dir: &Path) -> Result<u64, StoreError> {
+    let mut bytes = Vec::new();
+    for r in records {
+        bytes.extend(encode_line(r).map_err(|source| StoreError::Json {
+            path: path.to_path_buf(),
+            source,
+        })?);
+    }
+    write_atomic(path, &bytes, Some(dir))?;
+    Ok(bytes.len() as u64)
+}
+
 /// Remove the files written for a record that will not be recorded (best effort: only its
 /// line makes a file part of the dataset, and resume removes orphans).
 fn remove_files(paths: &[PathBuf]) {
@@ -463,20 +477,13 @@ impl Dataset {
         // 6. If records were dropped, rewrite the journal without them, so a re-measured
         // index is not shadowed by its old line ("keep first") on the next resume.
         if !report.dropped.is_empty() || !report.duplicates.is_empty() {
-            let mut bytes = Vec::new();
-            for r in &kept {
-                bytes.extend(encode_line(r).map_err(|source| StoreError::Json {
-                    path: jpath.clone(),
-                    source,
-                })?);
-            }
-            write_atomic(&jpath, &bytes, Some(dir))?;
+            let len = rewrite_lines(&jpath, &kept, dir)?;
             let jfile = OpenOptions::new()
                 .read(true)
                 .write(true)
                 .open(&jpath)
                 .ctx("opening", &jpath, Some(dir))?;
-            journal = Appender::new(jfile, bytes.len() as u64).ctx("opening", &jpath, Some(dir))?;
+            journal = Appender::new(jfile, len).ctx("opening", &jpath, Some(dir))?;
         }
         for sub in [IMAGES_DIR, RAW_DIR] {
             let d = dir.join(sub);
@@ -1037,15 +1044,7 @@ fn resume_references(
     }
     let mut len = fs::metadata(&rpath).ctx("reading", &rpath, Some(dir))?.len();
     if changed {
-        let mut bytes = Vec::new();
-        for r in &kept {
-            bytes.extend(encode_line(r).map_err(|source| StoreError::Json {
-                path: rpath.clone(),
-                source,
-            })?);
-        }
-        write_atomic(&rpath, &bytes, Some(dir))?;
-        len = bytes.len() as u64;
+        len = rewrite_lines(&rpath, &kept, dir)?;
     }
     let file = OpenOptions::new()
         .read(true)
