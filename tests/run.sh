@@ -48,6 +48,12 @@ skips=()
 for c in "${campaigns[@]}"; do skips+=(--skip "$c"); done
 stage "cargo test"
 cargo test --workspace -- "${skips[@]}"
+# The stages below run the gonio binary this test build just linked (target/debug/gonio),
+# copied aside so that no later cargo call relinks it: a plain `cargo build` has other
+# features (the tests' dev-dependencies) and would compile gonio's crates a second time.
+mkdir -p target/ci-bin
+cp target/debug/gonio target/ci-bin/gonio
+export GONIO_BIN=$PWD/target/ci-bin/gonio
 disk
 stage "campaign figures (kill -9, storage, serial and camera faults)"
 # One test thread: the rows of a table must not interleave. -q prints progress dots in

@@ -17,8 +17,13 @@ if [ ! -x /usr/bin/chromium ] || ! (cd / && "$py" -c "import playwright, PIL, nu
   echo "browser: skipped (needs /usr/bin/chromium and Playwright in $py; run .ci/run)"
   exit 0
 fi
-cargo build -q -p gonio
-gonio="$PWD/target/debug/gonio"
+# GONIO_BIN: the binary the test stage already built (tests/run.sh exports it); else build.
+if [ -n "${GONIO_BIN:-}" ]; then
+  gonio=$GONIO_BIN
+else
+  cargo build -q -p gonio
+  gonio="$PWD/target/debug/gonio"
+fi
 scratch=$(mktemp -d)
 trap 'rm -rf "$scratch"' EXIT
 # A small simulated dataset (with its ground truth) and its PVMF, DFMF, local-PCA and PCA compressions.

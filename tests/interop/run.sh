@@ -16,8 +16,13 @@ if [ -z "${GONIO_PYTHON:-}" ]; then
   exit 0
 fi
 
-cargo build --quiet --bin gonio
-gonio=target/debug/gonio
+# GONIO_BIN: the binary the test stage already built (tests/run.sh exports it); else build.
+if [ -n "${GONIO_BIN:-}" ]; then
+  gonio=$GONIO_BIN
+else
+  cargo build --quiet --bin gonio
+  gonio=target/debug/gonio
+fi
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 cat > "$work/sweep.toml" <<'TOML'

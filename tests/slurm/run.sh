@@ -34,8 +34,13 @@ for tool in slurmctld slurmd sbatch squeue scontrol munged; do
 done
 [ "$(id -u)" = 0 ] || die "needs root (the one-node Slurm runs its daemons as root)"
 
-cargo build -q -p gonio --bin gonio
-GONIO=$ROOT/target/debug/gonio
+# GONIO_BIN: the binary the test stage already built (tests/run.sh exports it); else build.
+if [ -n "${GONIO_BIN:-}" ]; then
+  GONIO=$GONIO_BIN
+else
+  cargo build -q -p gonio --bin gonio
+  GONIO=$ROOT/target/debug/gonio
+fi
 
 S=$(mktemp -d /tmp/gonio-slurm.XXXXXX)
 PIDS=()
