@@ -429,6 +429,10 @@ impl Default for LampWarmup {
 /// The default settle time of a light after switching (s, `light.options.settle_s`).
 pub const DEFAULT_LIGHT_SETTLE_S: f64 = 1.0;
 
+/// A developed (linear) image's full scale: the value of a saturated pixel, which the
+/// rectifier's marker detector and the sparse completion treat as clipped.
+pub const FULL_SCALE: f64 = 1.0;
+
 /// The default relative drift that warns (2 %).
 pub const DEFAULT_LAMP_DRIFT: f64 = 0.02;
 
@@ -623,6 +627,14 @@ impl RigSpec {
     /// The HDR mode this rig runs with (`Off` without an `[hdr]` section).
     pub fn hdr_mode(&self) -> crate::hdr::HdrMode {
         self.hdr.as_ref().map_or(crate::hdr::HdrMode::Off, |h| h.mode())
+    }
+
+    /// The linear level at or above which this rig's stored readings were clipped: the
+    /// developed image's full scale ([`FULL_SCALE`]), or none when HDR merges brackets
+    /// (a merged reading has no fixed clip level). What a completion and the adaptive
+    /// analysis fit as lower bounds instead of values.
+    pub fn clip_level(&self) -> Option<f64> {
+        (self.hdr_mode() == crate::hdr::HdrMode::Off).then_some(FULL_SCALE)
     }
 
     /// The noise model of this rig's camera at its gain (the `[hdr]` section's sensor

@@ -188,15 +188,28 @@ pub struct RoundChoice {
     pub picks: Vec<DesignStep>,
 }
 
+/// What the analysis reads of the measured pairs.
+#[derive(Clone, Copy, Debug)]
+pub struct Readings<'a> {
+    /// The values of a sample of texel-channels (S × M, model space, rows in the order of
+    /// `measured`).
+    pub values: &'a DMatrix<f64>,
+    /// Each measured pair's measurement noise (model space, in the order of `measured`,
+    /// [`crate::noise::pair_noise`]).
+    pub noise: &'a [f64],
+    /// The clip level in model space: a value at or above it is a lower bound (a highlight
+    /// clipped at the sensor's full scale), fitted as the censored completion fits it
+    /// ([`Completion::impute_censored`]). `None`: nothing is clipped (HDR).
+    pub ceiling: Option<f64>,
+}
+
 /// Analyse the measured pairs and choose up to `n` more among `candidates`, by A-optimal
 /// gain plus `residual_weight` × the residual a pair's measurement would remove (0: the
 /// fixed design's continuation, the analysis then only predicts and flags).
 ///
-/// `prior` is the full prior (it is truncated to at most the pairs measured); `y` holds the
-/// measured values of a sample of texel-channels (S × M, model space, rows in the order of
-/// `measured`); `pair_noise` is each measured pair's measurement noise (model space, in the
-/// order of `measured`, [`crate::noise::pair_noise`]); `noise_var` is the noise the design
-/// assumes for the pairs not measured yet.
+/// `prior` is the full prior (it is truncated to at most the pairs measured); `readings`
+/// are the measured pairs' values, noise and clip level; `noise_var` is the noise the
+/// design assumes for the pairs not measured yet.
 ///
 /// The sensor's noise enters twice, as in the final completion
 /// ([`Completion::with_pair_noise`]): it weighs the analysis fit (a dark pair, far noisier
@@ -214,12 +227,12 @@ pub fn next_round(
     geom: &PairGeometry,
     candidates: &[usize],
     measured: &[usize],
-    y: &DMatrix<f64>,
-    pair_noise: &[f64],
+    readings: &Readings,
     noise_var: f64,
     residual_weight: f64,
     n: usize,
 ) -> Result<RoundChoice, SparseError> {
+    let (y, pair_noise) = (readings.values, readings.noise);
     let d = prior.dims();
     if geom.len() != d {
         return Err(SparseError::Invalid(format!(
@@ -248,7 +261,17 @@ pub fn next_round(
     p.header.residual_var = prior.header.residual_var;
     p.pair_residual_var.clone_from(&prior.pair_residual_var);
     let c = Completion::with_pair_noise(&p, measured, pair_noise)?;
-    let loo = loo_residuals(&c, y);
+    // A clipped reading is a lower bound: the residuals are those of the censored fit, as
+    // the final completion fits it. Taken as values, a highlight clipped at full scale read
+    // as a large residual at its pair and in its neighbourhood, and pulled the texel's
+    // whole fit down.
+    let loo = match readings.ceiling {
+        Some(ceiling) => loo_residuals(
+            &c,
+            &c.impute_censored(y, ceiling, crate::complete::CENSORED_ITERATIONS).0,
+        ),
+        None => loo_residuals(&c, y),
+    };
     // Against the truth: each reading's own noise out (never below zero).
     let against_truth: Vec<f64> = loo.iter().zip(pair_noise).map(|(r, v)| (r - v).max(0.0)).collect();
     let field = residual_field(geom, measured, &against_truth);
@@ -320,6 +343,15 @@ mod tests {
     use crate::prior::tests::toy;
     use crate::ValueSpace;
 
+    /// Unclipped readings (no ceiling).
+    fn read<'a>(values: &'a DMatrix<f64>, noise: &'a [f64]) -> Readings<'a> {
+        Readings {
+            values,
+            noise,
+            ceiling: None,
+        }
+    }
+
     fn grid(n: usize) -> Vec<[f64; 2]> {
         (0..n)
             .map(|i| [10.0 + 60.0 * i as f64 / n as f64, 37.0 * i as f64])
@@ -361,7 +393,7 @@ mod tests {
         }
         let y = truth.select_rows(&measured);
         let quiet = vec![1e-6; measured.len()];
-        let r = next_round(&p, &geom, &cand, &measured, &y, &quiet, nv, 1.0, 10).unwrap();
+        let r = next_round(&p, &geom, &cand, &measured, &read(&y, &quiet), nv, 1.0, 10).unwrap();
         assert!(r.outside_prior, "{r:?}");
         let unmeasured_bumped: Vec<usize> = bumped.iter().copied().filter(|q| !measured.contains(q)).collect();
         if !unmeasured_bumped.is_empty() {
@@ -427,8 +459,7 @@ mod tests {
             &geom,
             &cand,
             &measured,
-            &truth.select_rows(&measured),
-            &quiet,
+            &read(&truth.select_rows(&measured), &quiet),
             nv,
             1.0,
             5,
@@ -438,7 +469,7 @@ mod tests {
         assert!(r.predicted_mse.is_finite() && r.predicted_mse > 0.0);
         // Black texels: finite everything.
         let zero = DMatrix::<f64>::zeros(measured.len(), 3);
-        let r0 = next_round(&p, &geom, &cand, &measured, &zero, &quiet, nv, 1.0, 5).unwrap();
+        let r0 = next_round(&p, &geom, &cand, &measured, &read(&zero, &quiet), nv, 1.0, 5).unwrap();
         assert!(r0.predicted_mse.is_finite() && r0.picks.iter().all(|s| s.expected_mse.is_finite()));
         // A wrong row count is an error, not a panic.
         assert!(next_round(
@@ -446,18 +477,17 @@ mod tests {
             &geom,
             &cand,
             &measured,
-            &zero.rows(0, 3).into_owned(),
-            &quiet,
+            &read(&zero.rows(0, 3).into_owned(), &quiet),
             nv,
             1.0,
             5
         )
         .is_err());
         // So is a noise list of the wrong length or a negative noise.
-        assert!(next_round(&p, &geom, &cand, &measured, &zero, &quiet[1..], nv, 1.0, 5).is_err());
+        assert!(next_round(&p, &geom, &cand, &measured, &read(&zero, &quiet[1..]), nv, 1.0, 5).is_err());
         let mut bad = quiet.clone();
         bad[0] = -1.0;
-        assert!(next_round(&p, &geom, &cand, &measured, &zero, &bad, nv, 1.0, 5).is_err());
+        assert!(next_round(&p, &geom, &cand, &measured, &read(&zero, &bad), nv, 1.0, 5).is_err());
     }
 
     /// Noisy readings of a material the prior describes, a third of the pairs ten times
@@ -490,8 +520,18 @@ mod tests {
             truth[(measured[i], t)] + sd(measured[i]) * rng.sample()
         });
         let noise: Vec<f64> = measured.iter().map(|&q| sd(q) * sd(q)).collect();
-        let known = next_round(&p, &geom, &cand, &measured, &y, &noise, nv, 0.0, 5).unwrap();
-        let ignored = next_round(&p, &geom, &cand, &measured, &y, &vec![0.0; measured.len()], nv, 0.0, 5).unwrap();
+        let known = next_round(&p, &geom, &cand, &measured, &read(&y, &noise), nv, 0.0, 5).unwrap();
+        let ignored = next_round(
+            &p,
+            &geom,
+            &cand,
+            &measured,
+            &read(&y, &vec![0.0; measured.len()]),
+            nv,
+            0.0,
+            5,
+        )
+        .unwrap();
         // The completion the run ends with (every pair's own noise), against the truth.
         let c = Completion::with_pair_noise(&p, &measured, &noise).unwrap();
         let full = c.predict_all(&c.coefficients(&y));
@@ -513,6 +553,72 @@ mod tests {
             ignored.predicted_mse > 10.0 * true_mse,
             "ignoring the noise: predicted {:.3e}, true {true_mse:.3e}",
             ignored.predicted_mse
+        );
+    }
+
+    /// Readings of a material the prior describes, the brightest tenth clipped (a
+    /// highlight at full scale). Read as lower bounds, the analysis sees what it sees
+    /// without the clip; read as values, the clip's shortfall reads as prior error.
+    #[test]
+    fn clipped_readings_are_lower_bounds_not_prior_error() {
+        let (meta, rows) = toy(9, 500, 5, 41);
+        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
+        let d = 81;
+        let dirs = grid(9);
+        let geom = PairGeometry::new(&dirs, &dirs);
+        let (_, test) = toy(9, 512, 5, 42);
+        let truth = DMatrix::from_fn(d, 512, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
+        let nv = p.header.residual_var + 1e-6;
+        let cand: Vec<usize> = (0..d).collect();
+        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 30, nv)
+            .unwrap()
+            .iter()
+            .map(|s| s.pair)
+            .collect();
+        let quiet = vec![1e-6; measured.len()];
+        let exact = truth.select_rows(&measured);
+        let mut sorted: Vec<f64> = exact.iter().copied().collect();
+        sorted.sort_by(f64::total_cmp);
+        let ceiling = sorted[sorted.len() * 9 / 10];
+        let clipped = exact.map(|v| v.min(ceiling));
+        let run = |values: &DMatrix<f64>, ceiling: Option<f64>| {
+            let r = Readings {
+                values,
+                noise: &quiet,
+                ceiling,
+            };
+            next_round(&p, &geom, &cand, &measured, &r, nv, 1.0, 5).unwrap()
+        };
+        let unclipped = run(&exact, None);
+        let censored = run(&clipped, Some(ceiling));
+        let naive = run(&clipped, None);
+        // Measured here: observed residual 1.5e-6 unclipped, 1.4e-6 censored, 1.5e-4 read
+        // as values; predicted 3.8e-7, 2.5e-7 and 8.3e-5.
+        let show = |r: &RoundChoice| {
+            format!(
+                "observed {:.3e}, predicted {:.3e}",
+                r.observed_residual, r.predicted_mse
+            )
+        };
+        assert!(
+            !unclipped.outside_prior && !censored.outside_prior,
+            "{}",
+            show(&censored)
+        );
+        assert!(naive.outside_prior, "{}", show(&naive));
+        assert!(
+            censored.observed_residual < 2.0 * unclipped.observed_residual
+                && censored.predicted_mse < 4.0 * unclipped.predicted_mse,
+            "censored {} against unclipped {}",
+            show(&censored),
+            show(&unclipped)
+        );
+        assert!(
+            naive.observed_residual > 20.0 * unclipped.observed_residual
+                && naive.predicted_mse > 20.0 * unclipped.predicted_mse,
+            "read as values {} against unclipped {}",
+            show(&naive),
+            show(&unclipped)
         );
     }
 }

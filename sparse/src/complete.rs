@@ -323,29 +323,82 @@ impl<'a> Completion<'a> {
         let mut a = self.coefficients(y);
         let mut clipped = 0;
         for j in 0..y.ncols() {
-            let rows: Vec<usize> = (0..y.nrows()).filter(|&i| y[(i, j)] >= ceiling).collect();
-            if rows.is_empty() {
-                continue;
-            }
-            clipped += rows.len();
-            let mut yj = y.column(j).clone_owned();
-            for _ in 0..iterations {
-                let mut moved = 0f64;
-                for &i in &rows {
-                    let p = self.measured[i];
-                    let pred = (self.prior.basis.row(p) * a.column(j))[(0, 0)] + self.prior.mean[p];
-                    let v = pred.max(ceiling);
-                    moved = moved.max((v - yj[i]).abs());
-                    yj[i] = v;
-                }
-                let col = self.coefficients(&DMatrix::from_column_slice(yj.len(), 1, yj.as_slice()));
-                a.set_column(j, &col.column(0));
-                if moved <= 1e-9 * ceiling.abs().max(1.0) {
-                    break;
-                }
+            if let Some((_, aj, n)) = self.censored_column(y, &a, j, ceiling, iterations) {
+                a.set_column(j, &aj);
+                clipped += n;
             }
         }
         (a, clipped)
+    }
+
+    /// The values the censored fit ([`Self::coefficients_censored`]) ends on: `y` with
+    /// each clipped reading replaced by the larger of the ceiling and the fit's prediction
+    /// there. A linear analysis of these values (leave-one-out residuals) treats a clipped
+    /// reading as the lower bound it is: its residual is zero where the fit already
+    /// predicts at least the clip, and the shortfall below the clip otherwise. Returns the
+    /// values and the number of clipped readings.
+    pub fn impute_censored(&self, y: &DMatrix<f64>, ceiling: f64, iterations: usize) -> (DMatrix<f64>, usize) {
+        let a = self.coefficients(y);
+        let mut out = y.clone();
+        let mut clipped = 0;
+        for j in 0..y.ncols() {
+            if let Some((yj, _, n)) = self.censored_column(y, &a, j, ceiling, iterations) {
+                out.set_column(j, &yj);
+                clipped += n;
+            }
+        }
+        (out, clipped)
+    }
+
+    /// Column `j`'s censored fixed point from the uncensored coefficients `a`: its imputed
+    /// values, its coefficients and its number of clipped readings; `None` when nothing in
+    /// the column is clipped.
+    ///
+    /// The coefficients are linear in the readings (`a = W (y − μ_S) + offset`), so only the
+    /// `r` clipped readings move: with `W_R` the columns of `W` at them and `U_R` the basis
+    /// at their pairs, a change `δ` of those readings moves the coefficients by `W_R δ` and
+    /// the predictions there by `U_R W_R δ`. Each step of the fixed point is then an
+    /// `r × r` product instead of a whole solve (the analysis between adaptive rounds runs
+    /// it on every clipped texel-channel it reads).
+    fn censored_column(
+        &self,
+        y: &DMatrix<f64>,
+        a: &DMatrix<f64>,
+        j: usize,
+        ceiling: f64,
+        iterations: usize,
+    ) -> Option<(DVector<f64>, DVector<f64>, usize)> {
+        let rows: Vec<usize> = (0..y.nrows()).filter(|&i| y[(i, j)] >= ceiling).collect();
+        if rows.is_empty() {
+            return None;
+        }
+        let k = self.prior.components();
+        let w_r = self.w.select_columns(&rows);
+        let u_r = DMatrix::from_fn(rows.len(), k, |t, c| self.prior.basis[(self.measured[rows[t]], c)]);
+        let moves = &u_r * &w_r;
+        let a0 = a.column(j).clone_owned();
+        let mean = DVector::from_iterator(rows.len(), rows.iter().map(|&i| self.prior.mean[self.measured[i]]));
+        let pred0 = &u_r * &a0 + mean;
+        let y0 = DVector::from_iterator(rows.len(), rows.iter().map(|&i| y[(i, j)]));
+        let mut yr = y0.clone();
+        for _ in 0..iterations {
+            let pred = &pred0 + &moves * (&yr - &y0);
+            let mut moved = 0f64;
+            for (v, p) in yr.iter_mut().zip(pred.iter()) {
+                let next = p.max(ceiling);
+                moved = moved.max((next - *v).abs());
+                *v = next;
+            }
+            if moved <= 1e-9 * ceiling.abs().max(1.0) {
+                break;
+            }
+        }
+        let aj = a0 + &w_r * (&yr - &y0);
+        let mut yj = y.column(j).clone_owned();
+        for (t, &i) in rows.iter().enumerate() {
+            yj[i] = yr[t];
+        }
+        Some((yj, aj, rows.len()))
     }
 
     /// Log marginal likelihood of each column of `y` (S × M, model space, rows in the order
@@ -531,6 +584,10 @@ pub struct Holdout {
 }
 
 pub const HOLDOUT_LIMIT: f64 = 2.0;
+
+/// Fixed-point steps of the censored fit at most ([`Completion::coefficients_censored`]):
+/// it settles in a few on clipped peaks.
+pub const CENSORED_ITERATIONS: usize = 50;
 
 /// Hold back every `stride`-th measured pair (at least one), complete from the rest, and
 /// compare. `y` is S × M in the order of `measured`. None when too few pairs remain.

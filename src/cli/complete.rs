@@ -15,10 +15,9 @@ use crate::compress::data::DatasetViews;
 use crate::plan::sparse::psnr_of_mse;
 use crate::store::{self, Dataset, MeasurementRecord, MeasurementStatus, FORMAT_VERSION};
 use anyhow::{bail, Context, Result};
-use gonio_devices::hdr::HdrMode;
 use gonio_devices::image::RgbImage;
 use gonio_devices::rig::RigSpec;
-use gonio_sparse::complete::{holdout_check, Holdout};
+use gonio_sparse::complete::{holdout_check, Holdout, CENSORED_ITERATIONS};
 use gonio_sparse::joint::{self, JointOptions, JointReport};
 use gonio_sparse::{Completion, Conditioning, Prior};
 use nalgebra::DMatrix;
@@ -127,9 +126,6 @@ pub fn coefficients_censored(c: &Completion, images: &[&[f32]], full_scale: f64)
     }
     (out, clipped)
 }
-
-/// Fixed-point steps of the censored fit at most (it settles in a few on clipped peaks).
-const CENSORED_ITERATIONS: usize = 50;
 
 /// The predicted linear image of pair `p`.
 pub fn predict_image(c: &Completion, a: &DMatrix<f64>, p: usize) -> Vec<f32> {
@@ -262,7 +258,6 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
         Some(s) => sensor_pair_noise(prior.space(), &refs, s),
         None => vec![(a.noise_codes / 255.0).powi(2); measured.len()],
     };
-    let hdr = rig.as_ref().is_some_and(|r| r.hdr_mode() != HdrMode::Off);
     let clip: Option<f64> = match a.clip.as_deref() {
         Some("off") => None,
         Some(v) => Some(
@@ -271,8 +266,10 @@ pub fn run(a: CompleteArgs) -> Result<ExitCode> {
                 .filter(|x| x.is_finite() && *x > 0.0)
                 .with_context(|| format!("--clip {v}: use a positive linear level (e.g. 1) or off"))?,
         ),
-        None if hdr => None,
-        None => Some(1.0),
+        // The rig's own clip level (none under HDR); a dataset without a rig: full scale.
+        None => rig
+            .as_ref()
+            .map_or(Some(gonio_devices::rig::FULL_SCALE), |r| r.clip_level()),
     };
     let c = Completion::with_pair_noise(&prior, &measured, &pair_noise)
         .with_context(|| format!("completing {}", a.dataset.display()))?;

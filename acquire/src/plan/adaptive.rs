@@ -26,7 +26,7 @@ use super::{Plan, PlanError, PlanOptions};
 use gonio_dataset::sweep::Sweep;
 use gonio_devices::hdr::SensorNoise;
 use gonio_devices::rig::RigSpec;
-use gonio_sparse::adaptive::{next_round, PairGeometry};
+use gonio_sparse::adaptive::{next_round, PairGeometry, Readings};
 use gonio_sparse::{Prior, ValueSpace};
 use nalgebra::DMatrix;
 
@@ -294,13 +294,19 @@ impl Plan {
             Some(rb) => ((rb / capture).max(0.0).floor() as usize).min(candidates.len()),
             None => measured.len().max(MIN_ROUND_PAIRS).min(candidates.len()),
         };
+        // Clipped readings are lower bounds, at the rig's clip level (none under HDR).
+        let ceiling = rig.clip_level().map(|c| prior.space().forward(c));
+        let readings = Readings {
+            values,
+            noise: pair_noise,
+            ceiling,
+        };
         let choice = next_round(
             &prior,
             &geom,
             &candidates,
             measured,
-            values,
-            pair_noise,
+            &readings,
             ad.noise_var,
             ad.residual_weight,
             n_max,
