@@ -354,11 +354,23 @@ impl Plan {
         }
         let picks: Vec<usize> = choice.picks[..n].iter().map(|s| s.pair).collect();
         let all = sweep.pairs();
+        // The round starts where the previous one left the rig, not at home: its first move
+        // and its order are planned from there, as the engine will move.
+        let start: Option<Vec<f64>> = self
+            .steps
+            .last()
+            .map(|s| s.axes_deg.iter().map(|x| x.to_radians()).collect());
         let plan_of = |n: usize, kicks: usize| -> Result<Plan, PlanError> {
             let mut idx = picks[..n].to_vec();
             idx.sort_unstable();
             let chosen: Vec<_> = idx.iter().map(|&i| all[i]).collect();
-            Plan::build_pairs(rig, sweep, &chosen, &PlanOptions { kicks, ..opts.clone() })
+            Plan::build_pairs_from(
+                rig,
+                sweep,
+                &chosen,
+                &PlanOptions { kicks, ..opts.clone() },
+                start.as_deref(),
+            )
         };
         let (n, round) = match round_budget {
             None => (n, plan_of(n, opts.kicks)?),

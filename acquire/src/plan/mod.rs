@@ -41,6 +41,9 @@ pub enum PlanError {
     /// A fly-scan plan that cannot be made (a rig that cannot fly, a bad blur bound).
     #[error("fly-scan plan: {message}")]
     Fly { message: String },
+    /// A plan asked to start from a pose the rig does not have (see [`Plan::build_pairs_from`]).
+    #[error("plan start: {message}")]
+    Start { message: String },
 }
 
 /// What to do with a pair the rig cannot measure as asked.
@@ -425,8 +428,22 @@ impl Plan {
     }
 
     /// Plan the given pairs of `sweep` (all of them, or the representatives of an
-    /// isotropic reduction, or a sparse design: `gonio plan --prior`).
+    /// isotropic reduction, or a sparse design: `gonio plan --prior`), from home.
     pub fn build_pairs(rig: &RigSpec, sweep: &Sweep, pairs: &[Pair], opts: &PlanOptions) -> Result<Plan, PlanError> {
+        Self::build_pairs_from(rig, sweep, pairs, opts, None)
+    }
+
+    /// [`Self::build_pairs`] from the axes' pose `start` (radians, one per axis; `None`:
+    /// home): a plan that continues another, as an adaptive round continues from where the
+    /// previous round left the rig. Its first move, its order, its canonical figures and
+    /// its bound all start there.
+    pub fn build_pairs_from(
+        rig: &RigSpec,
+        sweep: &Sweep,
+        pairs: &[Pair],
+        opts: &PlanOptions,
+        start: Option<&[f64]>,
+    ) -> Result<Plan, PlanError> {
         let t0 = Instant::now();
         let kin = kinematics::for_rig(rig);
         let motions: Vec<MotionModel> = rig.axes.iter().map(|a| a.motion()).collect();
@@ -494,7 +511,19 @@ impl Plan {
                     .join(", "),
             });
         }
-        let home = kin.home();
+        let home = match start {
+            Some(p) if p.len() == motions.len() && p.iter().all(|x| x.is_finite()) => p.to_vec(),
+            Some(p) => {
+                return Err(PlanError::Start {
+                    message: format!(
+                        "the start pose has {} finite axis positions, the rig {} axes",
+                        p.iter().filter(|x| x.is_finite()).count(),
+                        motions.len()
+                    ),
+                })
+            }
+            None => kin.home(),
+        };
         let canonical = order::canonical(&nodes, &motions, &home);
         let opt = order::optimize(
             &nodes,
@@ -691,6 +720,40 @@ mod tests {
         assert_eq!(idx, (0..16).collect::<Vec<_>>());
         assert!(plan.durations.optimized_s <= plan.durations.canonical_s + 1e-9);
         assert!(plan.durations.lower_bound_s <= plan.durations.optimized_s + 1e-9);
+    }
+
+    /// A plan that continues another starts where the rig stands: the first transition is
+    /// timed from the start pose (zero when the rig already stands at the first pair), and
+    /// a start pose of the wrong shape is refused with what is wrong.
+    #[test]
+    fn a_plan_from_a_start_pose_moves_from_there() {
+        let rig = RigSpec::default_rig();
+        let sweep = small_sweep();
+        let opts = PlanOptions {
+            kicks: 1_000,
+            ..Default::default()
+        };
+        let pairs = sweep.pairs();
+        let from_home = Plan::build_pairs(&rig, &sweep, &pairs, &opts).unwrap();
+        assert!(from_home.steps[0].transition_s > 0.0);
+        // Standing at one of the plan's pairs: the order starts there, with no move.
+        let there: Vec<f64> = from_home.steps[3].axes_deg.iter().map(|x| x.to_radians()).collect();
+        let continued = Plan::build_pairs_from(&rig, &sweep, &pairs, &opts, Some(&there)).unwrap();
+        assert_eq!(continued.steps.len(), from_home.steps.len());
+        assert!(
+            continued.steps[0].transition_s < 1e-9,
+            "{}",
+            continued.steps[0].transition_s
+        );
+        assert!(continued.durations.lower_bound_s <= continued.durations.optimized_s + 1e-9);
+        // From home explicitly: the same plan as without a start.
+        let home = kinematics::for_rig(&rig).home();
+        let same = Plan::build_pairs_from(&rig, &sweep, &pairs, &opts, Some(&home)).unwrap();
+        assert_eq!(same.durations.optimized_s, from_home.durations.optimized_s);
+        for bad in [vec![0.0], vec![f64::NAN; there.len()]] {
+            let e = Plan::build_pairs_from(&rig, &sweep, &pairs, &opts, Some(&bad)).unwrap_err();
+            assert!(e.to_string().contains("start pose"), "{e}");
+        }
     }
 
     #[test]
