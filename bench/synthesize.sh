@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Reproduces the measurements of docs/guide/synthesis.md (release build, 2 cores).
+# Reproduces the measurements of docs/guide/synthesis.md (release build, 2 cores): needs
+# target/release/gonio and gonio-bench beside it (`cargo build --release -p gonio`).
 #   bash bench/synthesize.sh            # everything
 #   STEPS="quality" bash bench/synthesize.sh
 #   STEPS="quality" METHODS=tile,quilting,wei-levoy bash bench/synthesize.sh   # without the slow one

@@ -2,8 +2,11 @@
 //!
 //! A *room* is a top-level module of one of gonio's crates (a folder or a single file under
 //! `dataset/src`, `acquire/src`, `btf/src` or `src`); room names are unique across the
-//! crates. Between crates, Cargo enforces the direction (a wrong `use` does not compile).
-//! Inside a crate, and for the finer rules the crates do not express, this test does:
+//! crates. A folder of `src` with its own `main.rs` is a binary of its own ([`BIN_ROOMS`]:
+//! `bench/`, the `gonio-bench` binary): one room at the top, whose `main.rs` dispatches
+//! like a `mod.rs` and whose `crate::` names its own modules. Between crates, Cargo
+//! enforces the direction (a wrong `use` does not compile). Inside a crate, and for the
+//! finer rules the crates do not express, this test does:
 //!
 //! 1. each room imports only the rooms of its row in [`ALLOWED`], whichever way it names
 //!    them: `crate::X`, `gonio_dataset::X` (any gonio crate), grouped imports
@@ -99,14 +102,43 @@ const ALLOWED: &[(&str, &[&str])] = &[
             "slurm",
         ],
     ),
+    // the benchmarks (`gonio-bench`, its own binary): they drive the commands' code through
+    // the library (`gonio::cli::bench`) and every floor below; nothing imports them
+    (
+        "bench",
+        &[
+            "cli",
+            "session",
+            "engine",
+            "calibrate",
+            "compress",
+            "fit",
+            "export",
+            "plan",
+            "rig",
+            "develop",
+            "store",
+            "sweep",
+            "synth",
+            "synthesize",
+            "view",
+            "shard",
+            "merge",
+            "slurm",
+        ],
+    ),
 ];
 
+/// Rooms that are binaries of their own (a folder of `src` with a `main.rs`): inside them
+/// `crate::` names the binary's own modules, and `main.rs` dispatches like a `mod.rs`.
+const BIN_ROOMS: &[&str] = &["bench"];
+
 /// Where `gonio_simulator` may be named outside tests: the rig (which backend), the
-/// session and the CLI (which sample), `synth` (the truth BTF), and `calibrate/recipe.rs`'s
-/// render settings of simulated calibration runs (the one named exception). The material
-/// library is its own crate (`gonio_brdf`), so fitting and compression never name the
-/// simulator.
-const SIMULATOR_ALLOWED: &[&str] = &["rig", "session", "cli", "synth", "calibrate/recipe.rs"];
+/// session, the CLI and the benchmarks (which sample), `synth` (the truth BTF), and
+/// `calibrate/recipe.rs`'s render settings of simulated calibration runs (the one named
+/// exception). The material library is its own crate (`gonio_brdf`), so fitting and
+/// compression never name the simulator.
+const SIMULATOR_ALLOWED: &[&str] = &["rig", "session", "cli", "bench", "synth", "calibrate/recipe.rs"];
 
 /// Every folder of every room (path relative to its crate's `src/`) → the files its siblings
 /// may import ("shared files": the folder's ground floor and its registries). `mod.rs`
@@ -190,7 +222,7 @@ const FOLDERS: &[(&str, &[&str])] = &[
         &[
             "common",
             "svg_plot",
-            // benchmarks drive these commands' own argument structs
+            // `bench.rs` re-exports what the benchmarks (`src/bench/`) use of these
             "acquire",
             "compress",
             "fit",
@@ -202,26 +234,17 @@ const FOLDERS: &[(&str, &[&str])] = &[
             "serve_light",
             // `batch slurm` matches on the parsed commands it shards
             "dataset",
-            "bench_acquire",
-            "bench_compress",
-            "bench_decode",
-            "bench_view",
-            "bench_fit",
-            "bench_fly",
-            "bench_hdr",
-            "bench_serial",
-            "bench_synthesize",
             // sparse acquisition: `sparse` holds the flags, `--prior` resolution and the
             // summary that `plan` and `acquire` share (the design itself is
-            // `gonio_acquire::plan::sparse`); `complete` and `bench sparse` read datasets
-            // through `prior`'s helpers, `bench sparse` completes through `complete`, and
-            // `bench` dispatches to `bench_sparse`
+            // `gonio_acquire::plan::sparse`); `complete` reads datasets through `prior`'s
+            // helpers, and `bench.rs` re-exports both for `gonio bench sparse`
             "sparse",
             "prior",
             "complete",
-            "bench_sparse",
         ],
     ),
+    // one module per benchmark; `main.rs` dispatches, and no benchmark imports another
+    ("bench", &[]),
 ];
 
 /// The crate's root files: they declare modules and re-export, and this file quotes
@@ -423,18 +446,24 @@ fn heads_after(rest: &str) -> Vec<String> {
 }
 
 /// The module path of a file: `plan/isotropic.rs` → [plan, isotropic], `plan/mod.rs` →
-/// [plan], `sweep.rs` → [sweep].
+/// [plan], `sweep.rs` → [sweep], a binary room's `bench/main.rs` → [bench].
 fn module_path(rel: &str) -> Vec<String> {
     let mut parts: Vec<String> = rel.trim_end_matches(".rs").split('/').map(String::from).collect();
-    if parts.last().is_some_and(|p| p == "mod") {
+    if parts.last().is_some_and(|p| p == "mod") || is_bin_main(rel) {
         parts.pop();
     }
     parts
 }
 
+/// The `main.rs` of a binary room ([`BIN_ROOMS`]): its root, which dispatches like a `mod.rs`.
+fn is_bin_main(rel: &str) -> bool {
+    BIN_ROOMS.iter().any(|r| rel.strip_prefix(r) == Some("/main.rs"))
+}
+
 /// What a file's code names: (room, module path inside the room) for every `crate::`,
 /// `gonio_*::` and climbing `super::` path. Paths inside the file's own room are returned
-/// too (the room is the file's), for the folder rule.
+/// too (the room is the file's), for the folder rule. In a binary room ([`BIN_ROOMS`]),
+/// `crate::` is the binary's root, the room itself.
 fn references(rel: &str, code: &str, crate_names: &[&str]) -> BTreeSet<(String, String)> {
     let me = module_path(rel);
     let mut out = BTreeSet::new();
@@ -454,7 +483,10 @@ fn references(rel: &str, code: &str, crate_names: &[&str]) -> BTreeSet<(String, 
                 .iter()
                 .find_map(|c| rest.strip_prefix(c).and_then(|r| r.strip_prefix("::")))
         };
-        let (base, after): (Vec<String>, &str) = if let Some(r) = absolute {
+        let own_crate = rest.starts_with("crate::") && BIN_ROOMS.contains(&me[0].as_str());
+        let (base, after): (Vec<String>, &str) = if let (Some(r), true) = (absolute, own_crate) {
+            (me[..1].to_vec(), r)
+        } else if let Some(r) = absolute {
             (Vec::new(), r)
         } else if rest.starts_with("super::") {
             let mut r = rest;
@@ -543,7 +575,7 @@ fn check_sibling(rel: &str, me: &[String], inner: &str, modules: &BTreeSet<Strin
             break;
         }
     }
-    let is_mod_rs = rel.ends_with("mod.rs") || !rel.contains('/');
+    let is_mod_rs = rel.ends_with("mod.rs") || !rel.contains('/') || is_bin_main(rel);
     // Only a sibling *file or folder* counts; other names are items of the folder's mod.rs.
     let Some(file) = target.filter(|f| modules.contains(&format!("{folder}/{f}"))) else {
         return Vec::new();
@@ -599,7 +631,7 @@ fn test_files(sources: &[Source]) -> BTreeMap<&'static str, BTreeSet<String>> {
             .parent()
             .map(|p| p.to_string_lossy().into_owned())
             .unwrap_or_default();
-        let own = if s.rel.ends_with("mod.rs") || ROOT_FILES.contains(&s.rel.as_str()) {
+        let own = if s.rel.ends_with("mod.rs") || ROOT_FILES.contains(&s.rel.as_str()) || is_bin_main(&s.rel) {
             dir.clone()
         } else {
             format!("{dir}/{}", s.rel.trim_end_matches(".rs").rsplit('/').next().unwrap())
@@ -717,6 +749,10 @@ fn the_checker_sees_forbidden_imports() {
             "plan/order.rs",
             "plan/sparse.rs",
             "plan/fly.rs",
+            "bench/main.rs",
+            "bench/plan.rs",
+            "bench/render.rs",
+            "bench/sim.rs",
         ]
         .into_iter(),
     );
@@ -784,6 +820,18 @@ fn the_checker_sees_forbidden_imports() {
         "plan/fly is no shared file"
     );
     assert!(bad("compress/pca.rs", "use super::{linalg::X, params::{Params, Method}};").is_empty());
+    // the benchmarks' binary room: nothing imports it, its files import no sibling (its
+    // `main.rs` dispatches), and `crate::` inside it is the binary's own root
+    assert_eq!(bad("cli/plan.rs", "use crate::bench::sim::SimBenchArgs;").len(), 1);
+    assert_eq!(bad("view/mod.rs", "use gonio::bench::X;").len(), 1);
+    assert_eq!(bad("bench/plan.rs", "use crate::sim::run;").len(), 1);
+    assert_eq!(bad("bench/plan.rs", "use super::render::X;").len(), 1);
+    assert!(bad("bench/main.rs", "use crate::sim::run; use crate::plan::PlanBenchArgs;").is_empty());
+    assert!(bad(
+        "bench/sparse.rs",
+        "use gonio::cli::bench::RigArgs; use gonio_acquire::plan::Plan; use gonio_simulator::X;"
+    )
+    .is_empty());
     // declared test files are exempt
     let declared: BTreeSet<String> = ["compress/testdata.rs".to_string()].into();
     assert!(check_file("compress/testdata.rs", "use gonio_simulator::X;", &declared, &modules).is_empty());

@@ -51,8 +51,9 @@ cargo test --workspace -- "${skips[@]}"
 # The stages below run the gonio binary this test build just linked (target/debug/gonio),
 # copied aside so that no later cargo call relinks it: a plain `cargo build` has other
 # features (the tests' dev-dependencies) and would compile gonio's crates a second time.
+# gonio-bench goes beside it: `$GONIO_BIN bench …` runs the gonio-bench next to gonio.
 mkdir -p target/ci-bin
-cp target/debug/gonio target/ci-bin/gonio
+cp target/debug/gonio target/debug/gonio-bench target/ci-bin/
 export GONIO_BIN=$PWD/target/ci-bin/gonio
 disk
 stage "campaign figures (kill -9, storage, serial and camera faults)"

@@ -256,47 +256,47 @@ pub struct ReconstructArgs {
 }
 
 #[derive(Serialize, Debug, Clone)]
-pub(crate) struct Report {
-    pub(crate) method: &'static str,
-    pub(crate) components: usize,
+pub struct Report {
+    pub method: &'static str,
+    pub components: usize,
     /// `gbtf` or `ubo2014-btf`.
-    pub(crate) format: &'static str,
+    pub format: &'static str,
     /// The method's parameters as stored in the file's header.
-    pub(crate) params: serde_json::Value,
+    pub params: serde_json::Value,
     /// Bits per stored factor value (`--quantize`); absent for plain f32.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub(crate) quantize_bits: Option<u32>,
-    pub(crate) out: String,
-    pub(crate) images_measured: usize,
-    pub(crate) filled_pairs: usize,
-    pub(crate) dataset_passes: usize,
-    pub(crate) stored_bytes: u64,
+    pub quantize_bits: Option<u32>,
+    pub out: String,
+    pub images_measured: usize,
+    pub filled_pairs: usize,
+    pub dataset_passes: usize,
+    pub stored_bytes: u64,
     /// Lights · views · W · H · 3 (one 8-bit RGB image per grid pair).
-    pub(crate) raw_8bit_bytes: u64,
-    pub(crate) compression_ratio: f64,
-    pub(crate) encode_seconds: f64,
+    pub raw_8bit_bytes: u64,
+    pub compression_ratio: f64,
+    pub encode_seconds: f64,
     /// The remaining fields are absent with --no-eval.
-    pub(crate) error_scale: &'static str,
-    pub(crate) rmse_8bit: Option<f64>,
-    pub(crate) mean_abs_8bit: Option<f64>,
-    pub(crate) max_8bit: Option<f64>,
-    pub(crate) psnr_8bit_db: Option<f64>,
-    pub(crate) rmse_linear: Option<f64>,
-    pub(crate) decode_seconds_per_image: Option<f64>,
+    pub error_scale: &'static str,
+    pub rmse_8bit: Option<f64>,
+    pub mean_abs_8bit: Option<f64>,
+    pub max_8bit: Option<f64>,
+    pub psnr_8bit_db: Option<f64>,
+    pub rmse_linear: Option<f64>,
+    pub decode_seconds_per_image: Option<f64>,
     /// Against the simulator's ground truth (datasets acquired with --store-truth).
-    pub(crate) truth: Option<TruthReport>,
-    pub(crate) peak_memory_bytes: Option<u64>,
+    pub truth: Option<TruthReport>,
+    pub peak_memory_bytes: Option<u64>,
     /// Where the encode time went (PVMF: reader wait, factorization, views per path).
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub(crate) encode_stages: Vec<compress::Stage>,
+    pub encode_stages: Vec<compress::Stage>,
     /// `--target-psnr`: what was tried and why this file was chosen.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub(crate) target: Option<TargetReport>,
+    pub target: Option<TargetReport>,
 }
 
 /// The search of `--target-psnr` (see `compress::target`).
 #[derive(Serialize, Debug, Clone)]
-pub(crate) struct TargetReport {
+pub struct TargetReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(crate) target_psnr_db: Option<f64>,
     /// `--target-ratio`: the ratio asked for and the byte budget it gives.
@@ -312,16 +312,16 @@ pub(crate) struct TargetReport {
 
 /// Errors against the simulator's ground truth; same scales as the main figures.
 #[derive(Serialize, Debug, Clone)]
-pub(crate) struct TruthReport {
-    pub(crate) images: usize,
-    pub(crate) rmse_8bit: f64,
-    pub(crate) mean_abs_8bit: f64,
-    pub(crate) max_8bit: f64,
-    pub(crate) psnr_8bit_db: f64,
-    pub(crate) rmse_linear: f64,
+pub struct TruthReport {
+    pub images: usize,
+    pub rmse_8bit: f64,
+    pub mean_abs_8bit: f64,
+    pub max_8bit: f64,
+    pub psnr_8bit_db: f64,
+    pub rmse_linear: f64,
     /// The measurements themselves against truth: the floor set by noise and rectification.
-    pub(crate) measured_rmse_8bit: f64,
-    pub(crate) measured_rmse_linear: f64,
+    pub measured_rmse_8bit: f64,
+    pub measured_rmse_linear: f64,
 }
 
 pub fn run(args: CompressArgs) -> Result<ExitCode> {
@@ -481,7 +481,7 @@ fn record_dataset(gbtf: &mut compress::Gbtf, args: &CompressArgs) -> Result<()> 
 
 /// Compress, write, read back and evaluate: what `gonio compress` and `gonio bench
 /// compress` report.
-pub(crate) fn compress_report(args: &CompressArgs) -> Result<Report> {
+pub fn compress_report(args: &CompressArgs) -> Result<Report> {
     if args.shard.is_some()
         && (args.method.map(|m| shard_kind(m, args)) != Some(Shard::Views)
             || args.target_psnr.is_some()

@@ -163,7 +163,7 @@ fn store_average_fit(
 }
 
 /// `flag`'s value as a model, or an error naming the flag and the models there are.
-pub(super) fn parse_model(flag: &str, s: &str) -> Result<ModelKind> {
+pub fn parse_model(flag: &str, s: &str) -> Result<ModelKind> {
     ModelKind::parse(s).ok_or_else(|| {
         anyhow!(
             "{flag} {s}: unknown model; use one of {}",

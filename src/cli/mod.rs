@@ -6,23 +6,7 @@
 mod acquire;
 #[cfg(feature = "btf")]
 mod batch;
-mod bench;
-mod bench_acquire;
-#[cfg(feature = "btf")]
-mod bench_compress;
-#[cfg(feature = "btf")]
-mod bench_decode;
-#[cfg(feature = "btf")]
-mod bench_fit;
-mod bench_fly;
-mod bench_hdr;
-mod bench_serial;
-#[cfg(feature = "btf")]
-mod bench_sparse;
-#[cfg(feature = "btf")]
-mod bench_synthesize;
-#[cfg(feature = "btf")]
-mod bench_view;
+pub mod bench;
 mod brdf;
 mod calibrate;
 mod common;
@@ -95,8 +79,11 @@ pub enum Command {
     #[command(subcommand)]
     Brdf(brdf::BrdfCommand),
     /// Benchmarks (ratios against a baseline run in the same process).
-    #[command(subcommand)]
-    Bench(bench::BenchCommand),
+    ///
+    /// They are their own binary, `gonio-bench`, next to `gonio`: `gonio bench ARGS…` runs
+    /// it with ARGS as they are. `gonio bench --help` lists the benchmarks.
+    #[command(disable_help_flag = true)]
+    Bench(bench::BenchArgs),
     /// Compress a dataset (PCA, PVMF, local PCA, median cut, homomorphic: .gbtf; DFMF: UBO2014 .btf)
     /// and report its size and error.
     #[cfg(feature = "btf")]
@@ -144,6 +131,45 @@ pub enum Command {
     Complete(complete::CompleteArgs),
 }
 
+/// Process set-up shared by `gonio` and `gonio-bench`, called first thing in `main`, before
+/// any other thread exists: the default SIGPIPE action and the allocator's mmap threshold
+/// ([`keep_freed_images_mapped`]).
+pub fn prepare_process() {
+    // Rust ignores SIGPIPE, so `println!` into a closed pipe (`gonio … --json | head`)
+    // panics. Restore the default action: like every Unix filter, gonio then ends quietly
+    // when its reader goes away. Nothing is lost by it: datasets are durable against any
+    // kill (every stored measurement is fsynced before it is journalled), and progress
+    // and logs go to stderr, so only a command's final report can meet a closed pipe.
+    // SAFETY: the callers call this first thing in main, before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+    keep_freed_images_mapped();
+}
+
+/// Stop glibc's malloc from unmapping every freed image.
+///
+/// gonio allocates and frees a frame-sized buffer (0.8 MiB for a 256² RGB f32 image, 9 MiB
+/// for a 1024 × 768 raw frame) thousands of times, on rayon's threads. glibc serves such
+/// sizes with mmap and returns them with munmap (its threshold adapts upward only for
+/// allocations of the thread that frees them), so every new image page-faults its memory in
+/// again and every unmap stops both cores for a TLB shoot-down: `gonio sim btf` (6561
+/// truth images of 256²) took 33.5 s on two cores, slower than the 27.4 s of one thread.
+/// With buffers up to 32 MiB served from the heap it takes 11–14 s (measured with
+/// `MALLOC_MMAP_THRESHOLD_`, which glibc reads first and which then still wins).
+/// The trim threshold stays glibc's, so freed heap memory is still given back: keeping
+/// 128 MiB of it as well bought no speed and made the soak campaign's acquisition hold
+/// 90 MiB instead of 43 MiB, with a 12 MiB step after 200 s (`tests/campaigns/soak.sh`).
+fn keep_freed_images_mapped() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    if std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_none() {
+        // SAFETY: mallopt only changes allocator parameters; called before any thread exists.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        }
+    }
+}
+
 pub fn init_logging(verbose: u8, quiet: bool) {
     let default = if quiet {
         "error"
@@ -170,7 +196,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Verify(a) => export::verify(a),
         Command::Import(a) => import::run(a, cli.quiet),
         Command::Sim(c) => sim::run(c),
-        Command::Bench(c) => bench::run(c),
+        Command::Bench(a) => bench::run(a, cli.verbose, cli.quiet),
         Command::Brdf(c) => brdf::run(c),
         #[cfg(feature = "btf")]
         Command::Compress(a) => compress::run(a),

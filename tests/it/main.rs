@@ -6,6 +6,7 @@ mod common;
 mod fuzzing;
 
 mod acquire_e2e;
+mod bench_cli;
 mod calibration_coded_board;
 mod calibration_faults;
 mod calibration_intrinsics_wedge;

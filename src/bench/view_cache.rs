@@ -4,9 +4,9 @@
 //! ABRDF), and as the baseline the time of decoding one texel's ABRDF image by image
 //! (`--direct`, slow on a full dataset: every EXR is read).
 
-use crate::view::abrdf_cache::{self, AbrdfCache, Progress};
-use crate::view::source::RawModel;
 use anyhow::{Context, Result};
+use gonio::view::abrdf_cache::{self, AbrdfCache, Progress};
+use gonio::view::source::RawModel;
 use gonio_btf::compress::interp::BtfModel;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -58,7 +58,7 @@ pub fn run(a: ViewCacheBenchArgs) -> Result<ExitCode> {
         Some(c) => c,
         None => abrdf_cache::default_root().context("no cache directory: pass --cache DIR")?,
     };
-    let key = abrdf_cache::key(&root, views, crate::view::monitor::journal_len(&a.dataset))?;
+    let key = abrdf_cache::key(&root, views, gonio::view::monitor::journal_len(&a.dataset))?;
     let mut build_s = None;
     if !a.keep || AbrdfCache::open(&key.dir, views, &key)?.is_none() {
         let _ = std::fs::remove_dir_all(&key.dir);

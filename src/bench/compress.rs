@@ -2,14 +2,14 @@
 //! encode time and against compression ratio (table, JSON and an SVG plot).
 //!
 //! Each run is exactly `gonio compress DATASET <args> --out FILE` (the same code path,
-//! [`super::compress::compress_report`]), so the figures are the ones a user gets. The
+//! [`gonio::cli::bench::compress_report`]), so the figures are the ones a user gets. The
 //! sweep is a plain list of argument vectors ([`sweep`]): adding a method or a knob value
 //! is one line. A run that fails (e.g. a method that rejects a parameter for this dataset)
 //! is reported in the table with its error and the sweep goes on.
 
-use super::compress::{compress_report, CompressArgs, Report};
 use anyhow::{Context, Result};
 use clap::Parser;
+use gonio::cli::bench::{compress_report, CompressArgs, Report};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -584,7 +584,7 @@ mod tests {
         // runs, and the measured-vs-truth floor in each panel.
         let with_truth = |m: &str, ratio: f64, rmse: f64, truth: f64| {
             let mut r = ok(m, ratio, rmse);
-            r.report.as_mut().unwrap().truth = Some(super::super::compress::TruthReport {
+            r.report.as_mut().unwrap().truth = Some(gonio::cli::bench::TruthReport {
                 images: 1,
                 rmse_8bit: truth,
                 mean_abs_8bit: 0.0,

@@ -11,9 +11,9 @@
 //! Peak resident memory is measured per phase (the kernel's high-water mark is reset
 //! between phases), so a short and a full run show whether memory grows with the sweep.
 
-use super::common::{load_sample, RigArgs, SweepArgs};
-use crate::synth;
 use anyhow::{Context, Result};
+use gonio::cli::bench::{load_sample, RigArgs, SweepArgs};
+use gonio::synth;
 use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
 use gonio_devices::Direction;
 use gonio_simulator::{RenderQuality, Renderer, SimOptions};
@@ -105,7 +105,7 @@ fn reset_peak_rss() -> bool {
 
 pub fn run(a: AcquireBenchArgs) -> Result<ExitCode> {
     anyhow::ensure!(
-        super::common::IMAGE_SIDES.contains(&a.size),
+        gonio::cli::bench::IMAGE_SIDES.contains(&a.size),
         "--size {}: each side must be 8 ..= 8192",
         a.size
     );

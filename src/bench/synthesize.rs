@@ -7,10 +7,10 @@
 //! exactly what the written `.gbtf` decodes to (`synthesize::output` tests that), so no
 //! file is written per run.
 
-use super::common::parse_size;
-use super::svg_plot;
-use super::synthesize::{open_exemplar, SynthArgs};
 use anyhow::{bail, Context, Result};
+use gonio::cli::bench::parse_size;
+use gonio::cli::bench::{log_log, Series};
+use gonio::cli::bench::{open_exemplar, SynthArgs};
 use gonio_btf::compress::DatasetViews;
 use gonio_btf::synthesize::quality::{self, ImageStats};
 use gonio_btf::synthesize::{self, features, FeatureImage, SynthMethod, TexelMap};
@@ -407,19 +407,19 @@ pub fn run(a: SynthesizeBenchArgs) -> Result<ExitCode> {
         std::fs::write(path, &md).with_context(|| format!("writing {}", path.display()))?;
     }
     if let Some(path) = &a.plot {
-        let mut series: Vec<svg_plot::Series> = Vec::new();
+        let mut series: Vec<Series> = Vec::new();
         for r in rows.iter().filter(|r| r.method != "exemplar") {
             let name = r.method.clone();
             let pt = (r.seconds.max(1e-4), r.sw_all, format!("k={}", r.k));
             match series.iter_mut().find(|s| s.name == name) {
                 Some(s) => s.points.push(pt),
-                None => series.push(svg_plot::Series { name, points: vec![pt] }),
+                None => series.push(Series { name, points: vec![pt] }),
             }
         }
         for s in &mut series {
             s.points.sort_by(|a, b| a.0.total_cmp(&b.0));
         }
-        let svg = svg_plot::log_log(
+        let svg = log_log(
             "BTF synthesis: distance to the 4×-area reference vs run time",
             "synthesis time (s)",
             "sliced Wasserstein distance (all sampled pairs)",

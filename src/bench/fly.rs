@@ -13,9 +13,9 @@
 //!    sample stand still in flight, so what a bound costs is the reflectance's blur along
 //!    the light's path: nothing on a matte sample, most on a glossy one.
 
-use super::common::{load_sample, RigArgs, SweepArgs};
-use super::svg_plot::{log_log, Series};
 use anyhow::{Context, Result};
+use gonio::cli::bench::{load_sample, RigArgs, SweepArgs};
+use gonio::cli::bench::{log_log, Series};
 use gonio_acquire::plan::fly::FlyOptions;
 use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
 use gonio_dataset::sweep::Sweep;

@@ -107,7 +107,7 @@ pub fn run(a: FitBenchArgs) -> Result<ExitCode> {
             a.truth
         )
     })?;
-    let kind = super::fit::parse_model("--model", &a.model)?;
+    let kind = gonio::cli::bench::parse_model("--model", &a.model)?;
     let sweep = Sweep::resolve(&a.sweep).with_context(|| format!("--sweep {}", a.sweep))?;
     let mut pairs = Vec::new();
     for v in &sweep.views {

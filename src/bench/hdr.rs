@@ -18,9 +18,9 @@
 //! Values are linear, normalised to the base exposure (no white standard), so the
 //! comparison with the truth is like for like.
 
-use super::common::{load_sample, RigArgs, SweepArgs};
-use super::svg_plot::{log_log, Series};
 use anyhow::{Context, Result};
+use gonio::cli::bench::{load_sample, RigArgs, SweepArgs};
+use gonio::cli::bench::{log_log, Series};
 use gonio_acquire::session::{NewSession, PlanRequest, RunRequest, RunSettings, Session};
 use gonio_dataset::store;
 use gonio_devices::hdr::HdrMode;
@@ -40,7 +40,7 @@ pub struct HdrBenchArgs {
     #[command(flatten)]
     pub sweep: SweepArgs,
     /// Rectified image size in texels (W×H).
-    #[arg(long, default_value = "128x128", value_parser = |s: &str| super::common::parse_size(s, super::common::IMAGE_SIDES))]
+    #[arg(long, default_value = "128x128", value_parser = |s: &str| gonio::cli::bench::parse_size(s, gonio::cli::bench::IMAGE_SIDES))]
     pub size: (usize, usize),
     /// Comma-separated HDR modes to compare.
     #[arg(long, default_value = "off,2,3,5,auto")]

@@ -32,17 +32,17 @@
 //! (`compress::metrics::ErrorStats`, as `compress` reports it). Measured pairs are kept as
 //! measured (with their noise).
 
-use super::common::{load_sample, RigArgs};
-use super::complete::{coefficients, joint_completion, noise_var, predict_image};
-use super::sparse::load_prior;
-use super::svg_plot::{log_log, Series};
-use crate::compress::data::DatasetViews;
-use crate::compress::interp::{direction_weights, dot, unit};
-use crate::compress::metrics::ErrorStats;
-use crate::plan::sparse::{psnr_of_mse, units_key};
-use crate::plan::{Plan, PlanOptions};
-use crate::sweep::Sweep;
 use anyhow::{bail, Context, Result};
+use gonio::cli::bench::load_prior;
+use gonio::cli::bench::{coefficients, joint_completion, noise_var, predict_image};
+use gonio::cli::bench::{load_sample, RigArgs};
+use gonio::cli::bench::{log_log, Series};
+use gonio_acquire::plan::sparse::{psnr_of_mse, units_key};
+use gonio_acquire::plan::{Plan, PlanOptions};
+use gonio_btf::compress::data::DatasetViews;
+use gonio_btf::compress::interp::{direction_weights, dot, unit};
+use gonio_btf::compress::metrics::ErrorStats;
+use gonio_dataset::sweep::Sweep;
 use gonio_sparse::{Completion, Normal, Prior};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -140,10 +140,10 @@ fn render_truth(a: &SparseBenchArgs, rig: &gonio_devices::rig::RigSpec, sweep: &
     let renderer = Arc::new(Renderer::new(Arc::new(sample), RenderQuality::default()));
     let sim = gonio_simulator::build_sim_rig(rig, renderer.clone(), &SimOptions::default())?;
     let radius = sim.world.lamp_radius_mm;
-    let scale = crate::synth::truth_scale(&sim.world.sensor.lock().expect("sensor lock"));
+    let scale = gonio::synth::truth_scale(&sim.world.sensor.lock().expect("sensor lock"));
     let mut out = vec![Vec::new(); sweep.len()];
     let l = sweep.lights.len();
-    crate::synth::render_btf(&renderer, rig, radius, sweep, a.size, scale, |v, li, img| {
+    gonio::synth::render_btf(&renderer, rig, radius, sweep, a.size, scale, |v, li, img| {
         out[v * l + li] = img.data;
         Ok::<(), anyhow::Error>(())
     })?;
@@ -317,9 +317,9 @@ fn complete_sensor(
 ) -> Result<(Vec<Vec<f32>>, f64)> {
     let p = prior.truncated(prior.components().min(measured.len()));
     let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let noise = super::complete::sensor_pair_noise(p.space(), &refs, sensor);
+    let noise = gonio::cli::bench::sensor_pair_noise(p.space(), &refs, sensor);
     let c = Completion::with_pair_noise(&p, measured, &noise)?;
-    let (a, _clipped) = super::complete::coefficients_censored(&c, &refs, 1.0);
+    let (a, _clipped) = gonio::cli::bench::coefficients_censored(&c, &refs, 1.0);
     Ok((fill_from(&c, &a, measured, meas), psnr_of_mse(c.predicted_mse())))
 }
 
@@ -348,7 +348,7 @@ fn complete_mixture(
     }
     let space = members[0].space();
     let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let noise = super::complete::sensor_pair_noise(space, &refs, sensor);
+    let noise = gonio::cli::bench::sensor_pair_noise(space, &refs, sensor);
     let fit = gonio_sparse::mixture::MixtureFit::new(&members, log_weights, measured, &noise)?;
     let m = refs.first().map_or(0, |i| i.len());
     let y = nalgebra::DMatrix::<f64>::from_fn(refs.len(), m, |i, j| space.forward(refs[i][j] as f64));
@@ -486,12 +486,15 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         Some(dir) => {
             let (ds, t) = read_truth(dir)?;
             prior.check_compatible(
-                &super::prior::sweep_name(&ds),
+                &gonio::cli::bench::sweep_name(&ds),
                 &ds.lights_deg,
                 &ds.views_deg,
                 &units_key(&ds.header.values),
             )?;
-            (super::prior::sample_name(&ds).unwrap_or_else(|| a.sample.clone()), t)
+            (
+                gonio::cli::bench::sample_name(&ds).unwrap_or_else(|| a.sample.clone()),
+                t,
+            )
         }
         None => {
             prior.check_compatible(&sweep.name, &lights, &views, "normalized_signal")?;
@@ -698,7 +701,7 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                         let m = &design[..n];
                         let p = prior.truncated(prior.components().min(n));
                         let texels = meas.first().map_or(0, |x| x.len() / 3);
-                        let pick = super::prior::spread_texels(texels, LOO_TEXELS);
+                        let pick = gonio::cli::bench::spread_texels(texels, LOO_TEXELS);
                         let space = prior.space();
                         let y = nalgebra::DMatrix::<f64>::from_fn(n, pick.len() * 3, |i, j| {
                             space.forward(meas[m[i]][3 * pick[j / 3] + j % 3] as f64)
@@ -748,12 +751,12 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
             if want("ours-motion") {
                 // The motion-aware design (gain per second of rig time), as
                 // `gonio plan --design motion-aware --rig-budget` makes it.
-                let req = crate::plan::sparse::SparseRequest {
+                let req = gonio_acquire::plan::sparse::SparseRequest {
                     prior: &prior,
                     prior_name: "bench",
-                    target: crate::plan::sparse::SparseTarget::RigBudget(budget),
+                    target: gonio_acquire::plan::sparse::SparseTarget::RigBudget(budget),
                     noise_var: nv,
-                    design: crate::plan::sparse::SparseDesign::MotionAware,
+                    design: gonio_acquire::plan::sparse::SparseDesign::MotionAware,
                 };
                 rows.push(match Plan::build_sparse(&rig, &sweep, &ctx.opts, &full, req) {
                     Ok(plan) => {
