@@ -27,7 +27,8 @@ mod sim;
 mod sparse;
 #[cfg(feature = "btf")]
 mod synthesize;
-#[cfg(feature = "btf")]
+// The viewer's cache lives in `gonio::view`, which the `monitor` feature builds.
+#[cfg(feature = "monitor")]
 mod view_cache;
 
 /// The command line of `gonio bench` (named so in its usage lines and errors, as before the
@@ -79,7 +80,7 @@ enum BenchCommand {
     #[cfg(feature = "btf")]
     Decode(decode::DecodeBenchArgs),
     /// The inspect page's ABRDF of a raw dataset: texel-major cache build time and per-click time.
-    #[cfg(feature = "btf")]
+    #[cfg(feature = "monitor")]
     ViewCache(view_cache::ViewCacheBenchArgs),
     /// BRDF fitting: starts × iterations against residual and time, on data of known models.
     #[cfg(feature = "btf")]
@@ -103,7 +104,7 @@ fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Sparse(a) => sparse::run(*a),
         #[cfg(feature = "btf")]
         BenchCommand::Decode(a) => decode::run(a),
-        #[cfg(feature = "btf")]
+        #[cfg(feature = "monitor")]
         BenchCommand::ViewCache(a) => view_cache::run(a),
         #[cfg(feature = "btf")]
         BenchCommand::Fit(a) => fit::run(a),
