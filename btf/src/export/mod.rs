@@ -28,6 +28,7 @@ pub mod gltf;
 pub mod materialx;
 pub mod merl;
 pub mod mitsuba;
+pub mod fidelity;
 pub mod rgl;
 pub mod texture;
 pub mod usd;

@@ -1,0 +1,185 @@
+//! What a texture export costs in accuracy: the material a renderer reads back from the
+//! exported textures against the per-texel fit they were written from.
+//!
+//! A renderer does not see the fit. It sees the textures: resampled to `--size`, quantized
+//! to 8 or 16 bits (the base colour through the sRGB curve), the normal decoded from
+//! `n/2 + 1/2` and renormalized, the anisotropy from its direction and strength, all
+//! sampled bilinearly where the sample's texels were. [`measure`] rebuilds exactly that
+//! material at the fit's texel centres and evaluates both with the glTF BRDF
+//! ([`gonio_brdf::gltf::eval`]) over a fixed set of light and view directions, cosine-
+//! weighted as the fit's residual is. The reference is the fit itself, so the figure is
+//! what the texture size and bit depth cost, not the model's error against the data
+//! (that is the fit's own residual, `gonio fit --json`).
+
+use super::texture::{self, linear8, quantize16, srgb_encode};
+use super::{ExportError, ExportOptions, Material};
+use crate::compress::abrdf::srgb_to_linear;
+use crate::compress::container::Gbtf;
+use crate::compress::gltf as gltf_file;
+use gonio_devices::Vec3;
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::Path;
+
+/// Parameters per texel of the rebuilt material: base colour (3), metallic, roughness,
+/// normal (x, y), anisotropy vector (2), as in a 9-parameter glTF `.gbtf`.
+const PARAMS: usize = 9;
+
+/// Directions at or below this zenith angle (degrees) are evaluated; beyond, every model
+/// goes to zero with the cosine and the relative error means little.
+pub const MAX_THETA_DEG: f64 = 80.0;
+
+/// One export setting's cost.
+#[derive(Clone, Debug, Serialize)]
+pub struct Fidelity {
+    /// Texture side (texels).
+    pub size: usize,
+    pub bit_depth: u8,
+    /// The glTF textures' PNG bytes (base colour, metallic-roughness, normal, and the
+    /// anisotropy texture when a texel is anisotropic).
+    pub png_bytes: usize,
+    /// Relative RMS of the cosine-weighted BRDF over every texel, pair and channel.
+    pub rel_rms: f64,
+    /// Per texel relative RMS: mean, 99th percentile and largest.
+    pub texel_mean: f64,
+    pub texel_p99: f64,
+    pub texel_max: f64,
+    /// Wall time of building the textures and the read-back (s).
+    pub seconds: f64,
+}
+
+/// `n` directions on the upper hemisphere up to [`MAX_THETA_DEG`] (a Fibonacci spiral,
+/// equal solid angle each): the lights, and again the views, of the comparison.
+pub fn directions(n: usize) -> Vec<Vec3> {
+    let zmin = MAX_THETA_DEG.to_radians().cos();
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let z = 1.0 - (1.0 - zmin) * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = golden * i as f64;
+            Vec3::new(r * phi.cos(), r * phi.sin(), z)
+        })
+        .collect()
+}
+
+/// 8- or 16-bit code of a value in [0, 1], decoded back.
+fn quantized(v: f32, bits: u8) -> f32 {
+    if bits == 16 {
+        quantize16(v) as f32 / 65535.0
+    } else {
+        linear8(v) as f32 / 255.0
+    }
+}
+
+/// The sRGB-encoded base colour as the texture stores it, decoded back to linear.
+fn quantized_srgb(v: f32, bits: u8) -> f32 {
+    if bits == 16 {
+        let c = quantize16(srgb_encode(v)) as f64 / 65535.0;
+        (if c <= 0.04045 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }) as f32
+    } else {
+        srgb_to_linear(gonio_dataset::store::linear_to_srgb8(v))
+    }
+}
+
+/// The material a renderer reads from `m`'s textures, texel by texel ([`PARAMS`] each).
+fn read_back(m: &Material) -> Vec<f32> {
+    let bits = m.bit_depth;
+    let mut out = Vec::with_capacity(m.width * m.height * PARAMS);
+    for t in 0..m.width * m.height {
+        out.extend(m.base_color[t].map(|c| quantized_srgb(c, bits)));
+        out.push(quantized(m.metallic[t], bits));
+        out.push(quantized(m.roughness[t], bits));
+        // The normal map stores n/2 + 1/2; a renderer decodes and renormalizes.
+        let n = m.normal[t].map(|c| 2.0 * quantized(0.5 * c + 0.5, bits) - 1.0);
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().max(1e-12);
+        out.extend([n[0] / len, n[1] / len]);
+        // Direction (cos φ, sin φ) and strength, as `texture::anisotropy_png` writes them.
+        let a = m.anisotropy[t];
+        let (s, phi) = gonio_brdf::gltf::anisotropy_of([a[0] as f64, a[1] as f64]);
+        let dx = 2.0 * quantized(0.5 * phi.cos() as f32 + 0.5, bits) - 1.0;
+        let dy = 2.0 * quantized(0.5 * phi.sin() as f32 + 0.5, bits) - 1.0;
+        let s = quantized(s as f32, bits) as f64;
+        let v = gonio_brdf::gltf::anisotropy_vector(s, (dy as f64).atan2(dx as f64));
+        out.extend([v[0] as f32, v[1] as f32]);
+    }
+    out
+}
+
+/// PNG bytes of the glTF export's textures.
+fn png_bytes(m: &Material) -> Result<usize, ExportError> {
+    let mut n = texture::base_color_png(m)?.len() + texture::metallic_roughness_png(m)?.len() + texture::normal_png(m)?.len();
+    if m.anisotropic_texels() > 0 {
+        n += texture::anisotropy_png(m)?.len();
+    }
+    Ok(n)
+}
+
+/// The glTF BRDF of `p` (a texel's parameters, 7 or 9), cosine-weighted by the light.
+fn radiance(p: &[f64], l: Vec3, v: Vec3) -> [f64; 3] {
+    let a = if p.len() >= 9 { [p[7], p[8]] } else { [0.0, 0.0] };
+    let f = gonio_brdf::gltf::eval(&[p[0], p[1], p[2]], p[3], p[4], [p[5], p[6]], a, l, v);
+    f.map(|x| x * l.z)
+}
+
+/// The cost of exporting the glTF fit `g` (read from `path`) at texture side `size`
+/// (`None`: the fit's own) and `bit_depth`, over every pair of `dirs` × `dirs`.
+pub fn measure(g: &Gbtf, path: &Path, size: Option<usize>, bit_depth: u8, dirs: &[Vec3]) -> Result<Fidelity, ExportError> {
+    let t0 = std::time::Instant::now();
+    let opts = ExportOptions {
+        size,
+        allow_uncalibrated: true,
+        bit_depth,
+    };
+    let m = Material::from_gbtf(g, path, &opts)?;
+    let png = png_bytes(&m)?;
+    let back = read_back(&m);
+    let (w, h) = (g.header.width, g.header.height);
+    let np = gltf_file::params_per_texel(g);
+    let fit = &g.blocks[0];
+    // Per texel (in order, so the sums are the same at any thread count): Σ Δ² and Σ ref².
+    let per_texel: Vec<(f64, f64)> = (0..w * h)
+        .into_par_iter()
+        .map(|t| {
+            let (i, j) = (t % w, t / w);
+            let exported = texture::bilinear(&back, PARAMS, m.width, m.height, i, j, w, h);
+            let reference: Vec<f64> = fit[t * np..(t + 1) * np].iter().map(|&x| x as f64).collect();
+            let (mut d2, mut r2) = (0.0, 0.0);
+            for &l in dirs {
+                for &v in dirs {
+                    let a = radiance(&reference, l, v);
+                    let b = radiance(&exported, l, v);
+                    for c in 0..3 {
+                        d2 += (b[c] - a[c]).powi(2);
+                        r2 += a[c] * a[c];
+                    }
+                }
+            }
+            (d2, r2)
+        })
+        .collect();
+    let (mut d2, mut r2) = (0.0, 0.0);
+    let mut rel: Vec<f64> = Vec::with_capacity(per_texel.len());
+    for &(d, r) in &per_texel {
+        d2 += d;
+        r2 += r;
+        rel.push(if r > 0.0 { (d / r).sqrt() } else { 0.0 });
+    }
+    let texel_mean = rel.iter().sum::<f64>() / rel.len().max(1) as f64;
+    rel.sort_by(f64::total_cmp);
+    let pick = |q: f64| rel.get(((rel.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    Ok(Fidelity {
+        size: m.width,
+        bit_depth,
+        png_bytes: png,
+        rel_rms: if r2 > 0.0 { (d2 / r2).sqrt() } else { 0.0 },
+        texel_mean,
+        texel_p99: pick(0.99),
+        texel_max: pick(1.0),
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
