@@ -95,10 +95,14 @@ fn references_track_and_correct_a_drifting_lamp() {
     let mae_before = r["truth_rel_mae_before"].as_f64().unwrap();
     let mae_after = r["truth_rel_mae_after"].as_f64().unwrap();
     println!(
-        "drift: vs truth uncorrected PSNR {before:.2} dB, rel. MAE {:.2} %; corrected {after:.2} dB, {:.2} %",
+        "drift: vs truth uncorrected PSNR {before:.2} dB, rel. MAE {:.2} %; corrected {after:.2} dB, {:.2} %; \
+         {} clipped values kept",
         mae_before * 100.0,
-        mae_after * 100.0
+        mae_after * 100.0,
+        r["clipped_kept"]
     );
+    // Single exposures in normalised DN: clipped at 1.
+    assert_eq!(r["clip_level"].as_f64(), Some(1.0), "{r}");
     // Measured: 10.40 % → 8.43 %, the undrifting run's 8.46 % (the rest is noise, edges
     // and highlights); PSNR 27.79 → 27.86 dB (27.90 without drift).
     assert!(
@@ -116,6 +120,53 @@ fn references_track_and_correct_a_drifting_lamp() {
         .iter()
         .filter(|r| r.image.is_some())
         .all(|r| r.extra["drift_correction"]["factor"].is_array()));
+
+    // Nothing reaches the full scale in this scene (0 kept); a lower level given with --clip keeps
+    // every value at or above it as it was and scales the rest.
+    let low = tmp.path().join("clipped");
+    let r = gonio_json(&[
+        "dataset",
+        "drift",
+        common::cli::s(&ds),
+        "--correct",
+        "--out",
+        common::cli::s(&low),
+        "--clip",
+        "0.2",
+        "--json",
+    ]);
+    let kept = r["clipped_kept"].as_u64().unwrap();
+    assert!(kept > 0 && r["clip_level"].as_f64() == Some(0.2), "{r}");
+    let (_, orig) = gonio::store::load(&ds).unwrap();
+    // At or above the level less half a step of the stored f16 counts as clipped.
+    let level = (0.2 * (1.0 - 1.0 / 4096.0)) as f32;
+    let (mut same, mut scaled) = (0u64, 0u64);
+    for rec in orig.iter().filter(|r| r.image.is_some()) {
+        let rel = rec.image.as_ref().unwrap();
+        let a = gonio::store::read_exr(&ds.join(rel)).unwrap();
+        let b = gonio::store::read_exr(&low.join(rel)).unwrap();
+        for (x, y) in a.data.iter().zip(&b.data) {
+            if *x >= level {
+                assert_eq!(x, y, "measurement {}: a clipped value changed", rec.index);
+                same += 1;
+            } else if x != y {
+                scaled += 1;
+            }
+        }
+    }
+    println!("drift: --clip 0.2 kept {kept} values, {scaled} below it scaled");
+    assert!(
+        same == kept && scaled > 0,
+        "{same} at or above 0.2 vs {kept} kept, {scaled} scaled"
+    );
+    let o = Command::new(bin())
+        .args(["dataset", "drift", common::cli::s(&ds), "--correct", "--out"])
+        .arg(tmp.path().join("bad"))
+        .args(["--clip", "0"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--clip 0"), "{err}");
 }
 
 #[test]
