@@ -222,3 +222,61 @@ fn bad_reference_settings_are_refused_with_the_flag_named() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--reference-pair 9,0"), "{err}");
 }
+
+/// Ctrl-C pauses at the next measurement boundary without a closing reference (the
+/// resumed run starts with its own); a run that completes closes with one. Real-time
+/// simulated rig, so the signal lands mid-run.
+#[test]
+fn a_pause_skips_the_closing_reference_and_completion_takes_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (rig, sweep) = write_scene(tmp.path());
+    let ds = tmp.path().join("ds");
+    let lines = |f: &str| {
+        std::fs::read_to_string(ds.join(f))
+            .map(|t| t.lines().count())
+            .unwrap_or(0)
+    };
+    // One reference an hour: the opening one, and a closing one if the run ends.
+    let mut child = acquire_cmd(&rig, &sweep, &ds)
+        .args(["--reference-every", "60", "--realtime"])
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    // The 6 skipped pairs are recorded first, then the opening reference, then measurements.
+    let t0 = std::time::Instant::now();
+    while lines("journal.jsonl") < 7 {
+        assert!(t0.elapsed().as_secs() < 300, "no measurement stored");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its first measurement"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let t_int = std::time::Instant::now();
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let status = child.wait().unwrap();
+    let after_int = t_int.elapsed().as_secs_f64();
+    assert_eq!(status.code(), Some(3), "paused, not complete");
+    let refs = gonio::store::load_references(&ds).unwrap();
+    let stored = lines("journal.jsonl") - 6;
+    println!(
+        "drift: paused {after_int:.1} s after Ctrl-C with {stored} measurements and {} reference(s)",
+        refs.len()
+    );
+    assert!(stored < 30, "the run must still have had work: {stored}");
+    assert_eq!(refs.len(), 1, "the opening reference only: {refs:?}");
+    verify_clean(&ds);
+
+    let o = common::resume_cmd(&ds).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let refs = gonio::store::load_references(&ds).unwrap();
+    let resumed: Vec<_> = refs.iter().filter(|r| r.run == 1).collect();
+    assert_eq!(resumed.len(), 2, "the resumed run opens and closes: {refs:?}");
+    assert_eq!(
+        resumed[1].stored_before,
+        lines("journal.jsonl"),
+        "closing: after the last"
+    );
+    let r = gonio::store::verify(&ds).unwrap();
+    assert!(r.is_clean() && r.complete, "{r}");
+}
