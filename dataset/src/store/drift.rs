@@ -21,7 +21,9 @@
 //! default unit), none for HDR datasets (merged values go above 1, nothing is clipped
 //! there but a pixel saturated in every exposure, which the merge counts itself) and for
 //! calibrated units (linear or BRDF: the full scale differs per texel, so no one level
-//! marks it).
+//! marks it). A record's own level follows what was done to its values: × its
+//! `extra.exposure_scale` (a frame re-exposed after saturating, scaled back to the nominal
+//! exposure) and ÷ its lamp's `output_correction` (the lamp monitor's correction).
 //!
 //! The original is never modified: the copy is a new dataset (`Dataset::create`, every
 //! file written atomically), its records carry `extra.drift_correction` (the factor per
@@ -200,6 +202,25 @@ pub fn clip_level(header: &ManifestHeader, clip: Clip) -> (Option<f64>, String) 
     }
 }
 
+/// The clip level of one record's stored values for the dataset's `level` (see the module
+/// docs): scaled with them by a re-exposure's `exposure_scale` and the lamp's output
+/// correction.
+pub fn record_clip_level(level: f64, rec: &MeasurementRecord) -> f64 {
+    let scale = rec
+        .extra
+        .get("exposure_scale")
+        .and_then(|v| v.as_f64())
+        .filter(|k| k.is_finite() && *k > 0.0)
+        .unwrap_or(1.0);
+    let lamp = rec
+        .lamp
+        .as_ref()
+        .and_then(|l| l.output_correction)
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .unwrap_or(1.0);
+    level * scale / lamp
+}
+
 /// Correct `img` in place: v' = (v − d) / r + d with d interpolated between the dark
 /// frames `da` and `db` by `w`; values at or above `clip` are left as they are. Returns how
 /// many were left.
@@ -364,7 +385,8 @@ pub fn correct(src: &Path, out: &Path, force: bool, clip: Clip) -> Result<Correc
         let mut kept = 0;
         if !predicted {
             let (da, db) = (dark(f.references[0])?, dark(f.references[1])?);
-            kept = correct_image(&mut img, &da, &db, f.weight, f.ratio, clip_level);
+            let level = clip_level.map(|l| record_clip_level(l, &rec));
+            kept = correct_image(&mut img, &da, &db, f.weight, f.ratio, level);
             report.clipped_kept += kept;
             for c in 0..3 {
                 report.factor_min[c] = report.factor_min[c].min(f.ratio[c]);

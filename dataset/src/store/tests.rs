@@ -958,11 +958,18 @@ fn drift_correction_keeps_clipped_values() {
     let mut r = rec(1, 1, [15.0, 60.0], [0.0, 0.0]);
     r.rig_time_s = 40.0;
     ds.store(r, Some(&img), None).unwrap();
+    // Re-exposed at half the exposure and scaled back by 2: its full scale is 2.
+    let mut r = rec(2, 2, [15.0, 120.0], [0.0, 0.0]);
+    r.rig_time_s = 41.0;
+    r.extra["exposure_scale"] = serde_json::json!(2.0);
+    let mut twice = RgbImage::new(3, 1);
+    twice.set(0, 0, [2.0, 1.0, 0.5]);
+    ds.store(r, Some(&twice), None).unwrap();
     drop(ds);
 
     let out = tmp.path().join("corrected");
     let rep = drift::correct(&dir, &out, false, drift::Clip::Auto).unwrap();
-    assert_eq!((rep.clip_level, rep.clipped_kept), (Some(1.0), 4), "{rep:?}");
+    assert_eq!((rep.clip_level, rep.clipped_kept), (Some(1.0), 5), "{rep:?}");
     let read = |i: usize| read_exr(&out.join(image_rel_path(i))).unwrap();
     // Within the f16 storage's rounding (11 significant bits).
     let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-3 * y.abs().max(1.0));
@@ -974,6 +981,7 @@ fn drift_correction_keeps_clipped_values() {
     assert!(close(up.get(2, 0), [0.625; 3]), "{:?}", up.get(2, 0));
     assert_eq!(down.get(0, 0)[0], 1.0, "nor lowered out of the full scale");
     assert!(close(down.get(2, 0), [0.4; 3]), "{:?}", down.get(2, 0));
+    assert!(close(read(2).get(0, 0), [2.0, 0.8, 0.4]), "{:?}", read(2).get(0, 0));
     let (_, recs) = load(&out).unwrap();
     assert_eq!(recs[0].extra["drift_correction"]["clipped_kept"], 2);
     assert!(verify(&out).unwrap().is_clean());
@@ -988,4 +996,19 @@ fn drift_correction_keeps_clipped_values() {
     assert_eq!(drift::clip_level(&h, drift::Clip::Auto).0, None);
     assert_eq!(drift::clip_level(&h, drift::Clip::Level(2.0)).0, Some(2.0));
     assert_eq!(drift::clip_level(&header(3, 1), drift::Clip::Auto).0, Some(1.0));
+    // A record's level moves with its values: × a re-exposure's scale, ÷ the lamp's
+    // output correction.
+    let mut r = rec(0, 0, [0.0, 0.0], [0.0, 0.0]);
+    assert_eq!(drift::record_clip_level(1.0, &r), 1.0);
+    r.extra["exposure_scale"] = serde_json::json!(2.0);
+    assert_eq!(drift::record_clip_level(1.0, &r), 2.0);
+    r.lamp = Some(LampRecord {
+        voltage_v: 12.0,
+        current_a: 8.0,
+        current_drift: 0.0,
+        voltage_drift: 0.0,
+        drift_warning: false,
+        output_correction: Some(1.25),
+    });
+    assert_eq!(drift::record_clip_level(1.0, &r), 1.6);
 }
