@@ -37,6 +37,12 @@ pub struct DriftArgs {
     /// Replace a gonio dataset at --out.
     #[arg(long, requires = "correct")]
     pub force: bool,
+    /// Values at or above this level were clipped at the sensor's full scale: lower
+    /// bounds, left unscaled by --correct (and counted). `off` scales every value.
+    /// Default: 1 (the full scale of normalised DN) for single exposures, off for HDR
+    /// datasets and calibrated units (no single full scale).
+    #[arg(long, requires = "correct", value_name = "LEVEL|off")]
+    pub clip: Option<String>,
     #[arg(long)]
     pub json: bool,
 }
@@ -84,7 +90,17 @@ pub fn run(c: DatasetCommand) -> Result<ExitCode> {
 fn drift(a: DriftArgs) -> Result<ExitCode> {
     use gonio_dataset::store::drift;
     if let (true, Some(out)) = (a.correct, &a.out) {
-        let r = drift::correct(&a.dataset, out, a.force).with_context(|| {
+        let clip = match a.clip.as_deref() {
+            None => drift::Clip::Auto,
+            Some("off") => drift::Clip::Off,
+            Some(v) => drift::Clip::Level(
+                v.parse::<f64>()
+                    .ok()
+                    .filter(|x| x.is_finite() && *x > 0.0)
+                    .with_context(|| format!("--clip {v}: use a positive level in the stored unit (e.g. 1) or off"))?,
+            ),
+        };
+        let r = drift::correct(&a.dataset, out, a.force, clip).with_context(|| {
             format!(
                 "writing a drift-corrected copy of {} to {}",
                 a.dataset.display(),
@@ -108,6 +124,16 @@ fn drift(a: DriftArgs) -> Result<ExitCode> {
                 r.factor_max[2],
                 r.copied_without_image
             );
+            match r.clip_level {
+                Some(_) => println!(
+                    "clipped values (clip level {}): {} kept unscaled (lower bounds, not values)",
+                    r.clip_level_reason, r.clipped_kept
+                ),
+                None => println!(
+                    "clipped values: not detected, every value scaled (clip level {})",
+                    r.clip_level_reason
+                ),
+            }
             if let (Some(b), Some(c), Some(mb), Some(mc)) = (
                 r.truth_psnr_before_db,
                 r.truth_psnr_after_db,

@@ -1,4 +1,5 @@
-//! Progress of a dataset, read from its directory only (manifest + journal), so that the
+//! Progress of a dataset, read from its directory only (manifest, journal and drift
+//! references), so that the
 //! monitor works the same on a dataset written by another process (`gonio acquire`) as on
 //! one written in-process: nothing here talks to the rig, and nothing can move it.
 
@@ -58,6 +59,54 @@ pub struct Snapshot {
     pub rounds: Vec<RoundProgress>,
     /// Why an adaptive acquisition stopped choosing rounds, once it has.
     pub adaptive_finished: Option<String>,
+    /// Drift references so far (`gonio acquire --reference-every`), in the order taken;
+    /// empty without them.
+    pub references: Vec<ReferencePoint>,
+    /// Why `references.jsonl` could not be read (the list is then empty).
+    pub references_error: Option<String>,
+}
+
+/// One drift reference as the monitor shows it.
+#[derive(Serialize, Clone, Debug, PartialEq)]
+pub struct ReferencePoint {
+    pub number: usize,
+    /// The run that took it (0, +1 per `--resume`): rig times compare within a run only.
+    pub run: usize,
+    pub rig_time_s: f64,
+    /// The last measurement stored before it (`None`: none yet).
+    pub after_index: Option<usize>,
+    /// Per channel: its level over the first reference's.
+    pub ratio: [f64; 3],
+    /// The largest relative change of any channel against the first reference (0.02 = 2 %).
+    pub drift: f64,
+}
+
+/// Size of `references.jsonl` (0 when there is none): with the journal's, what says the
+/// monitor's data changed.
+pub fn references_len(dir: &Path) -> u64 {
+    std::fs::metadata(dir.join(store::REFERENCES_FILE))
+        .map(|m| m.len())
+        .unwrap_or(0)
+}
+
+/// The drift references of the dataset in `dir`, or why they could not be read.
+fn references(dir: &Path) -> (Vec<ReferencePoint>, Option<String>) {
+    match store::load_references(dir) {
+        Ok(refs) => (
+            refs.iter()
+                .map(|r| ReferencePoint {
+                    number: r.number,
+                    run: r.run,
+                    rig_time_s: r.rig_time_s,
+                    after_index: r.after_index,
+                    ratio: r.ratio,
+                    drift: r.drift(),
+                })
+                .collect(),
+            None,
+        ),
+        Err(e) => (Vec::new(), Some(e.to_string())),
+    }
 }
 
 /// One adaptive round as the monitor shows it.
@@ -151,6 +200,7 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
         .and_then(|s| s.get("stage_seconds"))
         .cloned()
         .unwrap_or(serde_json::Value::Null);
+    let (references, references_error) = references(dir);
     let mut s = Snapshot {
         total,
         done: records.len(),
@@ -168,6 +218,8 @@ pub fn snapshot(dir: &Path) -> Result<Snapshot, store::StoreError> {
         journal_bytes,
         rounds,
         adaptive_finished,
+        references,
+        references_error,
     };
     for r in &records {
         let kind = match &r.status {

@@ -1276,7 +1276,8 @@ impl Drop for StreamSlot {
 }
 
 /// `/api/events`: server-sent events, one `snapshot` event (the `/api/monitor` JSON)
-/// whenever the journal or manifest changes (polled every 250 ms), a comment every 15 s.
+/// whenever the journal, the drift references or the manifest change (polled every
+/// 250 ms), a comment every 15 s.
 async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
     use axum::response::sse::{Event, KeepAlive, Sse};
     if st.kind != SourceKind::Dataset {
@@ -1296,6 +1297,7 @@ async fn events(State(st): State<Arc<AppState>>) -> ApiResult {
             let root = slot.0.root.clone();
             let key = (
                 monitor::journal_len(&root),
+                monitor::references_len(&root),
                 mtime(&root.join(gonio_dataset::store::MANIFEST_FILE)),
             );
             if last.as_ref() != Some(&key) {

@@ -95,10 +95,14 @@ fn references_track_and_correct_a_drifting_lamp() {
     let mae_before = r["truth_rel_mae_before"].as_f64().unwrap();
     let mae_after = r["truth_rel_mae_after"].as_f64().unwrap();
     println!(
-        "drift: vs truth uncorrected PSNR {before:.2} dB, rel. MAE {:.2} %; corrected {after:.2} dB, {:.2} %",
+        "drift: vs truth uncorrected PSNR {before:.2} dB, rel. MAE {:.2} %; corrected {after:.2} dB, {:.2} %; \
+         {} clipped values kept",
         mae_before * 100.0,
-        mae_after * 100.0
+        mae_after * 100.0,
+        r["clipped_kept"]
     );
+    // Single exposures in normalised DN: clipped at 1.
+    assert_eq!(r["clip_level"].as_f64(), Some(1.0), "{r}");
     // Measured: 10.40 % → 8.43 %, the undrifting run's 8.46 % (the rest is noise, edges
     // and highlights); PSNR 27.79 → 27.86 dB (27.90 without drift).
     assert!(
@@ -116,6 +120,53 @@ fn references_track_and_correct_a_drifting_lamp() {
         .iter()
         .filter(|r| r.image.is_some())
         .all(|r| r.extra["drift_correction"]["factor"].is_array()));
+
+    // Nothing reaches the full scale in this scene (0 kept); a lower level given with --clip keeps
+    // every value at or above it as it was and scales the rest.
+    let low = tmp.path().join("clipped");
+    let r = gonio_json(&[
+        "dataset",
+        "drift",
+        common::cli::s(&ds),
+        "--correct",
+        "--out",
+        common::cli::s(&low),
+        "--clip",
+        "0.2",
+        "--json",
+    ]);
+    let kept = r["clipped_kept"].as_u64().unwrap();
+    assert!(kept > 0 && r["clip_level"].as_f64() == Some(0.2), "{r}");
+    let (_, orig) = gonio::store::load(&ds).unwrap();
+    // At or above the level less half a step of the stored f16 counts as clipped.
+    let level = (0.2 * (1.0 - 1.0 / 4096.0)) as f32;
+    let (mut same, mut scaled) = (0u64, 0u64);
+    for rec in orig.iter().filter(|r| r.image.is_some()) {
+        let rel = rec.image.as_ref().unwrap();
+        let a = gonio::store::read_exr(&ds.join(rel)).unwrap();
+        let b = gonio::store::read_exr(&low.join(rel)).unwrap();
+        for (x, y) in a.data.iter().zip(&b.data) {
+            if *x >= level {
+                assert_eq!(x, y, "measurement {}: a clipped value changed", rec.index);
+                same += 1;
+            } else if x != y {
+                scaled += 1;
+            }
+        }
+    }
+    println!("drift: --clip 0.2 kept {kept} values, {scaled} below it scaled");
+    assert!(
+        same == kept && scaled > 0,
+        "{same} at or above 0.2 vs {kept} kept, {scaled} scaled"
+    );
+    let o = Command::new(bin())
+        .args(["dataset", "drift", common::cli::s(&ds), "--correct", "--out"])
+        .arg(tmp.path().join("bad"))
+        .args(["--clip", "0"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--clip 0"), "{err}");
 }
 
 #[test]
@@ -170,4 +221,62 @@ fn bad_reference_settings_are_refused_with_the_flag_named() {
         .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--reference-pair 9,0"), "{err}");
+}
+
+/// Ctrl-C pauses at the next measurement boundary without a closing reference (the
+/// resumed run starts with its own); a run that completes closes with one. Real-time
+/// simulated rig, so the signal lands mid-run.
+#[test]
+fn a_pause_skips_the_closing_reference_and_completion_takes_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (rig, sweep) = write_scene(tmp.path());
+    let ds = tmp.path().join("ds");
+    let lines = |f: &str| {
+        std::fs::read_to_string(ds.join(f))
+            .map(|t| t.lines().count())
+            .unwrap_or(0)
+    };
+    // One reference an hour: the opening one, and a closing one if the run ends.
+    let mut child = acquire_cmd(&rig, &sweep, &ds)
+        .args(["--reference-every", "60", "--realtime"])
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    // The 6 skipped pairs are recorded first, then the opening reference, then measurements.
+    let t0 = std::time::Instant::now();
+    while lines("journal.jsonl") < 7 {
+        assert!(t0.elapsed().as_secs() < 300, "no measurement stored");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its first measurement"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let t_int = std::time::Instant::now();
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let status = child.wait().unwrap();
+    let after_int = t_int.elapsed().as_secs_f64();
+    assert_eq!(status.code(), Some(3), "paused, not complete");
+    let refs = gonio::store::load_references(&ds).unwrap();
+    let stored = lines("journal.jsonl") - 6;
+    println!(
+        "drift: paused {after_int:.1} s after Ctrl-C with {stored} measurements and {} reference(s)",
+        refs.len()
+    );
+    assert!(stored < 30, "the run must still have had work: {stored}");
+    assert_eq!(refs.len(), 1, "the opening reference only: {refs:?}");
+    verify_clean(&ds);
+
+    let o = common::resume_cmd(&ds).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let refs = gonio::store::load_references(&ds).unwrap();
+    let resumed: Vec<_> = refs.iter().filter(|r| r.run == 1).collect();
+    assert_eq!(resumed.len(), 2, "the resumed run opens and closes: {refs:?}");
+    assert_eq!(
+        resumed[1].stored_before,
+        lines("journal.jsonl"),
+        "closing: after the last"
+    );
+    let r = gonio::store::verify(&ds).unwrap();
+    assert!(r.is_clean() && r.complete, "{r}");
 }

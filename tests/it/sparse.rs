@@ -526,6 +526,54 @@ fn adaptive_acquisition(d: &Path, prior: &Path, full_s: f64) {
     };
     assert_eq!(sha(&ad1), sha(&ad2), "interrupted and resumed: other images");
 
+    // With drift references (one an hour: the opening one, then each round closes with
+    // one): taken across the rounds, placed after each round's last measurement, the same
+    // rounds and images as without them, and the dataset verifies.
+    let ad4 = d.join("adaptive-references");
+    let o = acquire(&ad4, &["--rig-budget", &budget], &["--reference-every", "60"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let refs = store::load_references(&ad4).unwrap();
+    println!(
+        "adaptive with references: {} rounds, {} references, overhead {:.1} s",
+        rounds.len(),
+        refs.len(),
+        summary["references"]["overhead_s"].as_f64().unwrap_or(f64::NAN)
+    );
+    assert_eq!(
+        std::fs::read(ad1.join(store::PLAN_FILE)).unwrap(),
+        std::fs::read(ad4.join(store::PLAN_FILE)).unwrap(),
+        "references changed the rounds"
+    );
+    assert_eq!(sha(&ad1), sha(&ad4), "references changed the images");
+    assert_eq!(refs.len(), rounds.len() + 1, "{refs:?}");
+    assert!(refs.iter().all(|r| r.run == 0) && refs[0].after_index.is_none());
+    let (_, recs4) = store::load(&ad4).unwrap();
+    for (k, round) in rounds.iter().enumerate() {
+        let pairs: Vec<usize> = round["pairs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p.as_u64().unwrap() as usize)
+            .collect();
+        let last = recs4
+            .iter()
+            .filter(|r| pairs.contains(&r.index))
+            .max_by_key(|r| r.order)
+            .unwrap()
+            .index;
+        assert_eq!(
+            refs[k + 1].after_index,
+            Some(last),
+            "round {} closes with a reference",
+            k + 1
+        );
+    }
+    let r = store::verify(&ad4).unwrap();
+    assert!(r.is_clean() && r.complete && r.references_ok == refs.len(), "{r}");
+    let series: serde_json::Value = serde_json::from_str(&ok(&["dataset", "drift", s(&ad4), "--json"])).unwrap();
+    assert_eq!(series["measurements"].as_u64(), Some(n as u64), "{series}");
+
     // A PSNR target alone: the run stops when the prediction reaches it, or says why not.
     let ad3 = d.join("adaptive3");
     let o = acquire(

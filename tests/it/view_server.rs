@@ -561,6 +561,77 @@ fn acquire_view_serves_the_monitor_of_the_running_acquisition() {
     assert_eq!(status.code(), Some(3));
 }
 
+/// The monitor serves the drift references (`--reference-every`) behind the same token:
+/// per reference its run, rig time, ratio per channel and largest drift; none for a dataset
+/// without them. The page has their table.
+#[test]
+fn the_monitor_serves_the_drift_references() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("ds");
+    write_dataset(&ds);
+    let plain = start(&ds);
+    let r = get(plain, "/api/monitor", true);
+    let v: serde_json::Value = serde_json::from_str(&r.body).unwrap();
+    assert_eq!(v["references"], serde_json::json!([]), "{v}");
+
+    let with = tmp.path().join("with");
+    let (header, records) = store::load(&ds).unwrap();
+    let mut d = Dataset::create(&with, &header, false).unwrap();
+    let img = RgbImage::new(8, 6);
+    let reference = |mean: [f64; 3], t: f64| store::ReferenceRecord {
+        number: 0,
+        run: 0,
+        rig_time_s: t,
+        duration_s: 5.0,
+        stored_before: 0,
+        after_index: None,
+        pair_index: 0,
+        light_deg: [0.0, 0.0],
+        view_deg: [0.0, 0.0],
+        exposure_s: 0.05,
+        gain: 1.0,
+        mean,
+        ratio: [1.0; 3],
+        image: String::new(),
+        image_sha256: String::new(),
+        dark: String::new(),
+        dark_sha256: String::new(),
+    };
+    d.store_reference(reference([0.5, 0.4, 0.2], 1.0), &img, &img).unwrap();
+    for rec in records.into_iter().take(3) {
+        let image = rec.image.as_ref().map(|_| img.clone());
+        d.store(rec, image.as_ref(), None).unwrap();
+    }
+    d.store_reference(reference([0.51, 0.4, 0.19], 90.0), &img, &img)
+        .unwrap();
+    drop(d);
+    let addr = start(&with);
+    assert_eq!(get(addr, "/api/monitor", false).status, 401);
+    let r = get(addr, "/api/monitor", true);
+    assert_eq!(r.status, 200, "{}", r.body);
+    let v: serde_json::Value = serde_json::from_str(&r.body).unwrap();
+    let refs = v["references"].as_array().unwrap();
+    assert_eq!(refs.len(), 2, "{v}");
+    assert_eq!(refs[0]["after_index"], serde_json::Value::Null);
+    assert_eq!(
+        (refs[1]["number"].as_u64(), refs[1]["run"].as_u64()),
+        (Some(1), Some(0))
+    );
+    assert_eq!(refs[1]["rig_time_s"].as_f64(), Some(90.0));
+    assert_eq!(refs[1]["after_index"].as_u64(), Some(2));
+    let ratio: Vec<f64> = serde_json::from_value(refs[1]["ratio"].clone()).unwrap();
+    assert!(
+        (ratio[0] - 1.02).abs() < 1e-9 && ratio[1] == 1.0 && (ratio[2] - 0.95).abs() < 1e-9,
+        "{ratio:?}"
+    );
+    assert!((refs[1]["drift"].as_f64().unwrap() - 0.05).abs() < 1e-9, "{v}");
+    assert!(v["references_error"].is_null(), "{v}");
+    let page = get(addr, "/monitor", true);
+    assert!(page.body.contains("id=\"reftable\""), "{}", page.body);
+    let js = get(addr, "/assets/monitor.js", true);
+    assert!(js.body.contains("s.references"), "the page draws them");
+}
+
 /// A raw dataset too large to decode image by image per click: the first `/api/abrdf`
 /// answers 202 with the cache build's progress, later ones 200 with the values of
 /// decoding the images directly; the cache lives in `--cache`, not in the dataset, and a

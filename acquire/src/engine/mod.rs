@@ -388,11 +388,12 @@ pub async fn run(
             observer(&RunEvent::Captured { index });
         }
     }
-    // A closing reference, so the run's last measurements lie between two references.
+    // A closing reference, so the run's last measurements lie between two references; a
+    // pause stops without one (the resumed run starts with its own).
     if let (Some(rp), Some((policy, camera_config)), None, false) =
         (&opts.references, &setup, &drive_err, failed.load(Ordering::SeqCst))
     {
-        if measured_since_reference {
+        if reference::closing_due(measured_since_reference, paused) {
             match take_reference(&rig, rp, next_reference, policy, camera_config, &lamp, &tx).await {
                 Ok(Some(spent)) => {
                     reference_overhead += spent;

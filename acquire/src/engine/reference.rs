@@ -2,7 +2,8 @@
 //!
 //! Before the run's first measurement, then at the first measurement boundary after at
 //! least `every_s` of rig time since the last reference, and once more when the run ends
-//! (so the last measurements lie between two references), the drive loop measures the
+//! (so the last measurements lie between two references; not when it pauses, see
+//! [`closing_due`]), the drive loop measures the
 //! reference pair (stop and go, one exposure under the capture policy) and a dark frame
 //! (same pose and exposure, light off). Switching the light costs rig time, charged
 //! honestly: `settle_s` after switching it off and again after switching it on, plus the
@@ -49,6 +50,17 @@ impl Schedule {
     pub fn due(&self, now: f64, every_s: f64) -> bool {
         self.last_at.is_none_or(|t| now - t >= every_s)
     }
+}
+
+/// Whether the run takes a closing reference as it ends: when it measured since its last
+/// reference and did not pause. A pause (Ctrl-C) stops at the measurement boundary without
+/// it, so the operator does not wait for a move, two exposures and two light settles: the
+/// resumed run starts with its own reference (every run does), and the measurements after
+/// the pause's last reference keep that reference's ratio (rig times of two runs do not
+/// compare, so `gonio dataset drift` would not interpolate across them anyway). A run that
+/// completes, ends at `--limit` or between adaptive rounds takes it.
+pub fn closing_due(measured_since_reference: bool, paused: bool) -> bool {
+    measured_since_reference && !paused
 }
 
 /// A reference captured by the drive loop, on its way to the store thread.
@@ -138,6 +150,13 @@ mod tests {
         s.last_at = Some(10.0);
         assert!(!s.due(69.9, 60.0));
         assert!(s.due(70.0, 60.0));
+    }
+
+    #[test]
+    fn a_pause_skips_the_closing_reference() {
+        assert!(closing_due(true, false), "a run that ends closes with one");
+        assert!(!closing_due(true, true), "a paused run does not wait for one");
+        assert!(!closing_due(false, false), "nothing measured since the last one");
     }
 
     #[test]

@@ -12,6 +12,19 @@
 //! the developed dark frames are ≈ 0), so the correction scales the signal only:
 //! v' = (v − d) / r + d, per channel. The copy keeps the dataset's unit and dark level.
 //!
+//! A value clipped at the sensor's full scale (at or above the clip level, [`Clip`]) is
+//! not a value but a lower bound, and is left as it is, counted (`clipped_kept`): scaled
+//! up it would claim a reading no sensor gave, and a clip at the reference level would
+//! still be a clip; scaled down it would leave the full scale and be taken for a value by
+//! every reader that recognises clips by their level (`gonio complete --clip`). The level
+//! is the full scale of the stored unit: 1 for single exposures in normalised DN (the
+//! default unit), none for HDR datasets (merged values go above 1, nothing is clipped
+//! there but a pixel saturated in every exposure, which the merge counts itself) and for
+//! calibrated units (linear or BRDF: the full scale differs per texel, so no one level
+//! marks it). A record's own level follows what was done to its values: × its
+//! `extra.exposure_scale` (a frame re-exposed after saturating, scaled back to the nominal
+//! exposure) and ÷ its lamp's `output_correction` (the lamp monitor's correction).
+//!
 //! The original is never modified: the copy is a new dataset (`Dataset::create`, every
 //! file written atomically), its records carry `extra.drift_correction` (the factor per
 //! channel and the references it came from), its manifest `extra.drift_correction` (the
@@ -23,8 +36,10 @@ use super::error::StoreError;
 use super::journal;
 use super::manifest::{read_manifest, MeasurementRecord, MeasurementStatus};
 use super::reference::ReferenceRecord;
-use super::{dedupe, load_references, read_exr, Dataset, JOURNAL_FILE, PLAN_FILE};
+use super::{dedupe, load_references, read_exr, Dataset, ManifestHeader, JOURNAL_FILE, PLAN_FILE};
+use gonio_devices::hdr::HdrMode;
 use gonio_devices::image::RgbImage;
+use gonio_devices::rig::RigSpec;
 use serde::Serialize;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -137,6 +152,100 @@ pub fn series(dir: &Path) -> Result<DriftSeries, DriftError> {
     })
 }
 
+/// The level at and above which a stored value was clipped at the sensor's full scale.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Clip {
+    /// The stored unit's full scale (see [`clip_level`]).
+    #[default]
+    Auto,
+    /// This level (in the stored unit).
+    Level(f64),
+    /// Nothing is clipped: every value is scaled.
+    Off,
+}
+
+/// The value unit of uncalibrated data (normalised DN: 1 is the sensor's full scale), as
+/// `gonio acquire` writes it into `extra.value_unit` (its `calibrate::VALUE_UNIT_DN`, which
+/// may not import the store); a dataset without one has it.
+pub const VALUE_UNIT_DN: &str = "normalized_dn";
+
+/// Relative margin below the level that still counts as clipped: half a step of the stored
+/// f16 (11 significant bits), so a value the storage rounds to the level and the level
+/// itself are alike (at level 1, every stored value in the margin reads exactly 1).
+const CLIP_TOLERANCE: f64 = 1.0 / 4096.0;
+
+/// The clip level of a dataset for `clip`, and why (for the report).
+pub fn clip_level(header: &ManifestHeader, clip: Clip) -> (Option<f64>, String) {
+    match clip {
+        Clip::Level(l) => (Some(l), "given".into()),
+        Clip::Off => (None, "off (given)".into()),
+        Clip::Auto => {
+            let unit = header
+                .extra
+                .get("value_unit")
+                .and_then(|u| u.as_str())
+                .unwrap_or(VALUE_UNIT_DN);
+            let hdr = serde_json::from_value::<RigSpec>(header.rig.clone())
+                .ok()
+                .is_some_and(|r| r.hdr_mode() != HdrMode::Off);
+            if hdr {
+                (None, "off: HDR dataset (merged values have no full scale)".into())
+            } else if unit != VALUE_UNIT_DN {
+                (
+                    None,
+                    format!("off: value unit {unit} (calibrated values have no single full scale)"),
+                )
+            } else {
+                (Some(1.0), "1: full scale of normalised DN".into())
+            }
+        }
+    }
+}
+
+/// The clip level of one record's stored values for the dataset's `level` (see the module
+/// docs): scaled with them by a re-exposure's `exposure_scale` and the lamp's output
+/// correction.
+pub fn record_clip_level(level: f64, rec: &MeasurementRecord) -> f64 {
+    let scale = rec
+        .extra
+        .get("exposure_scale")
+        .and_then(|v| v.as_f64())
+        .filter(|k| k.is_finite() && *k > 0.0)
+        .unwrap_or(1.0);
+    let lamp = rec
+        .lamp
+        .as_ref()
+        .and_then(|l| l.output_correction)
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .unwrap_or(1.0);
+    level * scale / lamp
+}
+
+/// Correct `img` in place: v' = (v − d) / r + d with d interpolated between the dark
+/// frames `da` and `db` by `w`; values at or above `clip` are left as they are. Returns how
+/// many were left.
+pub fn correct_image(
+    img: &mut RgbImage,
+    da: &RgbImage,
+    db: &RgbImage,
+    w: f64,
+    ratio: [f64; 3],
+    clip: Option<f64>,
+) -> usize {
+    let w = w as f32;
+    let ceiling = clip.map_or(f32::INFINITY, |l| (l * (1.0 - CLIP_TOLERANCE)) as f32);
+    let mut kept = 0;
+    for (i, v) in img.data.iter_mut().enumerate() {
+        if *v >= ceiling {
+            kept += 1;
+            continue;
+        }
+        let d = (1.0 - w) * da.data[i] + w * db.data[i];
+        *v = (*v - d) / ratio[i % 3] as f32 + d;
+    }
+    kept
+}
+
 /// What [`correct`] did.
 #[derive(Clone, Debug, Serialize)]
 pub struct CorrectReport {
@@ -148,6 +257,11 @@ pub struct CorrectReport {
     pub references: usize,
     pub factor_min: [f64; 3],
     pub factor_max: [f64; 3],
+    /// The level at and above which a value counts as clipped (`None`: off), and why.
+    pub clip_level: Option<f64>,
+    pub clip_level_reason: String,
+    /// Texel values (channels) at or above the clip level, left unscaled.
+    pub clipped_kept: usize,
     /// With stored truths (`--store-truth`): PSNR (dB, values clamped to [0, 1]) of the
     /// images against them before and after the correction.
     pub truth_psnr_before_db: Option<f64>,
@@ -190,8 +304,8 @@ impl Sums {
 }
 
 /// Write a drift-corrected copy of the dataset at `src` to `out` (see the module docs).
-/// `force` replaces a gonio dataset at `out`.
-pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, DriftError> {
+/// `force` replaces a gonio dataset at `out`; `clip` says which values were clipped.
+pub fn correct(src: &Path, out: &Path, force: bool, clip: Clip) -> Result<CorrectReport, DriftError> {
     if let (Ok(a), Ok(b)) = (src.canonicalize(), out.canonicalize()) {
         if a == b {
             return Err(DriftError::SameDirectory { out: out.to_path_buf() });
@@ -204,12 +318,15 @@ pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, Dri
     }
     let records = journal_records(src)?;
     let factors = factors(&records, &refs);
+    let (clip_level, clip_level_reason) = clip_level(&manifest.header, clip);
     let mut header = manifest.header.clone();
     header.raw_frames = false;
     header.extra["drift_correction"] = serde_json::json!({
         "source_references": refs.len(),
         "method": "v' = (v - d) / r + d per channel; r and the dark frame d interpolated linearly \
-                   in rig time between the references around each measurement",
+                   in rig time between the references around each measurement; values at or above \
+                   clip_level (clipped at the sensor's full scale, lower bounds) left unscaled",
+        "clip_level": clip_level,
     });
     let mut ds = Dataset::create(out, &header, force)?;
     let plan_path = src.join(PLAN_FILE);
@@ -247,6 +364,9 @@ pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, Dri
         references: refs.len(),
         factor_min: [f64::INFINITY; 3],
         factor_max: [f64::NEG_INFINITY; 3],
+        clip_level,
+        clip_level_reason,
+        clipped_kept: 0,
         truth_psnr_before_db: None,
         truth_psnr_after_db: None,
         truth_rel_mae_before: None,
@@ -262,13 +382,12 @@ pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, Dri
         let mut img = read_exr(&src.join(&rel))?;
         let original = img.clone();
         let predicted = matches!(rec.status, MeasurementStatus::Predicted { .. });
+        let mut kept = 0;
         if !predicted {
             let (da, db) = (dark(f.references[0])?, dark(f.references[1])?);
-            let w = f.weight as f32;
-            for (i, v) in img.data.iter_mut().enumerate() {
-                let d = (1.0 - w) * da.data[i] + w * db.data[i];
-                *v = (*v - d) / f.ratio[i % 3] as f32 + d;
-            }
+            let level = clip_level.map(|l| record_clip_level(l, &rec));
+            kept = correct_image(&mut img, &da, &db, f.weight, f.ratio, level);
+            report.clipped_kept += kept;
             for c in 0..3 {
                 report.factor_min[c] = report.factor_min[c].min(f.ratio[c]);
                 report.factor_max[c] = report.factor_max[c].max(f.ratio[c]);
@@ -279,6 +398,7 @@ pub fn correct(src: &Path, out: &Path, force: bool) -> Result<CorrectReport, Dri
             "factor": if predicted { [1.0; 3] } else { f.ratio },
             "references": f.references,
             "weight": f.weight,
+            "clipped_kept": kept,
         });
         if let Some(t) = rec
             .extra

@@ -932,3 +932,83 @@ fn references_are_stored_resumed_verified_and_interpolated() {
     assert!((mid.weight - 0.5).abs() < 1e-12 && (mid.ratio[0] - 1.05).abs() < 1e-12);
     assert_eq!(f[3].as_ref().unwrap().references, [2, 2]);
 }
+
+/// A drift correction leaves a value clipped at the full scale as it is and counts it,
+/// whether the factor would raise it or lower it; an unclipped value is scaled. Without a
+/// clip level (given `off`, or a calibrated unit) every value is scaled.
+#[test]
+fn drift_correction_keeps_clipped_values() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ds");
+    let mut ds = Dataset::create(&dir, &header(3, 1), false).unwrap();
+    let dark = RgbImage::new(3, 1);
+    let mut img = RgbImage::new(3, 1);
+    img.set(0, 0, [1.0, 0.4, 0.2]);
+    // A rounding step below the full scale (stored as f16: 1).
+    img.set(1, 0, [0.999_9, 0.6, 0.9]);
+    img.set(2, 0, [0.5, 0.5, 0.5]);
+    // The lamp dimmed to 0.8 of the first reference: the factor raises values by 1.25.
+    ds.store_reference(reference_rec(0.5, 0.0), &img, &dark).unwrap();
+    ds.store_reference(reference_rec(0.4, 10.0), &img, &dark).unwrap();
+    let mut r = rec(0, 0, [15.0, 0.0], [0.0, 0.0]);
+    r.rig_time_s = 10.0; // at the second reference: its factor alone
+    ds.store(r, Some(&img), None).unwrap();
+    // Then brightened to 1.25: lowered by 0.8.
+    ds.store_reference(reference_rec(0.625, 30.0), &img, &dark).unwrap();
+    let mut r = rec(1, 1, [15.0, 60.0], [0.0, 0.0]);
+    r.rig_time_s = 40.0;
+    ds.store(r, Some(&img), None).unwrap();
+    // Re-exposed at half the exposure and scaled back by 2: its full scale is 2.
+    let mut r = rec(2, 2, [15.0, 120.0], [0.0, 0.0]);
+    r.rig_time_s = 41.0;
+    r.extra["exposure_scale"] = serde_json::json!(2.0);
+    let mut twice = RgbImage::new(3, 1);
+    twice.set(0, 0, [2.0, 1.0, 0.5]);
+    ds.store(r, Some(&twice), None).unwrap();
+    drop(ds);
+
+    let out = tmp.path().join("corrected");
+    let rep = drift::correct(&dir, &out, false, drift::Clip::Auto).unwrap();
+    assert_eq!((rep.clip_level, rep.clipped_kept), (Some(1.0), 5), "{rep:?}");
+    let read = |i: usize| read_exr(&out.join(image_rel_path(i))).unwrap();
+    // Within the f16 storage's rounding (11 significant bits).
+    let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-3 * y.abs().max(1.0));
+    let (up, down) = (read(0), read(1));
+    assert_eq!(up.get(0, 0)[0], 1.0, "a clipped value is not raised");
+    assert_eq!(up.get(1, 0)[0], 1.0);
+    assert!(close(up.get(0, 0), [1.0, 0.5, 0.25]), "{:?}", up.get(0, 0));
+    assert!(close(up.get(1, 0), [1.0, 0.75, 1.125]), "{:?}", up.get(1, 0));
+    assert!(close(up.get(2, 0), [0.625; 3]), "{:?}", up.get(2, 0));
+    assert_eq!(down.get(0, 0)[0], 1.0, "nor lowered out of the full scale");
+    assert!(close(down.get(2, 0), [0.4; 3]), "{:?}", down.get(2, 0));
+    assert!(close(read(2).get(0, 0), [2.0, 0.8, 0.4]), "{:?}", read(2).get(0, 0));
+    let (_, recs) = load(&out).unwrap();
+    assert_eq!(recs[0].extra["drift_correction"]["clipped_kept"], 2);
+    assert!(verify(&out).unwrap().is_clean());
+
+    // Off: every value scaled, the clipped one too.
+    let rep = drift::correct(&dir, &out, true, drift::Clip::Off).unwrap();
+    assert_eq!((rep.clip_level, rep.clipped_kept), (None, 0));
+    assert!(close(read(0).get(0, 0), [1.25, 0.5, 0.25]));
+    // A calibrated unit has no single full scale: off by default; a given level applies.
+    let mut h = header(3, 1);
+    h.extra = serde_json::json!({"value_unit": "brdf_per_sr"});
+    assert_eq!(drift::clip_level(&h, drift::Clip::Auto).0, None);
+    assert_eq!(drift::clip_level(&h, drift::Clip::Level(2.0)).0, Some(2.0));
+    assert_eq!(drift::clip_level(&header(3, 1), drift::Clip::Auto).0, Some(1.0));
+    // A record's level moves with its values: × a re-exposure's scale, ÷ the lamp's
+    // output correction.
+    let mut r = rec(0, 0, [0.0, 0.0], [0.0, 0.0]);
+    assert_eq!(drift::record_clip_level(1.0, &r), 1.0);
+    r.extra["exposure_scale"] = serde_json::json!(2.0);
+    assert_eq!(drift::record_clip_level(1.0, &r), 2.0);
+    r.lamp = Some(LampRecord {
+        voltage_v: 12.0,
+        current_a: 8.0,
+        current_drift: 0.0,
+        voltage_drift: 0.0,
+        drift_warning: false,
+        output_correction: Some(1.25),
+    });
+    assert_eq!(drift::record_clip_level(1.0, &r), 1.6);
+}

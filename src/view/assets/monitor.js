@@ -24,6 +24,7 @@ function update(s) {
     " pairs · predicted PSNR " + (r.predicted_psnr_before_db == null ? "(prior) " : r.predicted_psnr_before_db.toFixed(2) + " → ") + r.predicted_psnr_after_db.toFixed(2) +
     " dB" + (r.outside_prior ? " · outside the prior" : "")).join("\n") +
     (s.adaptive_finished ? "\nfinished: " + s.adaptive_finished : (s.rounds.length ? "\n(more rounds may follow)" : ""));
+  drawReferences(s);
   const tc = $("truth"), h = tc.getContext("2d");
   h.fillStyle = "#101215"; h.fillRect(0, 0, tc.width, tc.height);
   if (s.truth_rmse.length) {
@@ -43,6 +44,29 @@ function update(s) {
   G.frames++;
   document.body.dataset.frame = String(G.frames);
   document.body.dataset.done = String(s.done);
+}
+
+// The drift references: one row each (run, rig time, ratio per channel against the first,
+// largest drift), the newest last, at most the last 20 rows; built from text nodes only.
+function drawReferences(s) {
+  const refs = s.references || [];
+  if (s.references_error) $("references").textContent = "references.jsonl: " + s.references_error;
+  else if (refs.length) {
+    const largest = Math.max(...refs.map((r) => r.drift));
+    $("references").textContent = refs.length + " references, largest drift " + (100 * largest).toFixed(2) + " %" +
+      (refs.length > 20 ? " (the last 20 below)" : "");
+  }
+  const t = $("reftable");
+  t.replaceChildren();
+  if (!refs.length) return;
+  const row = (cells, tag) => {
+    const tr = document.createElement("tr");
+    for (const c of cells) { const td = document.createElement(tag); td.textContent = c; tr.appendChild(td); }
+    t.appendChild(tr);
+  };
+  row(["#", "run", "rig time (s)", "after", "R", "G", "B", "drift"], "th");
+  for (const r of refs.slice(-20)) row([r.number, r.run, r.rig_time_s.toFixed(1), r.after_index == null ? "-" : r.after_index,
+    r.ratio[0].toFixed(4), r.ratio[1].toFixed(4), r.ratio[2].toFixed(4), (100 * r.drift).toFixed(2) + " %"], "td");
 }
 
 // The hemisphere seen from above with the light and the camera directions, and one dial
