@@ -16,6 +16,8 @@ mod compress;
 #[cfg(feature = "btf")]
 mod decode;
 #[cfg(feature = "btf")]
+mod export;
+#[cfg(feature = "btf")]
 mod fit;
 mod fly;
 mod hdr;
@@ -79,6 +81,9 @@ enum BenchCommand {
     /// Decode time of one image of a compressed BTF, on its own (median of rounds; EXR reads of the same images as the baseline).
     #[cfg(feature = "btf")]
     Decode(decode::DecodeBenchArgs),
+    /// The renderer exports' error against texture size and bit depth, against the per-texel fit (table or --json).
+    #[cfg(feature = "btf")]
+    Export(export::ExportBenchArgs),
     /// The inspect page's ABRDF of a raw dataset: texel-major cache build time and per-click time.
     #[cfg(feature = "monitor")]
     ViewCache(view_cache::ViewCacheBenchArgs),
@@ -104,6 +109,8 @@ fn run(cmd: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Sparse(a) => sparse::run(*a),
         #[cfg(feature = "btf")]
         BenchCommand::Decode(a) => decode::run(a),
+        #[cfg(feature = "btf")]
+        BenchCommand::Export(a) => export::run(a),
         #[cfg(feature = "monitor")]
         BenchCommand::ViewCache(a) => view_cache::run(a),
         #[cfg(feature = "btf")]

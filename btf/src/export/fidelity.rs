@@ -40,7 +40,7 @@ pub struct Fidelity {
     pub png_bytes: usize,
     /// Relative RMS of the cosine-weighted BRDF over every texel, pair and channel.
     pub rel_rms: f64,
-    /// Per texel relative RMS: mean, 99th percentile and largest.
+    /// Per texel RMS error relative to the material's RMS: mean, 99th percentile, largest.
     pub texel_mean: f64,
     pub texel_p99: f64,
     pub texel_max: f64,
@@ -112,7 +112,8 @@ fn read_back(m: &Material) -> Vec<f32> {
 
 /// PNG bytes of the glTF export's textures.
 fn png_bytes(m: &Material) -> Result<usize, ExportError> {
-    let mut n = texture::base_color_png(m)?.len() + texture::metallic_roughness_png(m)?.len() + texture::normal_png(m)?.len();
+    let mut n =
+        texture::base_color_png(m)?.len() + texture::metallic_roughness_png(m)?.len() + texture::normal_png(m)?.len();
     if m.anisotropic_texels() > 0 {
         n += texture::anisotropy_png(m)?.len();
     }
@@ -128,7 +129,13 @@ fn radiance(p: &[f64], l: Vec3, v: Vec3) -> [f64; 3] {
 
 /// The cost of exporting the glTF fit `g` (read from `path`) at texture side `size`
 /// (`None`: the fit's own) and `bit_depth`, over every pair of `dirs` × `dirs`.
-pub fn measure(g: &Gbtf, path: &Path, size: Option<usize>, bit_depth: u8, dirs: &[Vec3]) -> Result<Fidelity, ExportError> {
+pub fn measure(
+    g: &Gbtf,
+    path: &Path,
+    size: Option<usize>,
+    bit_depth: u8,
+    dirs: &[Vec3],
+) -> Result<Fidelity, ExportError> {
     let t0 = std::time::Instant::now();
     let opts = ExportOptions {
         size,
@@ -163,15 +170,24 @@ pub fn measure(g: &Gbtf, path: &Path, size: Option<usize>, bit_depth: u8, dirs: 
         })
         .collect();
     let (mut d2, mut r2) = (0.0, 0.0);
-    let mut rel: Vec<f64> = Vec::with_capacity(per_texel.len());
     for &(d, r) in &per_texel {
         d2 += d;
         r2 += r;
-        rel.push(if r > 0.0 { (d / r).sqrt() } else { 0.0 });
     }
+    // Each texel's RMS error relative to the material's RMS (not to its own: a dark texel
+    // next to a bright one would read as an error of hundreds of times its value).
+    let texels = per_texel.len().max(1) as f64;
+    let mut rel: Vec<f64> = per_texel
+        .iter()
+        .map(|&(d, _)| if r2 > 0.0 { (d * texels / r2).sqrt() } else { 0.0 })
+        .collect();
     let texel_mean = rel.iter().sum::<f64>() / rel.len().max(1) as f64;
     rel.sort_by(f64::total_cmp);
-    let pick = |q: f64| rel.get(((rel.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(0.0);
+    let pick = |q: f64| {
+        rel.get(((rel.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
     Ok(Fidelity {
         size: m.width,
         bit_depth,

@@ -24,11 +24,11 @@
 //! isotropic ([`average`]).
 
 pub mod average;
+pub mod fidelity;
 pub mod gltf;
 pub mod materialx;
 pub mod merl;
 pub mod mitsuba;
-pub mod fidelity;
 pub mod rgl;
 pub mod texture;
 pub mod usd;
