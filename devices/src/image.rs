@@ -2,6 +2,11 @@
 
 use serde::{Deserialize, Serialize};
 
+/// The value unit of uncalibrated images (`extra.value_unit`): the sensor's linear signal
+/// normalised so that 1 is its full scale ([`crate::rig::FULL_SCALE`]). One home: the
+/// acquisition writes it, the dataset's drift correction reads it.
+pub const VALUE_UNIT_DN: &str = "normalized_dn";
+
 /// An interleaved RGB image of linear `f32` values, row-major, row 0 at the top.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RgbImage {

@@ -98,7 +98,7 @@ impl AppliedCalibration {
 /// `value_unit` of BRDF data (1/sr).
 pub const VALUE_UNIT_BRDF: &str = "brdf_per_sr";
 /// `value_unit` of uncalibrated data (linear normalised sensor signal).
-pub const VALUE_UNIT_DN: &str = "normalized_dn";
+pub use gonio_devices::image::VALUE_UNIT_DN;
 /// `value_unit` of data with raw-frame corrections but no white standard: linear values on
 /// the response curve's relative scale (`½ exp g`), dark-, flat- and colour-corrected.
 pub const VALUE_UNIT_LINEAR: &str = "linear_corrected";

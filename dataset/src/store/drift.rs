@@ -165,9 +165,8 @@ pub enum Clip {
 }
 
 /// The value unit of uncalibrated data (normalised DN: 1 is the sensor's full scale), as
-/// `gonio acquire` writes it into `extra.value_unit` (its `calibrate::VALUE_UNIT_DN`, which
-/// may not import the store); a dataset without one has it.
-pub const VALUE_UNIT_DN: &str = "normalized_dn";
+/// `gonio acquire` writes it into `extra.value_unit`; a dataset without one has it.
+pub use gonio_devices::image::VALUE_UNIT_DN;
 
 /// Relative margin below the level that still counts as clipped: half a step of the stored
 /// f16 (11 significant bits), so a value the storage rounds to the level and the level
@@ -196,7 +195,10 @@ pub fn clip_level(header: &ManifestHeader, clip: Clip) -> (Option<f64>, String) 
                     format!("off: value unit {unit} (calibrated values have no single full scale)"),
                 )
             } else {
-                (Some(1.0), "1: full scale of normalised DN".into())
+                (
+                    Some(gonio_devices::rig::FULL_SCALE),
+                    "1: full scale of normalised DN".into(),
+                )
             }
         }
     }
