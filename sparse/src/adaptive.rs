@@ -352,6 +352,46 @@ mod tests {
         }
     }
 
+    /// What the tests below share: a toy prior (model seed `seed`, 500 training ABRDFs of
+    /// 81 pairs), its 9 × 9 pair geometry, `texels` test ABRDFs of the same model (seed
+    /// `seed + 1`, gamma space, D × texels), the noise `nv` of the prior's ρ plus
+    /// `extra_noise`, and the greedy A-optimal design of `pairs` under it.
+    struct Fixture {
+        p: Prior,
+        d: usize,
+        geom: PairGeometry,
+        truth: DMatrix<f64>,
+        nv: f64,
+        cand: Vec<usize>,
+        measured: Vec<usize>,
+    }
+
+    fn fixture(seed: u64, texels: usize, pairs: usize, extra_noise: f64) -> Fixture {
+        let (meta, rows) = toy(9, 500, 5, seed);
+        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
+        let d = 81;
+        let dirs = grid(9);
+        let geom = PairGeometry::new(&dirs, &dirs);
+        let (_, test) = toy(9, texels, 5, seed + 1);
+        let truth = DMatrix::from_fn(d, texels, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
+        let nv = p.header.residual_var + extra_noise;
+        let cand: Vec<usize> = (0..d).collect();
+        let measured: Vec<usize> = greedy_design(&p, &cand, &[], pairs, nv)
+            .unwrap()
+            .iter()
+            .map(|s| s.pair)
+            .collect();
+        Fixture {
+            p,
+            d,
+            geom,
+            truth,
+            nv,
+            cand,
+            measured,
+        }
+    }
+
     fn grid(n: usize) -> Vec<[f64; 2]> {
         (0..n)
             .map(|i| [10.0 + 60.0 * i as f64 / n as f64, 37.0 * i as f64])
@@ -364,13 +404,15 @@ mod tests {
     /// flagged as outside the prior.
     #[test]
     fn a_feature_outside_the_prior_is_found_measured_and_predicted() {
-        let (meta, rows) = toy(9, 500, 5, 11);
-        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
-        let d = 81;
-        let dirs = grid(9);
-        let geom = PairGeometry::new(&dirs, &dirs);
-        let (_, test) = toy(9, 40, 5, 12);
-        let mut truth = DMatrix::from_fn(d, 40, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
+        let Fixture {
+            p,
+            d,
+            geom,
+            mut truth,
+            nv,
+            cand,
+            mut measured,
+        } = fixture(11, 40, 20, 1e-6);
         // A "lobe": a bump at pairs whose half vectors are close to one pair's.
         let centre = 40;
         let bumped: Vec<usize> = (0..d).filter(|&q| geom.weight(centre, q) > 0.3).collect();
@@ -380,13 +422,6 @@ mod tests {
                 truth[(q, t)] += 0.5 * geom.weight(centre, q);
             }
         }
-        let nv = p.header.residual_var + 1e-6;
-        let cand: Vec<usize> = (0..d).collect();
-        let mut measured: Vec<usize> = greedy_design(&p, &cand, &[], 20, nv)
-            .unwrap()
-            .iter()
-            .map(|s| s.pair)
-            .collect();
         // The first round must have seen the lobe once (its residual has to show up).
         if !measured.contains(&centre) {
             measured.push(centre);
@@ -439,20 +474,15 @@ mod tests {
     /// Data the prior describes: not flagged, and the prediction stays close to the truth.
     #[test]
     fn data_inside_the_prior_is_not_flagged_and_black_texels_are_finite() {
-        let (meta, rows) = toy(9, 500, 5, 21);
-        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
-        let d = 81;
-        let dirs = grid(9);
-        let geom = PairGeometry::new(&dirs, &dirs);
-        let (_, test) = toy(9, 30, 5, 22);
-        let truth = DMatrix::from_fn(d, 30, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
-        let nv = p.header.residual_var + 1e-6;
-        let cand: Vec<usize> = (0..d).collect();
-        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 24, nv)
-            .unwrap()
-            .iter()
-            .map(|s| s.pair)
-            .collect();
+        let Fixture {
+            p,
+            geom,
+            truth,
+            nv,
+            cand,
+            measured,
+            ..
+        } = fixture(21, 30, 24, 1e-6);
         let quiet = vec![1e-6; measured.len()];
         let r = next_round(
             &p,
@@ -500,22 +530,17 @@ mod tests {
     /// shrinks with more texels; ignoring it, 2.5e-4.)
     #[test]
     fn the_readings_noise_is_not_mistaken_for_prior_error() {
-        let (meta, rows) = toy(9, 500, 5, 31);
-        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
-        let d = 81;
-        let dirs = grid(9);
-        let geom = PairGeometry::new(&dirs, &dirs);
-        let (_, test) = toy(9, 1536, 5, 32);
-        let truth = DMatrix::from_fn(d, 1536, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
+        let Fixture {
+            p,
+            d,
+            geom,
+            truth,
+            nv,
+            cand,
+            measured,
+        } = fixture(31, 1536, 30, 0.0);
         let sd = |q: usize| if q.is_multiple_of(3) { 0.03 } else { 0.003 };
         let mut rng = crate::Normal::new(99);
-        let nv = p.header.residual_var;
-        let cand: Vec<usize> = (0..d).collect();
-        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 30, nv)
-            .unwrap()
-            .iter()
-            .map(|s| s.pair)
-            .collect();
         let y = DMatrix::from_fn(measured.len(), 1536, |i, t| {
             truth[(measured[i], t)] + sd(measured[i]) * rng.sample()
         });
@@ -561,20 +586,15 @@ mod tests {
     /// without the clip; read as values, the clip's shortfall reads as prior error.
     #[test]
     fn clipped_readings_are_lower_bounds_not_prior_error() {
-        let (meta, rows) = toy(9, 500, 5, 41);
-        let p = Prior::learn(meta, &rows, 6, 1).unwrap();
-        let d = 81;
-        let dirs = grid(9);
-        let geom = PairGeometry::new(&dirs, &dirs);
-        let (_, test) = toy(9, 512, 5, 42);
-        let truth = DMatrix::from_fn(d, 512, |q, t| ValueSpace::Gamma.forward(test[t * d + q] as f64));
-        let nv = p.header.residual_var + 1e-6;
-        let cand: Vec<usize> = (0..d).collect();
-        let measured: Vec<usize> = greedy_design(&p, &cand, &[], 30, nv)
-            .unwrap()
-            .iter()
-            .map(|s| s.pair)
-            .collect();
+        let Fixture {
+            p,
+            geom,
+            truth,
+            nv,
+            cand,
+            measured,
+            ..
+        } = fixture(41, 512, 30, 1e-6);
         let quiet = vec![1e-6; measured.len()];
         let exact = truth.select_rows(&measured);
         let mut sorted: Vec<f64> = exact.iter().copied().collect();
