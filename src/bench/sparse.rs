@@ -622,36 +622,14 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
         }
         for &f in &a.fractions {
             let budget = f * canonical;
-            if want("ours") {
-                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
-                rows.push(match fit {
+            // A method completed from the designed pairs: the design's longest prefix whose
+            // plan fits the budget, measured, then completed by `complete` (reconstruction,
+            // predicted PSNR, note).
+            type Completed = (Vec<Vec<f32>>, Option<f64>, String);
+            let on_design = |method: &str, complete: &dyn Fn(&[usize]) -> Result<Completed>| -> Result<Row> {
+                Ok(match ctx.fit(design.len(), budget, |n| design[..n].to_vec())? {
                     Some((n, plan)) => {
-                        let m = &design[..n];
-                        let (rec, pred) = complete_sensor(&prior, m, &meas, &sensor)?;
-                        Row {
-                            noise: noisy,
-                            method: "ours".into(),
-                            fraction: f,
-                            budget_s: budget,
-                            pairs: n,
-                            planned_s: plan.durations.optimized_s,
-                            psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: Some(pred),
-                            note: format!("K = {}", prior.components().min(n)),
-                        }
-                    }
-                    None => na(noisy, "ours", f, budget, "no pair fits"),
-                });
-            }
-            for method in ["mixture", "mixture+global"].into_iter().filter(|m| want(m)) {
-                // Loaded above whenever a mixture method is wanted.
-                let Some(mix) = mixture.as_ref() else { break };
-                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
-                rows.push(match fit {
-                    Some((n, plan)) => {
-                        let m = &design[..n];
-                        let global = (method == "mixture+global").then_some(&prior);
-                        let (rec, counts) = complete_mixture(mix, global, m, &meas, &sensor)?;
+                        let (rec, pred, note) = complete(&design[..n])?;
                         Row {
                             noise: noisy,
                             method: method.into(),
@@ -660,93 +638,67 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                             pairs: n,
                             planned_s: plan.durations.optimized_s,
                             psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: None,
-                            note: format!("{} members, texels per member {counts:?}", counts.len()),
+                            predicted_psnr_db: pred,
+                            note,
                         }
                     }
                     None => na(noisy, method, f, budget, "no pair fits"),
-                });
+                })
+            };
+            if want("ours") {
+                rows.push(on_design("ours", &|m| {
+                    let (rec, pred) = complete_sensor(&prior, m, &meas, &sensor)?;
+                    Ok((rec, Some(pred), format!("K = {}", prior.components().min(m.len()))))
+                })?);
+            }
+            for method in ["mixture", "mixture+global"].into_iter().filter(|m| want(m)) {
+                // Loaded above whenever a mixture method is wanted.
+                let Some(mix) = mixture.as_ref() else { break };
+                let global = (method == "mixture+global").then_some(&prior);
+                rows.push(on_design(method, &|m| {
+                    let (rec, counts) = complete_mixture(mix, global, m, &meas, &sensor)?;
+                    let note = format!("{} members, texels per member {counts:?}", counts.len());
+                    Ok((rec, None, note))
+                })?);
             }
             if want("ours-constant") {
-                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
-                rows.push(match fit {
-                    Some((n, plan)) => {
-                        let m = &design[..n];
-                        let (rec, pred) = complete_map(&prior, m, &meas, nv)?;
-                        Row {
-                            noise: noisy,
-                            method: "ours-constant".into(),
-                            fraction: f,
-                            budget_s: budget,
-                            pairs: n,
-                            planned_s: plan.durations.optimized_s,
-                            psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: Some(pred),
-                            note: format!(
-                                "K = {}, one noise variance for every pair, clipped readings as values",
-                                prior.components().min(n)
-                            ),
-                        }
-                    }
-                    None => na(noisy, "ours-constant", f, budget, "no pair fits"),
-                });
+                rows.push(on_design("ours-constant", &|m| {
+                    let (rec, pred) = complete_map(&prior, m, &meas, nv)?;
+                    let note = format!(
+                        "K = {}, one noise variance for every pair, clipped readings as values",
+                        prior.components().min(m.len())
+                    );
+                    Ok((rec, Some(pred), note))
+                })?);
             }
             if want("ours-auto") {
                 // The same design; the MAP's σ² chosen by leave-one-out on the measured
                 // values (`gonio_sparse::complete::loo_noise_var`). Measured, not adopted
                 // (docs/guide/sparse.md).
-                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
-                rows.push(match fit {
-                    Some((n, plan)) => {
-                        let m = &design[..n];
-                        let p = prior.truncated(prior.components().min(n));
-                        let texels = meas.first().map_or(0, |x| x.len() / 3);
-                        let pick = gonio::cli::bench::spread_texels(texels, LOO_TEXELS);
-                        let space = prior.space();
-                        let y = nalgebra::DMatrix::<f64>::from_fn(n, pick.len() * 3, |i, j| {
-                            space.forward(meas[m[i]][3 * pick[j / 3] + j % 3] as f64)
-                        });
-                        let choice = gonio_sparse::complete::loo_noise_var(&p, m, &y, nv)?;
-                        let (rec, pred) = complete_map(&prior, m, &meas, choice.noise_var)?;
-                        Row {
-                            noise: noisy,
-                            method: "ours-auto".into(),
-                            fraction: f,
-                            budget_s: budget,
-                            pairs: n,
-                            planned_s: plan.durations.optimized_s,
-                            psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: Some(pred),
-                            note: format!(
-                                "K = {}, σ = {:.2} codes by leave-one-out",
-                                p.components(),
-                                choice.noise_var.sqrt() * 255.0
-                            ),
-                        }
-                    }
-                    None => na(noisy, "ours-auto", f, budget, "no pair fits"),
-                });
+                rows.push(on_design("ours-auto", &|m| {
+                    let n = m.len();
+                    let p = prior.truncated(prior.components().min(n));
+                    let texels = meas.first().map_or(0, |x| x.len() / 3);
+                    let pick = gonio::cli::bench::spread_texels(texels, LOO_TEXELS);
+                    let space = prior.space();
+                    let y = nalgebra::DMatrix::<f64>::from_fn(n, pick.len() * 3, |i, j| {
+                        space.forward(meas[m[i]][3 * pick[j / 3] + j % 3] as f64)
+                    });
+                    let choice = gonio_sparse::complete::loo_noise_var(&p, m, &y, nv)?;
+                    let (rec, pred) = complete_map(&prior, m, &meas, choice.noise_var)?;
+                    let note = format!(
+                        "K = {}, σ = {:.2} codes by leave-one-out",
+                        p.components(),
+                        choice.noise_var.sqrt() * 255.0
+                    );
+                    Ok((rec, Some(pred), note))
+                })?);
             }
             if want("ours-joint") {
-                let fit = ctx.fit(design.len(), budget, |n| design[..n].to_vec())?;
-                rows.push(match fit {
-                    Some((n, plan)) => {
-                        let m = &design[..n];
-                        let (rec, pred, note) = complete_joint(&prior, m, &meas)?;
-                        Row {
-                            noise: noisy,
-                            method: "ours-joint".into(),
-                            fraction: f,
-                            budget_s: budget,
-                            pairs: n,
-                            planned_s: plan.durations.optimized_s,
-                            psnr_db: Some(psnr(&truth, &rec)),
-                            predicted_psnr_db: Some(pred),
-                            note,
-                        }
-                    }
-                    None => na(noisy, "ours-joint", f, budget, "no pair fits"),
-                });
+                rows.push(on_design("ours-joint", &|m| {
+                    let (rec, pred, note) = complete_joint(&prior, m, &meas)?;
+                    Ok((rec, Some(pred), note))
+                })?);
             }
             if want("ours-motion") {
                 // The motion-aware design (gain per second of rig time), as
