@@ -50,14 +50,7 @@ pub struct Abrdfs {
 }
 
 /// The sRGB transfer function's inverse for an 8-bit code.
-pub fn srgb_to_linear(code: u8) -> f32 {
-    let s = code as f32 / 255.0;
-    if s <= 0.04045 {
-        s / 12.92
-    } else {
-        ((s + 0.055) / 1.055).powf(2.4)
-    }
-}
+pub use gonio_devices::image::srgb8_to_linear as srgb_to_linear;
 
 impl Abrdfs {
     /// Read the dataset once, view by view. f32 when `texels · dims · 4 ≤ budget`, else

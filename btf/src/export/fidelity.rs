@@ -75,12 +75,7 @@ fn quantized(v: f32, bits: u8) -> f32 {
 /// The sRGB-encoded base colour as the texture stores it, decoded back to linear.
 fn quantized_srgb(v: f32, bits: u8) -> f32 {
     if bits == 16 {
-        let c = quantize16(srgb_encode(v)) as f64 / 65535.0;
-        (if c <= 0.04045 {
-            c / 12.92
-        } else {
-            ((c + 0.055) / 1.055).powf(2.4)
-        }) as f32
+        gonio_devices::image::srgb_decode(quantize16(srgb_encode(v)) as f64 / 65535.0) as f32
     } else {
         srgb_to_linear(gonio_dataset::store::linear_to_srgb8(v))
     }

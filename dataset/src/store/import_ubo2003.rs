@@ -27,7 +27,7 @@
 
 use super::manifest::{ManifestHeader, MeasurementRecord, MeasurementStatus};
 use super::{Dataset, StoreError};
-use gonio_devices::image::RgbImage;
+use gonio_devices::image::{srgb8_to_linear, RgbImage};
 use rayon::prelude::*;
 use std::collections::{BTreeMap, HashSet};
 use std::io::Read;
@@ -187,16 +187,6 @@ fn order_directions(set: &HashSet<[u32; 2]>) -> (Vec<[u32; 2]>, bool) {
     let mut v: Vec<[u32; 2]> = set.iter().copied().collect();
     v.sort();
     (v, false)
-}
-
-/// sRGB 8-bit value → linear (IEC 61966-2-1).
-fn srgb8_to_linear(v: u8) -> f32 {
-    let c = v as f32 / 255.0;
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
 }
 
 /// Decode one image entry's bytes with the limits applied.

@@ -162,12 +162,7 @@ fn list(choices: &[String]) -> String {
 /// sRGB display value (0 ..= 255) to linear 16-bit (0 ..= 65535) with the sRGB curve
 /// (IEC 61966-2-1): what a JPEG's 8-bit values mean in light.
 pub fn srgb_to_linear16(v: u8) -> u16 {
-    let x = v as f64 / 255.0;
-    let lin = if x <= 0.04045 {
-        x / 12.92
-    } else {
-        ((x + 0.055) / 1.055).powf(2.4)
-    };
+    let lin = crate::image::srgb_decode(v as f64 / 255.0);
     (lin * 65535.0).round().clamp(0.0, 65535.0) as u16
 }
 

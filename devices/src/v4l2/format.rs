@@ -272,13 +272,7 @@ impl Eotf {
 pub fn eotf(transfer: Transfer, v: f64) -> f64 {
     match transfer {
         Transfer::Linear => v,
-        Transfer::Srgb => {
-            if v <= 0.04045 {
-                v / 12.92
-            } else {
-                ((v + 0.055) / 1.055).powf(2.4)
-            }
-        }
+        Transfer::Srgb => crate::image::srgb_decode(v),
         Transfer::Rec709 => {
             if v < 0.081 {
                 v / 4.5
