@@ -39,6 +39,9 @@ struct Report {
     /// The fit's own size at 16 bits: what every other row is compared with.
     baseline: Fidelity,
     rows: Vec<Fidelity>,
+    /// The fit's own size with one map at 8 bits and the others at 16, for each map:
+    /// which map's quantization costs what (`only_8_bit` names it).
+    by_map: Vec<Fidelity>,
 }
 
 pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
@@ -69,12 +72,20 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
             rows.push(measure(size, b)?);
         }
     }
+    let by_map = fidelity::Map::ALL
+        .iter()
+        .map(|&m| {
+            fidelity::measure_map_at_8_bits(&g, &a.file, None, m, &dirs)
+                .with_context(|| format!("measuring {} with its {} map at 8 bits", a.file.display(), m.name()))
+        })
+        .collect::<Result<Vec<_>>>()?;
     let report = Report {
         file: a.file.display().to_string(),
         texels: [g.header.width, g.header.height],
         pairs: dirs.len() * dirs.len(),
         baseline,
         rows,
+        by_map,
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -101,6 +112,10 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
     line(&report.baseline, "  (baseline: the fit's own size, 16 bits)");
     for r in &report.rows {
         line(r, "");
+    }
+    println!("one map at 8 bits, the others at 16 (the fit's own size):");
+    for r in &report.by_map {
+        line(r, &format!("  ({} at 8 bits)", r.only_8_bit.map_or("", |m| m.name())));
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -29,12 +29,83 @@ const PARAMS: usize = 9;
 /// goes to zero with the cosine and the relative error means little.
 pub const MAX_THETA_DEG: f64 = 80.0;
 
+/// The glTF textures' maps, each quantized on its own by [`MapDepths`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Map {
+    BaseColor,
+    Metallic,
+    Roughness,
+    Normal,
+    Anisotropy,
+}
+
+impl Map {
+    pub const ALL: [Map; 5] = [
+        Map::BaseColor,
+        Map::Metallic,
+        Map::Roughness,
+        Map::Normal,
+        Map::Anisotropy,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Map::BaseColor => "base_color",
+            Map::Metallic => "metallic",
+            Map::Roughness => "roughness",
+            Map::Normal => "normal",
+            Map::Anisotropy => "anisotropy",
+        }
+    }
+}
+
+/// The bit depth each map is read back at: all alike as the export writes them, or one
+/// map at 8 bits and the rest at 16, to tell which map's quantization costs what.
+#[derive(Clone, Copy, Debug)]
+struct MapDepths {
+    base_color: u8,
+    metallic: u8,
+    roughness: u8,
+    normal: u8,
+    anisotropy: u8,
+}
+
+impl MapDepths {
+    fn uniform(bits: u8) -> Self {
+        MapDepths {
+            base_color: bits,
+            metallic: bits,
+            roughness: bits,
+            normal: bits,
+            anisotropy: bits,
+        }
+    }
+
+    /// `map` at 8 bits, every other map at 16.
+    fn only_8_bit(map: Map) -> Self {
+        let mut d = Self::uniform(16);
+        *match map {
+            Map::BaseColor => &mut d.base_color,
+            Map::Metallic => &mut d.metallic,
+            Map::Roughness => &mut d.roughness,
+            Map::Normal => &mut d.normal,
+            Map::Anisotropy => &mut d.anisotropy,
+        } = 8;
+        d
+    }
+}
+
 /// One export setting's cost.
 #[derive(Clone, Debug, Serialize)]
 pub struct Fidelity {
     /// Texture side (texels).
     pub size: usize,
     pub bit_depth: u8,
+    /// Set when only this map was read back at 8 bits and every other at 16 (`bit_depth`
+    /// and `png_bytes` are then those of the 16-bit export).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub only_8_bit: Option<Map>,
     /// The glTF textures' PNG bytes (base colour, metallic-roughness, normal, and the
     /// anisotropy texture when a texel is anisotropic).
     pub png_bytes: usize,
@@ -81,21 +152,22 @@ fn quantized_srgb(v: f32, bits: u8) -> f32 {
     }
 }
 
-/// The material a renderer reads from `m`'s textures, texel by texel ([`PARAMS`] each).
-fn read_back(m: &Material) -> Vec<f32> {
-    let bits = m.bit_depth;
+/// The material a renderer reads from `m`'s textures, texel by texel ([`PARAMS`] each),
+/// each map at its depth in `d`.
+fn read_back(m: &Material, d: MapDepths) -> Vec<f32> {
     let mut out = Vec::with_capacity(m.width * m.height * PARAMS);
     for t in 0..m.width * m.height {
-        out.extend(m.base_color[t].map(|c| quantized_srgb(c, bits)));
-        out.push(quantized(m.metallic[t], bits));
-        out.push(quantized(m.roughness[t], bits));
+        out.extend(m.base_color[t].map(|c| quantized_srgb(c, d.base_color)));
+        out.push(quantized(m.metallic[t], d.metallic));
+        out.push(quantized(m.roughness[t], d.roughness));
         // The normal map stores n/2 + 1/2; a renderer decodes and renormalizes.
-        let n = m.normal[t].map(|c| 2.0 * quantized(0.5 * c + 0.5, bits) - 1.0);
+        let n = m.normal[t].map(|c| 2.0 * quantized(0.5 * c + 0.5, d.normal) - 1.0);
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().max(1e-12);
         out.extend([n[0] / len, n[1] / len]);
         // Direction (cos φ, sin φ) and strength, as `texture::anisotropy_png` writes them.
         let a = m.anisotropy[t];
         let (s, phi) = gonio_brdf::gltf::anisotropy_of([a[0] as f64, a[1] as f64]);
+        let bits = d.anisotropy;
         let dx = 2.0 * quantized(0.5 * phi.cos() as f32 + 0.5, bits) - 1.0;
         let dy = 2.0 * quantized(0.5 * phi.sin() as f32 + 0.5, bits) - 1.0;
         let s = quantized(s as f32, bits) as f64;
@@ -131,6 +203,29 @@ pub fn measure(
     bit_depth: u8,
     dirs: &[Vec3],
 ) -> Result<Fidelity, ExportError> {
+    measure_maps(g, path, size, bit_depth, None, dirs)
+}
+
+/// As [`measure`] at 16 bits, with only `map` read back at 8 bits: what that map's
+/// quantization alone costs.
+pub fn measure_map_at_8_bits(
+    g: &Gbtf,
+    path: &Path,
+    size: Option<usize>,
+    map: Map,
+    dirs: &[Vec3],
+) -> Result<Fidelity, ExportError> {
+    measure_maps(g, path, size, 16, Some(map), dirs)
+}
+
+fn measure_maps(
+    g: &Gbtf,
+    path: &Path,
+    size: Option<usize>,
+    bit_depth: u8,
+    only_8_bit: Option<Map>,
+    dirs: &[Vec3],
+) -> Result<Fidelity, ExportError> {
     let t0 = std::time::Instant::now();
     let opts = ExportOptions {
         size,
@@ -139,7 +234,8 @@ pub fn measure(
     };
     let m = Material::from_gbtf(g, path, &opts)?;
     let png = png_bytes(&m)?;
-    let back = read_back(&m);
+    let depths = only_8_bit.map_or(MapDepths::uniform(bit_depth), MapDepths::only_8_bit);
+    let back = read_back(&m, depths);
     let (w, h) = (g.header.width, g.header.height);
     let np = gltf_file::params_per_texel(g);
     let fit = &g.blocks[0];
@@ -186,6 +282,7 @@ pub fn measure(
     Ok(Fidelity {
         size: m.width,
         bit_depth,
+        only_8_bit,
         png_bytes: png,
         rel_rms: if r2 > 0.0 { (d2 / r2).sqrt() } else { 0.0 },
         texel_mean,

@@ -607,6 +607,21 @@ fn the_exports_fidelity_grows_with_bits_and_size() {
     assert_eq!((full16.size, half8.size, double8.size), (w, w / 2, 2 * w));
     assert!(half8.png_bytes < full8.png_bytes && full8.png_bytes < double8.png_bytes);
     assert!(full8.png_bytes < full16.png_bytes);
+    // One map at 8 bits: each costs something over the 16-bit read-back, none more than
+    // all of them together, and the rows say which map they are.
+    let texel_mean_sq = |f: &fidelity::Fidelity| f.texel_mean * f.texel_mean;
+    let mut excess = 0.0;
+    for m in fidelity::Map::ALL {
+        let one = fidelity::measure_map_at_8_bits(&g, &path, None, m, &dirs).unwrap();
+        assert_eq!(one.only_8_bit, Some(m));
+        assert!(
+            one.rel_rms >= full16.rel_rms * (1.0 - 1e-9),
+            "{m:?}: {one:?} vs {full16:?}"
+        );
+        assert!(one.rel_rms <= full8.rel_rms * 1.5, "{m:?}: {one:?} vs {full8:?}");
+        excess += texel_mean_sq(&one) - texel_mean_sq(&full16);
+    }
+    assert!(excess > 0.0, "some map's quantization must cost something");
     // The directions: as many as asked, on the hemisphere up to the cut-off.
     let zmin = fidelity::MAX_THETA_DEG.to_radians().cos() - 1e-12;
     assert!(dirs.len() == 24 && dirs.iter().all(|d| d.z >= zmin && (d.norm() - 1.0).abs() < 1e-12));
