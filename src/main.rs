@@ -5,6 +5,9 @@ use clap::Parser;
 
 fn main() -> std::process::ExitCode {
     gonio::cli::prepare_process();
+    if let Some(code) = gonio::cli::bench::forward_help(&std::env::args_os().collect::<Vec<_>>()) {
+        return code;
+    }
     let cli = gonio::cli::Cli::parse();
     gonio::cli::init_logging(cli.verbose, cli.quiet);
     match gonio::cli::run(cli) {

@@ -35,6 +35,21 @@ fn bench_exe() -> Result<PathBuf> {
     Ok(me.with_file_name(format!("gonio-bench{}", std::env::consts::EXE_SUFFIX)))
 }
 
+/// `gonio help bench [BENCHMARK]`: clap's own `help` would print this forwarding
+/// subcommand's help; the benchmarks' help is `gonio-bench`'s (`gonio-bench help
+/// [BENCHMARK]`). `Some(exit code)` when `args` (the whole command line) asked for it.
+pub fn forward_help(args: &[OsString]) -> Option<ExitCode> {
+    if args.get(1).is_none_or(|a| a != "help") || args.get(2).is_none_or(|a| a != "bench") {
+        return None;
+    }
+    let mut forwarded = vec![OsString::from("help")];
+    forwarded.extend(args[3..].iter().cloned());
+    Some(run(BenchArgs { args: forwarded }, 0, false).unwrap_or_else(|e| {
+        eprintln!("error: {e:#}");
+        ExitCode::from(1)
+    }))
+}
+
 /// Runs `gonio-bench` with gonio's `-v`/`-q` and `args`: on Unix it replaces this process
 /// (stdin, stdout, stderr, signals and the exit status are the benchmark's own), elsewhere
 /// it waits for it and returns its exit code.

@@ -11,7 +11,13 @@ fn gonio(args: &[&str]) -> Output {
 
 #[test]
 fn bench_help_lists_the_benchmarks() {
-    for help in [&["bench", "--help"][..], &["bench", "-h"], &["bench"]] {
+    // `gonio help bench` is the benchmarks' list too, not the forwarding subcommand's help.
+    for help in [
+        &["bench", "--help"][..],
+        &["bench", "-h"],
+        &["bench"],
+        &["help", "bench"],
+    ] {
         let o = gonio(help);
         // `gonio bench` alone prints the same list on stderr and exits 2, as clap does.
         let text = String::from_utf8_lossy(if help.len() == 1 { &o.stderr } else { &o.stdout }).into_owned();
@@ -28,12 +34,14 @@ fn bench_help_lists_the_benchmarks() {
             assert!(text.contains(&format!("\n  {b} ")), "{help:?}: {b} missing in\n{text}");
         }
     }
-    let o = gonio(&["bench", "fit", "--help"]);
-    let text = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        o.status.success() && text.contains("Usage: gonio bench fit [OPTIONS]"),
-        "{text}"
-    );
+    for help in [&["bench", "fit", "--help"][..], &["help", "bench", "fit"]] {
+        let o = gonio(help);
+        let text = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            o.status.success() && text.contains("Usage: gonio bench fit [OPTIONS]"),
+            "{help:?}: {text}"
+        );
+    }
 }
 
 #[test]
