@@ -50,6 +50,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 
+mod krige;
+
 #[derive(clap::Args, Debug)]
 pub struct SparseBenchArgs {
     #[command(flatten)]
@@ -79,7 +81,7 @@ pub struct SparseBenchArgs {
     pub plan_kicks: usize,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Only these methods (ours, ours-constant, ours-auto, ours-joint, ours-motion, adaptive, mixture, mixture+global,
+    /// Only these methods (ours, ours-krige, ours-constant, ours-auto, ours-joint, ours-motion, adaptive, mixture, mixture+global,
     /// project, product, pca-ls, dense;
     /// `project` is the diagnosis: the truth projected onto the prior's span).
     #[arg(long, value_delimiter = ',', default_value = "ours,product,pca-ls,dense")]
@@ -649,6 +651,12 @@ pub fn run(a: SparseBenchArgs) -> Result<ExitCode> {
                 rows.push(on_design("ours", &|m| {
                     let (rec, pred) = complete_sensor(&prior, m, &meas, &sensor)?;
                     Ok((rec, Some(pred), format!("K = {}", prior.components().min(m.len()))))
+                })?);
+            }
+            if want("ours-krige") {
+                rows.push(on_design("ours-krige", &|m| {
+                    let (rec, note) = krige::complete(&prior, &lights, &views, m, &meas, &sensor)?;
+                    Ok((rec, None, note))
                 })?);
             }
             for method in ["mixture", "mixture+global"].into_iter().filter(|m| want(m)) {

@@ -306,7 +306,15 @@ impl Family {
             member: m,
             message: format!("the base sample does not convert to TOML: {e}"),
         })?;
-        let name = format!("{}-{}", self.spec.name, member_dir_name(m, self.spec.members));
+        // The family's seed is part of the name: a fresh draw of the same family with another
+        // seed is another sample (a prior that saw `plastics-s7-0003` has not seen
+        // `plastics-s8-0003`), while the directory stays `members/NNNN`.
+        let name = format!(
+            "{}-s{}-{}",
+            self.spec.name,
+            self.spec.seed,
+            member_dir_name(m, self.spec.members)
+        );
         set(&mut value, "name", toml::Value::String(name.clone())).expect("samples have a name");
         for (k, v) in self.spec.vary.iter().enumerate() {
             let drawn = v.draw(draw_seed(self.spec.seed, m, k));

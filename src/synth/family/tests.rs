@@ -96,13 +96,18 @@ fn draws_are_in_range_reproducible_and_become_the_labels() {
         // The label is what the member's sample holds.
         let sample = serde_json::to_value(&a.spec).unwrap();
         assert_eq!(sample["material"][0]["alpha"].as_f64(), Some(alpha));
-        assert_eq!(a.sample, format!("plastics-{m:04}"));
+        assert_eq!(a.sample, format!("plastics-s7-{m:04}"));
         alphas.push(alpha);
     }
     assert!(alphas[0] != alphas[1] && alphas[1] != alphas[2], "{alphas:?}");
     // Another seed, other draws.
     let other = family(&SPEC.replace("seed = 7", "seed = 8")).unwrap();
     assert_ne!(other.member(0).unwrap().labels, f.member(0).unwrap().labels);
+    assert_ne!(
+        other.member(0).unwrap().sample,
+        f.member(0).unwrap().sample,
+        "a fresh draw is another sample"
+    );
 }
 
 #[test]
