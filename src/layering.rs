@@ -245,6 +245,8 @@ const FOLDERS: &[(&str, &[&str])] = &[
     ),
     // one module per benchmark; `main.rs` dispatches, and no benchmark imports another
     ("bench", &[]),
+    // `sparse.rs`'s own experiments (the kriging of the span's residual)
+    ("bench/sparse", &[]),
 ];
 
 /// The crate's root files: they declare modules and re-export, and this file quotes
