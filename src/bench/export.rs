@@ -5,6 +5,9 @@
 //! (`gonio_btf::export::fidelity`) against the per-texel fit itself, over the same light
 //! and view directions, with the PNG bytes and the time. The baseline in the same run is
 //! the fit's own size at 16 bits: what is left there is the base colour clamped to 1.
+//! Below the fit's size each setting is measured prefiltered (the export's default) and
+//! sampled bilinearly, and also against each texel's footprint mean (what a renderer
+//! pixel covering it shows).
 
 use anyhow::{bail, Context, Result};
 use gonio_btf::compress::Gbtf;
@@ -70,6 +73,13 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
         for &b in &a.bit_depths {
             let size = if s == own { None } else { Some(s) };
             rows.push(measure(size, b)?);
+            if s < own {
+                // The prefilter's baseline: the same texture sampled bilinearly.
+                rows.push(
+                    fidelity::measure_bilinear(&g, &a.file, size, b, &dirs)
+                        .with_context(|| format!("measuring {}", a.file.display()))?,
+                );
+            }
         }
     }
     let by_map = fidelity::Map::ALL
@@ -100,13 +110,21 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
         fidelity::MAX_THETA_DEG
     );
     println!(
-        "{:>6} {:>4} {:>10} {:>9} {:>11} {:>10} {:>10} {:>8}",
-        "size", "bits", "PNG bytes", "rel RMS", "texel mean", "texel p99", "texel max", "time s"
+        "{:>6} {:>4} {:>10} {:>9} {:>11} {:>10} {:>10} {:>10} {:>8}",
+        "size", "bits", "PNG bytes", "rel RMS", "texel mean", "texel p99", "texel max", "footprint", "time s"
     );
     let line = |r: &Fidelity, tag: &str| {
+        let footprint = r.footprint_rel_rms.map_or("–".to_string(), |f| format!("{f:.5}"));
+        let how = if r.prefiltered {
+            "  (prefiltered)"
+        } else if r.footprint_rel_rms.is_some() {
+            "  (bilinear)"
+        } else {
+            ""
+        };
         println!(
-            "{:>6} {:>4} {:>10} {:>9.5} {:>11.5} {:>10.5} {:>10.5} {:>8.3}{tag}",
-            r.size, r.bit_depth, r.png_bytes, r.rel_rms, r.texel_mean, r.texel_p99, r.texel_max, r.seconds
+            "{:>6} {:>4} {:>10} {:>9.5} {:>11.5} {:>10.5} {:>10.5} {:>10} {:>8.3}{how}{tag}",
+            r.size, r.bit_depth, r.png_bytes, r.rel_rms, r.texel_mean, r.texel_p99, r.texel_max, footprint, r.seconds
         )
     };
     line(&report.baseline, "  (baseline: the fit's own size, 16 bits)");

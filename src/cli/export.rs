@@ -62,6 +62,11 @@ pub struct ExportArgs {
     /// the side of its grids (default 64).
     #[arg(long)]
     pub size: Option<usize>,
+    /// Material formats, a --size below the fit's: sample the fit bilinearly between
+    /// texel centres instead of prefiltering each texel's footprint (averages, and the
+    /// normals' spread added to the roughness; docs/guide/export.md).
+    #[arg(long)]
+    pub no_prefilter: bool,
     /// Texture formats (gltf, materialx, usd, mitsuba): bits per PNG sample, 8 or 16.
     #[arg(long, default_value_t = 8, value_parser = parse_bit_depth)]
     pub bit_depth: u8,
@@ -215,6 +220,7 @@ fn run_material(args: ExportArgs) -> Result<ExitCode> {
         size: args.size,
         allow_uncalibrated: args.allow_uncalibrated,
         bit_depth: args.bit_depth,
+        prefilter: !args.no_prefilter,
     };
     let mut material = Material::from_gbtf(&gbtf, &args.dir, &opts)?;
     if let Some(fit) = material.provenance.get_mut("fit") {

@@ -102,6 +102,13 @@ pub struct Fidelity {
     /// Texture side (texels).
     pub size: usize,
     pub bit_depth: u8,
+    /// Whether a texture smaller than the fit was prefiltered ([`ExportOptions::prefilter`]).
+    pub prefiltered: bool,
+    /// A texture smaller than the fit: each exported texel against the mean of its
+    /// footprint's fitted BRDFs (what a renderer pixel covering the footprint shows),
+    /// relative RMS over every texel, pair and channel. `None` at the fit's size or above.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub footprint_rel_rms: Option<f64>,
     /// Set when only this map was read back at 8 bits and every other at 16 (`bit_depth`
     /// and `png_bytes` are then those of the 16-bit export).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -203,7 +210,19 @@ pub fn measure(
     bit_depth: u8,
     dirs: &[Vec3],
 ) -> Result<Fidelity, ExportError> {
-    measure_maps(g, path, size, bit_depth, None, dirs)
+    measure_maps(g, path, size, bit_depth, true, None, dirs)
+}
+
+/// As [`measure`], with a texture smaller than the fit sampled bilinearly between texel
+/// centres instead of prefiltered: the baseline of the prefilter.
+pub fn measure_bilinear(
+    g: &Gbtf,
+    path: &Path,
+    size: Option<usize>,
+    bit_depth: u8,
+    dirs: &[Vec3],
+) -> Result<Fidelity, ExportError> {
+    measure_maps(g, path, size, bit_depth, false, None, dirs)
 }
 
 /// As [`measure`] at 16 bits, with only `map` read back at 8 bits: what that map's
@@ -215,7 +234,7 @@ pub fn measure_map_at_8_bits(
     map: Map,
     dirs: &[Vec3],
 ) -> Result<Fidelity, ExportError> {
-    measure_maps(g, path, size, 16, Some(map), dirs)
+    measure_maps(g, path, size, 16, true, Some(map), dirs)
 }
 
 fn measure_maps(
@@ -223,6 +242,7 @@ fn measure_maps(
     path: &Path,
     size: Option<usize>,
     bit_depth: u8,
+    prefilter: bool,
     only_8_bit: Option<Map>,
     dirs: &[Vec3],
 ) -> Result<Fidelity, ExportError> {
@@ -231,6 +251,7 @@ fn measure_maps(
         size,
         allow_uncalibrated: true,
         bit_depth,
+        prefilter,
     };
     let m = Material::from_gbtf(g, path, &opts)?;
     let png = png_bytes(&m)?;
@@ -265,6 +286,41 @@ fn measure_maps(
         d2 += d;
         r2 += r;
     }
+    let footprint_rel_rms = (m.width < w || m.height < h).then(|| {
+        let per_out: Vec<(f64, f64)> = (0..m.width * m.height)
+            .into_par_iter()
+            .map(|c| {
+                let fp = texture::footprint(w, h, c % m.width, c / m.width, m.width, m.height);
+                let exported: Vec<f64> = back[c * PARAMS..(c + 1) * PARAMS].iter().map(|&x| x as f64).collect();
+                let refs: Vec<Vec<f64>> = fp
+                    .iter()
+                    .map(|&t| fit[t * np..(t + 1) * np].iter().map(|&x| x as f64).collect())
+                    .collect();
+                let (mut d2, mut r2) = (0.0, 0.0);
+                for &l in dirs {
+                    for &v in dirs {
+                        let mut a = [0.0; 3];
+                        for r in &refs {
+                            let x = radiance(r, l, v);
+                            (0..3).for_each(|k| a[k] += x[k] / refs.len() as f64);
+                        }
+                        let b = radiance(&exported, l, v);
+                        for k in 0..3 {
+                            d2 += (b[k] - a[k]).powi(2);
+                            r2 += a[k] * a[k];
+                        }
+                    }
+                }
+                (d2, r2)
+            })
+            .collect();
+        let (d, r) = per_out.iter().fold((0.0, 0.0), |(d, r), x| (d + x.0, r + x.1));
+        if r > 0.0 {
+            (d / r).sqrt()
+        } else {
+            0.0
+        }
+    });
     // Each texel's RMS error relative to the material's RMS (not to its own: a dark texel
     // next to a bright one would read as an error of hundreds of times its value).
     let texels = per_texel.len().max(1) as f64;
@@ -282,6 +338,8 @@ fn measure_maps(
     Ok(Fidelity {
         size: m.width,
         bit_depth,
+        prefiltered: prefilter && m.width <= w && m.height <= h && (m.width, m.height) != (w, h),
+        footprint_rel_rms,
         only_8_bit,
         png_bytes: png,
         rel_rms: if r2 > 0.0 { (d2 / r2).sqrt() } else { 0.0 },

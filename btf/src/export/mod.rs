@@ -139,6 +139,10 @@ pub struct ExportOptions {
     pub allow_uncalibrated: bool,
     /// Bits per PNG sample: 8 or 16.
     pub bit_depth: u8,
+    /// A texture smaller than the fit is prefiltered over each texel's footprint
+    /// ([`texture::prefiltered`]: averages, and the normals' spread added to the roughness)
+    /// instead of sampled bilinearly between texel centres.
+    pub prefilter: bool,
 }
 
 /// The material as textures, ready for the writers.
@@ -268,7 +272,11 @@ impl Material {
         for j in 0..oh {
             for i in 0..ow {
                 let np = gltf_file::params_per_texel(g);
-                let p = texture::bilinear(&g.blocks[0], np, w, h, i, j, ow, oh);
+                let p = if opts.prefilter && ow <= w && oh <= h && (ow, oh) != (w, h) {
+                    texture::prefiltered(&g.blocks[0], np, w, h, i, j, ow, oh)
+                } else {
+                    texture::bilinear(&g.blocks[0], np, w, h, i, j, ow, oh)
+                };
                 let mut over = false;
                 let bc = [0, 1, 2].map(|c| {
                     let x = p[c];

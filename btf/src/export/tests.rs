@@ -36,6 +36,7 @@ fn opts(size: Option<usize>) -> ExportOptions {
         size,
         allow_uncalibrated: false,
         bit_depth: 8,
+        prefilter: true,
     }
 }
 
@@ -89,6 +90,7 @@ fn materials_clamp_list_and_refuse_uncalibrated_values() {
             size: None,
             allow_uncalibrated: true,
             bit_depth: 8,
+            prefilter: true,
         },
     )
     .unwrap();
@@ -418,6 +420,7 @@ fn sixteen_bit_textures_decode_to_the_maps() {
                 size: None,
                 allow_uncalibrated: false,
                 bit_depth: bits,
+                prefilter: true,
             },
         )
         .unwrap();
@@ -449,6 +452,7 @@ fn sixteen_bit_textures_decode_to_the_maps() {
             size: None,
             allow_uncalibrated: false,
             bit_depth: 12,
+            prefilter: true,
         },
     )
     .unwrap_err()
@@ -625,4 +629,35 @@ fn the_exports_fidelity_grows_with_bits_and_size() {
     // The directions: as many as asked, on the hemisphere up to the cut-off.
     let zmin = fidelity::MAX_THETA_DEG.to_radians().cos() - 1e-12;
     assert!(dirs.len() == 24 && dirs.iter().all(|d| d.z >= zmin && (d.norm() - 1.0).abs() < 1e-12));
+}
+
+/// Below the fit's size the export prefilters each texel's footprint: the footprints
+/// partition the fit's texels, and against the footprint means (what a renderer pixel
+/// covering one shows) the prefiltered texture is closer than the bilinear one, since the
+/// normals' spread widens the lobe. At the fit's own size nothing is prefiltered.
+#[test]
+fn a_smaller_texture_is_prefiltered_over_its_footprint() {
+    for (w, ow) in [(8, 4), (8, 3), (7, 2), (8, 8), (5, 1)] {
+        let mut seen = vec![0; w * w];
+        for j in 0..ow {
+            for i in 0..ow {
+                for t in super::texture::footprint(w, w, i, j, ow, ow) {
+                    seen[t] += 1;
+                }
+            }
+        }
+        assert!(seen.iter().all(|&c| c == 1), "{w} → {ow}: {seen:?}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let g = file_with(dir.path(), true, 0.0);
+    let path = dir.path().join("f.gbtf");
+    let dirs = fidelity::directions(24);
+    let half = Some(g.header.width / 2);
+    let pre = fidelity::measure(&g, &path, half, 16, &dirs).unwrap();
+    let bil = fidelity::measure_bilinear(&g, &path, half, 16, &dirs).unwrap();
+    assert!(pre.prefiltered && !bil.prefiltered);
+    let (p, b) = (pre.footprint_rel_rms.unwrap(), bil.footprint_rel_rms.unwrap());
+    assert!(p < b, "prefiltered {p} against bilinear {b}");
+    let own = fidelity::measure(&g, &path, None, 16, &dirs).unwrap();
+    assert!(!own.prefiltered && own.footprint_rel_rms.is_none());
 }

@@ -31,6 +31,78 @@ pub fn bilinear(params: &[f32], np: usize, w: usize, h: usize, i: usize, j: usiz
         .collect()
 }
 
+/// The fine texels (`w × h`) whose centres fall inside output texel (`i`, `j`) of an
+/// `ow × oh` texture: its footprint. Never empty (the nearest texel when none does).
+pub fn footprint(w: usize, h: usize, i: usize, j: usize, ow: usize, oh: usize) -> Vec<usize> {
+    let range = |k: usize, n: usize, on: usize| {
+        // Centres (x + ½) in [k, k + 1) · n / on.
+        let lo = ((k * n) as f64 / on as f64 - 0.5).ceil().max(0.0) as usize;
+        let hi = ((((k + 1) * n) as f64 / on as f64 - 0.5).ceil() as usize).min(n);
+        if lo < hi {
+            lo..hi
+        } else {
+            let c = (((k as f64 + 0.5) * n as f64 / on as f64) as usize).min(n - 1);
+            c..c + 1
+        }
+    };
+    let (xs, ys) = (range(i, w, ow), range(j, h, oh));
+    ys.flat_map(|y| xs.clone().map(move |x| y * w + x)).collect()
+}
+
+/// glTF parameters of output texel (`i`, `j`) prefiltered over its footprint (downsampling,
+/// `ow ≤ w` and `oh ≤ h`): what a renderer should see when one of its pixels covers the
+/// footprint. Base colour, metallic and the anisotropy vector `s·(cos 2φ, sin 2φ)` (an
+/// axial mean) are averaged; the normals are averaged as unit vectors, and their spread
+/// widens the lobe (Toksvig 2005; the von Mises–Fisher form of Han et al. 2007): with `L`
+/// the length of the mean normal, κ ≈ (3L − L³)/(1 − L²), and a GGX lobe of α acts like
+/// κ ≈ 2/α², so the variances add: `α'² = ⟨α²⟩ + 2/κ`, roughness `= α'^½`. Without that
+/// term, a texture smaller than the fit blends normals into a flat one and keeps the
+/// narrow lobes: the highlight a bumpy surface spreads over the footprint becomes one
+/// sharp spot.
+#[allow(clippy::too_many_arguments)] // the same texel addressing as `bilinear`
+pub fn prefiltered(
+    params: &[f32],
+    np: usize,
+    w: usize,
+    h: usize,
+    i: usize,
+    j: usize,
+    ow: usize,
+    oh: usize,
+) -> Vec<f64> {
+    let fp = footprint(w, h, i, j, ow, oh);
+    let at = |t: usize, k: usize| params[t * np + k] as f64;
+    let n = fp.len() as f64;
+    let mut out = vec![0.0; np];
+    let mut mean_n = [0.0f64; 3];
+    let mut alpha2 = 0.0;
+    for &t in &fp {
+        for (k, o) in out.iter_mut().enumerate() {
+            if !matches!(k, 4..=6) {
+                *o += at(t, k) / n;
+            }
+        }
+        let r = at(t, 4).clamp(0.0, 1.0);
+        alpha2 += r.powi(4) / n;
+        let v = gonio_brdf::gltf::normal_vector([at(t, 5), at(t, 6)]);
+        mean_n[0] += v.x / n;
+        mean_n[1] += v.y / n;
+        mean_n[2] += v.z / n;
+    }
+    let len = (mean_n[0].powi(2) + mean_n[1].powi(2) + mean_n[2].powi(2)).sqrt();
+    let spread = if len < 1.0 - 1e-12 {
+        let l = len.max(1e-6);
+        2.0 * (1.0 - l * l) / (3.0 * l - l * l * l)
+    } else {
+        0.0
+    };
+    out[4] = (alpha2 + spread).sqrt().sqrt().min(1.0);
+    let l = len.max(1e-12);
+    out[5] = mean_n[0] / l;
+    out[6] = mean_n[1] / l;
+    out
+}
+
 fn encode(width: usize, height: usize, data: &[u8], color: image::ExtendedColorType) -> Result<Vec<u8>, ExportError> {
     let mut out = Vec::new();
     image::codecs::png::PngEncoder::new(&mut out)
