@@ -59,11 +59,11 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
     }
     let g = Gbtf::read(&a.file).with_context(|| format!("reading {}", a.file.display()))?;
     let dirs = fidelity::directions(a.directions);
-    let measure = |size: Option<usize>, bits: u8| {
-        fidelity::measure(&g, &a.file, size, bits, &dirs).with_context(|| format!("measuring {}", a.file.display()))
+    let measure = |setting: fidelity::Setting| {
+        fidelity::measure(&g, &a.file, setting, &dirs).with_context(|| format!("measuring {}", a.file.display()))
     };
     let own = g.header.width.max(g.header.height);
-    let baseline = measure(None, 16)?;
+    let baseline = measure(fidelity::Setting::export(None, 16))?;
     let mut sizes = a.sizes.clone();
     sizes.push(own);
     sizes.sort_unstable();
@@ -72,22 +72,16 @@ pub fn run(a: ExportBenchArgs) -> Result<ExitCode> {
     for &s in &sizes {
         for &b in &a.bit_depths {
             let size = if s == own { None } else { Some(s) };
-            rows.push(measure(size, b)?);
+            rows.push(measure(fidelity::Setting::export(size, b))?);
             if s < own {
                 // The prefilter's baseline: the same texture sampled bilinearly.
-                rows.push(
-                    fidelity::measure_bilinear(&g, &a.file, size, b, &dirs)
-                        .with_context(|| format!("measuring {}", a.file.display()))?,
-                );
+                rows.push(measure(fidelity::Setting::bilinear(size, b))?);
             }
         }
     }
     let by_map = fidelity::Map::ALL
         .iter()
-        .map(|&m| {
-            fidelity::measure_map_at_8_bits(&g, &a.file, None, m, &dirs)
-                .with_context(|| format!("measuring {} with its {} map at 8 bits", a.file.display(), m.name()))
-        })
+        .map(|&m| measure(fidelity::Setting::map_at_8_bits(None, m)))
         .collect::<Result<Vec<_>>>()?;
     let report = Report {
         file: a.file.display().to_string(),

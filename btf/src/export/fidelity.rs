@@ -201,51 +201,55 @@ fn radiance(p: &[f64], l: Vec3, v: Vec3) -> [f64; 3] {
     f.map(|x| x * l.z)
 }
 
-/// The cost of exporting the glTF fit `g` (read from `path`) at texture side `size`
-/// (`None`: the fit's own) and `bit_depth`, over every pair of `dirs` × `dirs`.
-pub fn measure(
-    g: &Gbtf,
-    path: &Path,
-    size: Option<usize>,
-    bit_depth: u8,
-    dirs: &[Vec3],
-) -> Result<Fidelity, ExportError> {
-    measure_maps(g, path, size, bit_depth, true, None, dirs)
+/// One export setting to measure: the texture side (`None`: the fit's own), the bit depth,
+/// whether a smaller texture is prefiltered (the export's default) or sampled bilinearly,
+/// and optionally one map read back at 8 bits with the others at 16 (`bit_depth` is then
+/// 16).
+#[derive(Clone, Copy, Debug)]
+pub struct Setting {
+    pub size: Option<usize>,
+    pub bit_depth: u8,
+    pub prefilter: bool,
+    pub only_8_bit: Option<Map>,
 }
 
-/// As [`measure`], with a texture smaller than the fit sampled bilinearly between texel
-/// centres instead of prefiltered: the baseline of the prefilter.
-pub fn measure_bilinear(
-    g: &Gbtf,
-    path: &Path,
-    size: Option<usize>,
-    bit_depth: u8,
-    dirs: &[Vec3],
-) -> Result<Fidelity, ExportError> {
-    measure_maps(g, path, size, bit_depth, false, None, dirs)
+impl Setting {
+    /// As `gonio export --size S --bit-depth B` writes it.
+    pub fn export(size: Option<usize>, bit_depth: u8) -> Self {
+        Setting {
+            size,
+            bit_depth,
+            prefilter: true,
+            only_8_bit: None,
+        }
+    }
+
+    /// The prefilter's baseline: a smaller texture sampled bilinearly between texel centres.
+    pub fn bilinear(size: Option<usize>, bit_depth: u8) -> Self {
+        Setting {
+            prefilter: false,
+            ..Self::export(size, bit_depth)
+        }
+    }
+
+    /// Only `map` at 8 bits, the others at 16: what that map's quantization alone costs.
+    pub fn map_at_8_bits(size: Option<usize>, map: Map) -> Self {
+        Setting {
+            only_8_bit: Some(map),
+            ..Self::export(size, 16)
+        }
+    }
 }
 
-/// As [`measure`] at 16 bits, with only `map` read back at 8 bits: what that map's
-/// quantization alone costs.
-pub fn measure_map_at_8_bits(
-    g: &Gbtf,
-    path: &Path,
-    size: Option<usize>,
-    map: Map,
-    dirs: &[Vec3],
-) -> Result<Fidelity, ExportError> {
-    measure_maps(g, path, size, 16, true, Some(map), dirs)
-}
-
-fn measure_maps(
-    g: &Gbtf,
-    path: &Path,
-    size: Option<usize>,
-    bit_depth: u8,
-    prefilter: bool,
-    only_8_bit: Option<Map>,
-    dirs: &[Vec3],
-) -> Result<Fidelity, ExportError> {
+/// The cost of exporting the glTF fit `g` (read from `path`) with `setting`, over every
+/// pair of `dirs` × `dirs`.
+pub fn measure(g: &Gbtf, path: &Path, setting: Setting, dirs: &[Vec3]) -> Result<Fidelity, ExportError> {
+    let Setting {
+        size,
+        bit_depth,
+        prefilter,
+        only_8_bit,
+    } = setting;
     let t0 = std::time::Instant::now();
     let opts = ExportOptions {
         size,

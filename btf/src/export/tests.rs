@@ -593,7 +593,9 @@ fn the_exports_fidelity_grows_with_bits_and_size() {
     let path = dir.path().join("f.gbtf");
     let dirs = fidelity::directions(24);
     let w = g.header.width;
-    let run = |size: Option<usize>, bits: u8| fidelity::measure(&g, &path, size, bits, &dirs).unwrap();
+    let run = |size: Option<usize>, bits: u8| {
+        fidelity::measure(&g, &path, fidelity::Setting::export(size, bits), &dirs).unwrap()
+    };
     let full16 = run(None, 16);
     let full8 = run(None, 8);
     let half8 = run(Some(w / 2), 8);
@@ -616,7 +618,7 @@ fn the_exports_fidelity_grows_with_bits_and_size() {
     let texel_mean_sq = |f: &fidelity::Fidelity| f.texel_mean * f.texel_mean;
     let mut excess = 0.0;
     for m in fidelity::Map::ALL {
-        let one = fidelity::measure_map_at_8_bits(&g, &path, None, m, &dirs).unwrap();
+        let one = fidelity::measure(&g, &path, fidelity::Setting::map_at_8_bits(None, m), &dirs).unwrap();
         assert_eq!(one.only_8_bit, Some(m));
         assert!(
             one.rel_rms >= full16.rel_rms * (1.0 - 1e-9),
@@ -653,11 +655,11 @@ fn a_smaller_texture_is_prefiltered_over_its_footprint() {
     let path = dir.path().join("f.gbtf");
     let dirs = fidelity::directions(24);
     let half = Some(g.header.width / 2);
-    let pre = fidelity::measure(&g, &path, half, 16, &dirs).unwrap();
-    let bil = fidelity::measure_bilinear(&g, &path, half, 16, &dirs).unwrap();
+    let pre = fidelity::measure(&g, &path, fidelity::Setting::export(half, 16), &dirs).unwrap();
+    let bil = fidelity::measure(&g, &path, fidelity::Setting::bilinear(half, 16), &dirs).unwrap();
     assert!(pre.prefiltered && !bil.prefiltered);
     let (p, b) = (pre.footprint_rel_rms.unwrap(), bil.footprint_rel_rms.unwrap());
     assert!(p < b, "prefiltered {p} against bilinear {b}");
-    let own = fidelity::measure(&g, &path, None, 16, &dirs).unwrap();
+    let own = fidelity::measure(&g, &path, fidelity::Setting::export(None, 16), &dirs).unwrap();
     assert!(!own.prefiltered && own.footprint_rel_rms.is_none());
 }
