@@ -542,9 +542,10 @@ mod tests {
     /// analysis predicts the completion's error against the truth and does not flag the
     /// material; ignoring the noise, the readings' noise reads as prior error: the
     /// prediction is far too pessimistic and the material is flagged. 1536 texel-channels,
-    /// as the analysis reads. (Measured here: told the noise, 6.9e-6 predicted against
+    /// as the analysis reads. (Measured here: told the noise, 4.2e-6 predicted against
     /// 2.0e-6 true, the rest being the bias of clipping a noisy difference at zero, which
-    /// shrinks with more texels; ignoring it, 2.5e-4.)
+    /// shrinks with more texels; ignoring it, 2.0e-4. Before the prediction read ρ̂:
+    /// 6.9e-6 and 2.5e-4.)
     #[test]
     fn the_readings_noise_is_not_mistaken_for_prior_error() {
         let Fixture {
