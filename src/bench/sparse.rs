@@ -318,11 +318,39 @@ fn complete_sensor(
     sensor: &gonio_devices::hdr::SensorNoise,
 ) -> Result<(Vec<Vec<f32>>, f64)> {
     let p = prior.truncated(prior.components().min(measured.len()));
-    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let noise = gonio::cli::bench::sensor_pair_noise(p.space(), &refs, sensor);
-    let c = Completion::with_pair_noise(&p, measured, &noise)?;
-    let (a, _clipped) = gonio::cli::bench::coefficients_censored(&c, &refs, 1.0);
-    Ok((fill_from(&c, &a, measured, meas), psnr_of_mse(c.predicted_mse())))
+    let fit = SensorFit::new(&p, measured, meas, sensor)?;
+    Ok((
+        fill_from(&fit.completion, &fit.coefficients, measured, meas),
+        psnr_of_mse(fit.completion.predicted_mse()),
+    ))
+}
+
+/// Ours' fit of the `measured` pairs in `p` (already truncated to at most the pairs), the
+/// one [`complete_sensor`] and `ours-krige` share: the completion weighed by each pair's
+/// sensor noise, that noise (model space), and the censored coefficients (K × M).
+struct SensorFit<'a> {
+    completion: Completion<'a>,
+    noise: Vec<f64>,
+    coefficients: nalgebra::DMatrix<f64>,
+}
+
+impl<'a> SensorFit<'a> {
+    fn new(
+        p: &'a Prior,
+        measured: &[usize],
+        meas: &[Vec<f32>],
+        sensor: &gonio_devices::hdr::SensorNoise,
+    ) -> Result<Self> {
+        let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
+        let noise = gonio::cli::bench::sensor_pair_noise(p.space(), &refs, sensor);
+        let completion = Completion::with_pair_noise(p, measured, &noise)?;
+        let (coefficients, _clipped) = gonio::cli::bench::coefficients_censored(&completion, &refs, 1.0);
+        Ok(SensorFit {
+            completion,
+            noise,
+            coefficients,
+        })
+    }
 }
 
 /// Ours with a prior mixture: the same sensor noise and censored fit as

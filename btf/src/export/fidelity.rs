@@ -201,6 +201,28 @@ fn radiance(p: &[f64], l: Vec3, v: Vec3) -> [f64; 3] {
     f.map(|x| x * l.z)
 }
 
+/// Σ Δ² and Σ ref² over every pair of `dirs` × `dirs` and channel: the exported texel's
+/// radiance against `reference` (one fitted texel, or a footprint's mean).
+fn squared_error(dirs: &[Vec3], exported: &[f64], reference: impl Fn(Vec3, Vec3) -> [f64; 3]) -> (f64, f64) {
+    let (mut d2, mut r2) = (0.0, 0.0);
+    for &l in dirs {
+        for &v in dirs {
+            let a = reference(l, v);
+            let b = radiance(exported, l, v);
+            for c in 0..3 {
+                d2 += (b[c] - a[c]).powi(2);
+                r2 += a[c] * a[c];
+            }
+        }
+    }
+    (d2, r2)
+}
+
+/// The sums of per-texel `(Σ Δ², Σ ref²)`, in texel order (the same at any thread count).
+fn sum_pairs(parts: &[(f64, f64)]) -> (f64, f64) {
+    parts.iter().fold((0.0, 0.0), |(d, r), x| (d + x.0, r + x.1))
+}
+
 /// One export setting to measure: the texture side (`None`: the fit's own), the bit depth,
 /// whether a smaller texture is prefiltered (the export's default) or sampled bilinearly,
 /// and optionally one map read back at 8 bits with the others at 16 (`bit_depth` is then
@@ -271,26 +293,12 @@ pub fn measure(g: &Gbtf, path: &Path, setting: Setting, dirs: &[Vec3]) -> Result
             let (i, j) = (t % w, t / w);
             let exported = texture::bilinear(&back, PARAMS, m.width, m.height, i, j, w, h);
             let reference: Vec<f64> = fit[t * np..(t + 1) * np].iter().map(|&x| x as f64).collect();
-            let (mut d2, mut r2) = (0.0, 0.0);
-            for &l in dirs {
-                for &v in dirs {
-                    let a = radiance(&reference, l, v);
-                    let b = radiance(&exported, l, v);
-                    for c in 0..3 {
-                        d2 += (b[c] - a[c]).powi(2);
-                        r2 += a[c] * a[c];
-                    }
-                }
-            }
-            (d2, r2)
+            squared_error(dirs, &exported, |l, v| radiance(&reference, l, v))
         })
         .collect();
-    let (mut d2, mut r2) = (0.0, 0.0);
-    for &(d, r) in &per_texel {
-        d2 += d;
-        r2 += r;
-    }
-    let footprint_rel_rms = (m.width < w || m.height < h).then(|| {
+    let (d2, r2) = sum_pairs(&per_texel);
+    let downsampled = texture::downsamples(w, h, m.width, m.height);
+    let footprint_rel_rms = downsampled.then(|| {
         let per_out: Vec<(f64, f64)> = (0..m.width * m.height)
             .into_par_iter()
             .map(|c| {
@@ -300,25 +308,17 @@ pub fn measure(g: &Gbtf, path: &Path, setting: Setting, dirs: &[Vec3]) -> Result
                     .iter()
                     .map(|&t| fit[t * np..(t + 1) * np].iter().map(|&x| x as f64).collect())
                     .collect();
-                let (mut d2, mut r2) = (0.0, 0.0);
-                for &l in dirs {
-                    for &v in dirs {
-                        let mut a = [0.0; 3];
-                        for r in &refs {
-                            let x = radiance(r, l, v);
-                            (0..3).for_each(|k| a[k] += x[k] / refs.len() as f64);
-                        }
-                        let b = radiance(&exported, l, v);
-                        for k in 0..3 {
-                            d2 += (b[k] - a[k]).powi(2);
-                            r2 += a[k] * a[k];
-                        }
+                squared_error(dirs, &exported, |l, v| {
+                    let mut a = [0.0; 3];
+                    for r in &refs {
+                        let x = radiance(r, l, v);
+                        (0..3).for_each(|k| a[k] += x[k] / refs.len() as f64);
                     }
-                }
-                (d2, r2)
+                    a
+                })
             })
             .collect();
-        let (d, r) = per_out.iter().fold((0.0, 0.0), |(d, r), x| (d + x.0, r + x.1));
+        let (d, r) = sum_pairs(&per_out);
         if r > 0.0 {
             (d / r).sqrt()
         } else {
@@ -342,7 +342,7 @@ pub fn measure(g: &Gbtf, path: &Path, setting: Setting, dirs: &[Vec3]) -> Result
     Ok(Fidelity {
         size: m.width,
         bit_depth,
-        prefiltered: prefilter && m.width <= w && m.height <= h && (m.width, m.height) != (w, h),
+        prefiltered: prefilter && downsampled,
         footprint_rel_rms,
         only_8_bit,
         png_bytes: png,

@@ -272,7 +272,7 @@ impl Material {
         for j in 0..oh {
             for i in 0..ow {
                 let np = gltf_file::params_per_texel(g);
-                let p = if opts.prefilter && ow <= w && oh <= h && (ow, oh) != (w, h) {
+                let p = if opts.prefilter && texture::downsamples(w, h, ow, oh) {
                     texture::prefiltered(&g.blocks[0], np, w, h, i, j, ow, oh)
                 } else {
                     texture::bilinear(&g.blocks[0], np, w, h, i, j, ow, oh)

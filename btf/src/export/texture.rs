@@ -31,6 +31,12 @@ pub fn bilinear(params: &[f32], np: usize, w: usize, h: usize, i: usize, j: usiz
         .collect()
 }
 
+/// Whether an `ow × oh` texture of a `w × h` fit is a downsampling (smaller, not the same
+/// size): what the export prefilters and the fidelity compares against footprints.
+pub fn downsamples(w: usize, h: usize, ow: usize, oh: usize) -> bool {
+    ow <= w && oh <= h && (ow, oh) != (w, h)
+}
+
 /// The fine texels (`w × h`) whose centres fall inside output texel (`i`, `j`) of an
 /// `ow × oh` texture: its footprint. Never empty (the nearest texel when none does).
 pub fn footprint(w: usize, h: usize, i: usize, j: usize, ow: usize, oh: usize) -> Vec<usize> {

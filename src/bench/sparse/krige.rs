@@ -14,7 +14,8 @@
 //! summed over every texel and channel: no truth.
 
 use anyhow::{Context, Result};
-use gonio_sparse::{Completion, Prior};
+use gonio_btf::compress::interp::unit;
+use gonio_sparse::Prior;
 use nalgebra::DMatrix;
 use rayon::prelude::*;
 
@@ -23,11 +24,6 @@ const LENGTHS: [f64; 5] = [0.08, 0.15, 0.25, 0.4, 0.6];
 const SHARES: [f64; 3] = [0.5, 0.8, 0.95];
 /// Columns (texel channels) per parallel chunk.
 const CHUNK: usize = 256;
-
-fn unit(deg: [f64; 2]) -> [f64; 3] {
-    let (t, p) = (deg[0].to_radians(), deg[1].to_radians());
-    [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
-}
 
 /// Squared chord distance between pairs `p` and `q` (canonical index `view · L + light`).
 fn dist2(dirs: &[([f64; 3], [f64; 3])], p: usize, q: usize) -> f64 {
@@ -155,19 +151,16 @@ pub fn complete(
     sensor: &gonio_devices::hdr::SensorNoise,
 ) -> Result<(Vec<Vec<f32>>, String)> {
     let p = prior.truncated(prior.components().min(measured.len()));
-    let refs: Vec<&[f32]> = measured.iter().map(|&i| meas[i].as_slice()).collect();
-    let noise = gonio::cli::bench::sensor_pair_noise(p.space(), &refs, sensor);
-    let c = Completion::with_pair_noise(&p, measured, &noise)?;
-    let (a, _) = gonio::cli::bench::coefficients_censored(&c, &refs, 1.0);
+    let fit = super::SensorFit::new(&p, measured, meas, sensor)?;
     let space = p.space();
-    let m = refs.first().map_or(0, |i| i.len());
-    let y = DMatrix::<f64>::from_fn(refs.len(), m, |i, j| space.forward(refs[i][j] as f64));
-    let mut pred = c.predict_all(&a);
+    let m = meas.first().map_or(0, |i| i.len());
+    let y = DMatrix::<f64>::from_fn(measured.len(), m, |i, j| space.forward(meas[measured[i]][j] as f64));
+    let mut pred = fit.completion.predict_all(&fit.coefficients);
     let l = lights_deg.len();
     let dirs: Vec<([f64; 3], [f64; 3])> = (0..p.dims())
         .map(|q| (unit(lights_deg[q % l]), unit(views_deg[q / l])))
         .collect();
-    let choice = krige(&p, &dirs, measured, &y, &mut pred, &noise, space.forward(1.0))?;
+    let choice = krige(&p, &dirs, measured, &y, &mut pred, &fit.noise, space.forward(1.0))?;
     let mut is_m = vec![false; p.dims()];
     measured.iter().for_each(|&q| is_m[q] = true);
     let images = (0..p.dims())
